@@ -1,0 +1,13 @@
+# The two set-up commands (see README): `make demo` and `make test`. Both create the environment
+# when it is missing.
+SHELL := /bin/bash
+export MUJOCO_GL ?= egl
+export HF_HUB_OFFLINE ?= 1
+export TOKENIZERS_PARALLELISM ?= false
+
+.PHONY: demo test
+demo:
+	@v=$$(scripts/ensure-env.sh) && "$$v/bin/shiftkit" demo --out outputs/demo
+
+test:
+	@v=$$(scripts/ensure-env.sh) && "$$v/bin/python" -m pytest -q $(PYTEST_ARGS)

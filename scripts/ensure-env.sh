@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Create (if missing) the project's virtual environment and install this checkout into it.
+# The heavy dependencies (torch, lerobot, ray: ~8 GB) live in a venv kept outside the clone,
+# keyed by a hash of pyproject.toml, so a new clone with the same pins reuses it while a change of
+# pins or a fresh machine gets a correct new one. Prints the venv path on stdout.
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+python="${PYTHON:-python3.11}"
+command -v "$python" >/dev/null || python=python3
+key="$(sha256sum "$here/pyproject.toml" | cut -c1-16)"
+venv="${SHIFTKIT_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/shiftkit/venv-$key}"
+if [ ! -f "$venv/.complete" ]; then
+    echo "shiftkit: creating environment $venv (first run: ~3 min, ~8 GB)" >&2
+    rm -rf "$venv"
+    "$python" -m venv "$venv"
+    "$venv/bin/python" -m pip install -q --upgrade pip setuptools wheel >&2
+    "$venv/bin/python" -m pip install -q "$here[dev]" >&2
+    touch "$venv/.complete"
+fi
+# Always (re)point the editable install at this checkout: several clones may share one venv.
+"$venv/bin/python" -m pip install -q --no-deps --no-build-isolation -e "$here" >&2
+echo "$venv"
