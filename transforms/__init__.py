@@ -1,1 +1,3 @@
+"""shiftkit.transforms: the offline stages. Importing this package registers every built-in stage."""
 
+from shiftkit.transforms import cast, drop, filter_episodes, rename, resample, subsample, trim  # noqa: F401

@@ -1,0 +1,116 @@
+"""Render Markdown cards from provenance dicts with the templates in `templates/`."""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+from pathlib import Path
+from string import Template
+from typing import Any
+
+# Method citations by stage / trainer name (the thesis the methods come from).
+THESIS = (
+    "Trevor Ablett. *Mitigating distribution shift in robotic imitation learning* "
+    "(PhD thesis, University of Toronto)."
+)
+CITATIONS = {
+    "multiview": "Ablett et al., *Seeing all the angles: learning multiview manipulation policies for contact-rich tasks from demonstrations*, IROS 2021.",
+    "force_matching": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
+    "mode_labelling": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
+    "fire": "Ablett et al., *Failure identification to reduce expert burden in intervention-based learning*, 2020.",
+    "success_examples": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
+    "vpace": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
+    "lfgp": "Ablett et al., *Learning from guided play: improving exploration for adversarial imitation learning with simple auxiliary tasks*, RA-L 2023.",
+}
+
+
+def _template(name: str) -> Template:
+    return Template(resources.files("shiftkit.cards").joinpath("templates", name).read_text())
+
+
+def _citation(names: list[str]) -> str:
+    cites = [CITATIONS[n] for n in dict.fromkeys(names) if n in CITATIONS]
+    return "\n".join(f"- {c}" for c in cites + [THESIS])
+
+
+def _fmt(values: Any, k: int = 4) -> str:
+    flat = [float(v) for v in _flatten(values)]
+    shown = ", ".join(f"{v:.4g}" for v in flat[:k])
+    return f"[{shown}{', ...' if len(flat) > k else ''}]"
+
+
+def _flatten(values: Any) -> list[Any]:
+    if isinstance(values, list):
+        return [x for v in values for x in _flatten(v)]
+    return [values]
+
+
+def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: str = "apache-2.0") -> str:
+    """Card for the dataset at `root` (meta/info.json, meta/stats.json) made as `provenance` says."""
+    root = Path(root)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    stats_path = root / "meta" / "stats.json"
+    stats = json.loads(stats_path.read_text()) if stats_path.exists() else {}
+    features = "\n".join(
+        f"| `{k}` | {ft['dtype']} | {tuple(ft['shape'])} | {', '.join(map(str, ft['names'][:8])) + (' ...' if len(ft['names']) > 8 else '') if isinstance(ft.get('names'), list) else ''} |"
+        for k, ft in info["features"].items()
+    )
+    stat_rows = "\n".join(
+        f"| `{k}` | {_fmt(v['mean'])} | {_fmt(v['std'])} |"
+        for k, v in stats.items()
+        if isinstance(v, dict) and "mean" in v and k not in ("index", "episode_index", "frame_index", "task_index")
+    )
+    sources = "\n".join(
+        "- " + ", ".join(f"{k}: `{v}`" for k, v in src.items() if v not in (None, "")) for src in provenance.get("sources", [])
+    ) or "- (none)"
+    stages = "\n".join(
+        f"{i + 1}. `{s['name']}` v{s['version']}: `{json.dumps(s['params'], sort_keys=True)}`"
+        for i, s in enumerate(provenance.get("stages", []))
+    ) or "(none: the sources were converted unchanged)"
+    tasks_path = root / "meta" / "tasks.parquet"
+    task_list = ""
+    if tasks_path.exists():
+        import pandas as pd
+
+        task_list = "\n".join(f"- `{t}`" for t in pd.read_parquet(tasks_path).index)
+    stage_names = [s["name"] for s in provenance.get("stages", [])]
+    versions = provenance.get("versions", {})
+    return _template("dataset_card.md").substitute(
+        license=license,
+        extra_tags="\n".join(f"- {n}" for n in dict.fromkeys(stage_names)),
+        repo_id=provenance.get("output", {}).get("repo_id", root.name),
+        shiftkit_version=versions.get("shiftkit", "?"),
+        lerobot_version=versions.get("lerobot", "?"),
+        episodes=info["total_episodes"],
+        frames=info["total_frames"],
+        fps=info["fps"],
+        tasks=info["total_tasks"],
+        sources=sources,
+        stages=stages,
+        seed=provenance.get("seed"),
+        features=features,
+        stats=stat_rows,
+        task_list=task_list,
+        citation=_citation(stage_names),
+    )
+
+
+def render_model_card(card: dict[str, Any]) -> str:
+    """Card for a trained policy: keys `trainer`, `datasets`, `args`, `metrics`, `env`, `versions`."""
+    datasets = "\n".join(
+        "- " + ", ".join(f"{k}: `{v}`" for k, v in d.items() if v not in (None, "")) for d in card.get("datasets", [])
+    ) or "- (none)"
+    args = "\n".join(f"| `{k}` | `{v}` |" for k, v in sorted(card.get("args", {}).items()))
+    metrics = "\n".join(
+        f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in card.get("metrics", {}).items()
+    )
+    trainer = str(card.get("trainer", "policy"))
+    return _template("model_card.md").substitute(
+        trainer=trainer,
+        shiftkit_version=card.get("versions", {}).get("shiftkit", "?"),
+        datasets=datasets,
+        env=card.get("env") or "(not evaluated in an environment)",
+        args=args,
+        metrics=metrics or "| (none yet) | |",
+        citation=_citation([trainer]),
+    )

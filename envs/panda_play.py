@@ -1,0 +1,518 @@
+"""Panda play scene: composition with `mujoco.MjSpec`, Cartesian control and the 59-dim observation.
+
+Physics only, no task logic (tasks live in `panda_play_tasks`). Numbers follow the reference
+environment (utiasSTARS/manipulator-learning, `PandaPlayInsertTrayXYZState`) and the LfGP thesis,
+appendix A.1. Everything is expressed in the robot base frame, which here *is* the MuJoCo world
+frame (robot base at the origin, identity orientation), the frame the published VPACE data use:
+
+* tray floor top at z = 0.125 m, centred at (0, 0.5); 30x30 cm floor with 45-degree sloped edges;
+* a resting 4 cm block has its centre at z = 0.145 (the reference's "table height");
+* bring targets (the reference's coaster origins) at (+-0.075, 0.5, 0.125), blue at +x;
+* insertion slots 4.1x4.1x1 cm centred under the bring targets; an inserted block's centre is at
+  (+-0.075, 0.5, 0.135);
+* tool centre point (TCP) bounds x in [-0.15, 0.15], y in [0.35, 0.65], z in [0.145, 0.28].
+
+The gymnasium robot model is the Franka Panda MJCF shipped by gymnasium-robotics (kitchen_franka);
+its mesh paths are resolved here because its `assets.xml` assumes a model file beside it.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+SIM_MODEL_ID = "panda-play-v1"
+
+TRAY_CENTER = np.array([0.0, 0.5])
+TRAY_HALF = 0.15
+TRAY_FLOOR_Z = 0.125
+SLOPE_WIDTH = 0.09
+BLOCK_HALF = 0.02
+BLOCK_MASS = 0.1
+BLOCK_REST_Z = TRAY_FLOOR_Z + BLOCK_HALF
+SLOT_HALF = 0.0205
+SLOT_DEPTH = 0.01
+ZONE_HALF = 0.04
+# index 0 = blue, 1 = green (the reference's object order)
+ZONE_XY = np.array([[0.075, 0.5], [-0.075, 0.5]])
+BRING_TARGETS = np.column_stack([ZONE_XY, np.full(2, TRAY_FLOOR_Z)])
+INSERT_TARGETS = np.column_stack([ZONE_XY, np.full(2, BLOCK_REST_Z - SLOT_DEPTH)])
+WORKSPACE_LOW = np.array([-0.15, 0.35, BLOCK_REST_Z])
+WORKSPACE_HIGH = np.array([0.15, 0.65, 0.28])
+# reset distributions (reference: 15x15 cm squares at the tray centre; EE 5-14.5 cm above the floor)
+BLOCK_SPAWN_HALF = 0.075
+BLOCK_MIN_SEPARATION = 0.065
+EE_SPAWN_HALF = 0.075
+EE_SPAWN_Z = (TRAY_FLOOR_Z + 0.05, min(TRAY_FLOOR_Z + 0.145, WORKSPACE_HIGH[2]))
+
+PHYSICS_DT = 0.002
+# |action| = 1 moves the desired TCP by 2 mm per 10 ms (reference: 0.002 m per 0.01 s substep),
+# i.e. 1 cm per step at 20 Hz and 4 cm per step at 5 Hz
+MAX_TCP_SPEED = 0.2
+FINGER_OPEN = 0.04
+# TCP distance from the link7 flange along its z axis: 1.5 cm above the (1.75x long) fingertips,
+# so a block grasped at its centre sits fully between the pads and the tips clear the floor
+TCP_OFFSET = 0.2475
+# hand orientation held fixed: fingers open along base x, gripper pointing down
+TCP_ROTATION = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+HOME_QPOS = np.array([1.5708, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785])
+
+OBSERVATION_NAMES: tuple[str, ...] = (
+    "ee_pos_x", "ee_pos_y", "ee_pos_z",
+    "ee_vel_x", "ee_vel_y", "ee_vel_z",
+    "finger_left", "finger_right",
+    "finger_left_t-2", "finger_right_t-2",
+    "finger_left_t-1", "finger_right_t-1",
+    "blue_pos_x", "blue_pos_y", "blue_pos_z", "blue_quat_x", "blue_quat_y", "blue_quat_z", "blue_quat_w",
+    "green_pos_x", "green_pos_y", "green_pos_z", "green_quat_x", "green_quat_y", "green_quat_z", "green_quat_w",
+    "blue_linvel_x", "blue_linvel_y", "blue_linvel_z", "blue_angvel_x", "blue_angvel_y", "blue_angvel_z",
+    "green_linvel_x", "green_linvel_y", "green_linvel_z", "green_angvel_x", "green_angvel_y", "green_angvel_z",
+    "blue_minus_ee_x", "blue_minus_ee_y", "blue_minus_ee_z",
+    "green_minus_ee_x", "green_minus_ee_y", "green_minus_ee_z",
+    "green_minus_blue_x", "green_minus_blue_y", "green_minus_blue_z",
+    "blue_target_minus_blue_x", "blue_target_minus_blue_y", "blue_target_minus_blue_z",
+    "green_target_minus_green_x", "green_target_minus_green_y", "green_target_minus_green_z",
+    "wrist_force_x", "wrist_force_y", "wrist_force_z", "wrist_torque_x", "wrist_torque_y", "wrist_torque_z",
+)
+OBS_DIM = len(OBSERVATION_NAMES)
+# dataset split: robot proprioception vs privileged object state (full = state[:12] + env + state[12:])
+STATE_INDICES = np.r_[0:12, 53:59]
+ENVIRONMENT_STATE_INDICES = np.r_[12:53]
+ACTION_NAMES = ("delta_x", "delta_y", "delta_z", "gripper_close")
+
+# geom groups: robot visual meshes 0, scene 1, robot collision 3 (the fast render mode shows 1 and 3)
+SCENE_GROUP = 1
+
+
+def franka_assets_dir() -> str:
+    """The Franka Panda MJCF folder shipped by gymnasium-robotics (found without importing it)."""
+    spec = importlib.util.find_spec("gymnasium_robotics")
+    if spec is None or spec.origin is None:
+        raise ImportError("gymnasium-robotics is required for the Panda model")
+    return os.path.join(os.path.dirname(spec.origin), "envs", "assets", "kitchen_franka", "franka_assets")
+
+
+def _look_at(pos, target) -> tuple[float, ...]:
+    """`xyaxes` of a camera at `pos` looking at `target` with world z up."""
+    fwd = np.asarray(target, float) - np.asarray(pos, float)
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    return (*right, *up)
+
+
+CAMERAS = {
+    # across the tray, looking back at the robot (the reference's workspace camera view)
+    "front": dict(pos=(0.0, 1.05, 0.5), target=(0.0, 0.48, 0.13), fovy=55.0),
+    "overhead": dict(pos=(0.0, 0.5, 0.75), target=(0.0, 0.5, 0.125), fovy=45.0),
+}
+
+
+def _add_box(body, name, half, pos, rgba, quat=None, collide=True):
+    g = body.add_geom()
+    g.name = name
+    g.type = mujoco.mjtGeom.mjGEOM_BOX
+    g.size = list(half)
+    g.pos = list(pos)
+    if quat is not None:
+        g.quat = list(quat)
+    g.rgba = list(rgba)
+    g.group = SCENE_GROUP
+    g.contype = g.conaffinity = 1 if collide else 0
+    return g
+
+
+def build_spec() -> mujoco.MjSpec:
+    """Compose the scene: gymnasium-robotics Panda + tray with slots + two blocks + cameras."""
+    root = franka_assets_dir()
+    xml = (
+        f'<mujoco model="{SIM_MODEL_ID}"><include file="{root}/assets.xml"/>'
+        f'<include file="{root}/actuator.xml"/><worldbody><include file="{root}/chain.xml"/></worldbody></mujoco>'
+    )
+    spec = mujoco.MjSpec.from_string(xml)
+    spec.meshdir = ""
+    for mesh in spec.meshes:  # the include resolved them beside franka_assets/, not in meshes/
+        mesh.file = os.path.join(root, "meshes", os.path.relpath(mesh.file, root))
+    spec.option.timestep = PHYSICS_DT
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.impratio = 10.0  # stiffer friction: grasped blocks do not creep out of the fingers
+    spec.visual.global_.offwidth = 640
+    spec.visual.global_.offheight = 480
+
+    for body in spec.bodies:
+        if body.name.startswith("panda0_"):
+            body.gravcomp = 1.0  # position servos then track without gravity sag
+    for geom in spec.geoms:
+        # the upper arm never reaches the tray inside the TCP bounds: only hand + fingers collide
+        body = geom.parent.name
+        if geom.group == 3 and body not in ("panda0_link7", "panda0_leftfinger", "panda0_rightfinger"):
+            geom.contype = geom.conaffinity = 0
+    for joint in spec.joints:
+        if joint.name.startswith("robot:panda0_finger"):
+            joint.armature = 0.05  # the kitchen model's 5 kg-equivalent fingers need ~1 s to close
+            joint.damping = 5.0
+    link7 = spec.body("panda0_link7")
+    tcp = link7.add_site()
+    tcp.name = "tcp"
+    tcp.pos = [0.0, 0.0, TCP_OFFSET]
+    tcp.quat = [0.9238795, 0.0, 0.0, -0.3826834]  # hand frame: fingers slide along site y
+    tcp.size = [0.005, 0.005, 0.005]
+    tcp.group = 5
+
+    world = spec.worldbody
+    light = world.add_light()
+    light.pos = [0.0, 0.6, 1.5]
+    light.dir = [0.0, -0.2, -1.0]
+    light.diffuse = [0.8, 0.8, 0.8]
+    light.castshadow = False
+    floor = world.add_geom()
+    floor.name = "ground"
+    floor.type = mujoco.mjtGeom.mjGEOM_PLANE
+    floor.size = [2.0, 2.0, 0.1]
+    floor.rgba = [0.35, 0.35, 0.38, 1.0]
+    floor.group = SCENE_GROUP
+    floor.contype = floor.conaffinity = 0
+
+    tray = world.add_body()
+    tray.name = "tray"
+    tray.pos = [TRAY_CENTER[0], TRAY_CENTER[1], 0.0]
+    grey = (0.55, 0.55, 0.58, 1.0)
+    base_top = TRAY_FLOOR_Z - SLOT_DEPTH
+    _add_box(tray, "tray_pedestal", (TRAY_HALF + SLOPE_WIDTH, TRAY_HALF + SLOPE_WIDTH, base_top / 2),
+             (0, 0, base_top / 2), (0.4, 0.3, 0.25, 1.0))
+    # the top 1 cm layer of the floor, cut around the two slots
+    h = SLOT_DEPTH / 2
+    z = base_top + h
+    band = (TRAY_HALF - SLOT_HALF) / 2
+    _add_box(tray, "tray_floor_near", (TRAY_HALF, band, h), (0, -SLOT_HALF - band, z), grey)
+    _add_box(tray, "tray_floor_far", (TRAY_HALF, band, h), (0, SLOT_HALF + band, z), grey)
+    zx = ZONE_XY[0, 0]
+    outer = (TRAY_HALF - zx - SLOT_HALF) / 2
+    inner = zx - SLOT_HALF
+    _add_box(tray, "tray_floor_mid", (inner, SLOT_HALF, h), (0, 0, z), grey)
+    _add_box(tray, "tray_floor_pos", (outer, SLOT_HALF, h), (zx + SLOT_HALF + outer, 0, z), grey)
+    _add_box(tray, "tray_floor_neg", (outer, SLOT_HALF, h), (-zx - SLOT_HALF - outer, 0, z), grey)
+    # 45-degree slopes rising from the floor edges
+    t = 0.005
+    length = SLOPE_WIDTH * np.sqrt(2.0)
+    c = TRAY_HALF + SLOPE_WIDTH / 2 + t / np.sqrt(2.0) * 0.0
+    zc = TRAY_FLOOR_Z + SLOPE_WIDTH / 2 - t / np.sqrt(2.0)
+    s = np.sin(np.pi / 8)
+    k = np.cos(np.pi / 8)
+    long_half = TRAY_HALF + SLOPE_WIDTH
+    for name, pos, quat, half in (
+        ("tray_slope_far", (0, c, zc), (k, s, 0, 0), (long_half, length / 2, t)),
+        ("tray_slope_near", (0, -c, zc), (k, -s, 0, 0), (long_half, length / 2, t)),
+        ("tray_slope_right", (c, 0, zc), (k, 0, -s, 0), (length / 2, long_half, t)),
+        ("tray_slope_left", (-c, 0, zc), (k, 0, s, 0), (length / 2, long_half, t)),
+    ):
+        _add_box(tray, name, half, pos, (0.6, 0.6, 0.63, 1.0), quat=quat)
+    # bring zones: thin visual squares on the floor (no collision)
+    for i, rgba in enumerate(((0, 0, 1, 0.25), (0, 1, 0, 0.25))):
+        dx = ZONE_XY[i, 0] - TRAY_CENTER[0]
+        _add_box(tray, f"zone_{'blue' if i == 0 else 'green'}", (ZONE_HALF, ZONE_HALF, 0.0005),
+                 (dx, 0, TRAY_FLOOR_Z + 0.0006), rgba, collide=False)
+
+    for name, rgba in (("blue", (0, 0, 1, 1)), ("green", (0, 1, 0, 1))):
+        block = world.add_body()
+        block.name = f"{name}_block"
+        block.pos = [0.0, 0.5, 0.5]
+        joint = block.add_freejoint()
+        joint.name = f"{name}_free"
+        g = _add_box(block, f"{name}_geom", (BLOCK_HALF,) * 3, (0, 0, 0), rgba)
+        g.mass = BLOCK_MASS
+        g.friction = [1.0, 0.005, 0.0001]
+        g.condim = 4
+
+    for name, cam in CAMERAS.items():
+        camera = world.add_camera()
+        camera.name = name
+        camera.pos = list(cam["pos"])
+        camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
+        camera.alt.xyaxes = list(_look_at(cam["pos"], cam["target"]))
+        camera.fovy = cam["fovy"]
+    return spec
+
+
+def quat_wxyz_to_xyzw_positive(q: np.ndarray) -> np.ndarray:
+    """MuJoCo (w, x, y, z) -> the reference's (x, y, z, w) with w >= 0."""
+    out = np.array([q[1], q[2], q[3], q[0]])
+    return -out if out[3] < 0 else out
+
+
+def block_reset_quat(yaw: float) -> np.ndarray:
+    """Reset orientation in MuJoCo wxyz: yaw about z after a half turn about x. The reference resets
+    blocks as euler (pi, 0, yaw) (a cube looks the same either way); matching it keeps our reset
+    quaternions, (cos(yaw/2), sin(yaw/2), 0, 0) in xyzw, on the published data's distribution."""
+    return np.array([0.0, np.cos(yaw / 2), np.sin(yaw / 2), 0.0])
+
+
+@dataclass
+class ContactFlags:
+    """Which pairs of scene parts touch (at the current MuJoCo state)."""
+
+    blue_green: bool
+    blue_tray: bool
+    green_tray: bool
+    blue_gripper: bool
+    green_gripper: bool
+    blue_left_finger: bool
+    blue_right_finger: bool
+    green_left_finger: bool
+    green_right_finger: bool
+
+
+# part codes for the contact table
+_OTHER, _BLUE, _GREEN, _TRAY, _HAND, _LEFT, _RIGHT = range(7)
+
+
+class PandaPlayPhysics:
+    """The MuJoCo model/data of the Panda play scene plus its Cartesian controller and observation."""
+
+    def __init__(self, control_hz: int = 20) -> None:
+        if control_hz not in (5, 20):
+            raise ValueError(f"control_hz must be 5 or 20, got {control_hz}")
+        self.control_hz = control_hz
+        self.model = build_spec().compile()
+        self.data = mujoco.MjData(self.model)
+        self._ik = mujoco.MjData(self.model)
+        self.n_substeps = int(round(1.0 / (control_hz * PHYSICS_DT)))
+        self.control_dt = self.n_substeps * PHYSICS_DT
+        self.max_step = MAX_TCP_SPEED * self.control_dt
+        m = self.model
+        self.tcp_site = m.site("tcp").id
+        arm_joints = [m.joint(f"robot:panda0_joint{i}") for i in range(1, 8)]
+        self.arm_qpos = np.array([j.qposadr[0] for j in arm_joints])
+        self.arm_dofs = np.array([j.dofadr[0] for j in arm_joints])
+        self.arm_range = np.array([j.range for j in arm_joints])
+        self.finger_qpos = np.array([m.joint(f"robot:panda0_finger_joint{i}").qposadr[0] for i in (1, 2)])
+        self.block_qpos = np.array([m.joint(f"{c}_free").qposadr[0] for c in ("blue", "green")])
+        self.block_dof = np.array([m.joint(f"{c}_free").dofadr[0] for c in ("blue", "green")])
+        self.block_body = np.array([m.body(f"{c}_block").id for c in ("blue", "green")])
+        parts = np.full(m.ngeom, _OTHER, dtype=np.int64)
+        parts[m.geom("blue_geom").id] = _BLUE
+        parts[m.geom("green_geom").id] = _GREEN
+        tray_body = m.body("tray").id
+        for g in range(m.ngeom):
+            body = m.geom_bodyid[g]
+            if body == tray_body and m.geom_contype[g]:
+                parts[g] = _TRAY
+            elif body == m.body("panda0_link7").id:
+                parts[g] = _HAND
+            elif body == m.body("panda0_leftfinger").id:
+                parts[g] = _LEFT
+            elif body == m.body("panda0_rightfinger").id:
+                parts[g] = _RIGHT
+        self._parts = parts
+        self._gripper_part = np.isin(parts, (_HAND, _LEFT, _RIGHT))
+        self._jacp = np.zeros((3, m.nv))
+        self._jacr = np.zeros((3, m.nv))
+        self._vel6 = np.zeros(6)
+        self._cforce = np.zeros(6)
+        self.desired_tcp = np.zeros(3)
+        self.q_target = HOME_QPOS.copy()
+        self.gripper_closed = False
+        self.finger_history = np.ones((3, 2))  # rows: t-2, t-1, t
+        self.prev_block_vel = np.zeros((2, 3))
+        self.block_acc = np.zeros((2, 3))
+
+    # ----------------------------------------------------------------- state access
+    def tcp_pos(self) -> np.ndarray:
+        return self.data.site_xpos[self.tcp_site].copy()
+
+    def block_pos(self, i: int) -> np.ndarray:
+        return self.data.xpos[self.block_body[i]].copy()
+
+    def block_quat_wxyz(self, i: int) -> np.ndarray:
+        return self.data.xquat[self.block_body[i]].copy()
+
+    def block_linvel(self, i: int) -> np.ndarray:
+        a = self.block_dof[i]
+        return self.data.qvel[a:a + 3].copy()
+
+    def fingers(self) -> np.ndarray:
+        """Finger positions scaled to [0, 1] (1 = fully open), as in the reference."""
+        return self.data.qpos[self.finger_qpos] / FINGER_OPEN
+
+    def tcp_velocity(self) -> np.ndarray:
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.tcp_site, self._vel6, 0)
+        return self._vel6[3:].copy()
+
+    # ----------------------------------------------------------------- reset
+    def reset(self, rng: np.random.Generator, green_on_blue: bool = False) -> None:
+        """Sample a reset state (blocks in the tray with random yaw, TCP 5-14.5 cm above the floor,
+        gripper open) and settle it; every random number comes from `rng`."""
+        d = self.data
+        mujoco.mj_resetData(self.model, d)
+        blue_xy = TRAY_CENTER + rng.uniform(-BLOCK_SPAWN_HALF, BLOCK_SPAWN_HALF, 2)
+        while True:
+            green_xy = TRAY_CENTER + rng.uniform(-BLOCK_SPAWN_HALF, BLOCK_SPAWN_HALF, 2)
+            if green_on_blue or np.linalg.norm(green_xy - blue_xy) >= BLOCK_MIN_SEPARATION:
+                break
+        yaws = rng.uniform(0.0, 2 * np.pi, 2)
+        tcp = np.array([
+            *(TRAY_CENTER + rng.uniform(-EE_SPAWN_HALF, EE_SPAWN_HALF, 2)), rng.uniform(*EE_SPAWN_Z)])
+        if green_on_blue:
+            green_xy = blue_xy
+            yaws[1] = yaws[0]
+            green_z = BLOCK_REST_Z + 2 * BLOCK_HALF
+            # keep the fingers clear of the tower
+            tcp[2] = max(tcp[2], green_z + 0.06)
+        else:
+            green_z = BLOCK_REST_Z
+        for i, (xy, z) in enumerate(((blue_xy, BLOCK_REST_Z), (green_xy, green_z))):
+            a = self.block_qpos[i]
+            d.qpos[a:a + 3] = (*xy, z + 1e-4)
+            d.qpos[a + 3:a + 7] = block_reset_quat(yaws[i])
+        d.qpos[self.arm_qpos] = HOME_QPOS
+        d.qpos[self.finger_qpos] = FINGER_OPEN
+        self.q_target = HOME_QPOS.copy()
+        for _ in range(30):
+            self._ik_step(tcp, self.data)
+            d.qpos[self.arm_qpos] = self.q_target
+        self.desired_tcp = tcp.copy()
+        self.gripper_closed = False
+        self._write_controls()
+        mujoco.mj_forward(self.model, d)
+        # let contacts settle under the holding controller (blocks placed 0.1 mm above the floor)
+        mujoco.mj_step(self.model, d, nstep=25)
+        d.qvel[:] = 0.0
+        mujoco.mj_forward(self.model, d)
+        self.finger_history[:] = self.fingers()
+        self.prev_block_vel[:] = [self.block_linvel(0), self.block_linvel(1)]
+        self.block_acc[:] = 0.0
+
+    def set_state(self, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """Restore a simulator state (e.g. from a recorded `sim_qpos`/`sim_qvel`)."""
+        self.data.qpos[:] = qpos
+        self.data.qvel[:] = qvel
+        self.q_target = self.data.qpos[self.arm_qpos].copy()
+        mujoco.mj_forward(self.model, self.data)
+        self.desired_tcp = self.tcp_pos()
+        self.finger_history[:] = self.fingers()
+        self.prev_block_vel[:] = [self.block_linvel(0), self.block_linvel(1)]
+
+    # ----------------------------------------------------------------- control
+    def _ik_step(self, target: np.ndarray, data: mujoco.MjData) -> None:
+        """One damped-least-squares IK update of `q_target` towards the TCP `target` (fixed hand
+        orientation), evaluated at `q_target` on `data` (kinematics only)."""
+        m = self.model
+        data.qpos[self.arm_qpos] = self.q_target
+        mujoco.mj_kinematics(m, data)
+        mujoco.mj_comPos(m, data)
+        mujoco.mj_jacSite(m, data, self._jacp, self._jacr, self.tcp_site)
+        rot = data.site_xmat[self.tcp_site].reshape(3, 3)
+        err = np.empty(6)
+        err[:3] = target - data.site_xpos[self.tcp_site]
+        err[3:] = 0.5 * (np.cross(rot[:, 0], TCP_ROTATION[:, 0]) + np.cross(rot[:, 1], TCP_ROTATION[:, 1])
+                         + np.cross(rot[:, 2], TCP_ROTATION[:, 2]))
+        jac = np.vstack([self._jacp[:, self.arm_dofs], self._jacr[:, self.arm_dofs]])
+        jjt = jac @ jac.T + 1e-4 * np.eye(6)
+        dq = jac.T @ np.linalg.solve(jjt, err)
+        # null-space pull towards the home posture keeps the elbow up and away from joint limits
+        posture = 0.05 * (HOME_QPOS - self.q_target)
+        dq += posture - jac.T @ np.linalg.solve(jjt, jac @ posture)
+        self.q_target = np.clip(self.q_target + dq, self.arm_range[:, 0], self.arm_range[:, 1])
+
+    def _write_controls(self) -> None:
+        self.data.ctrl[:7] = self.q_target
+        self.data.ctrl[7:9] = 0.0 if self.gripper_closed else FINGER_OPEN
+
+    def step(self, action: np.ndarray) -> None:
+        """Apply one control step: delta TCP position (clipped to [-1, 1], scaled to the step, desired
+        position kept inside the workspace bounds) and the gripper (> 0 closes, < 0 opens)."""
+        a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        self.desired_tcp = np.clip(self.desired_tcp + a[:3] * self.max_step, WORKSPACE_LOW, WORKSPACE_HIGH)
+        if a[3] != 0.0:
+            self.gripper_closed = bool(a[3] > 0.0)
+        for _ in range(2 if self.control_hz < 20 else 1):
+            self._ik_step(self.desired_tcp, self._ik)
+        self._write_controls()
+        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+        # observation, contacts and predicates must describe the state that is returned
+        mujoco.mj_forward(self.model, self.data)
+        self.finger_history[:2] = self.finger_history[1:]
+        self.finger_history[2] = self.fingers()
+        vel = np.array([self.block_linvel(0), self.block_linvel(1)])
+        self.block_acc = (vel - self.prev_block_vel) / self.control_dt
+        self.prev_block_vel = vel
+
+    # ----------------------------------------------------------------- sensing
+    def contacts(self) -> ContactFlags:
+        d = self.data
+        n = d.ncon
+        pairs: set[tuple[int, int]] = set()
+        if n:
+            g1 = self._parts[d.contact.geom1[:n]]
+            g2 = self._parts[d.contact.geom2[:n]]
+            pairs = set(zip(np.minimum(g1, g2).tolist(), np.maximum(g1, g2).tolist()))
+        grip = lambda b: any((min(b, p), max(b, p)) in pairs for p in (_HAND, _LEFT, _RIGHT))  # noqa: E731
+        return ContactFlags(
+            blue_green=(_BLUE, _GREEN) in pairs,
+            blue_tray=(_BLUE, _TRAY) in pairs,
+            green_tray=(_GREEN, _TRAY) in pairs,
+            blue_gripper=grip(_BLUE),
+            green_gripper=grip(_GREEN),
+            blue_left_finger=(_BLUE, _LEFT) in pairs,
+            blue_right_finger=(_BLUE, _RIGHT) in pairs,
+            green_left_finger=(_GREEN, _LEFT) in pairs,
+            green_right_finger=(_GREEN, _RIGHT) in pairs,
+        )
+
+    def wrist_wrench(self) -> np.ndarray:
+        """External contact wrench on the hand + fingers about the TCP, in the TCP frame (what a
+        gravity-compensated wrist force-torque sensor reads in quasi-static contact)."""
+        d = self.data
+        wrench = np.zeros(6)
+        n = d.ncon
+        if not n:
+            return wrench
+        g1 = d.contact.geom1[:n]
+        g2 = d.contact.geom2[:n]
+        on1 = self._gripper_part[g1]
+        on2 = self._gripper_part[g2]
+        tcp = d.site_xpos[self.tcp_site]
+        for i in np.nonzero(on1 ^ on2)[0]:
+            mujoco.mj_contactForce(self.model, d, int(i), self._cforce)
+            frame = d.contact.frame[i].reshape(3, 3)
+            force = frame.T @ self._cforce[:3]  # force of geom1 on geom2, world frame
+            if on1[i]:
+                force = -force
+            wrench[:3] += force
+            wrench[3:] += np.cross(d.contact.pos[i] - tcp, force)
+        rot = d.site_xmat[self.tcp_site].reshape(3, 3)
+        return np.concatenate([rot.T @ wrench[:3], rot.T @ wrench[3:]])
+
+    def observation(self) -> np.ndarray:
+        """The 59-dim reference observation (see OBSERVATION_NAMES and docs/panda_play.md)."""
+        d = self.data
+        obs = np.empty(OBS_DIM, dtype=np.float64)
+        tcp = d.site_xpos[self.tcp_site]
+        obs[0:3] = tcp
+        obs[3:6] = self.tcp_velocity()
+        obs[6:8] = self.finger_history[2]
+        obs[8:10] = self.finger_history[0]
+        obs[10:12] = self.finger_history[1]
+        pos = d.xpos[self.block_body]
+        for i in range(2):
+            obs[12 + 7 * i:15 + 7 * i] = pos[i]
+            obs[15 + 7 * i:19 + 7 * i] = quat_wxyz_to_xyzw_positive(d.xquat[self.block_body[i]])
+            a = self.block_dof[i]
+            obs[26 + 6 * i:29 + 6 * i] = d.qvel[a:a + 3]
+            # free-joint angular velocity is in the body frame; the reference reports the base frame
+            obs[29 + 6 * i:32 + 6 * i] = d.xmat[self.block_body[i]].reshape(3, 3) @ d.qvel[a + 3:a + 6]
+        obs[38:41] = pos[0] - tcp
+        obs[41:44] = pos[1] - tcp
+        obs[44:47] = pos[1] - pos[0]
+        obs[47:50] = BRING_TARGETS[0] - pos[0]
+        obs[50:53] = BRING_TARGETS[1] - pos[1]
+        wrench = self.wrist_wrench()
+        obs[53:56] = np.tanh(wrench[:3] / 100.0)
+        obs[56:59] = np.tanh(wrench[3:] / 10.0)
+        return obs.astype(np.float32)

@@ -1,0 +1,110 @@
+"""Pipeline config files (TOML, YAML or JSON): sources, ordered stages, destination, seed.
+
+    [[sources]]
+    path = "raw/lift"            # or repo_id = "org/name" (+ revision)
+
+    [[stages]]
+    name = "trim"
+    params = { head = 2 }
+
+    [destination]
+    root = "out/lift"            # relative paths are relative to this file
+    repo_id = "local/lift"
+
+    seed = 0                     # top-level keys must come before the first table in TOML
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from shiftkit.pipelines.dataclass_config import from_dict
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.sources import SourceConfig
+
+
+@dataclass
+class StageSpec:
+    name: str
+    """Registered stage name (see `shiftkit plan --stages`)."""
+    params: dict[str, Any] = field(default_factory=dict)
+    """The stage's config values; unknown keys are errors."""
+    version: int | None = None
+    """Pin the stage version; a mismatch with the installed stage is an error."""
+
+
+@dataclass
+class DestinationConfig:
+    root: str
+    """Output dataset directory; must not exist yet."""
+    repo_id: str | None = None
+    """Dataset ID recorded in the dataset (default: local/<directory name>)."""
+    push: bool = False
+    """Push the finished dataset to the hub as `repo_id` (endpoint from HF_ENDPOINT)."""
+
+
+@dataclass
+class PipelineConfig:
+    sources: list[SourceConfig]
+    """Input datasets; their episodes are processed in order."""
+    destination: DestinationConfig
+    """Where the output LeRobot dataset goes."""
+    stages: list[StageSpec] = field(default_factory=list)
+    """Stages applied in order to every episode."""
+    seed: int = 0
+    """Seed of every random choice a stage makes."""
+
+    def __post_init__(self) -> None:
+        if not self.sources:
+            raise ValueError("at least one source is required")
+
+
+def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConfig:
+    if isinstance(data, dict) and "source" in data:
+        if "sources" in data:
+            raise ConfigError(f"{where}: give either 'source' or 'sources', not both")
+        data = {**data, "sources": [data["source"]]}
+        del data["source"]
+    config = from_dict(PipelineConfig, data, where)
+    # Make relative paths relative to the config file, so a pipeline runs from any directory.
+    for src in config.sources:
+        if src.path is not None and not Path(src.path).is_absolute():
+            src.path = str((base_dir / src.path).resolve())
+    if not Path(config.destination.root).is_absolute():
+        config.destination.root = str((base_dir / config.destination.root).resolve())
+    return config
+
+
+def load_pipeline_config(path: str | Path) -> PipelineConfig:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"pipeline config not found: {path}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"pipeline config is a directory: {path}") from None
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".toml":
+            data = tomllib.loads(text)
+        elif suffix in (".yaml", ".yml"):
+            import yaml
+
+            data = yaml.safe_load(text)
+        elif suffix == ".json":
+            data = json.loads(text)
+        else:
+            raise ConfigError(f"{path}: unknown config format {suffix!r} (use .toml, .yaml or .json)")
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+    except Exception as exc:  # yaml.YAMLError and friends
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+    return parse_pipeline_config(data, path.parent.resolve(), str(path))

@@ -1,0 +1,102 @@
+"""LeRobot feature schemas (`{"dtype", "shape", "names", "info"}` per key) and episode checks."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import DatasetError
+
+Features = dict[str, dict[str, Any]]
+
+# Features every LeRobot dataset has; the writer fills them, stages never declare them.
+DEFAULT_KEYS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
+NUMERIC_DTYPES = {"float32", "float64", "int64", "int32", "int16", "int8", "uint8", "bool"}
+CAMERA_DTYPES = {"image", "video"}
+IMAGE_NAMES = ["height", "width", "channels"]
+
+
+def numpy_dtype(dtype: str) -> np.dtype:
+    """The numpy dtype an Episode array of a feature holds (images: uint8 HxWx3)."""
+    return np.dtype("uint8") if dtype in CAMERA_DTYPES else np.dtype(dtype)
+
+
+def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
+    feature: dict[str, Any] = {"dtype": dtype, "shape": (len(names),), "names": list(names)}
+    if info:
+        feature["info"] = info
+    return feature
+
+
+def image_feature(height: int, width: int, channels: int = 3, **info: Any) -> dict[str, Any]:
+    feature: dict[str, Any] = {"dtype": "image", "shape": (height, width, channels), "names": list(IMAGE_NAMES)}
+    if info:
+        feature["info"] = info
+    return feature
+
+
+def user_features(features: Features) -> Features:
+    """The schema without the writer-derived default columns, shapes as tuples."""
+    out = {}
+    for key, ft in features.items():
+        if key in DEFAULT_KEYS:
+            continue
+        ft = copy.deepcopy(ft)
+        ft["shape"] = tuple(ft["shape"])
+        out[key] = ft
+    return out
+
+
+def check_features(features: Features, where: str = "features") -> None:
+    """Raise a DatasetError for a schema lerobot would reject or that shiftkit cannot write."""
+    for key, ft in features.items():
+        if "/" in key:
+            raise DatasetError(f"{where}: feature name {key!r} contains '/' (not allowed in LeRobot datasets)")
+        dtype = ft.get("dtype")
+        if dtype not in NUMERIC_DTYPES | CAMERA_DTYPES | {"string"}:
+            raise DatasetError(f"{where}: feature {key!r} has unsupported dtype {dtype!r}")
+        shape = tuple(ft.get("shape", ()))
+        if not shape or any((not isinstance(n, int)) or n <= 0 for n in shape):
+            raise DatasetError(f"{where}: feature {key!r} has invalid shape {ft.get('shape')!r}")
+        names = ft.get("names")
+        if dtype in NUMERIC_DTYPES and len(shape) == 1 and isinstance(names, list) and len(names) != shape[0]:
+            raise DatasetError(f"{where}: feature {key!r} has {len(names)} names for {shape[0]} dims")
+
+
+def check_episode(episode: Episode, features: Features, fps: int, where: str) -> None:
+    """Validate one episode against the schema: keys, shapes, dtypes, NaNs, timestamps at `fps`."""
+    n = len(episode)
+    if n == 0:
+        raise DatasetError(f"{where}: episode has no frames")
+    expected = set(features) | {"timestamp", "task"}
+    missing = expected - set(episode.frames)
+    extra = set(episode.frames) - expected
+    if missing:
+        raise DatasetError(f"{where}: missing feature(s) {sorted(missing)}")
+    if extra:
+        raise DatasetError(f"{where}: feature(s) {sorted(extra)} not declared in the schema")
+    for key, ft in features.items():
+        arr = episode.frames[key]
+        if len(arr) != n:
+            raise DatasetError(f"{where}: feature {key!r} has {len(arr)} frames, expected {n}")
+        shape = tuple(ft["shape"])
+        got = arr.shape[1:]
+        if got != shape and not (shape == (1,) and got == ()):
+            raise DatasetError(f"{where}: feature {key!r} has per-frame shape {got}, expected {shape}")
+        if arr.dtype != numpy_dtype(ft["dtype"]):
+            raise DatasetError(f"{where}: feature {key!r} has dtype {arr.dtype}, expected {numpy_dtype(ft['dtype'])}")
+        if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            bad = int(np.argwhere(~np.isfinite(arr.reshape(n, -1)).all(axis=1))[0][0])
+            raise DatasetError(f"{where}: feature {key!r} has NaN/inf values (first at frame {bad})")
+    ts = np.asarray(episode.frames["timestamp"], dtype=np.float64)
+    if not np.isfinite(ts).all():
+        raise DatasetError(f"{where}: timestamps contain NaN/inf")
+    # LeRobot checks consecutive timestamps against 1/fps with this tolerance when it loads.
+    deviation = float(np.abs(np.diff(ts) - 1.0 / fps).max()) if n > 1 else 0.0
+    if deviation > 1e-4:
+        raise DatasetError(
+            f"{where}: timestamps are not sampled at {fps} fps (deviation {deviation:.4f} s); add a `resample` stage"
+        )

@@ -1,0 +1,363 @@
+"""Raw episode format v1: what a teleop recorder, a kinesthetic-teaching logger or `shiftkit collect`
+writes before any stage runs. Documented in docs/raw_format.md.
+
+Layout::
+
+    DIR/dataset.json                    {"format": "shiftkit-raw", "version": 1, fps, robot, env,
+                                         names, episodes: [{"name", "length", "task"}]}
+    DIR/episode_000000/meta.json        task, outcome, seed, segments, labels, sim_model, ...
+    DIR/episode_000000/arrays/NAME.npy  per-frame arrays, first axis = frame
+    DIR/episode_000000/images/CAM/frame_000000.png   RGB frames (one PNG per frame)
+    DIR/episode_000000/depth/CAM.npy    (T, H, W) float32 metres
+
+Every array and image is checked on read (lengths, dtypes, NaNs, missing frames) and a problem is
+reported as one line naming the file. `.npy` and PNG bytes are deterministic, so the same
+recording gives the same files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.features import Features, image_feature, vector_feature
+
+FORMAT = "shiftkit-raw"
+VERSION = 1
+
+# Standard raw arrays and the LeRobot feature each becomes. Any other array keeps its own name.
+FEATURE_OF_ARRAY = {
+    "action": "action",
+    "state": "observation.state",
+    "environment_state": "observation.environment_state",
+    "ee_pose": "observation.ee_pose",
+    "joint_positions": "observation.joint_positions",
+    "gripper": "observation.gripper",
+    "wrench_raw": "observation.wrench",
+    "success": "next.success",
+    "sim_qpos": "sim.qpos",
+    "sim_qvel": "sim.qvel",
+    "sim_act": "sim.act",
+}
+DEFAULT_NAMES = {
+    "ee_pose": ["x", "y", "z", "qx", "qy", "qz", "qw"],
+    "wrench_raw": ["Fx", "Fy", "Fz", "tau_z"],
+}
+REQUIRED_ARRAYS = ("timestamp", "action")
+ALLOWED_DTYPES = {"float32", "float64", "int64", "int32", "bool", "uint8"}
+
+
+def _camera_feature(name: str) -> str:
+    return f"observation.images.{name}"
+
+
+def _depth_feature(name: str) -> str:
+    return f"observation.depth.{name}"
+
+
+def _check_name(name: str, what: str) -> None:
+    if not name or "/" in name or name.startswith(".") or not name.replace("_", "a").replace(".", "a").isalnum():
+        raise DatasetError(f"invalid {what} name {name!r}: use letters, digits, '_' and '.'")
+
+
+class RawDatasetWriter:
+    """Writes raw episodes; use as a context manager.
+
+    The dataset is built in a temporary sibling directory and renamed to `out_dir` when the `with`
+    block ends without an error, so a crashed recorder leaves nothing half-written at `out_dir`.
+    """
+
+    def __init__(
+        self,
+        out_dir: str | Path,
+        fps: int,
+        robot: str = "",
+        env: str = "",
+        names: dict[str, list[str]] | None = None,
+        info: dict[str, Any] | None = None,
+    ) -> None:
+        self.out_dir = Path(out_dir)
+        if self.out_dir.exists():
+            raise DatasetError(f"output directory already exists: {self.out_dir}")
+        if not isinstance(fps, int) or fps <= 0:
+            raise DatasetError(f"fps must be a positive integer, got {fps!r}")
+        self.fps = fps
+        self.robot = robot
+        self.env = env
+        self.names = {k: list(v) for k, v in (names or {}).items()}
+        self.info = dict(info or {})
+        self._tmp = self.out_dir.parent / f".{self.out_dir.name}.partial-{uuid.uuid4().hex[:8]}"
+        self._episodes: list[dict[str, Any]] = []
+        self._layout: dict[str, Any] | None = None
+
+    def __enter__(self) -> RawDatasetWriter:
+        self._tmp.mkdir(parents=True)
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None and self._episodes:
+            self._write_index()
+            os.rename(self._tmp, self.out_dir)
+        else:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            if exc_type is None:
+                raise DatasetError(f"no episodes were added to {self.out_dir}")
+
+    def add_episode(
+        self,
+        arrays: dict[str, np.ndarray],
+        images: dict[str, np.ndarray] | None = None,
+        depth: dict[str, np.ndarray] | None = None,
+        meta: dict[str, Any] | None = None,
+    ) -> None:
+        """Add one episode. `arrays` needs `timestamp` (T,) and `action` (T, A); `images[cam]` is
+        (T, H, W, 3) uint8 RGB, `depth[cam]` (T, H, W) float32; `meta` needs `task`."""
+        if not self._tmp.exists():
+            raise RuntimeError("RawDatasetWriter.add_episode outside its `with` block")
+        images, depth, meta = images or {}, depth or {}, dict(meta or {})
+        index = len(self._episodes)
+        where = f"episode {index}"
+        if not isinstance(meta.get("task"), str) or not meta["task"]:
+            raise DatasetError(f"{where}: meta['task'] must be a non-empty string")
+        arrays = {k: np.asarray(v) for k, v in arrays.items()}
+        _validate_arrays(arrays, where)
+        length = len(arrays["timestamp"])
+        layout = {
+            "arrays": {k: [str(v.dtype), list(v.shape[1:])] for k, v in sorted(arrays.items())},
+            "images": {k: list(np.shape(v)[1:]) for k, v in sorted(images.items())},
+            "depth": {k: list(np.shape(v)[1:]) for k, v in sorted(depth.items())},
+        }
+        if self._layout is None:
+            self._layout = layout
+        elif layout != self._layout:
+            raise DatasetError(f"{where}: arrays/cameras differ from episode 0 ({layout} vs {self._layout})")
+
+        ep_dir = self._tmp / f"episode_{index:06d}"
+        (ep_dir / "arrays").mkdir(parents=True)
+        for name, arr in arrays.items():
+            _check_name(name, "array")
+            np.save(ep_dir / "arrays" / f"{name}.npy", arr, allow_pickle=False)
+        for cam, frames in images.items():
+            _check_name(cam, "camera")
+            frames = np.asarray(frames)
+            if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) != length:
+                raise DatasetError(f"{where}: images[{cam!r}] must be ({length}, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
+            cam_dir = ep_dir / "images" / cam
+            cam_dir.mkdir(parents=True)
+            for t, frame in enumerate(frames):
+                cv2.imwrite(str(cam_dir / f"frame_{t:06d}.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        for cam, d in depth.items():
+            _check_name(cam, "camera")
+            d = np.asarray(d, dtype=np.float32)
+            if d.ndim != 3 or len(d) != length:
+                raise DatasetError(f"{where}: depth[{cam!r}] must be ({length}, H, W), got {d.shape}")
+            (ep_dir / "depth").mkdir(exist_ok=True)
+            np.save(ep_dir / "depth" / f"{cam}.npy", d, allow_pickle=False)
+        meta["length"] = length
+        (ep_dir / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True, default=_json_default))
+        self._episodes.append({"name": ep_dir.name, "length": length, "task": meta["task"]})
+
+    def _write_index(self) -> None:
+        index = {
+            "format": FORMAT,
+            "version": VERSION,
+            "fps": self.fps,
+            "robot": self.robot,
+            "env": self.env,
+            "names": self.names,
+            "info": self.info,
+            "episodes": self._episodes,
+        }
+        (self._tmp / "dataset.json").write_text(json.dumps(index, indent=1, sort_keys=True, default=_json_default))
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")
+
+
+def _validate_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
+    for name in REQUIRED_ARRAYS:
+        if name not in arrays:
+            raise DatasetError(f"{where}: required array {name!r} is missing")
+    length = len(arrays["timestamp"])
+    if length == 0:
+        raise DatasetError(f"{where}: episode has no frames")
+    for name, arr in arrays.items():
+        if arr.ndim == 0 or len(arr) != length:
+            raise DatasetError(f"{where}: array {name!r} has {len(arr) if arr.ndim else 0} frames, 'timestamp' has {length}")
+        if str(arr.dtype) not in ALLOWED_DTYPES:
+            raise DatasetError(f"{where}: array {name!r} has unsupported dtype {arr.dtype}")
+        if arr.ndim > 2:
+            raise DatasetError(f"{where}: array {name!r} must be (T,) or (T, D), got {arr.shape}")
+        if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            raise DatasetError(f"{where}: array {name!r} contains NaN/inf")
+    ts = arrays["timestamp"]
+    if ts.ndim != 1 or ts.dtype.kind != "f":
+        raise DatasetError(f"{where}: 'timestamp' must be a 1-D float array of seconds")
+    if length > 1 and not (np.diff(ts) > 0).all():
+        raise DatasetError(f"{where}: timestamps are not strictly increasing")
+
+
+@dataclass
+class RawDataset:
+    """A validated raw dataset on disk; episodes are read one at a time."""
+
+    root: Path
+    index: dict[str, Any]
+
+    @property
+    def fps(self) -> int:
+        return int(self.index["fps"])
+
+    @property
+    def num_episodes(self) -> int:
+        return len(self.index["episodes"])
+
+    def episode_dir(self, i: int) -> Path:
+        return self.root / self.index["episodes"][i]["name"]
+
+    def features(self) -> Features:
+        """The LeRobot schema the episodes map onto (from episode 0's files)."""
+        ep = self.episode_dir(0)
+        names = self.index.get("names", {})
+        features: Features = {}
+        for path in sorted((ep / "arrays").glob("*.npy")):
+            name = path.stem
+            if name == "timestamp":
+                continue
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+            key = FEATURE_OF_ARRAY.get(name, name)
+            dim = arr.shape[1] if arr.ndim == 2 else 1
+            dims = names.get(name) or DEFAULT_NAMES.get(name) or (
+                [name] if arr.ndim == 1 else [f"{name}_{i}" for i in range(dim)]
+            )
+            if len(dims) != dim:
+                raise DatasetError(f"{self.root}/dataset.json: names[{name!r}] has {len(dims)} entries for {dim} dims")
+            features[key] = vector_feature(str(arr.dtype), dims)
+        for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
+            first = _read_png(cam_dir / "frame_000000.png")
+            features[_camera_feature(cam_dir.name)] = image_feature(*first.shape)
+        for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
+            d = np.load(path, mmap_mode="r", allow_pickle=False)
+            features[_depth_feature(path.stem)] = {
+                "dtype": "float32",
+                "shape": (d.shape[1], d.shape[2], 1),
+                "names": ["height", "width", "channels"],
+                "info": {"unit": "m"},
+            }
+        return features
+
+    def read_episode(self, i: int) -> Episode:
+        ep = self.episode_dir(i)
+        where = f"{ep}"
+        try:
+            meta = json.loads((ep / "meta.json").read_text())
+        except FileNotFoundError:
+            raise DatasetError(f"{where}: meta.json is missing") from None
+        except json.JSONDecodeError as exc:
+            raise DatasetError(f"{where}/meta.json: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+        arrays: dict[str, np.ndarray] = {}
+        for path in sorted((ep / "arrays").glob("*.npy")):
+            try:
+                arrays[path.stem] = np.load(path, allow_pickle=False)
+            except (ValueError, OSError, EOFError) as exc:
+                raise DatasetError(f"{path}: unreadable array ({exc})") from None
+        _validate_arrays(arrays, where)
+        length = len(arrays["timestamp"])
+        if meta.get("length", length) != length:
+            raise DatasetError(f"{where}: meta.json says {meta['length']} frames, arrays have {length}")
+        if not isinstance(meta.get("task"), str):
+            raise DatasetError(f"{where}/meta.json: 'task' must be a string")
+
+        frames: dict[str, np.ndarray] = {}
+        ts = arrays.pop("timestamp").astype(np.float64)
+        frames["timestamp"] = ts - ts[0]
+        for name, arr in arrays.items():
+            frames[FEATURE_OF_ARRAY.get(name, name)] = arr if arr.ndim == 2 else arr.reshape(-1, 1)
+        if "next.success" in frames:
+            frames["next.success"] = frames["next.success"].astype(bool)
+        for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
+            files = sorted(cam_dir.glob("frame_*.png"))
+            if len(files) != length:
+                raise DatasetError(f"{cam_dir}: {len(files)} image files for {length} frames")
+            frames[_camera_feature(cam_dir.name)] = np.stack([_read_png(f) for f in files])
+        for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
+            d = np.load(path, allow_pickle=False).astype(np.float32)
+            if len(d) != length:
+                raise DatasetError(f"{path}: {len(d)} depth frames for {length} frames")
+            frames[_depth_feature(path.stem)] = d[..., None]
+        frames["task"] = _frame_tasks(meta, length, where)
+        episode_meta = {k: v for k, v in meta.items() if k not in ("length",)}
+        episode_meta["source_episode_index"] = i
+        return Episode(frames, episode_meta)
+
+    def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:
+        for i in range(self.num_episodes) if indices is None else indices:
+            yield self.read_episode(i)
+
+
+def _frame_tasks(meta: dict[str, Any], length: int, where: str) -> np.ndarray:
+    """Per-frame task: the segment's task inside a labelled segment, else the episode's task."""
+    tasks = np.full(length, meta["task"], dtype=object)
+    for seg in meta.get("segments") or []:
+        try:
+            start, end, task = int(seg["start"]), int(seg["end"]), str(seg["task"])
+        except (KeyError, TypeError, ValueError):
+            raise DatasetError(f"{where}/meta.json: each segment needs 'task', 'start' and 'end'") from None
+        if not 0 <= start < end <= length:
+            raise DatasetError(f"{where}/meta.json: segment [{start}, {end}) is outside the {length} frames")
+        tasks[start:end] = task
+    return tasks.astype(str)
+
+
+def _read_png(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DatasetError(f"{path}: missing or unreadable image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def open_raw_dataset(root: str | Path) -> RawDataset:
+    """Open and validate a raw dataset's index (episodes are validated as they are read)."""
+    root = Path(root)
+    index_path = root / "dataset.json"
+    if not root.is_dir():
+        raise DatasetError(f"raw dataset not found: {root}")
+    try:
+        index = json.loads(index_path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{index_path} is missing (not a shiftkit raw dataset)") from None
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{index_path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+    if index.get("format") != FORMAT:
+        raise DatasetError(f"{index_path}: format is {index.get('format')!r}, expected {FORMAT!r}")
+    if index.get("version") != VERSION:
+        raise DatasetError(f"{index_path}: raw format version {index.get('version')!r} is not supported (this is v{VERSION})")
+    if not isinstance(index.get("fps"), int) or index["fps"] <= 0:
+        raise DatasetError(f"{index_path}: 'fps' must be a positive integer")
+    episodes = index.get("episodes")
+    if not isinstance(episodes, list) or not episodes:
+        raise DatasetError(f"{index_path}: no episodes listed")
+    for ep in episodes:
+        if not (root / str(ep.get("name", ""))).is_dir():
+            raise DatasetError(f"{index_path}: episode directory {ep.get('name')!r} is missing")
+    return RawDataset(root, index)
+
+
+def is_raw_dataset(path: str | Path) -> bool:
+    return (Path(path) / "dataset.json").is_file()

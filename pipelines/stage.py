@@ -1,0 +1,101 @@
+"""The stage protocol and registry.
+
+A stage is a registered, versioned class with a typed dataclass `Config`, a schema prediction
+(`transform_features`, and `transform_fps` for stages that change the frame rate) and a
+per-episode transform (`process`: one episode in, zero or more out). Heavy resources (a
+simulator, a model, a calibration) are loaded in `setup`, once per worker. Stages know nothing
+about executors: the same object runs in-process, in a process pool or on a Ray worker.
+
+Randomness comes only from the `rng` handed to `process`, seeded from the pipeline seed, the
+stage's position and the source episode, so output does not depend on worker count or order.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from shiftkit.pipelines.dataclass_config import from_dict, to_dict
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.features import Features
+
+# Packages whose import registers the built-in stages (the core never imports them directly).
+BUILTIN_STAGE_PACKAGES = ("shiftkit.transforms",)
+
+
+@dataclass
+class StageContext:
+    """Dataset-level facts a stage may need: the input's frame rate (after earlier stages)."""
+
+    fps: int
+
+
+class Stage(ABC):
+    name: ClassVar[str]
+    version: ClassVar[int]
+    Config: ClassVar[type]
+
+    def __init__(self, config: Any, context: StageContext) -> None:
+        self.config = config
+        self.context = context
+
+    def setup(self) -> None:
+        """Load simulators/models once per worker before the first episode."""
+
+    def transform_fps(self, fps: int) -> int:
+        return fps
+
+    @abstractmethod
+    def transform_features(self, features: Features) -> Features:
+        """The output schema for an input schema, without touching data."""
+
+    @abstractmethod
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        """Transform one episode into zero or more episodes. Must not modify `episode` in place."""
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version, "params": to_dict(self.config)}
+
+
+_REGISTRY: dict[str, type[Stage]] = {}
+
+
+def register_stage(cls: type[Stage]) -> type[Stage]:
+    """Class decorator: make a stage available to pipelines under `cls.name`."""
+    for attr in ("name", "version", "Config"):
+        if not hasattr(cls, attr):
+            raise TypeError(f"stage {cls.__name__} lacks class attribute {attr!r}")
+    existing = _REGISTRY.get(cls.name)
+    if existing is not None and existing is not cls:
+        raise TypeError(f"stage name {cls.name!r} is registered twice ({existing.__name__}, {cls.__name__})")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def load_builtin_stages() -> None:
+    for package in BUILTIN_STAGE_PACKAGES:
+        importlib.import_module(package)
+
+
+def registered_stages() -> dict[str, type[Stage]]:
+    load_builtin_stages()
+    return dict(sorted(_REGISTRY.items()))
+
+
+def build_stage(name: str, params: dict[str, Any] | None, context: StageContext, where: str,
+                version: int | None = None) -> Stage:
+    """Instantiate a registered stage from config values, with one-line errors."""
+    stages = registered_stages()
+    if name not in stages:
+        raise ConfigError(f"{where}: unknown stage {name!r} (registered: {', '.join(stages)})")
+    cls = stages[name]
+    if version is not None and version != cls.version:
+        raise ConfigError(f"{where}: stage {name!r} is version {cls.version}, the config asks for version {version}")
+    config = from_dict(cls.Config, params or {}, f"{where} ({name})")
+    return cls(config, context)

@@ -1,0 +1,453 @@
+"""Behavioural cloning (SPEC 6.1; thesis 3.6.3 and 4.4.2): MSE action regression by an ensemble.
+
+Observations are the dataset's `observation.*` features: numeric ones are normalised with the
+dataset's stats and concatenated; each camera goes through a CNN (or ResNet-18 trunk) ending in a
+spatial soft-argmax, whose keypoints join the numeric state before the fully connected layers.
+Each of the ensemble's members sees its own shuffle of the data and its own orthogonal init; the
+policy outputs the members' mean, and their spread is the ensemble doubt of FIRE (thesis 5.4).
+
+Two regimes:
+* `early-stop` (thesis ch. 3): Adam 1e-3, batch 64, a 20% hold-out of episodes, each member stops
+  when its validation loss has not improved for 30 epochs (max 200) and keeps its best weights.
+* `fixed` (thesis ch. 4): 20k steps, AdamW weight decay 0.1, lr 3e-4 halved halfway.
+
+The batch order is a function of (seed, member, step) and every checkpoint holds the full training
+state, so a resumed run continues bit for bit where the killed one left off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.policies.data import FrameTable, Prefetcher, batches_per_epoch, epoch_batches, open_datasets
+from shiftkit.policies.networks import image_encoder, mlp, orthogonal_init_
+from shiftkit.policies.run_dir import RunDir, versions
+
+REGIMES = ("early-stop", "fixed")
+
+
+@dataclass
+class BCArgs:
+    """Arguments of `shiftkit train bc` (defaults follow SPEC 6.1)."""
+
+    datasets: list[str]
+    """Dataset IDs or local dataset folders; several are trained on as one (same features)."""
+    output_dir: str
+    """Run folder: config, checkpoints, metrics.jsonl, model card."""
+    root: str | None = None
+    """Local folder of the dataset (with one dataset), else resolved by ID."""
+    regime: str = "early-stop"
+    """`early-stop` (hold-out validation, patience) or `fixed` (fixed steps with weight decay)."""
+    steps: int | None = None
+    """Gradient steps per member: required length of the `fixed` regime (default 20000); an upper
+    bound in `early-stop` (default: max_epochs epochs)."""
+    max_epochs: int = 200
+    """early-stop: most epochs per member."""
+    patience: int = 30
+    """early-stop: epochs without validation improvement before a member stops."""
+    batch_size: int = 64
+    """Frames per gradient step and member."""
+    lr: float | None = None
+    """Learning rate (default 1e-3 early-stop, 3e-4 fixed; fixed halves it halfway)."""
+    weight_decay: float | None = None
+    """Decoupled (AdamW) weight decay (default 0 early-stop, 0.1 fixed)."""
+    val_fraction: float | None = None
+    """Share of episodes held out for validation (default 0.2 early-stop, 0 fixed)."""
+    ensemble_size: int = 5
+    """Members (different shuffles and init; the policy outputs their mean)."""
+    inputs: list[str] | None = None
+    """Observation features to use (default: every `observation.*` feature of the dataset)."""
+    encoder: str = "cnn"
+    """Image encoder: `cnn` (small CNN, 64x48 images) or `resnet18` (ResNet-18 trunk)."""
+    encoder_weights: str | None = None
+    """Local ResNet-18 state-dict file for the encoder's first layer (`cnn`) or trunk (`resnet18`)."""
+    num_keypoints: int = 32
+    """Spatial soft-argmax keypoints per camera."""
+    hidden: list[int] = field(default_factory=lambda: [512, 512])
+    """Widths of the fully connected layers after the encoders."""
+    seed: int = 0
+    """Seed of the episode split, the shuffles and the init."""
+    checkpoint_every: int = 1000
+    """Save a checkpoint every this many steps (and at the end)."""
+    log_every: int = 100
+    """Write mean training loss to metrics.jsonl every this many steps."""
+    device: str = "auto"
+    """`auto` (CUDA when present), `cpu` or `cuda[:N]`."""
+    resume: bool = False
+    """Continue the run in output_dir from its last checkpoint."""
+
+    def resolved(self) -> BCArgs:
+        """A copy with regime-dependent defaults filled in; raises ConfigError on bad values."""
+        if self.regime not in REGIMES:
+            raise ConfigError(f"unknown regime {self.regime!r} (choose from {', '.join(REGIMES)})")
+        fixed = self.regime == "fixed"
+        out = dataclasses.replace(
+            self,
+            steps=self.steps if self.steps is not None else (20000 if fixed else None),
+            lr=self.lr if self.lr is not None else (3e-4 if fixed else 1e-3),
+            weight_decay=self.weight_decay if self.weight_decay is not None else (0.1 if fixed else 0.0),
+            val_fraction=self.val_fraction if self.val_fraction is not None else (0.0 if fixed else 0.2),
+            datasets=list(self.datasets),
+            hidden=list(self.hidden),
+        )
+        positive = {"batch_size": out.batch_size, "ensemble_size": out.ensemble_size, "max_epochs": out.max_epochs,
+                    "patience": out.patience, "checkpoint_every": out.checkpoint_every, "log_every": out.log_every,
+                    "num_keypoints": out.num_keypoints, "lr": out.lr}
+        for name, value in positive.items():
+            if not value > 0:
+                raise ConfigError(f"{name} must be positive, got {value}")
+        if out.steps is not None and out.steps <= 0:
+            raise ConfigError(f"steps must be positive, got {out.steps}")
+        if not 0.0 <= out.val_fraction < 1.0:
+            raise ConfigError(f"val_fraction must be in [0, 1), got {out.val_fraction}")
+        if out.regime == "early-stop" and out.val_fraction == 0:
+            raise ConfigError("the early-stop regime needs val_fraction > 0")
+        if out.weight_decay < 0 or any(h <= 0 for h in out.hidden):
+            raise ConfigError("weight_decay must be >= 0 and hidden widths positive")
+        return out
+
+
+@dataclass
+class PolicySpec:
+    """What a trained BC policy consumes and how it is built: enough to rebuild it without the data."""
+
+    features: dict[str, dict]
+    """Input feature -> {"dtype", "shape", "names"} as in the dataset's info.json."""
+    action: dict
+    """The `action` feature ({"dtype", "shape", "names"})."""
+    stats: dict[str, dict[str, list]]
+    """Feature (inputs and `action`) -> {"mean", "std"} used for normalisation."""
+    encoder: str
+    num_keypoints: int
+    hidden: list[int]
+    ensemble_size: int
+
+    def image_keys(self) -> list[str]:
+        return [k for k, ft in self.features.items() if ft["dtype"] in ("image", "video")]
+
+    def numeric_keys(self) -> list[str]:
+        return [k for k, ft in self.features.items() if ft["dtype"] not in ("image", "video")]
+
+
+class Normalizer(nn.Module):
+    """Dataset-stats normalisation: numeric features `(x - mean) / std`; images uint8 `(B, H, W, C)` to
+    float `(B, C, H, W)` in [0, 1], then per-channel `(x - mean) / std`."""
+
+    def __init__(self, spec: PolicySpec) -> None:
+        super().__init__()
+        self.keys = [*spec.numeric_keys(), *spec.image_keys(), "action"]
+        self.images = set(spec.image_keys())
+        for i, key in enumerate(self.keys):
+            mean = torch.as_tensor(np.asarray(spec.stats[key]["mean"], dtype=np.float32))
+            std = torch.as_tensor(np.asarray(spec.stats[key]["std"], dtype=np.float32))
+            # constant dimensions (std ~ 0) pass through centred instead of blowing up
+            std = torch.where(std < 1e-6, torch.ones_like(std), std)
+            if key in self.images:
+                mean, std = mean.reshape(1, -1, 1, 1), std.reshape(1, -1, 1, 1)
+            self.register_buffer(f"mean{i}", mean)
+            self.register_buffer(f"std{i}", std)
+
+    def _ms(self, key: str) -> tuple[torch.Tensor, torch.Tensor]:
+        i = self.keys.index(key)
+        return getattr(self, f"mean{i}"), getattr(self, f"std{i}")
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        out = {}
+        for key in self.keys[:-1]:
+            mean, std = self._ms(key)
+            x = batch[key]
+            if key in self.images:
+                x = x.permute(0, 3, 1, 2).float() / 255.0
+            out[key] = (x.float() - mean) / std
+        return out
+
+    def action(self, action: torch.Tensor) -> torch.Tensor:
+        mean, std = self._ms("action")
+        return (action - mean) / std
+
+    def unaction(self, action: torch.Tensor) -> torch.Tensor:
+        mean, std = self._ms("action")
+        return action * std + mean
+
+
+class BCNet(nn.Module):
+    """One ensemble member: image encoders -> keypoints, concatenated with the numeric state -> MLP."""
+
+    def __init__(self, spec: PolicySpec, encoder_weights: str | None = None) -> None:
+        super().__init__()
+        self.numeric_keys, self.image_keys = spec.numeric_keys(), spec.image_keys()
+        self.encoders = nn.ModuleList()
+        for key in self.image_keys:
+            h, w, c = spec.features[key]["shape"]
+            self.encoders.append(image_encoder(spec.encoder, c, h, w, spec.num_keypoints, encoder_weights))
+        in_dim = sum(int(np.prod(spec.features[k]["shape"])) for k in self.numeric_keys)
+        in_dim += sum(enc.out_dim for enc in self.encoders)
+        self.head = mlp(in_dim, int(np.prod(spec.action["shape"])), tuple(spec.hidden))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        parts = [obs[k].flatten(1) for k in self.numeric_keys]
+        parts += [enc(obs[k]) for enc, k in zip(self.encoders, self.image_keys)]
+        return self.head(torch.cat(parts, dim=-1))
+
+
+class BCPolicy(nn.Module):
+    """A BC ensemble with its normalisation; outputs actions in the dataset's units."""
+
+    trainer = "bc"
+
+    def __init__(self, spec: PolicySpec, encoder_weights: str | None = None, seed: int = 0) -> None:
+        super().__init__()
+        self.spec = spec
+        self.features = spec.features
+        self.normalizer = Normalizer(spec)
+        members = []
+        for m in range(spec.ensemble_size):
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed * 1009 + m)
+                net = BCNet(spec, encoder_weights)
+                pretrained = [enc.pretrained_layers for enc in net.encoders if enc.pretrained_layers is not None]
+                orthogonal_init_(net, skip=nn.ModuleList(pretrained))
+            members.append(net)
+        self.members = nn.ModuleList(members)
+
+    def member_outputs(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Every member's action `(M, B, A)` in dataset units."""
+        obs = self.normalizer(batch)
+        return self.normalizer.unaction(torch.stack([net(obs) for net in self.members]))
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The ensemble's mean action `(B, A)`."""
+        return self.member_outputs(batch).mean(dim=0)
+
+    def spread(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Ensemble doubt `(B,)`: the 2-norm of the members' per-dimension action variance
+        (`||diag Cov||_2`, Menda et al. 2019; thesis 5.4); 0 for a single member."""
+        outs = self.member_outputs(batch)
+        if outs.shape[0] < 2:
+            return torch.zeros(outs.shape[1], device=outs.device)
+        return outs.var(dim=0).norm(dim=-1)
+
+    @torch.no_grad()
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """One unbatched observation (feature -> array) -> one action (float32)."""
+        device = next(self.parameters()).device
+        batch = {k: torch.as_tensor(np.asarray(obs[k]))[None].to(device) for k in self.features}
+        return self(batch)[0].cpu().numpy().astype(np.float32)
+
+
+def load_policy(path: str | Path, device: str = "cpu") -> BCPolicy:
+    """A trained BC policy from a checkpoint file or a run folder (its newest checkpoint)."""
+    path = Path(path)
+    if path.is_dir():
+        ckpt_path = RunDir(path, resume=True).latest_checkpoint()
+        if ckpt_path is None:
+            raise DatasetError(f"run folder {path} has no checkpoint")
+        path = ckpt_path
+    if not path.is_file():
+        raise DatasetError(f"policy checkpoint not found: {path}")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if state.get("trainer") != "bc":
+        raise DatasetError(f"{path} is not a BC checkpoint (trainer {state.get('trainer')!r})")
+    policy = BCPolicy(PolicySpec(**state["policy_spec"]))
+    policy.load_state_dict(state["model"])
+    return policy.to(device).eval()
+
+
+def _select_inputs(features: dict[str, dict], inputs: list[str] | None) -> list[str]:
+    if inputs is None:
+        inputs = [k for k in features if k.startswith("observation.")]
+    missing = [k for k in inputs if k not in features]
+    if missing:
+        raise ConfigError(f"input feature {missing[0]!r} is not in the dataset (has {', '.join(features)})")
+    if not inputs:
+        raise DatasetError("the dataset has no observation.* features to learn from")
+    if "action" not in features:
+        raise DatasetError("the dataset has no 'action' feature")
+    return list(inputs)
+
+
+def _merged_stats(datasets: list, keys: list[str]) -> dict[str, dict[str, list]]:
+    from lerobot.datasets.compute_stats import aggregate_feature_stats
+
+    out = {}
+    for key in keys:
+        per_ds = [ds.meta.stats.get(key) if ds.meta.stats else None for ds in datasets]
+        if any(s is None or "mean" not in s or "std" not in s for s in per_ds):
+            raise DatasetError(f"dataset stats (meta/stats.json) lack mean/std of {key!r}")
+        merged = per_ds[0] if len(per_ds) == 1 else aggregate_feature_stats(per_ds)
+        if not np.all(np.isfinite(merged["mean"])) or not np.all(np.isfinite(merged["std"])):
+            raise DatasetError(f"dataset stats of {key!r} hold NaN or inf")
+        out[key] = {"mean": np.asarray(merged["mean"]).tolist(), "std": np.asarray(merged["std"]).tolist()}
+    return out
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        return torch.device(name)
+    except RuntimeError as exc:
+        raise ConfigError(f"unknown device {name!r}") from exc
+
+
+def train(args: BCArgs) -> dict:
+    """Train (or resume) a BC ensemble; returns the final metrics written to the model card."""
+    args = args.resolved()
+    run = RunDir(args.output_dir, args.resume)
+    device = _device(args.device)
+
+    # --- data: one frame table over all datasets, episodes split into train / held-out ---
+    opened = open_datasets(args.datasets, args.root)
+    datasets = [ds for _, ds in opened]
+    inputs = _select_inputs(datasets[0].meta.features, args.inputs)
+    table = FrameTable(datasets, [*inputs, "action"])
+    train_rows, val_rows = table.split_episodes(args.val_fraction, args.seed)
+    features = {k: {f: datasets[0].meta.features[k].get(f) for f in ("dtype", "shape", "names")} for k in inputs}
+    spec = PolicySpec(
+        features=features,
+        action={f: datasets[0].meta.features["action"].get(f) for f in ("dtype", "shape", "names")},
+        stats=_merged_stats(datasets, [*inputs, "action"]),
+        encoder=args.encoder,
+        num_keypoints=args.num_keypoints,
+        hidden=args.hidden,
+        ensemble_size=args.ensemble_size,
+    )
+
+    # --- model and optimisers: one AdamW per member ---
+    policy = BCPolicy(spec, args.encoder_weights, seed=args.seed).to(device)
+    members = policy.members
+    optimizers = [torch.optim.AdamW(m.parameters(), lr=args.lr, weight_decay=args.weight_decay) for m in members]
+    per_epoch = batches_per_epoch(len(train_rows), args.batch_size)
+    total_steps = args.steps if args.regime == "fixed" else min(args.steps or math.inf, args.max_epochs * per_epoch)
+    M, B = args.ensemble_size, min(args.batch_size, len(train_rows))
+
+    run.write_config({
+        "trainer": "bc",
+        "args": dataclasses.asdict(args),
+        "datasets": [{"id": r.repo_id, "root": str(r.root), "fingerprint": r.fingerprint} for r, _ in opened],
+        "seed": args.seed,
+        "versions": versions(),
+        "inputs": inputs,
+        "frames": {"train": len(train_rows), "val": len(val_rows), "episodes": len(table.episodes)},
+    })
+
+    # --- training state (everything a resumed run needs) ---
+    step = 0
+    active = [True] * M  # early-stop: members still training
+    best_val = [math.inf] * M
+    bad_epochs = [0] * M
+    best_weights: list[dict | None] = [None] * M
+    loss_sum, loss_count = torch.zeros(M), 0
+    state = run.load_latest() if args.resume else None
+    if state is not None:
+        policy.load_state_dict(state["model"])
+        for opt, s in zip(optimizers, state["optimizers"]):
+            opt.load_state_dict(s)
+        step, active, best_val, bad_epochs = state["step"], state["active"], state["best_val"], state["bad_epochs"]
+        best_weights, loss_sum, loss_count = state["best_weights"], state["loss_sum"], state["loss_count"]
+        torch.set_rng_state(state["torch_rng"])
+        if state["final"]:
+            return state["metrics"]
+
+    def checkpoint(metrics: dict | None = None) -> None:
+        run.save_checkpoint(step, {
+            "trainer": "bc", "final": metrics is not None, "metrics": metrics, "policy_spec": dataclasses.asdict(spec),
+            "model": policy.state_dict(), "optimizers": [o.state_dict() for o in optimizers],
+            "active": active, "best_val": best_val, "bad_epochs": bad_epochs, "best_weights": best_weights,
+            "loss_sum": loss_sum, "loss_count": loss_count, "torch_rng": torch.get_rng_state(),
+        })
+
+    val_batches = [
+        {k: torch.from_numpy(v).to(device) for k, v in table.gather(val_rows[i : i + 1024]).items()}
+        for i in range(0, len(val_rows), 1024)
+    ]
+
+    def val_losses() -> list[float]:
+        policy.eval()
+        sums, n = torch.zeros(M), 0
+        with torch.no_grad():
+            for batch in val_batches:
+                obs, target = policy.normalizer(batch), policy.normalizer.action(batch["action"])
+                for m, net in enumerate(members):
+                    sums[m] += ((net(obs) - target) ** 2).mean(dim=-1).sum().cpu()
+                n += len(target)
+        policy.train()
+        return (sums / n).tolist()
+
+    def step_rows(start: int):
+        """Row indices of every remaining step: each member's batch, concatenated."""
+        epoch_cache: tuple[int, list[list[np.ndarray]]] = (-1, [])
+        for s in range(start, int(total_steps)):
+            epoch, i = divmod(s, per_epoch)
+            if epoch != epoch_cache[0]:
+                epoch_cache = (epoch, [epoch_batches(len(train_rows), B, args.seed, m, epoch) for m in range(M)])
+            yield np.concatenate([train_rows[epoch_cache[1][m][i]] for m in range(M)])
+
+    # --- the loop: every step updates each still-active member on its own batch ---
+    policy.train()
+    started, start_step = time.perf_counter(), step
+    with Prefetcher(table, step_rows(step), pin=device.type == "cuda") as batches:
+        for batch in batches:
+            batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+            obs, target = policy.normalizer(batch), policy.normalizer.action(batch["action"])
+            lr = args.lr * (0.5 if args.regime == "fixed" and step >= total_steps // 2 else 1.0)
+            for m, (net, opt) in enumerate(zip(members, optimizers)):
+                if not active[m]:
+                    continue
+                for group in opt.param_groups:
+                    group["lr"] = lr
+                part = slice(m * B, (m + 1) * B)
+                loss = ((net({k: v[part] for k, v in obs.items()}) - target[part]) ** 2).mean()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                loss_sum[m] += loss.detach().cpu()
+            loss_count += 1
+            step += 1
+
+            if step % args.log_every == 0:
+                run.log(step, "train", loss=(loss_sum / loss_count).mean().item(),
+                        member_loss=(loss_sum / loss_count).tolist(), lr=lr,
+                        steps_per_s=(step - start_step) / (time.perf_counter() - started))
+                loss_sum, loss_count = torch.zeros(M), 0
+            if step % per_epoch == 0 and val_batches:
+                losses = val_losses()
+                for m in range(M):
+                    if not active[m]:
+                        continue
+                    if losses[m] < best_val[m]:
+                        best_val[m], bad_epochs[m] = losses[m], 0
+                        best_weights[m] = {k: v.detach().clone() for k, v in members[m].state_dict().items()}
+                    else:
+                        bad_epochs[m] += 1
+                        if args.regime == "early-stop" and bad_epochs[m] >= args.patience:
+                            active[m] = False
+                run.log(step, "val", epoch=step // per_epoch, loss=float(np.mean(losses)), member_loss=losses,
+                        active=sum(active))
+            if step >= total_steps or not any(active):
+                break
+            if step % args.checkpoint_every == 0:
+                checkpoint()
+
+    # --- finish: early stopping keeps each member's best weights ---
+    if args.regime == "early-stop":
+        for m, weights in enumerate(best_weights):
+            if weights is not None:
+                members[m].load_state_dict(weights)
+    metrics = {"steps": step, "train_frames": len(train_rows), "val_frames": len(val_rows)}
+    if val_batches:
+        losses = val_losses()
+        metrics.update(val_loss=float(np.mean(losses)), val_member_loss=losses)
+        run.log(step, "final", loss=metrics["val_loss"], member_loss=losses)
+    checkpoint(metrics)
+    run.write_model_card(metrics)
+    return metrics

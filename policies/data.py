@@ -1,0 +1,287 @@
+"""Fast batches from LeRobot v3.0 datasets for supervised trainers.
+
+`lerobot`'s `__getitem__` builds one frame at a time (a dict of tensors, a task lookup, a video seek
+per camera); a small BC network trains faster than that can feed it. `FrameTable` instead reads
+whole batches by global frame index, straight from the dataset's memory-mapped Arrow table:
+
+* numeric features (`observation.state`, `action`, ...): one contiguous numpy array per feature,
+  gathered with numpy fancy indexing;
+* image features (`dtype: image`, PNG bytes inside Arrow): only the batch's rows are taken from
+  Arrow and decoded, once per batch, with OpenCV;
+* video features: every file is decoded once, sequentially, into a uint8 frame array (random
+  seeks into AV1 video per frame would dominate training time); `max_decoded_bytes` bounds it.
+
+`Prefetcher` runs the gathering in a background thread so the training loop only waits when the
+data is slower than the model. Several datasets with the same features are read as one.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from shiftkit.pipelines.errors import DatasetError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DatasetRef:
+    """A LeRobot dataset opened for training: its ID, local root and content fingerprint."""
+
+    repo_id: str
+    root: Path
+    fingerprint: str
+
+
+def _resolve(ref: str, root: str | None) -> DatasetRef:
+    try:
+        from shiftkit.pipelines.lerobot_io import resolve_dataset
+    except ImportError:  # TEMPORARY until the lead's resolver lands: local folders only
+        import hashlib
+        import os
+
+        path = Path(root) if root else Path(ref) if Path(ref).is_dir() else None
+        if path is None:
+            path = Path(os.environ.get("HF_LEROBOT_HOME", Path.home() / ".cache/huggingface/lerobot")) / ref
+        if not (path / "meta" / "info.json").is_file():
+            raise DatasetError(f"no LeRobot dataset at {path} (for {ref!r})")
+        digest = hashlib.sha256((path / "meta" / "info.json").read_bytes()).hexdigest()[:16]
+        return DatasetRef(ref if not Path(ref).is_dir() else path.name, path, digest)
+    resolved = resolve_dataset(ref, root=root)
+    return DatasetRef(resolved.repo_id, Path(resolved.root), resolved.fingerprint)
+
+
+def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[DatasetRef, object]]:
+    """Resolve dataset IDs (or local paths) and open them with lerobot's reader."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    if not refs:
+        raise DatasetError("no dataset given")
+    opened = []
+    for ref in refs:
+        resolved = _resolve(ref, root)
+        try:
+            ds = LeRobotDataset(resolved.repo_id, root=resolved.root)
+        except Exception as exc:  # lerobot raises many types for a bad folder
+            raise DatasetError(f"cannot open LeRobot dataset {ref!r} at {resolved.root}: {exc}") from exc
+        opened.append((resolved, ds))
+    return opened
+
+
+def _numeric_column(ds, key: str) -> np.ndarray:
+    """A numeric feature of every frame as one `(N, *shape)` float32 array."""
+    column = ds.hf_dataset.with_format("numpy", columns=[key])[key]
+    shape = tuple(ds.meta.features[key]["shape"])
+    return np.asarray(column, dtype=np.float32).reshape(len(column), *shape)
+
+
+def _decode_video_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """All frames of one video file: (presentation times in s, uint8 frames (T, H, W, 3))."""
+    import av
+
+    times, frames = [], []
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        for frame in container.decode(stream):
+            times.append(float(frame.time))
+            frames.append(frame.to_ndarray(format="rgb24"))
+    if not frames:
+        raise DatasetError(f"video file has no frames: {path}")
+    return np.asarray(times), np.stack(frames)
+
+
+def _decode_video_feature(ds, key: str, max_bytes: int) -> np.ndarray:
+    """Every frame of a video feature, in dataset row order, as uint8 `(N, H, W, 3)`."""
+    h, w, c = ds.meta.features[key]["shape"]
+    n = len(ds.hf_dataset)
+    if n * h * w * c > max_bytes:
+        raise DatasetError(
+            f"decoding video feature {key!r} of {ds.repo_id} needs {n * h * w * c / 2**30:.1f} GiB "
+            f"(limit {max_bytes / 2**30:.1f} GiB); raise max_decoded_bytes or use a smaller image size"
+        )
+    cols = ds.hf_dataset.with_format("numpy", columns=["episode_index", "timestamp"])[:]
+    out = np.empty((n, h, w, c), dtype=np.uint8)
+    episodes = ds.meta.episodes
+    decoded: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
+    tolerance = 0.5 / ds.meta.fps
+    for ep in np.unique(cols["episode_index"]):
+        rows = np.flatnonzero(cols["episode_index"] == ep)
+        path = ds.root / ds.meta.get_video_file_path(int(ep), key)
+        if path not in decoded:
+            decoded = {path: _decode_video_file(path)}  # files hold consecutive episodes: keep one
+        times, frames = decoded[path]
+        wanted = episodes[int(ep)][f"videos/{key}/from_timestamp"] + cols["timestamp"][rows]
+        nearest = np.clip(np.searchsorted(times, wanted), 1, len(times) - 1)
+        nearest -= wanted - times[nearest - 1] < times[nearest] - wanted
+        if np.any(np.abs(times[nearest] - wanted) > tolerance):
+            raise DatasetError(f"video {path} lacks frames for episode {ep} of {ds.repo_id} ({key})")
+        out[rows] = frames[nearest]
+    return out
+
+
+def _decode_png_rows(column, rows: np.ndarray, channels: int) -> np.ndarray:
+    """Decode the images at `rows` of an Arrow image column (struct of bytes/path) to uint8 (B, H, W, C)."""
+    import cv2
+    import pyarrow as pa
+
+    taken = column.take(pa.array(rows))
+    flag = cv2.IMREAD_GRAYSCALE if channels == 1 else cv2.IMREAD_COLOR
+    images = []
+    for item in taken.to_pylist():
+        data = item["bytes"] if item["bytes"] is not None else Path(item["path"]).read_bytes()
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
+        if img is None:
+            raise DatasetError(f"undecodable image in dataset (row {len(images)} of batch)")
+        images.append(img[..., None] if channels == 1 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+    return np.stack(images)
+
+
+class FrameTable:
+    """The frames of one or more LeRobot datasets, read in batches of global frame indices.
+
+    Global index `i` runs over the datasets' rows in order. `episodes` lists each episode's
+    `[start, end)` global row range (episodes never span datasets)."""
+
+    def __init__(self, datasets: list, keys: list[str], max_decoded_bytes: int = 8 * 2**30) -> None:
+        first = datasets[0].meta.features
+        for ds in datasets:
+            for key in keys:
+                if key not in ds.meta.features:
+                    raise DatasetError(f"dataset {ds.repo_id} has no feature {key!r}")
+                if tuple(ds.meta.features[key]["shape"]) != tuple(first[key]["shape"]):
+                    raise DatasetError(
+                        f"feature {key!r} has shape {ds.meta.features[key]['shape']} in {ds.repo_id} "
+                        f"but {first[key]['shape']} in {datasets[0].repo_id}"
+                    )
+        self.keys = keys
+        self.features = {key: first[key] for key in keys}
+        self._arrays: dict[str, np.ndarray] = {}
+        self._png_columns: dict[str, list] = {}
+        offsets = np.cumsum([0] + [len(ds.hf_dataset) for ds in datasets])
+        self._offsets = offsets
+        self.num_frames = int(offsets[-1])
+        self.episodes: list[tuple[int, int]] = []
+        for ds, offset in zip(datasets, offsets[:-1]):
+            ep = ds.hf_dataset.with_format("numpy", columns=["episode_index"])["episode_index"]
+            cuts = np.flatnonzero(np.diff(ep)) + 1
+            starts, ends = np.r_[0, cuts], np.r_[cuts, len(ep)]
+            self.episodes += [(int(offset + s), int(offset + e)) for s, e in zip(starts, ends)]
+        for key in keys:
+            dtype = first[key]["dtype"]
+            if dtype == "image":
+                self._png_columns[key] = [ds.hf_dataset.data.column(key) for ds in datasets]
+            elif dtype == "video":
+                self._arrays[key] = np.concatenate(
+                    [_decode_video_feature(ds, key, max_decoded_bytes) for ds in datasets]
+                )
+            else:
+                self._arrays[key] = np.concatenate([_numeric_column(ds, key) for ds in datasets])
+
+    def gather(self, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Feature arrays for the frames at global indices `rows`: numeric as float32, images as uint8
+        `(B, H, W, C)`."""
+        batch = {key: arr[rows] for key, arr in self._arrays.items()}
+        for key, columns in self._png_columns.items():
+            channels = self.features[key]["shape"][-1]
+            which = np.searchsorted(self._offsets, rows, side="right") - 1
+            out = np.empty((len(rows), *self.features[key]["shape"]), dtype=np.uint8)
+            for d in np.unique(which):
+                sel = np.flatnonzero(which == d)
+                out[sel] = _decode_png_rows(columns[d], rows[sel] - self._offsets[d], channels)
+            batch[key] = out
+        return batch
+
+    def split_episodes(self, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Global frame indices of training and held-out episodes; a seeded `val_fraction` of the
+        episodes (at least one when the fraction is positive) is held out."""
+        n_ep = len(self.episodes)
+        n_val = int(round(val_fraction * n_ep)) if val_fraction > 0 else 0
+        n_val = max(n_val, 1) if val_fraction > 0 else 0
+        if n_val >= n_ep:
+            raise DatasetError(f"cannot hold out {val_fraction:.0%} of {n_ep} episode(s) and still train")
+        held = set(np.random.default_rng([seed, 0x5E1]).permutation(n_ep)[:n_val].tolist())
+
+        def frames(eps: list[int]) -> np.ndarray:
+            ranges = [np.arange(*self.episodes[e]) for e in eps]
+            return np.concatenate(ranges) if ranges else np.zeros(0, dtype=np.int64)
+
+        return frames([e for e in range(n_ep) if e not in held]), frames(sorted(held))
+
+
+def epoch_batches(n: int, batch_size: int, seed: int, stream: int, epoch: int) -> list[np.ndarray]:
+    """Positions `0..n-1` shuffled for one epoch of one sample stream (e.g. one ensemble member), in
+    batches; the order depends only on (seed, stream, epoch), so a resumed run replays it exactly."""
+    perm = np.random.default_rng([seed, stream, epoch]).permutation(n)
+    per_epoch = max(1, n // batch_size)
+    return [perm[i * batch_size : (i + 1) * batch_size] for i in range(per_epoch)]
+
+
+def batches_per_epoch(n: int, batch_size: int) -> int:
+    """How many batches `epoch_batches` yields per epoch (the last partial batch is dropped)."""
+    return max(1, n // batch_size)
+
+
+class Prefetcher:
+    """Gathers batches in a background thread: iterate it to get dicts of torch tensors.
+
+    `rows` yields arrays of global frame indices; batches come out in the same order."""
+
+    _END = object()
+
+    def __init__(self, table: FrameTable, rows: Iterator[np.ndarray], depth: int = 4, pin: bool = False) -> None:
+        self._table, self._rows, self._pin = table, rows, pin
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._work, name="shiftkit-prefetch", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        try:
+            for rows in self._rows:
+                if self._stop.is_set():
+                    return
+                batch = {k: torch.from_numpy(v) for k, v in self._table.gather(rows).items()}
+                if self._pin:
+                    batch = {k: v.pin_memory() for k, v in batch.items()}
+                self._put(batch)
+        except BaseException as exc:  # surfaced in the consumer thread
+            self._put(exc)
+            return
+        self._put(self._END)
+
+    def _put(self, item: object) -> None:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        while True:
+            item = self._queue.get()
+            if item is self._END:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+
+    def close(self) -> None:
+        """Stop the worker thread (safe to call twice)."""
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def __enter__(self) -> Prefetcher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,155 @@
+"""Success examples per task (B*_T), their loaders and training-time augmentation.
+
+Examples are states where a task is complete (VPACE); for LfGP they are full expert trajectories with
+actions. Loaders read them from LeRobot datasets (`observation.state` [+ `observation.environment_state`],
+`task` naming the task of each frame) or from the thesis authors' published expert buffers
+(gzip + pickle of numpy dicts, see shared/data/vpace/README.md).
+
+Augmentation (thesis B.2.6): Gaussian noise per observation dimension, scaled by that dimension's
+standard deviation within the task's example set times `aug_factor` (0.1), so dimensions that never
+vary (std 0) stay exact.
+"""
+
+from __future__ import annotations
+
+import gzip
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shiftkit.pipelines.errors import DatasetError
+
+STATE_KEYS = ("observation.state", "observation.environment_state")
+
+
+@dataclass
+class TaskExamples:
+    """One task's expert data: example states and, for full trajectories, actions."""
+
+    obs: np.ndarray  # (N, obs_dim) float32
+    act: np.ndarray | None = None  # (N, act_dim) float32, expert actions (full trajectories only)
+
+
+@dataclass
+class DatasetSource:
+    """Provenance of one example dataset."""
+
+    id: str
+    root: str
+    fingerprint: str | None
+
+
+def open_dataset(ref: str):
+    """Open a LeRobot dataset by ID or local path; returns (LeRobotDataset, DatasetSource)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    try:
+        from shiftkit.pipelines.lerobot_io import resolve_dataset
+    except ImportError:  # the shared resolver is not in this checkout yet: local path or $HF_LEROBOT_HOME
+        resolve_dataset = None
+    if resolve_dataset is not None:
+        resolved = resolve_dataset(ref)
+        repo_id, root, fingerprint = resolved.repo_id, Path(resolved.root), resolved.fingerprint
+    else:
+        path = Path(ref).expanduser()
+        repo_id, root, fingerprint = (path.name, path, None) if path.exists() else (ref, None, None)
+    try:
+        dataset = LeRobotDataset(repo_id, root=root)
+    except Exception as exc:  # lerobot raises many types for a missing/corrupt dataset
+        raise DatasetError(f"cannot open example dataset {ref!r}: {exc}") from exc
+    return dataset, DatasetSource(ref, str(dataset.root), fingerprint)
+
+
+def load_dataset_examples(
+    refs: list[str], tasks: list[str], with_actions: bool = False
+) -> tuple[dict[str, TaskExamples], list[DatasetSource]]:
+    """Collect each task's frames from LeRobot datasets, keyed by the frame's `task` string.
+
+    With `with_actions` (LfGP), frames keep their actions and every episode's final state is added once
+    more with a zero action, the `(s_T, 0)` pair that marks the end of a demonstration.
+    """
+    obs_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
+    act_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
+    sources = []
+    for ref in refs:
+        dataset, source = open_dataset(ref)
+        sources.append(source)
+        keys = [k for k in STATE_KEYS if k in dataset.features]
+        if "observation.state" not in keys:
+            raise DatasetError(f"example dataset {ref!r} has no 'observation.state' feature")
+        if with_actions and "action" not in dataset.features:
+            raise DatasetError(f"example dataset {ref!r} has no 'action' feature (LfGP needs full trajectories)")
+        table = dataset.hf_dataset.with_format("numpy")
+        obs = np.concatenate([np.asarray(table[k], np.float32).reshape(len(table), -1) for k in keys], axis=1)
+        task_index = np.asarray(table["task_index"]).reshape(-1)
+        episode = np.asarray(table["episode_index"]).reshape(-1)
+        act = np.asarray(table["action"], np.float32) if with_actions else None
+        for task, row in dataset.meta.tasks.iterrows():
+            if task not in obs_parts:
+                continue
+            mask = task_index == int(row["task_index"])
+            obs_parts[task].append(obs[mask])
+            if act is not None:
+                ends = np.flatnonzero(mask & np.append(episode[1:] != episode[:-1], True))
+                obs_parts[task].append(obs[ends])
+                act_parts[task] += [act[mask], np.zeros_like(act[ends])]
+    examples = {}
+    for task in tasks:
+        if not obs_parts[task] or sum(len(p) for p in obs_parts[task]) == 0:
+            raise DatasetError(f"no examples for task {task!r} in {', '.join(refs)}")
+        examples[task] = TaskExamples(
+            np.concatenate(obs_parts[task]), np.concatenate(act_parts[task]) if with_actions else None
+        )
+    return examples, sources
+
+
+def load_vpace_buffer(path: str | Path) -> TaskExamples:
+    """Read one of the VPACE authors' published buffers (gzip + pickle of numpy arrays).
+
+    Rows are put back in insertion order (circular buffer) and the always-zero absorbing-state flag
+    (last observation column) is dropped.
+    """
+    try:
+        with gzip.open(path, "rb") as f:
+            data = pickle.load(f)
+        obs, act = np.asarray(data["observations"], np.float32), np.asarray(data["actions"], np.float32)
+        count, size, pointer = int(data["count"]), int(data["memory_size"]), int(data["pointer"])
+    except (OSError, KeyError, pickle.UnpicklingError, EOFError) as exc:
+        raise DatasetError(f"cannot read VPACE expert buffer {path}: {exc}") from exc
+    if count > size:
+        order = np.roll(np.arange(size), -pointer)
+        obs, act = obs[order], act[order]
+    else:
+        obs, act = obs[:count], act[:count]
+    return TaskExamples(obs[:, :-1], act)
+
+
+class ExampleBuffer:
+    """Example sets of all tasks of a run, sampled as one (num_tasks, batch, ·) block."""
+
+    def __init__(self, examples: dict[str, TaskExamples], tasks: list[str], aug_factor: float = 0.1,
+                 max_per_task: int | None = None):
+        self.tasks = tasks
+        self.aug_factor = aug_factor
+        self.obs = [examples[t].obs[:max_per_task] for t in tasks]
+        self.act = [None if examples[t].act is None else examples[t].act[:max_per_task] for t in tasks]
+        self.std = [o.std(axis=0) for o in self.obs]
+        dims = {o.shape[1] for o in self.obs}
+        if len(dims) != 1:
+            raise DatasetError(f"example observation widths differ between tasks: {sorted(dims)}")
+        self.obs_dim = dims.pop()
+
+    def sizes(self) -> dict[str, int]:
+        return {t: len(o) for t, o in zip(self.tasks, self.obs, strict=True)}
+
+    def sample(self, rng: np.random.Generator, batch_size: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Augmented example states (T, B, obs_dim) and, when present, their actions (T, B, act_dim)."""
+        obs, act = [], []
+        for o, a, std in zip(self.obs, self.act, self.std, strict=True):
+            idx = rng.integers(0, len(o), batch_size)
+            obs.append(o[idx] + rng.standard_normal((batch_size, o.shape[1]), np.float32) * (self.aug_factor * std))
+            if a is not None:
+                act.append(a[idx])
+        return np.stack(obs).astype(np.float32), (np.stack(act) if act else None)

@@ -1,0 +1,178 @@
+"""The output folder every trainer writes (BC, VPACE, LfGP): config, checkpoints, metrics, model card.
+
+    OUTPUT_DIR/
+      config.json        {"trainer": "bc"|"vpace"|..., "args": {...full dataclass...},
+                          "datasets": [{"id":..., "root":..., "fingerprint":...}], "seed": ...,
+                          "versions": {"shiftkit":..., "lerobot":..., "torch":...}, ...}
+      checkpoints/step-00001000.pt   torch.save dict (models, optimizers, rng states, "step", ...)
+      checkpoints/last.txt           name of the newest complete checkpoint
+      metrics.jsonl      one JSON object per line, always with "step" and "split" ("train"/"eval"/...)
+      README.md          model card rendered by shiftkit.cards
+
+Checkpoints and last.txt are written to a temporary file and renamed into place, so a run killed at
+any moment leaves the previous checkpoint loadable. Resuming drops the metric lines a killed run
+wrote after its last checkpoint, so the metrics file reads as if the run had never stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from shiftkit.pipelines.errors import ConfigError, ShiftkitError
+
+CONFIG = "config.json"
+METRICS = "metrics.jsonl"
+CARD = "README.md"
+CHECKPOINTS = "checkpoints"
+LAST = "last.txt"
+
+
+def versions() -> dict[str, str]:
+    """Installed versions of the packages a run's results depend on."""
+    out = {}
+    for pkg in ("shiftkit", "lerobot", "torch"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "unknown"
+    return out
+
+
+def _atomic_write(path: Path, write) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "item") and getattr(value, "ndim", 1) == 0:  # numpy / torch scalars
+        return value.item()
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return value
+
+
+class RunDir:
+    """A trainer's output folder (layout in the module docstring)."""
+
+    def __init__(self, output_dir: Path | str, resume: bool) -> None:
+        self.path = Path(output_dir)
+        self.resume = resume
+        has_run = (self.path / CONFIG).exists() or (self.path / CHECKPOINTS).exists()
+        if has_run and not resume:
+            raise ShiftkitError(f"output folder {self.path} already holds a run; pass --resume or choose another")
+        if self.path.exists() and not self.path.is_dir():
+            raise ShiftkitError(f"output path {self.path} is a file, not a folder")
+        (self.path / CHECKPOINTS).mkdir(parents=True, exist_ok=True)
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.path / CHECKPOINTS
+
+    def read_config(self) -> dict | None:
+        """The stored config.json, or None before `write_config`."""
+        path = self.path / CONFIG
+        return json.loads(path.read_text()) if path.exists() else None
+
+    def write_config(self, config: dict, ignore_on_resume: tuple[str, ...] = ("resume",)) -> None:
+        """Store the run's config; on resume it must match the stored one's `args` (apart from the
+        keys in `ignore_on_resume`), since a checkpoint only continues the run that made it."""
+        config = _jsonable(config)
+        old = self.read_config()
+        if old is not None:
+            old_args, new_args = old.get("args", {}), config.get("args", {})
+            for key in sorted(set(old_args) | set(new_args)):
+                if key not in ignore_on_resume and old_args.get(key) != new_args.get(key):
+                    raise ConfigError(
+                        f"--resume with a different {key!r} ({old_args.get(key)!r} in {self.path / CONFIG}, "
+                        f"now {new_args.get(key)!r})"
+                    )
+        text = json.dumps(config, indent=2, sort_keys=True) + "\n"
+        _atomic_write(self.path / CONFIG, lambda f: f.write(text.encode()))
+
+    def save_checkpoint(self, step: int, state: dict, keep: int = 2) -> Path:
+        """Write `state` (with `step` added) as checkpoints/step-XXXXXXXX.pt, point last.txt at it and
+        delete all but the newest `keep` checkpoints."""
+        name = f"step-{step:08d}.pt"
+        path = self.checkpoint_dir / name
+        _atomic_write(path, lambda f: torch.save({**state, "step": step}, f))
+        _atomic_write(self.checkpoint_dir / LAST, lambda f: f.write(name.encode()))
+        for old in sorted(self.checkpoint_dir.glob("step-*.pt"))[:-keep] if keep > 0 else []:
+            if old.name != name:
+                old.unlink()
+        return path
+
+    def latest_checkpoint(self) -> Path | None:
+        """Path of the newest complete checkpoint, or None."""
+        last = self.checkpoint_dir / LAST
+        if not last.exists():
+            return None
+        path = self.checkpoint_dir / last.read_text().strip()
+        if not path.is_file():
+            raise ShiftkitError(f"{last} names a missing checkpoint {path.name}")
+        return path
+
+    def load_latest(self) -> dict | None:
+        """The newest checkpoint's state (None if there is none); drops metric lines logged after it."""
+        path = self.latest_checkpoint()
+        if path is None:
+            return None
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        self._truncate_metrics(int(state["step"]))
+        return state
+
+    def _truncate_metrics(self, after_step: int) -> None:
+        path = self.path / METRICS
+        if not path.exists():
+            return
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+        kept = [ln for ln in lines if json.loads(ln)["step"] <= after_step]
+        if len(kept) != len(lines):
+            text = "".join(ln + "\n" for ln in kept)
+            _atomic_write(path, lambda f: f.write(text.encode()))
+
+    def log(self, step: int, split: str, **metrics: Any) -> None:
+        """Append one metrics line `{"step", "split", **metrics}` to metrics.jsonl."""
+        line = json.dumps(_jsonable({"step": step, "split": split, **metrics}), sort_keys=True)
+        with open(self.path / METRICS, "a") as f:
+            f.write(line + "\n")
+
+    def read_metrics(self) -> list[dict]:
+        """All metric lines, in order."""
+        path = self.path / METRICS
+        if not path.exists():
+            return []
+        return [json.loads(ln) for ln in path.read_text().splitlines() if ln.strip()]
+
+    def write_model_card(self, metrics: dict) -> None:
+        """Render README.md from config.json and the final `metrics`."""
+        from shiftkit.cards import render_model_card
+
+        config = self.read_config()
+        if config is None:
+            raise ShiftkitError(f"{self.path} has no {CONFIG} to describe in a model card")
+        card = {
+            "trainer": config["trainer"],
+            "datasets": config.get("datasets", []),
+            "args": config.get("args", {}),
+            "metrics": _jsonable(metrics),
+            "env": config.get("env"),
+            "versions": config.get("versions", {}),
+        }
+        text = render_model_card(card)
+        _atomic_write(self.path / CARD, lambda f: f.write(text.encode()))

@@ -1,0 +1,39 @@
+"""`drop`: remove features (e.g. simulator state before publishing a dataset)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.stage import Stage, register_stage
+
+
+@dataclass
+class DropConfig:
+    features: list[str] = field(default_factory=list)
+    """Feature names to remove."""
+
+
+@register_stage
+class Drop(Stage):
+    name = "drop"
+    version = 1
+    Config = DropConfig
+
+    def transform_features(self, features: Features) -> Features:
+        for key in self.config.features:
+            if key not in features:
+                raise ConfigError(f"drop: no feature {key!r} (features: {', '.join(features)})")
+        out = {k: v for k, v in features.items() if k not in self.config.features}
+        if not out:
+            raise ConfigError("drop: would remove every feature")
+        return out
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        drop = set(self.config.features)
+        yield Episode({k: v for k, v in episode.frames.items() if k not in drop}, dict(episode.meta))

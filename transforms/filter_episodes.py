@@ -1,0 +1,59 @@
+"""`filter`: keep or drop whole episodes by source index, task, outcome or length."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.stage import Stage, register_stage
+
+
+@dataclass
+class FilterConfig:
+    indices: list[int] | None = None
+    """Keep only these source episode indices (None: all)."""
+    tasks: list[str] | None = None
+    """Keep only episodes whose task (any frame's) is in this list."""
+    outcomes: list[str] | None = None
+    """Keep only episodes whose `outcome` metadata is in this list (e.g. ["success"])."""
+    min_length: int = 1
+    """Drop episodes with fewer frames."""
+    max_length: int | None = None
+    """Drop episodes with more frames (None: no limit)."""
+    keep_fraction: float = 1.0
+    """Keep each remaining episode with this probability (seeded), e.g. to subsample a dataset."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.keep_fraction <= 1.0:
+            raise ValueError(f"keep_fraction must be in (0, 1], got {self.keep_fraction}")
+        if self.min_length < 1 or (self.max_length is not None and self.max_length < self.min_length):
+            raise ValueError("need 1 <= min_length <= max_length")
+
+
+@register_stage
+class FilterEpisodes(Stage):
+    name = "filter"
+    version = 1
+    Config = FilterConfig
+
+    def transform_features(self, features: Features) -> Features:
+        return features
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        c = self.config
+        # Draw first so the decision for one episode never depends on the other criteria.
+        draw = rng.random()
+        if c.indices is not None and episode.meta.get("source_episode_index") not in c.indices:
+            return
+        if c.tasks is not None and not set(episode.tasks) & set(c.tasks):
+            return
+        if c.outcomes is not None and episode.meta.get("outcome") not in c.outcomes:
+            return
+        if len(episode) < c.min_length or (c.max_length is not None and len(episode) > c.max_length):
+            return
+        if draw < c.keep_fraction:
+            yield episode

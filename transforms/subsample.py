@@ -1,0 +1,54 @@
+"""`subsample`: keep every k-th frame; the dataset's fps becomes fps / k."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.stage import Stage, register_stage
+
+
+@dataclass
+class SubsampleConfig:
+    every: int = 2
+    """Keep one frame out of `every`; it must divide the input fps (LeRobot fps are integers)."""
+    offset: int = 0
+    """Index of the first kept frame (0 <= offset < every)."""
+
+    def __post_init__(self) -> None:
+        if self.every < 1 or not 0 <= self.offset < self.every:
+            raise ValueError("need every >= 1 and 0 <= offset < every")
+
+
+@register_stage
+class Subsample(Stage):
+    name = "subsample"
+    version = 1
+    Config = SubsampleConfig
+
+    def transform_fps(self, fps: int) -> int:
+        if fps % self.config.every:
+            raise ConfigError(f"subsample: every={self.config.every} does not divide the input fps {fps}")
+        return fps // self.config.every
+
+    def transform_features(self, features: Features) -> Features:
+        return features
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        if len(episode) <= self.config.offset:
+            return
+        out = episode.select(slice(self.config.offset, None, self.config.every))
+        out.frames["timestamp"] = np.arange(len(out), dtype=np.float64) / self.transform_fps(self.context.fps)
+        if "segments" in out.meta:
+            k, o = self.config.every, self.config.offset
+            out.meta["segments"] = [
+                {**s, "start": -(-(s["start"] - o) // k), "end": -(-(s["end"] - o) // k)}
+                for s in out.meta["segments"]
+                if -(-(s["end"] - o) // k) > -(-(s["start"] - o) // k)
+            ]
+        yield out
