@@ -7,7 +7,7 @@ export TOKENIZERS_PARALLELISM ?= false
 
 .PHONY: demo test
 demo:
-	@v=$$(scripts/ensure-env.sh) && "$$v/bin/shiftkit" demo --out outputs/demo
+	@v=$$(scripts/ensure-env.sh) && "$$v/bin/shiftkit" demo --out outputs/demo --overwrite
 
 test:
 	@v=$$(scripts/ensure-env.sh) && "$$v/bin/python" -m pytest -q $(PYTEST_ARGS)

@@ -19,15 +19,19 @@ complete and checked, so a failed pull writes nothing. Hub failures become one-l
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
+import logging
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
+from shiftkit.pipelines.lerobot_io import lerobot_home
+
+log = logging.getLogger(__name__)
 
 DEFAULT_BRANCH = "main"
 # Local bookkeeping that is never part of a pushed repository (huggingface_hub's download metadata,
@@ -39,7 +43,7 @@ _DATASET_SKIPPED = ("images",)
 _DATASET_OWNED = ("data/", "meta/", "videos/")
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class PushResult:
     """What a push made on the hub."""
 
@@ -55,20 +59,6 @@ class PushResult:
     """The commit's URL on the hub."""
     tag: str | None
     """The codebase version tag pointing at `commit`, None when the push did not move it."""
-
-
-@dataclass(frozen=True)
-class PulledRepo:
-    """A repository snapshot that is now on local disk."""
-
-    repo_id: str
-    """The repository pulled (ORG/NAME)."""
-    revision: str
-    """The revision it was resolved from (a version tag such as v3.0, a branch or a commit)."""
-    commit: str
-    """The exact commit id downloaded (recorded in provenance)."""
-    root: Path
-    """The local folder holding the snapshot (the dataset root for datasets)."""
 
 
 def validate_repo_id(repo_id: str) -> None:
@@ -90,13 +80,11 @@ def validate_repo_id(repo_id: str) -> None:
 
 def local_dataset_root(source: str | Path) -> Path:
     """The root of a local LeRobot dataset given as a folder or as an ID under $HF_LEROBOT_HOME."""
-    from lerobot.utils.constants import HF_LEROBOT_HOME
-
     path = Path(source).expanduser()
-    if not path.is_dir() and (HF_LEROBOT_HOME / str(source)).is_dir():
-        path = HF_LEROBOT_HOME / str(source)
+    if not path.is_dir() and (lerobot_home() / str(source)).is_dir():
+        path = lerobot_home() / str(source)
     if not path.is_dir():
-        raise DatasetError(f"{source}: no such dataset folder, nor a local dataset ID under {HF_LEROBOT_HOME}")
+        raise DatasetError(f"{source}: no such dataset folder, nor a local dataset ID under {lerobot_home()}")
     if not (path / "meta" / "info.json").is_file():
         raise DatasetError(f"{path}: not a LeRobot dataset (no meta/info.json)")
     return path
@@ -145,7 +133,7 @@ def push_dataset(
             with contextlib.suppress(RevisionNotFoundError):
                 api.delete_tag(repo_id, tag=CODEBASE_VERSION, repo_type="dataset")
             api.create_tag(repo_id, tag=CODEBASE_VERSION, revision=result.commit, repo_type="dataset")
-            result = PushResult(**{**result.__dict__, "tag": CODEBASE_VERSION})
+            result = dataclasses.replace(result, tag=CODEBASE_VERSION)
     return result
 
 
@@ -169,19 +157,17 @@ def push_checkpoint(
 
 def pull_dataset(
     repo_id: str, revision: str | None = None, root: str | Path | None = None, *, force: bool = False
-) -> PulledRepo:
+) -> Path:
     """Download dataset `repo_id` into `root` (default `$HF_LEROBOT_HOME/<repo_id>`).
 
     Without `revision`, the codebase version lerobot reads (v3.0, or the newest compatible v3.x tag)
     is resolved exactly as lerobot does; a repository without a version tag is an error. A version
     given as `revision` resolves the same way; a branch, tag or commit is taken literally. The
     downloaded `meta/info.json` must declare a compatible codebase version. An existing `root` is
-    replaced only with `force`.
+    replaced only with `force`. Returns the dataset root.
     """
-    from lerobot.utils.constants import HF_LEROBOT_HOME
-
     validate_repo_id(repo_id)
-    dest = Path(root).expanduser() if root is not None else HF_LEROBOT_HOME / repo_id
+    dest = Path(root).expanduser() if root is not None else lerobot_home() / repo_id
     _refuse_existing(dest, force)
     with _hub_errors(repo_id, revision):
         resolved = _dataset_revision(repo_id, revision)
@@ -190,13 +176,11 @@ def pull_dataset(
 
 def pull_checkpoint(
     repo_id: str, revision: str | None = None, root: str | Path | None = None, *, force: bool = False
-) -> PulledRepo:
+) -> Path:
     """Download the model repository `repo_id` at `revision` (default main) into `root`
-    (default `$HF_LEROBOT_HOME/checkpoints/<repo_id>`)."""
-    from lerobot.utils.constants import HF_LEROBOT_HOME
-
+    (default `$HF_LEROBOT_HOME/checkpoints/<repo_id>`); returns that folder."""
     validate_repo_id(repo_id)
-    dest = Path(root).expanduser() if root is not None else HF_LEROBOT_HOME / "checkpoints" / repo_id
+    dest = Path(root).expanduser() if root is not None else lerobot_home() / "checkpoints" / repo_id
     _refuse_existing(dest, force)
     with _hub_errors(repo_id, revision):
         return _pull(repo_id, "model", revision or DEFAULT_BRANCH, dest, check=None)
@@ -302,7 +286,7 @@ def _refuse_existing(dest: Path, force: bool) -> None:
         raise ShiftkitError(f"{dest} already exists (pass --force to replace it)")
 
 
-def _pull(repo_id: str, repo_type: str, revision: str, dest: Path, check) -> PulledRepo:
+def _pull(repo_id: str, repo_type: str, revision: str, dest: Path, check) -> Path:
     """Download `revision` into a temporary folder beside `dest`, check it, rename it into place."""
     from huggingface_hub import snapshot_download
 
@@ -319,7 +303,8 @@ def _pull(repo_id: str, repo_type: str, revision: str, dest: Path, check) -> Pul
             shutil.rmtree(old)
         else:
             os.replace(staging, dest)
-    return PulledRepo(repo_id=repo_id, revision=revision, commit=commit, root=dest)
+    log.info("pulled %s %s@%s (commit %s) into %s", repo_type, repo_id, revision, commit, dest)
+    return dest
 
 
 @contextlib.contextmanager

@@ -18,6 +18,7 @@ import json
 import os
 import shutil
 import uuid
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,16 +131,22 @@ class DatasetWriter:
                 columns[key] = arr.reshape(n)
             else:
                 columns[key] = arr
-        columns["timestamp"] = episode.frames["timestamp"].astype(np.float32)
+        columns["timestamp"] = episode.frames["timestamp"].astype(np.float64)  # stored as float32; stats in float64 as lerobot
         columns["frame_index"] = np.arange(n, dtype=np.int64)
         columns["episode_index"] = np.full(n, self.num_episodes, dtype=np.int64)
         columns["index"] = np.arange(start, start + n, dtype=np.int64)
         columns["task_index"] = np.array([task_index[t] for t in tasks], dtype=np.int64)
 
         numeric = {k: v for k, v in columns.items() if k not in self._image_keys}
-        stats = compute_episode_stats(numeric, self._ds.features)
-        for key in self._image_keys:
-            stats[key] = _image_stats(episode.frames[key])
+        with warnings.catch_warnings():
+            # lerobot's histogram code warns for every bool feature (e.g. next.success).
+            warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
+            numeric_stats = compute_episode_stats(numeric, self._ds.features)
+        # Same key order as lerobot (feature order), which fixes the episodes-parquet columns.
+        stats = {
+            k: _image_stats(episode.frames[k]) if k in self._image_keys else numeric_stats[k]
+            for k in self._ds.features
+        }
 
         table = datasets.Dataset.from_dict(
             {k: columns[k] for k in self._hf_features}, features=self._hf_features, split="train"

@@ -99,3 +99,22 @@ def build_stage(name: str, params: dict[str, Any] | None, context: StageContext,
         raise ConfigError(f"{where}: stage {name!r} is version {cls.version}, the config asks for version {version}")
     config = from_dict(cls.Config, params or {}, f"{where} ({name})")
     return cls(config, context)
+
+
+def describe_stages() -> str:
+    """Every registered stage with its parameters, defaults and docs (for `shiftkit plan --stages`)."""
+    import dataclasses
+    import sys
+
+    from shiftkit.pipelines.dataclass_config import field_docs
+
+    lines = []
+    for name, cls in registered_stages().items():
+        doc = (sys.modules[cls.__module__].__doc__ or "").strip().splitlines()
+        lines.append(f"{name} (v{cls.version}): {doc[0] if doc else ''}")
+        docs = field_docs(cls.Config)
+        for f in dataclasses.fields(cls.Config):
+            default = f.default if f.default is not dataclasses.MISSING else (
+                f.default_factory() if f.default_factory is not dataclasses.MISSING else "(required)")
+            lines.append(f"    {f.name} = {default!r}  {docs.get(f.name, '')}")
+    return "\n".join(lines)

@@ -1,0 +1,26 @@
+"""`shiftkit demo`: the end-to-end demo pipeline on embedded defaults."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HELP = "record demo episodes, run the demo pipeline and validate the LeRobot dataset it makes"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", default="outputs/demo", help="output directory (default outputs/demo)")
+    parser.add_argument("--episodes", type=int, default=6, help="episodes to record (default 6)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--overwrite", action="store_true", help="replace an earlier demo output")
+
+
+def run(args: argparse.Namespace) -> int:
+    from shiftkit.pipelines.dataset_check import format_summary
+    from shiftkit.pipelines.demo import run_demo
+
+    result = run_demo(Path(args.out), args.episodes, args.seed, args.overwrite)
+    print(format_summary(result["summary"]))
+    print(f"\nvalid LeRobot dataset: {result['dataset']} ({result['episodes']} episodes, {result['frames']} frames)")
+    print(f"pipeline config: {result['config']} (try `shiftkit plan {result['config']}`)")
+    return 0

@@ -1,0 +1,23 @@
+"""`shiftkit info DATASET`: features, episodes, tasks, stats summary and provenance."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+HELP = "describe a dataset (path or dataset ID): features, episodes, tasks, stats, provenance"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", help="dataset directory or dataset ID")
+    parser.add_argument("--revision", help="hub revision when the ID is pulled")
+    parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from shiftkit.pipelines.dataset_check import format_summary, summarize
+    from shiftkit.pipelines.lerobot_io import resolve_dataset
+
+    summary = summarize(resolve_dataset(args.dataset, revision=args.revision).root)
+    print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    return 0

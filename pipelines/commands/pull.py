@@ -1,0 +1,28 @@
+"""`shiftkit pull`: download a LeRobot dataset (or a policy checkpoint) from a Hugging Face-compatible hub."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "Pull a LeRobot dataset (or, with --checkpoint, a policy checkpoint) from the hub at HF_ENDPOINT."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("repo_id", metavar="ORG/NAME", help="hub repository to pull")
+    parser.add_argument("--revision", metavar="REV", default=None,
+                        help="version tag, branch or commit (default: the codebase version lerobot reads, "
+                             "v3.0; main for checkpoints)")
+    parser.add_argument("--root", metavar="DIR", default=None,
+                        help="folder to write to (default: $HF_LEROBOT_HOME/ORG/NAME, "
+                             "$HF_LEROBOT_HOME/checkpoints/ORG/NAME for checkpoints)")
+    parser.add_argument("--force", action="store_true", help="replace an existing folder at the destination")
+    parser.add_argument("--checkpoint", action="store_true", help="pull a policy checkpoint (model repository)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from shiftkit.pipelines import hub
+
+    pull = hub.pull_checkpoint if args.checkpoint else hub.pull_dataset
+    root = pull(args.repo_id, args.revision, args.root, force=args.force)
+    print(f"pulled {args.repo_id} into {root}")
+    return 0

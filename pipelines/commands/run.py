@@ -1,0 +1,24 @@
+"""`shiftkit run FILE`: run a pipeline (resumable, atomic)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "run a pipeline config; re-running after an interruption resumes it"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("config", help="pipeline config (.toml, .yaml or .json)")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--executor", default="local", help="executor: local (default)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from shiftkit.pipelines.config import load_pipeline_config
+    from shiftkit.pipelines.runner import run_pipeline
+
+    config = load_pipeline_config(args.config)
+    path = run_pipeline(config, workers=args.workers, executor=args.executor, progress=not args.no_progress)
+    print(f"wrote {path}")
+    return 0

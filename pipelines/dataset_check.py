@@ -1,0 +1,104 @@
+"""Summaries (`shiftkit info`) and integrity checks (`shiftkit validate`) of LeRobot datasets."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, open_lerobot_dataset
+
+
+def summarize(root: str | Path) -> dict[str, Any]:
+    """Features, counts, tasks, stats summary and provenance, as a JSON-able dict."""
+    root = Path(root)
+    reader = open_lerobot_dataset(root)
+    stats_path = root / "meta" / "stats.json"
+    stats = json.loads(stats_path.read_text()) if stats_path.exists() else {}
+    prov_path = root / PROVENANCE_PATH
+    return {
+        "root": str(root),
+        "codebase_version": reader.info.get("codebase_version"),
+        "robot_type": reader.robot_type,
+        "fps": reader.fps,
+        "episodes": reader.num_episodes,
+        "frames": int(reader.info.get("total_frames", 0)),
+        "tasks": reader.tasks,
+        "features": {k: {"dtype": ft["dtype"], "shape": list(ft["shape"]), "names": ft.get("names")}
+                     for k, ft in reader.features.items()},
+        "stats": {k: {s: v[s] for s in ("mean", "std", "min", "max") if s in v}
+                  for k, v in stats.items() if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")},
+        "provenance": json.loads(prov_path.read_text()) if prov_path.exists() else None,
+    }
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    def short(v: Any) -> str:
+        flat = np.asarray(v, dtype=float).ravel()
+        return "[" + ", ".join(f"{x:.3g}" for x in flat[:4]) + (", ..." if flat.size > 4 else "") + "]"
+
+    lines = [
+        f"{summary['root']}  ({summary['codebase_version']}, robot {summary['robot_type']})",
+        f"episodes {summary['episodes']}, frames {summary['frames']}, fps {summary['fps']}",
+        f"tasks ({len(summary['tasks'])}): {', '.join(summary['tasks'])}",
+        "features:",
+    ]
+    width = max(len(k) for k in summary["features"])
+    for key, ft in summary["features"].items():
+        st = summary["stats"].get(key)
+        extra = f"mean {short(st['mean'])} std {short(st['std'])}" if st and "mean" in st else ""
+        lines.append(f"  {key:<{width}}  {ft['dtype']:<8} {str(tuple(ft['shape'])):<14} {extra}")
+    prov = summary["provenance"]
+    if prov:
+        lines.append(f"provenance: shiftkit {prov['versions'].get('shiftkit')}, lerobot {prov['versions'].get('lerobot')}, seed {prov.get('seed')}")
+        for src in prov.get("sources", []):
+            lines.append("  source: " + ", ".join(f"{k}={v}" for k, v in src.items() if v not in (None, "")))
+        for stage in prov.get("stages", []):
+            lines.append(f"  stage: {stage['name']} v{stage['version']} {json.dumps(stage['params'], sort_keys=True)}")
+    else:
+        lines.append("provenance: none (not made by shiftkit)")
+    return "\n".join(lines)
+
+
+def validate_dataset(root: str | Path) -> dict[str, int]:
+    """Read every episode and check it against the metadata; raise DatasetError on the first problem.
+
+    Checks: info/episodes/tasks metadata readable and consistent; every data file readable; each
+    episode's rows, indices, frame indices, timestamps and tasks; shapes and dtypes; NaN/inf in
+    float features; stats present for every feature; lerobot itself can open the dataset.
+    """
+    from shiftkit.pipelines.features import check_episode
+
+    root = Path(root)
+    reader = open_lerobot_dataset(root)
+    stats_path = root / "meta" / "stats.json"
+    if not stats_path.exists():
+        raise DatasetError(f"{stats_path} is missing")
+    stats = json.loads(stats_path.read_text())
+    missing = [k for k in reader.features if k not in stats]
+    if missing:
+        raise DatasetError(f"{stats_path}: no statistics for {missing}")
+    frames = 0
+    next_index = 0
+    for ep in reader.iter_episodes():
+        i = ep.meta["source_episode_index"]
+        row = reader.episodes.iloc[i]
+        if int(row["dataset_from_index"]) != next_index:
+            raise DatasetError(f"{root}: episode {i} starts at index {int(row['dataset_from_index'])}, expected {next_index}")
+        check_episode(ep, reader.features, reader.fps, f"{root} episode {i}")
+        next_index = int(row["dataset_to_index"])
+        frames += len(ep)
+    if frames != int(reader.info.get("total_frames", -1)):
+        raise DatasetError(f"{root}: {frames} frames in the data, info.json says {reader.info.get('total_frames')}")
+    if reader.num_episodes != int(reader.info.get("total_episodes", -1)):
+        raise DatasetError(f"{root}: {reader.num_episodes} episodes, info.json says {reader.info.get('total_episodes')}")
+    try:
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        LeRobotDataset(f"local/{root.name}", root=root)
+    except Exception as exc:
+        raise DatasetError(f"{root}: lerobot cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    return {"episodes": reader.num_episodes, "frames": frames}

@@ -1,0 +1,125 @@
+"""The LeRobot writer/reader: same content as lerobot's own writer, atomic, streaming round trip."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.lerobot_io import META_COLUMN, DatasetWriter, open_lerobot_dataset, resolve_dataset
+
+FEATURES = {
+    "observation.state": {"dtype": "float32", "shape": (3,), "names": ["a", "b", "c"]},
+    "action": {"dtype": "float32", "shape": (2,), "names": ["u", "v"]},
+    "next.success": {"dtype": "bool", "shape": (1,), "names": None},
+    "observation.images.cam": {"dtype": "image", "shape": (6, 8, 3), "names": ["height", "width", "channels"]},
+}
+
+
+def make_episodes(n_eps: int = 3, seed: int = 0) -> list[Episode]:
+    rng = np.random.default_rng(seed)
+    eps = []
+    for e in range(n_eps):
+        n = 5 + e
+        eps.append(Episode({
+            "observation.state": rng.normal(size=(n, 3)).astype(np.float32),
+            "action": rng.normal(size=(n, 2)).astype(np.float32),
+            "next.success": (np.arange(n) == n - 1).reshape(n, 1),
+            "observation.images.cam": rng.integers(0, 255, size=(n, 6, 8, 3), dtype=np.uint8),
+            "timestamp": np.arange(n) / 10,
+            "task": np.array(["pick" if e % 2 == 0 else "place"] * n),
+        }, {"outcome": "success"}))
+    return eps
+
+
+def write_with_lerobot(root, episodes):
+    """The reference: lerobot's high-level add_frame/save_episode loop (timestamps = frame_index / fps)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset.create("test/ref", 10, dict(FEATURES), root=root, use_videos=False)
+    for ep in episodes:
+        for t in range(len(ep)):
+            frame = {k: ep.frames[k][t] for k in FEATURES}
+            frame["task"] = str(ep.frames["task"][t])
+            ds.add_frame(frame)
+        ds.save_episode()
+    ds.finalize()
+
+
+def test_content_identical_to_lerobot_writer(tmp_path):
+    episodes = make_episodes()
+    write_with_lerobot(tmp_path / "ref", episodes)
+    with DatasetWriter("test/ref", tmp_path / "ours", 10, FEATURES) as w:
+        for ep in episodes:
+            w.add_episode(ep)
+    ref, ours = tmp_path / "ref", tmp_path / "ours"
+    data_ref = pq.read_table(ref / "data/chunk-000/file-000.parquet")
+    data_ours = pq.read_table(ours / "data/chunk-000/file-000.parquet")
+    assert data_ours.schema == data_ref.schema
+    # The HF feature metadata must match; lerobot's extra `fingerprint` is a hash of its
+    # datasets.map cache step (embed_images), not of content.
+    hf_ref = json.loads(data_ref.schema.metadata[b"huggingface"])
+    hf_ref.pop("fingerprint", None)
+    assert json.loads(data_ours.schema.metadata[b"huggingface"]) == hf_ref
+    assert data_ours.equals(data_ref)
+    assert json.loads((ours / "meta/info.json").read_text()) == json.loads((ref / "meta/info.json").read_text())
+    assert json.loads((ours / "meta/stats.json").read_text()) == json.loads((ref / "meta/stats.json").read_text())
+    assert pq.read_table(ours / "meta/tasks.parquet").equals(pq.read_table(ref / "meta/tasks.parquet"))
+    ep_ref = pq.read_table(ref / "meta/episodes/chunk-000/file-000.parquet")
+    ep_ours = pq.read_table(ours / "meta/episodes/chunk-000/file-000.parquet").drop_columns([META_COLUMN])
+    assert ep_ours.equals(ep_ref)
+
+
+def test_lerobot_loads_and_reader_round_trips(tmp_path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    episodes = make_episodes()
+    with DatasetWriter("test/rt", tmp_path / "ds", 10, FEATURES) as w:
+        for ep in episodes:
+            w.add_episode(ep)
+    ds = LeRobotDataset("test/rt", root=tmp_path / "ds")
+    assert ds.num_episodes == 3 and len(ds) == 5 + 6 + 7
+    assert ds[5]["task"] == "place"
+    reader = open_lerobot_dataset(tmp_path / "ds")
+    for original, back in zip(episodes, reader.iter_episodes(), strict=True):
+        for key in FEATURES:
+            np.testing.assert_array_equal(back.frames[key], original.frames[key])
+        assert list(back.frames["task"]) == list(original.frames["task"])
+        assert back.meta["outcome"] == "success"
+
+
+def test_failed_write_leaves_nothing(tmp_path):
+    bad = make_episodes(1)[0]
+    bad.frames["action"][2, 1] = np.nan
+    with pytest.raises(DatasetError, match="'action' has NaN"):
+        with DatasetWriter("test/x", tmp_path / "ds", 10, FEATURES) as w:
+            w.add_episode(make_episodes(1)[0])
+            w.add_episode(bad)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_destination_exists_and_schema_mismatch(tmp_path):
+    (tmp_path / "ds").mkdir()
+    with pytest.raises(DatasetError, match="already exists"):
+        DatasetWriter("test/x", tmp_path / "ds", 10, FEATURES)
+    ep = make_episodes(1)[0]
+    ep.frames["observation.state"] = ep.frames["observation.state"][:, :2]
+    with pytest.raises(DatasetError, match="per-frame shape"):
+        with DatasetWriter("test/x", tmp_path / "ds2", 10, FEATURES) as w:
+            w.add_episode(ep)
+    assert not (tmp_path / "ds2").exists()
+
+
+def test_resolve_dataset_by_id_in_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_LEROBOT_HOME", str(tmp_path / "home"))
+    with DatasetWriter("org/name", tmp_path / "home" / "org" / "name", 10, FEATURES) as w:
+        w.add_episode(make_episodes(1)[0])
+    resolved = resolve_dataset("org/name")
+    assert resolved.root == tmp_path / "home" / "org" / "name"
+    assert len(resolved.fingerprint) == 16
+    with pytest.raises(DatasetError, match="not found"):
+        resolve_dataset("not a valid id")
