@@ -182,8 +182,9 @@ def pull_checkpoint(
     validate_repo_id(repo_id)
     dest = Path(root).expanduser() if root is not None else lerobot_home() / "checkpoints" / repo_id
     _refuse_existing(dest, force)
+    revision = revision or DEFAULT_BRANCH
     with _hub_errors(repo_id, revision):
-        return _pull(repo_id, "model", revision or DEFAULT_BRANCH, dest, check=None)
+        return _pull(repo_id, "model", revision, dest, check=None)
 
 
 # -- pushing ----------------------------------------------------------------------------------
@@ -355,19 +356,19 @@ def _hub_errors(repo_id: str, revision: str | None) -> Iterator[None]:
         raise ShiftkitError(f"revision {revision!r} not found in {repo_id} at {endpoint}") from None
     except HfHubHTTPError as exc:
         status = exc.response.status_code if exc.response is not None else None
-        server = _one_line(exc.server_message or "") if exc.server_message else ""
-        if status == 401:
+        server = _one_line(exc.server_message or "")
+        if status == 401:  # the hub also answers 401 for private repositories it hides
             message = (f"not authorized for {repo_id} at {endpoint} (401): missing or invalid token, or no such "
                        "repository (set HF_TOKEN or log in with `hf auth login`)")
         elif status == 403:
-            message = f"access to {repo_id} at {endpoint} forbidden (403): the token lacks the permission"
+            message = f"access to {repo_id} at {endpoint} forbidden (403): {server or 'the token lacks the permission'}"
         elif isinstance(exc, RepositoryNotFoundError):
             message = f"repository {repo_id} not found at {endpoint}"
         elif isinstance(exc, EntryNotFoundError):
             message = f"file not found in {repo_id} at {endpoint}"
         else:
-            message = f"hub request for {repo_id} failed at {endpoint} ({status})"
-        raise ShiftkitError(f"{message}: {server}" if server and status not in (401, 404) else message) from None
+            message = f"hub request for {repo_id} failed at {endpoint} ({status})" + (f": {server}" if server else "")
+        raise ShiftkitError(message) from None
     except ValueError as exc:
         # HfApi.create_commit reports the endpoint's card validation failure as a ValueError.
         if str(exc).startswith("Invalid metadata in README.md"):

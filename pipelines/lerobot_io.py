@@ -191,6 +191,7 @@ class DatasetWriter:
             self._writer.close()
             self._writer = None
         self._meta._close_writer()
+        self._canonical_stats()
         if provenance is not None:
             (self.tmp / PROVENANCE_PATH).write_text(json.dumps(provenance, indent=2, sort_keys=True, default=_json_default))
         if card is not None:
@@ -201,6 +202,14 @@ class DatasetWriter:
         os.rename(self.tmp, self.root)
         self._closed = True
         return self.root
+
+    def _canonical_stats(self) -> None:
+        """lerobot aggregates stats over a `set` of keys, so stats.json key order follows the
+        process's string-hash seed; rewrite it in feature order so equal data give equal bytes."""
+        from lerobot.datasets.utils import write_stats
+
+        stats = self._meta.stats
+        write_stats({k: stats[k] for k in self._ds.features if k in stats}, self.tmp)
 
     def abort(self) -> None:
         if self._writer is not None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 from collections.abc import Iterator
@@ -172,6 +173,10 @@ def run_pipeline(
     units = plan_units(plan)
     pending = [u for u in units if not all(parts.done(u.source, i) for i in u.episodes)]
     done = plan.num_source_episodes - sum(len(u.episodes) for u in pending)
+    if done:
+        logging.getLogger("shiftkit").warning(
+            "resuming: %d of %d source episodes were already transformed", done, plan.num_source_episodes
+        )
     with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
         get_executor(executor, workers, **(executor_options or {})).run(config, pending, bar)
     with _progress(plan.num_source_episodes, 0, "write", progress) as bar:

@@ -1,0 +1,180 @@
+"""`shiftkit collect`: record scripted-expert episodes from a simulated env into the raw-episode
+format (with simulator state for re-rendering/replay), or straight into a LeRobot dataset.
+
+Frame t holds the observation before action t; `success[t]` (LeRobot `next.success`) is the
+env's held success after action t. Reset-based episodes end once success holds (plus
+`extra_steps`) or at the time limit; the outcome goes into the episode metadata. Play episodes
+(`play=True`) chain the experts of a task sequence after one reset and label each segment.
+The 59-dim reference observation is split into `state` (robot: reference dims 0:12 and 53:59)
+and `environment_state` (objects: dims 12:53); see docs/panda_play.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from shiftkit.pipelines.errors import ConfigError, ShiftkitError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CollectConfig:
+    """What to record and where."""
+
+    env: str = "panda-play"
+    """Environment name (`shiftkit.envs.ENV_TASKS`)."""
+    task: str = "lift"
+    """Task; with `play`, the main task whose play sequence is recorded."""
+    episodes: int = 10
+    """Number of episodes."""
+    seed: int = 0
+    """Episode i is reset with seed `seed + i`."""
+    out: str | None = None
+    """Raw-episode output directory (must not exist)."""
+    lerobot: str | None = None
+    """Write a LeRobot dataset with this repo id instead (needs `root`)."""
+    root: str | None = None
+    """LeRobot dataset root directory (with `lerobot`)."""
+    play: bool = False
+    """Record play episodes: one reset, then the task's play sequence with segment labels."""
+    control_hz: int = 20
+    """Control frequency (5 or 20)."""
+    cameras: tuple[str, ...] = ()
+    """Cameras rendered every frame (e.g. "front"); empty = state only."""
+    depth: bool = False
+    """Also record depth images for each camera."""
+    width: int = 64
+    """Image width in pixels."""
+    height: int = 48
+    """Image height in pixels."""
+    render_quality: str = "fast"
+    """"fast" (collision geometry) or "full" (visual meshes)."""
+    extra_steps: int = 0
+    """Frames kept after success first holds (reset-based episodes)."""
+    only_successful: bool = False
+    """Skip failed episodes (their seeds are still consumed)."""
+    sequence: tuple[str, ...] = field(default_factory=tuple)
+    """Play sequence override; default `PLAY_SEQUENCES[task]`."""
+
+    def validate(self) -> None:
+        from shiftkit.envs import ENV_TASKS
+
+        if self.env not in ENV_TASKS:
+            raise ConfigError(f"unknown env {self.env!r}; known: {', '.join(ENV_TASKS)}")
+        if self.task not in ENV_TASKS[self.env]:
+            raise ConfigError(f"unknown task {self.task!r} for {self.env}; known: {', '.join(ENV_TASKS[self.env])}")
+        if self.episodes < 1:
+            raise ConfigError(f"--episodes must be >= 1, got {self.episodes}")
+        if self.control_hz not in (5, 20):
+            raise ConfigError(f"--control-hz must be 5 or 20, got {self.control_hz}")
+        if (self.out is None) == (self.lerobot is None):
+            raise ConfigError("give exactly one of --out DIR (raw episodes) or --lerobot REPO_ID --root DIR")
+        if self.lerobot is not None and self.root is None:
+            raise ConfigError("--lerobot needs --root DIR")
+        target = Path(self.out if self.out is not None else self.root)
+        if target.exists():
+            raise ConfigError(f"output directory already exists: {target}")
+        if self.play and not self.sequence:
+            from shiftkit.envs.panda_play_experts import PLAY_SEQUENCES
+
+            if self.task not in PLAY_SEQUENCES:
+                raise ConfigError(f"no play sequence for task {self.task!r}; known: {', '.join(PLAY_SEQUENCES)}")
+        from shiftkit.envs.panda_play import CAMERAS
+
+        for cam in self.cameras:
+            if cam not in CAMERAS:
+                raise ConfigError(f"unknown camera {cam!r}; known: {', '.join(CAMERAS)}")
+        if self.render_quality not in ("fast", "full"):
+            raise ConfigError(f"render quality must be 'fast' or 'full', got {self.render_quality!r}")
+
+
+def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
+    from shiftkit.envs import make
+    from shiftkit.envs.panda_play import (
+        ACTION_NAMES,
+        ENVIRONMENT_STATE_INDICES,
+        OBSERVATION_NAMES,
+        SIM_MODEL_ID,
+        STATE_INDICES,
+    )
+    from shiftkit.envs.panda_play_experts import PLAY_SEQUENCES, play_rollout, rollout
+    from shiftkit.envs.rendering import camera_intrinsics
+    from shiftkit.pipelines.raw_format import RawDatasetWriter
+
+    env = make(config.env, config.task, control_hz=config.control_hz, width=config.width,
+               height=config.height, render_quality=config.render_quality)
+    names = {
+        "state": [OBSERVATION_NAMES[i] for i in STATE_INDICES],
+        "environment_state": [OBSERVATION_NAMES[i] for i in ENVIRONMENT_STATE_INDICES],
+        "action": list(ACTION_NAMES),
+    }
+    info = {
+        "observation_layout": "reference 59-dim = state[:12] + environment_state + state[12:]",
+        "control_hz": config.control_hz,
+        "cameras": {c: camera_intrinsics(env.physics.model, c, config.width, config.height) for c in config.cameras},
+    }
+    counts = {"episodes": 0, "successes": 0, "skipped": 0}
+    sequence = tuple(config.sequence) or PLAY_SEQUENCES.get(config.task, ())
+    with RawDatasetWriter(out_dir, fps=config.control_hz, robot="franka_panda", env=config.env,
+                          names=names, info=info) as writer:
+        for i in range(config.episodes):
+            seed = config.seed + i
+            if config.play:
+                r = play_rollout(env, seed, sequence, cameras=config.cameras, depth=config.depth)
+                ok = all(s["success"] for s in r.segments)
+                task = f"play: {', '.join(sequence)}"
+            else:
+                r = rollout(env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps)
+                ok = r.succeeded
+                task = config.task
+            log.info("episode %d (seed %d): %s, %d frames", i, seed, "success" if ok else "failure", len(r.actions))
+            if config.only_successful and not ok:
+                counts["skipped"] += 1
+                continue
+            t = len(r.actions)
+            writer.add_episode(
+                arrays={
+                    "timestamp": np.arange(t, dtype=np.float64) / config.control_hz,
+                    "action": r.actions,
+                    "state": r.observations[:, STATE_INDICES],
+                    "environment_state": r.observations[:, ENVIRONMENT_STATE_INDICES],
+                    "success": r.success,
+                    "sim_qpos": r.qpos,
+                    "sim_qvel": r.qvel,
+                },
+                images=r.images or None,
+                depth=r.depth or None,
+                meta={"task": task, "outcome": "success" if ok else "failure", "seed": seed,
+                      "sim_model": SIM_MODEL_ID, "segments": r.segments, "control_hz": config.control_hz},
+            )
+            counts["episodes"] += 1
+            counts["successes"] += int(ok)
+    env.close()
+    if counts["episodes"] == 0:
+        raise ShiftkitError("no episode was kept (all failed with --only-successful)")
+    return counts
+
+
+def collect(config: CollectConfig) -> tuple[Path, dict[str, int]]:
+    """Record the episodes; returns the written directory and counts."""
+    config.validate()
+    if config.out is not None:
+        out = Path(config.out)
+        return out, _write_raw(config, out)
+    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+
+    root = Path(config.root)
+    tmp = Path(tempfile.mkdtemp(prefix=".collect-", dir=root.parent if root.parent.exists() else None))
+    try:
+        raw = tmp / "raw"
+        counts = _write_raw(config, raw)
+        return write_raw_as_lerobot(raw, config.lerobot, root), counts
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
