@@ -54,6 +54,43 @@ def _image_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
     return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
 
 
+# Statistics that depend on where an episode lands in the dataset; all others are a function of
+# the episode alone and can be computed in parallel workers (`episode_stats`).
+POSITION_KEYS = ("episode_index", "index", "task_index")
+
+
+def _episode_columns(episode: Episode, features: Features) -> dict[str, Any]:
+    """Per-frame columns as lerobot's writer buffers them (scalar features flattened)."""
+    n = len(episode)
+    columns: dict[str, Any] = {}
+    for key, ft in features.items():
+        arr = episode.frames[key]
+        columns[key] = arr.reshape(n) if tuple(ft["shape"]) == (1,) and ft["dtype"] != "image" else arr
+    columns["timestamp"] = episode.frames["timestamp"].astype(np.float64)  # stored as float32; stats in float64 as lerobot
+    columns["frame_index"] = np.arange(n, dtype=np.int64)
+    return columns
+
+
+def _stats(columns: dict[str, Any], all_features: Features) -> dict[str, dict[str, np.ndarray]]:
+    from lerobot.datasets.compute_stats import compute_episode_stats
+
+    with warnings.catch_warnings():
+        # lerobot's histogram code warns for every bool feature (e.g. next.success).
+        warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
+        return compute_episode_stats(columns, all_features)
+
+
+def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, np.ndarray]]:
+    """lerobot's per-episode statistics of every position-independent column of `episode`."""
+    from lerobot.datasets.utils import DEFAULT_FEATURES
+
+    columns = _episode_columns(episode, features)
+    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] == "image"}
+    stats = _stats(columns, {**features, **DEFAULT_FEATURES})
+    stats.update({k: _image_stats(v) for k, v in images.items()})
+    return stats
+
+
 class DatasetWriter:
     """Writes episodes into a new LeRobot v3.0 dataset at `root`, atomically.
 
@@ -106,12 +143,16 @@ class DatasetWriter:
         else:
             self.abort()
 
-    def add_episode(self, episode: Episode) -> None:
-        """Validate and append one episode (NaNs, shapes, dtypes and fps are checked)."""
-        import datasets
+    def add_episode(self, episode: Episode, stats: dict[str, dict[str, np.ndarray]] | None = None) -> None:
+        """Validate and append one episode (NaNs, shapes, dtypes and fps are checked).
+
+        `stats` may hold the episode's position-independent statistics, computed earlier (in a
+        worker) with `episode_stats`; the writer adds those that depend on the episode's position
+        (index, episode_index, task_index).
+        """
         import pyarrow.parquet as pq
-        from lerobot.datasets.compute_stats import compute_episode_stats
-        from lerobot.datasets.utils import get_file_size_in_mb, update_chunk_file_indices
+        from lerobot.datasets.compute_stats import aggregate_stats
+        from lerobot.datasets.utils import flatten_dict, get_file_size_in_mb, update_chunk_file_indices
 
         where = f"episode {episode.meta.get('source_episode_index', self.num_episodes)}"
         check_episode(episode, self.features, self.fps, where)
@@ -122,35 +163,20 @@ class DatasetWriter:
         task_index = {t: self._meta.get_task_index(t) for t in episode_tasks}
 
         start = self.num_frames
-        columns: dict[str, Any] = {}
-        for key, ft in self.features.items():
-            arr = episode.frames[key]
-            if ft["dtype"] == "image":
-                columns[key] = [{"bytes": _png_bytes(f), "path": f"frame-{t:06d}.png"} for t, f in enumerate(arr)]
-            elif tuple(ft["shape"]) == (1,):
-                columns[key] = arr.reshape(n)
-            else:
-                columns[key] = arr
-        columns["timestamp"] = episode.frames["timestamp"].astype(np.float64)  # stored as float32; stats in float64 as lerobot
-        columns["frame_index"] = np.arange(n, dtype=np.int64)
+        columns = _episode_columns(episode, self.features)
+        for key in self._image_keys:
+            columns[key] = [{"bytes": _png_bytes(f), "path": f"frame-{t:06d}.png"} for t, f in enumerate(columns[key])]
         columns["episode_index"] = np.full(n, self.num_episodes, dtype=np.int64)
         columns["index"] = np.arange(start, start + n, dtype=np.int64)
         columns["task_index"] = np.array([task_index[t] for t in tasks], dtype=np.int64)
 
-        numeric = {k: v for k, v in columns.items() if k not in self._image_keys}
-        with warnings.catch_warnings():
-            # lerobot's histogram code warns for every bool feature (e.g. next.success).
-            warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
-            numeric_stats = compute_episode_stats(numeric, self._ds.features)
+        if stats is None:
+            stats = episode_stats(episode, self.features)
+        stats = {**stats, **_stats({k: columns[k] for k in POSITION_KEYS}, self._ds.features)}
         # Same key order as lerobot (feature order), which fixes the episodes-parquet columns.
-        stats = {
-            k: _image_stats(episode.frames[k]) if k in self._image_keys else numeric_stats[k]
-            for k in self._ds.features
-        }
+        stats = {k: stats[k] for k in self._ds.features}
 
-        table = datasets.Dataset.from_dict(
-            {k: columns[k] for k in self._hf_features}, features=self._hf_features, split="train"
-        ).with_format("arrow")[:]
+        table = self._arrow_table(columns)
 
         # Same file rotation rule as lerobot's writer: start a new data file when this episode
         # would push the current one past data_files_size_in_mb.
@@ -169,16 +195,40 @@ class DatasetWriter:
             self._writer = pq.ParquetWriter(path, schema=table.schema, compression="snappy", use_dictionary=True)
         self._writer.write_table(table)
 
-        metadata = {
+        # What LeRobotDatasetMetadata.save_episode does, minus rewriting info.json and
+        # stats.json after every episode: the writer writes them once, in close().
+        info = self._meta.info
+        self._meta._save_episode_metadata({
+            "episode_index": self.num_episodes,
+            "tasks": episode_tasks,
+            "length": n,
             "data/chunk_index": self._chunk_file[0],
             "data/file_index": self._chunk_file[1],
             "dataset_from_index": start,
             "dataset_to_index": start + n,
             META_COLUMN: json.dumps(episode.meta, sort_keys=True, default=_json_default),
-        }
-        self._meta.save_episode(self.num_episodes, n, episode_tasks, stats, metadata)
+            **flatten_dict({"stats": stats}),
+        })
+        info["total_episodes"] += 1
+        info["total_frames"] += n
+        info["total_tasks"] = len(self._meta.tasks)
+        info["splits"] = {"train": f"0:{info['total_episodes']}"}
+        self._meta.stats = aggregate_stats([self._meta.stats, stats]) if self._meta.stats is not None else stats
         self.num_episodes += 1
         self.num_frames += n
+
+    def _arrow_table(self, columns: dict[str, Any]) -> Any:
+        """The episode as Arrow, encoded exactly as `datasets.Dataset.from_dict` does for lerobot,
+        without the Dataset object, whose fingerprinting pickles every value (~50 ms/episode)."""
+        from datasets.arrow_writer import OptimizedTypedSequence
+        from datasets.table import InMemoryTable
+
+        features = self._hf_features
+        typed = {
+            key: OptimizedTypedSequence(features.encode_column(columns[key], key), type=features[key], col=key)
+            for key in features
+        }
+        return InMemoryTable.from_pydict(mapping=typed).table.cast(features.arrow_schema)
 
     def close(self, provenance: dict[str, Any] | None = None, card: str | None = None) -> Path:
         """Finalize, write provenance and card, and move the dataset into place."""
@@ -191,7 +241,7 @@ class DatasetWriter:
             self._writer.close()
             self._writer = None
         self._meta._close_writer()
-        self._canonical_stats()
+        self._write_info_and_stats()
         if provenance is not None:
             (self.tmp / PROVENANCE_PATH).write_text(json.dumps(provenance, indent=2, sort_keys=True, default=_json_default))
         if card is not None:
@@ -203,11 +253,12 @@ class DatasetWriter:
         self._closed = True
         return self.root
 
-    def _canonical_stats(self) -> None:
-        """lerobot aggregates stats over a `set` of keys, so stats.json key order follows the
-        process's string-hash seed; rewrite it in feature order so equal data give equal bytes."""
-        from lerobot.datasets.utils import write_stats
+    def _write_info_and_stats(self) -> None:
+        """info.json and stats.json, once. lerobot aggregates stats over a `set` of keys, so their
+        order would follow the process's string-hash seed: write them in feature order instead."""
+        from lerobot.datasets.utils import write_info, write_stats
 
+        write_info(self._meta.info, self.tmp)
         stats = self._meta.stats
         write_stats({k: stats[k] for k in self._ds.features if k in stats}, self.tmp)
 

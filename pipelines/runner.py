@@ -14,6 +14,7 @@ import hashlib
 import json
 import logging
 import os
+import pickle
 import shutil
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
@@ -40,49 +41,38 @@ class WorkUnit:
 
 
 class PartStore:
-    """Finished per-source-episode outputs in `<dest>/../.<name>.shiftkit-work/parts`."""
+    """Finished per-source-episode outputs in `<dest>/../.<name>.shiftkit-work/parts`.
+
+    One file per source episode holds its output episodes and their position-independent
+    statistics, computed by the worker so the writer does not have to. Parts are private to one
+    run of one pipeline (the work directory is keyed by `run_key`), so they are plain pickles.
+    """
 
     def __init__(self, work_dir: Path) -> None:
         self.dir = work_dir / "parts"
 
     def path(self, source: int, episode: int) -> Path:
-        return self.dir / f"s{source:03d}_e{episode:07d}"
+        return self.dir / f"s{source:03d}_e{episode:07d}.pkl"
 
     def done(self, source: int, episode: int) -> bool:
-        return self.path(source, episode).is_dir()
+        return self.path(source, episode).is_file()
 
-    def write(self, source: int, episode: int, outputs: list[Episode]) -> None:
+    def write(self, source: int, episode: int, outputs: list[Episode], features: dict) -> None:
+        from shiftkit.pipelines.lerobot_io import episode_stats
+
+        records = [(ep.frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
         final = self.path(source, episode)
-        tmp = final.with_name(final.name + f".tmp-{os.getpid()}")
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        for o, ep in enumerate(outputs):
-            out_dir = tmp / f"out{o:03d}"
-            out_dir.mkdir()
-            for key, arr in ep.frames.items():
-                if key != "task":
-                    np.save(out_dir / f"{key}.npy", arr, allow_pickle=False)
-            doc = {"task": [str(t) for t in ep.frames["task"]], "meta": ep.meta}
-            (out_dir / "episode.json").write_text(json.dumps(doc, default=_json_default))
-        (tmp / "count").write_text(str(len(outputs)))
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = final.with_name(final.stem + f".tmp-{os.getpid()}")
+        with open(tmp, "wb") as f:
+            pickle.dump(records, f, protocol=pickle.HIGHEST_PROTOCOL)
         os.rename(tmp, final)
 
-    def read(self, source: int, episode: int) -> Iterator[Episode]:
-        part = self.path(source, episode)
-        for o in range(int((part / "count").read_text())):
-            out_dir = part / f"out{o:03d}"
-            doc = json.loads((out_dir / "episode.json").read_text())
-            frames = {p.stem: np.load(p, allow_pickle=False) for p in sorted(out_dir.glob("*.npy"))}
-            frames["task"] = np.array(doc["task"], dtype=str)
-            yield Episode(frames, doc["meta"])
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")
+    def read(self, source: int, episode: int) -> Iterator[tuple[Episode, dict]]:
+        with open(self.path(source, episode), "rb") as f:
+            records = pickle.load(f)
+        for frames, meta, stats in records:
+            yield Episode(frames, meta), stats
 
 
 def work_dir_for(destination: Path) -> Path:
@@ -141,7 +131,8 @@ def process_unit(unit: WorkUnit) -> int:
     parts: PartStore = _WORKER["parts"]
     todo = [i for i in unit.episodes if not parts.done(unit.source, i)]
     for episode in plan.sources[unit.source].iter_episodes(todo):
-        parts.write(unit.source, int(episode.meta["source_episode_index"]), transform_episode(plan, unit.source, episode))
+        index = int(episode.meta["source_episode_index"])
+        parts.write(unit.source, index, transform_episode(plan, unit.source, episode), plan.features)
     return len(unit.episodes)
 
 
@@ -198,8 +189,8 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
     with writer:
         for s, source in enumerate(plan.sources):
             for i in range(source.num_episodes):
-                for episode in parts.read(s, i):
-                    writer.add_episode(episode)
+                for episode, stats in parts.read(s, i):
+                    writer.add_episode(episode, stats)
                 bar.update(1)
         provenance = build_provenance(plan, executor_info, writer.num_episodes, writer.num_frames)
         card = render_dataset_card(writer.tmp, provenance)
@@ -217,7 +208,7 @@ def _prepare_work_dir(work: Path, key: str, dest: Path) -> None:
     work.mkdir(parents=True, exist_ok=True)
     key_file.write_text(key)
     for tmp in (work / "parts").glob("*.tmp-*"):
-        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.unlink()
 
 
 class _progress:

@@ -1,0 +1,129 @@
+"""Pipeline throughput and streaming memory.
+
+Measures, in one run, on the same synthetic state-only LeRobot dataset (>= 200 episodes):
+  * frames/s of a pass-through shiftkit pipeline (LeRobot source -> LeRobot destination);
+  * frames/s of lerobot's own copy loop (`LeRobotDataset` read + `add_frame`/`save_episode`);
+and the peak RSS of the pipeline on 1x and 4x the episodes (each in a fresh process).
+Goals: speed-up >= 5x; RSS(4x) <= 1.2 x RSS(1x). The last line printed is the JSON result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import numpy as np  # noqa: E402
+
+
+def make_source(root: Path, episodes: int, length: int, seed: int = 0) -> Path:
+    from shiftkit.pipelines.episode import Episode
+    from shiftkit.pipelines.lerobot_io import DatasetWriter
+
+    rng = np.random.default_rng(seed)
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (8,), "names": [f"s{i}" for i in range(8)]},
+        "observation.environment_state": {"dtype": "float32", "shape": (14,), "names": [f"e{i}" for i in range(14)]},
+        "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "grip"]},
+        "next.success": {"dtype": "bool", "shape": (1,), "names": None},
+    }
+    with DatasetWriter("bench/source", root, 20, features) as w:
+        for _ in range(episodes):
+            w.add_episode(Episode({
+                "observation.state": rng.normal(size=(length, 8)).astype(np.float32),
+                "observation.environment_state": rng.normal(size=(length, 14)).astype(np.float32),
+                "action": rng.uniform(-1, 1, size=(length, 4)).astype(np.float32),
+                "next.success": (np.arange(length) >= length - 5).reshape(-1, 1),
+                "timestamp": np.arange(length) / 20.0,
+                "task": np.array(["lift"] * length),
+            }))
+    return root
+
+
+def lerobot_copy(src: Path, dst: Path) -> float:
+    """lerobot's own loop; returns seconds."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    t0 = time.perf_counter()
+    ds = LeRobotDataset("bench/source", root=src)
+    features = {k: v for k, v in ds.features.items() if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")}
+    out = LeRobotDataset.create("bench/copy", ds.fps, features, root=dst, use_videos=False)
+    current = 0
+    for i in range(len(ds)):
+        item = ds[i]
+        if int(item["episode_index"]) != current:
+            out.save_episode()
+            current = int(item["episode_index"])
+        frame = {k: item[k].numpy().astype(features[k]["dtype"]).reshape(features[k]["shape"]) for k in features}
+        frame["task"] = item["task"]
+        out.add_frame(frame)
+    out.save_episode()
+    out.finalize()
+    return time.perf_counter() - t0
+
+
+def shiftkit_copy(src: Path, dst: Path, workers: int = 1) -> float:
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+
+    t0 = time.perf_counter()
+    run_pipeline(PipelineConfig(sources=[SourceConfig(path=str(src))], destination=DestinationConfig(root=str(dst))),
+                 workers=workers, progress=False)
+    return time.perf_counter() - t0
+
+
+def peak_rss_mb(src: Path, dst: Path) -> float:
+    """Peak RSS of a fresh process that runs the pass-through pipeline."""
+    code = (
+        "import resource, sys; from pathlib import Path; sys.path.insert(0, %r);"
+        "from pipeline_throughput import shiftkit_copy; shiftkit_copy(Path(%r), Path(%r));"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"
+    ) % (str(Path(__file__).parent), str(src), str(dst))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="short run (< 1 minute)")
+    parser.add_argument("--episodes", type=int, default=None)
+    parser.add_argument("--length", type=int, default=None)
+    args = parser.parse_args()
+    episodes = args.episodes or 200
+    length = args.length or (40 if args.quick else 100)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        src = make_source(tmp / "src", episodes, length)
+        frames = episodes * length
+        t_lerobot = lerobot_copy(src, tmp / "lerobot_copy")
+        t_shiftkit = shiftkit_copy(src, tmp / "shiftkit_copy")
+        fps_lerobot, fps_shiftkit = frames / t_lerobot, frames / t_shiftkit
+        rss_episodes = 50 if args.quick else episodes
+        small = make_source(tmp / "small", rss_episodes, length, seed=1)
+        large = make_source(tmp / "large", 4 * rss_episodes, length, seed=2)
+        rss_1x = peak_rss_mb(small, tmp / "small_out")
+        rss_4x = peak_rss_mb(large, tmp / "large_out")
+    speedup = fps_shiftkit / fps_lerobot
+    print(f"lerobot copy loop : {fps_lerobot:9.0f} frames/s ({frames} frames, {episodes} episodes)")
+    print(f"shiftkit pipeline : {fps_shiftkit:9.0f} frames/s  -> speed-up {speedup:.1f}x")
+    print(f"peak RSS 1x ({rss_episodes} eps): {rss_1x:.0f} MB, 4x: {rss_4x:.0f} MB -> ratio {rss_4x / rss_1x:.2f}")
+    print(json.dumps({
+        "bench": "pipeline_throughput", "metric": "speedup_vs_lerobot_copy_loop", "value": round(speedup, 2),
+        "goal": 5.0, "higher_is_better": True,
+        "frames_per_s_shiftkit": round(fps_shiftkit, 1), "frames_per_s_lerobot": round(fps_lerobot, 1),
+        "episodes": episodes, "frames_per_episode": length,
+        "rss_mb_1x": round(rss_1x, 1), "rss_mb_4x": round(rss_4x, 1), "rss_ratio_4x_over_1x": round(rss_4x / rss_1x, 3),
+        "rss_goal": 1.2, "rss_ok": rss_4x <= 1.2 * rss_1x, "quick": args.quick,
+    }))
+
+
+if __name__ == "__main__":
+    main()
