@@ -59,7 +59,8 @@ FINGER_OPEN = 0.04
 TCP_OFFSET = 0.2475
 # hand orientation held fixed: fingers open along base x, gripper pointing down
 TCP_ROTATION = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-HOME_QPOS = np.array([1.5708, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785])
+# IK solution for the TCP at (0, 0.5, 0.22) in TCP_ROTATION (kitchen_franka joint conventions)
+HOME_QPOS = np.array([1.5908, -0.0527, -0.0199, -2.3267, -0.001, 0.7041, 0.0013])
 
 OBSERVATION_NAMES: tuple[str, ...] = (
     "ee_pos_x", "ee_pos_y", "ee_pos_z",
@@ -86,6 +87,9 @@ ACTION_NAMES = ("delta_x", "delta_y", "delta_z", "gripper_close")
 
 # geom groups: robot visual meshes 0, scene 1, robot collision 3 (the fast render mode shows 1 and 3)
 SCENE_GROUP = 1
+_IK_DAMPING = 1e-4 * np.eye(6)
+FINGER_FRICTION = 0.3
+BLOCK_FRICTION = 0.5
 
 
 def franka_assets_dir() -> str:
@@ -109,7 +113,7 @@ def _look_at(pos, target) -> tuple[float, ...]:
 CAMERAS = {
     # across the tray, looking back at the robot (the reference's workspace camera view)
     "front": dict(pos=(0.0, 1.05, 0.5), target=(0.0, 0.48, 0.13), fovy=55.0),
-    "overhead": dict(pos=(0.0, 0.5, 0.75), target=(0.0, 0.5, 0.125), fovy=45.0),
+    "overhead": dict(pos=(0.0, 0.62, 0.75), target=(0.0, 0.5, 0.125), fovy=45.0),
 }
 
 
@@ -144,6 +148,9 @@ def build_spec() -> mujoco.MjSpec:
     spec.option.impratio = 10.0  # stiffer friction: grasped blocks do not creep out of the fingers
     spec.visual.global_.offwidth = 640
     spec.visual.global_.offheight = 480
+    # the finger collision shapes are 24 capsules: coarse tessellation keeps 64x48 renders cheap
+    spec.visual.quality.numslices = 10
+    spec.visual.quality.numstacks = 4
 
     for body in spec.bodies:
         if body.name.startswith("panda0_"):
@@ -156,7 +163,14 @@ def build_spec() -> mujoco.MjSpec:
     for joint in spec.joints:
         if joint.name.startswith("robot:panda0_finger"):
             joint.armature = 0.05  # the kitchen model's 5 kg-equivalent fingers need ~1 s to close
-            joint.damping = 5.0
+            joint.damping = [10.0, 0.0, 0.0]
+    for geom in spec.geoms:
+        if geom.parent.name in ("panda0_leftfinger", "panda0_rightfinger") and geom.group == 3:
+            # the kitchen model's torsional friction (0.5 m) pins grasped blocks; with these
+            # values closing fingers square a rotated block up against the pads
+            geom.friction = [FINGER_FRICTION, 0.005, 0.0001]
+            geom.condim = 4
+            geom.rgba = [0.5, 0.6, 0.7, 1.0]  # opaque: transparent geoms cost a sorted extra pass
     link7 = spec.body("panda0_link7")
     tcp = link7.add_site()
     tcp.name = "tcp"
@@ -201,7 +215,7 @@ def build_spec() -> mujoco.MjSpec:
     # 45-degree slopes rising from the floor edges
     t = 0.005
     length = SLOPE_WIDTH * np.sqrt(2.0)
-    c = TRAY_HALF + SLOPE_WIDTH / 2 + t / np.sqrt(2.0) * 0.0
+    c = TRAY_HALF + SLOPE_WIDTH / 2 + t / np.sqrt(2.0)
     zc = TRAY_FLOOR_Z + SLOPE_WIDTH / 2 - t / np.sqrt(2.0)
     s = np.sin(np.pi / 8)
     k = np.cos(np.pi / 8)
@@ -227,7 +241,7 @@ def build_spec() -> mujoco.MjSpec:
         joint.name = f"{name}_free"
         g = _add_box(block, f"{name}_geom", (BLOCK_HALF,) * 3, (0, 0, 0), rgba)
         g.mass = BLOCK_MASS
-        g.friction = [1.0, 0.005, 0.0001]
+        g.friction = [BLOCK_FRICTION, 0.005, 0.0001]
         g.condim = 4
 
     for name, cam in CAMERAS.items():
@@ -295,6 +309,7 @@ class PandaPlayPhysics:
         self.block_qpos = np.array([m.joint(f"{c}_free").qposadr[0] for c in ("blue", "green")])
         self.block_dof = np.array([m.joint(f"{c}_free").dofadr[0] for c in ("blue", "green")])
         self.block_body = np.array([m.body(f"{c}_block").id for c in ("blue", "green")])
+        self._block_linvel_idx = np.concatenate([np.arange(a, a + 3) for a in self.block_dof])
         parts = np.full(m.ngeom, _OTHER, dtype=np.int64)
         parts[m.geom("blue_geom").id] = _BLUE
         parts[m.geom("green_geom").id] = _GREEN
@@ -332,9 +347,16 @@ class PandaPlayPhysics:
     def block_quat_wxyz(self, i: int) -> np.ndarray:
         return self.data.xquat[self.block_body[i]].copy()
 
-    def block_linvel(self, i: int) -> np.ndarray:
-        a = self.block_dof[i]
-        return self.data.qvel[a:a + 3].copy()
+    def block_yaw_error(self, i: int) -> float:
+        """Angle (rad, in [-pi/4, pi/4)) between block `i`'s faces and the finger closing axis."""
+        rot = self.data.xmat[self.block_body[i]].reshape(3, 3)
+        axis = rot[:, int(np.argmin(np.abs(rot[2])))]  # the most horizontal block axis
+        yaw = np.arctan2(axis[1], axis[0])
+        return float((yaw + np.pi / 4) % (np.pi / 2) - np.pi / 4)
+
+    def block_linvels(self) -> np.ndarray:
+        """(2, 3) linear velocities of blue and green."""
+        return self.data.qvel[self._block_linvel_idx].reshape(2, 3)
 
     def fingers(self) -> np.ndarray:
         """Finger positions scaled to [0, 1] (1 = fully open), as in the reference."""
@@ -385,7 +407,7 @@ class PandaPlayPhysics:
         d.qvel[:] = 0.0
         mujoco.mj_forward(self.model, d)
         self.finger_history[:] = self.fingers()
-        self.prev_block_vel[:] = [self.block_linvel(0), self.block_linvel(1)]
+        self.prev_block_vel[:] = self.block_linvels()
         self.block_acc[:] = 0.0
 
     def set_state(self, qpos: np.ndarray, qvel: np.ndarray) -> None:
@@ -396,7 +418,32 @@ class PandaPlayPhysics:
         mujoco.mj_forward(self.model, self.data)
         self.desired_tcp = self.tcp_pos()
         self.finger_history[:] = self.fingers()
-        self.prev_block_vel[:] = [self.block_linvel(0), self.block_linvel(1)]
+        self.prev_block_vel[:] = self.block_linvels()
+
+    def set_from_observation(self, obs: np.ndarray) -> None:
+        """Place the scene at the first 12:26 + 0:12 dims of a reference observation: block poses
+        as given (xyzw quaternions), the TCP at obs[0:3] by IK, fingers at obs[6:8]; velocities
+        zero. Used to check published states against this scene's predicates."""
+        d = self.data
+        mujoco.mj_resetData(self.model, d)
+        for i in range(2):
+            a = self.block_qpos[i]
+            o = 12 + 7 * i
+            d.qpos[a:a + 3] = obs[o:o + 3]
+            x, y, z, w = obs[o + 3:o + 7]
+            d.qpos[a + 3:a + 7] = np.array([w, x, y, z]) / np.linalg.norm([w, x, y, z])
+        d.qpos[self.finger_qpos] = np.asarray(obs[6:8]) * FINGER_OPEN
+        self.q_target = HOME_QPOS.copy()
+        for _ in range(40):
+            self._ik_step(np.asarray(obs[0:3], dtype=np.float64), d)
+        d.qpos[self.arm_qpos] = self.q_target
+        self.desired_tcp = np.asarray(obs[0:3], dtype=np.float64).copy()
+        self.gripper_closed = bool(obs[6] < 0.9)
+        self._write_controls()
+        mujoco.mj_forward(self.model, d)
+        self.finger_history[:] = [obs[8:10], obs[10:12], obs[6:8]]
+        self.prev_block_vel[:] = 0.0
+        self.block_acc[:] = 0.0
 
     # ----------------------------------------------------------------- control
     def _ik_step(self, target: np.ndarray, data: mujoco.MjData) -> None:
@@ -408,16 +455,15 @@ class PandaPlayPhysics:
         mujoco.mj_comPos(m, data)
         mujoco.mj_jacSite(m, data, self._jacp, self._jacr, self.tcp_site)
         rot = data.site_xmat[self.tcp_site].reshape(3, 3)
-        err = np.empty(6)
-        err[:3] = target - data.site_xpos[self.tcp_site]
-        err[3:] = 0.5 * (np.cross(rot[:, 0], TCP_ROTATION[:, 0]) + np.cross(rot[:, 1], TCP_ROTATION[:, 1])
-                         + np.cross(rot[:, 2], TCP_ROTATION[:, 2]))
+        e = TCP_ROTATION @ rot.T  # small-angle rotation error from its skew-symmetric part
+        err = np.array([*(target - data.site_xpos[self.tcp_site]),
+                        0.5 * (e[2, 1] - e[1, 2]), 0.5 * (e[0, 2] - e[2, 0]), 0.5 * (e[1, 0] - e[0, 1])])
         jac = np.vstack([self._jacp[:, self.arm_dofs], self._jacr[:, self.arm_dofs]])
-        jjt = jac @ jac.T + 1e-4 * np.eye(6)
-        dq = jac.T @ np.linalg.solve(jjt, err)
         # null-space pull towards the home posture keeps the elbow up and away from joint limits
         posture = 0.05 * (HOME_QPOS - self.q_target)
-        dq += posture - jac.T @ np.linalg.solve(jjt, jac @ posture)
+        sol = np.linalg.solve(jac @ jac.T + _IK_DAMPING, np.column_stack([err, jac @ posture]))
+        dq = jac.T @ (sol[:, 0] - sol[:, 1]) + posture
+        dq = np.clip(dq, -0.2, 0.2)  # large errors (reset) converge over several calls
         self.q_target = np.clip(self.q_target + dq, self.arm_range[:, 0], self.arm_range[:, 1])
 
     def _write_controls(self) -> None:
@@ -439,7 +485,7 @@ class PandaPlayPhysics:
         mujoco.mj_forward(self.model, self.data)
         self.finger_history[:2] = self.finger_history[1:]
         self.finger_history[2] = self.fingers()
-        vel = np.array([self.block_linvel(0), self.block_linvel(1)])
+        vel = self.block_linvels()
         self.block_acc = (vel - self.prev_block_vel) / self.control_dt
         self.prev_block_vel = vel
 
@@ -495,7 +541,8 @@ class PandaPlayPhysics:
         obs = np.empty(OBS_DIM, dtype=np.float64)
         tcp = d.site_xpos[self.tcp_site]
         obs[0:3] = tcp
-        obs[3:6] = self.tcp_velocity()
+        mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_SITE, self.tcp_site, self._vel6, 0)
+        obs[3:6] = self._vel6[3:]
         obs[6:8] = self.finger_history[2]
         obs[8:10] = self.finger_history[0]
         obs[10:12] = self.finger_history[1]
@@ -510,8 +557,7 @@ class PandaPlayPhysics:
         obs[38:41] = pos[0] - tcp
         obs[41:44] = pos[1] - tcp
         obs[44:47] = pos[1] - pos[0]
-        obs[47:50] = BRING_TARGETS[0] - pos[0]
-        obs[50:53] = BRING_TARGETS[1] - pos[1]
+        obs[47:53] = (BRING_TARGETS - pos).ravel()
         wrench = self.wrist_wrench()
         obs[53:56] = np.tanh(wrench[:3] / 100.0)
         obs[56:59] = np.tanh(wrench[3:] / 10.0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
+import os
 import re
 import threading
 from datetime import datetime, timezone
@@ -43,6 +44,11 @@ INITIAL_GITATTRIBUTES = (
 )
 
 
+def _now() -> str:
+    """A timestamp in the Hub's format (huggingface_hub parses exactly this one)."""
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+
+
 def git_blob_oid(data: bytes) -> str:
     """The git object id of a blob: what the Hub reports as a regular file's oid and ETag."""
     return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
@@ -51,11 +57,12 @@ def git_blob_oid(data: bytes) -> str:
 class HubError(Exception):
     """An HTTP error answer: status, message and the Hub's `X-Error-Code` (if any)."""
 
-    def __init__(self, status: int, message: str, code: str | None = None):
+    def __init__(self, status: int, message: str, code: str | None = None, **body: object):
         super().__init__(message)
         self.status = status
         self.message = message
         self.code = code
+        self.body = body  # extra JSON fields of the answer
 
 
 class RepoStore:
@@ -79,7 +86,10 @@ class RepoStore:
         return json.loads(path.read_text())
 
     def _save_meta(self, repo_type: str, repo_id: str, meta: dict) -> None:
-        (self._dir(repo_type, repo_id) / "repo.json").write_text(json.dumps(meta, indent=1))
+        path = self._dir(repo_type, repo_id) / "repo.json"
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(meta, indent=1))
+        os.replace(tmp, path)  # readers (not under the lock) never see a half-written file
 
     def create(self, repo_type: str, repo_id: str, private: bool) -> None:
         with self.lock:
@@ -88,8 +98,7 @@ class RepoStore:
             repo = self._dir(repo_type, repo_id)
             (repo / "commits").mkdir(parents=True)
             (repo / "blobs").mkdir()
-            now = datetime.now(timezone.utc).isoformat()
-            self._save_meta(repo_type, repo_id, {"private": private, "created": now, "branches": {}, "tags": {}})
+            self._save_meta(repo_type, repo_id, {"private": private, "created": _now(), "branches": {}, "tags": {}})
             oid = self._write_commit(repo_type, repo_id, None, "initial commit", {
                 ".gitattributes": self._write_blob(repo_type, repo_id, INITIAL_GITATTRIBUTES.encode())})
             meta = self.meta(repo_type, repo_id)
@@ -110,7 +119,7 @@ class RepoStore:
     def _write_commit(self, repo_type: str, repo_id: str, parent: str | None, message: str,
                       tree: dict[str, str]) -> str:
         body = {"parent": parent, "message": message, "tree": dict(sorted(tree.items())),
-                "date": datetime.now(timezone.utc).isoformat()}
+                "date": _now()}
         text = json.dumps(body, sort_keys=True)
         oid = hashlib.sha1(text.encode()).hexdigest()
         (self._dir(repo_type, repo_id) / "commits" / f"{oid}.json").write_text(text)
@@ -228,7 +237,7 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"  # keep-alive, as the client's session expects
 
-        def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - quiet server
+        def log_message(self, format: str, *args: object) -> None:  # a quiet server
             pass
 
         # -- plumbing -------------------------------------------------------------------------
@@ -254,7 +263,7 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
             headers = {"X-Error-Message": err.message}
             if err.code:
                 headers["X-Error-Code"] = err.code
-            self._send(err.status, json.dumps({"error": err.message}).encode(), headers)
+            self._send(err.status, json.dumps({"error": err.message, **err.body}).encode(), headers)
 
         def _token_role(self) -> str | None:
             """The caller's role ("read"/"write"), None when anonymous; 401 on an unknown token."""
@@ -314,9 +323,13 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
             if not name or not org:
                 raise HubError(400, "This test hub needs an organization/namespace in the repo id")
             repo_id = f"{org}/{name}"
-            store.create(repo_type, repo_id, bool(payload.get("private")))
             prefix = "" if repo_type == "model" else f"{repo_type}s/"
-            self._json(200, {"url": f"{hub.endpoint}/{prefix}{repo_id}", "name": repo_id})
+            url = f"{hub.endpoint}/{prefix}{repo_id}"
+            with store.lock:
+                if store.exists(repo_type, repo_id):
+                    raise HubError(409, f"You already created this {repo_type} repo", url=url)
+                store.create(repo_type, repo_id, bool(payload.get("private")))
+            self._json(200, {"url": url, "name": repo_id})
 
         def _validate_yaml(self, payload: dict) -> None:
             content = payload.get("content") or ""
@@ -378,7 +391,7 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
                 "id": repo_id, "author": repo_id.split("/")[0], "sha": oid, "private": meta["private"],
                 "gated": False, "disabled": False, "downloads": 0, "likes": 0, "tags": [],
                 "createdAt": meta["created"], "lastModified": commit["date"],
-                "siblings": [{"rfilename": path} for path in tree],
+                "siblings": [{"rfilename": path} for path in tree], "xetEnabled": False,
             })
 
         def _refs(self, repo_type: str, repo_id: str) -> None:

@@ -1,0 +1,409 @@
+"""Scripted experts for the Panda play tasks, play-based task sequences, and the rollout loop.
+
+Each expert is a small state machine over the privileged simulator state (block poses, finger
+contacts, the controller's desired TCP). Every expert starts from whatever state the scene is in
+(it skips grasping when the block is already held), so experts chain into play episodes: one reset,
+then a sequence of tasks (e.g. reach, lift, stack, open), each run until its success holds, each
+labelled as a segment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from shiftkit.envs.panda_play import (
+    BLOCK_HALF,
+    BLOCK_REST_Z,
+    INSERT_TARGETS,
+    TRAY_CENTER,
+    WORKSPACE_HIGH,
+    WORKSPACE_LOW,
+    ZONE_XY,
+)
+from shiftkit.envs.panda_play_env import PandaPlayEnv
+from shiftkit.envs.panda_play_tasks import TASKS
+
+CARRY_Z = 0.23
+ABOVE = 0.05
+TURN_YAW = np.deg2rad(20.0)
+TURN_OFFSET = 0.012
+HELD_YAW = np.deg2rad(6.0)
+# handcrafted play sequences (thesis section 6.4: "Reach, Lift, Main, Open-Gripper, ...")
+PLAY_SEQUENCES: dict[str, tuple[str, ...]] = {
+    "stack": ("reach", "lift", "stack", "open"),
+    "bring": ("reach", "grasp", "lift", "bring", "open"),
+    "insert": ("reach", "lift", "insert", "open"),
+    "lift": ("reach", "grasp", "lift", "move-object", "close"),
+}
+
+
+class PandaPlayExpert:
+    """Scripted controller for one task; `act()` returns the next action from the current state."""
+
+    def __init__(self, env: PandaPlayEnv, task: str | None = None) -> None:
+        self.env = env
+        self.task = task or env.task.name
+        if self.task not in TASKS:
+            raise ValueError(f"no expert for task {self.task!r}")
+        self.reset()
+
+    def reset(self) -> None:
+        self.phase = "start"
+        self.timer = 0
+        self.aim = np.zeros(3)
+        self.released = False
+        self.turning = False
+        self.turns = 0
+        self.circle: tuple[np.ndarray, float] | None = None
+
+    # ----------------------------------------------------------------- state helpers
+    @property
+    def p(self):
+        return self.env.physics
+
+    def holding(self, i: int) -> bool:
+        c = self.p.contacts()
+        left, right = (c.blue_left_finger, c.blue_right_finger) if i == 0 else (c.green_left_finger, c.green_right_finger)
+        return left and right and self.p.gripper_closed
+
+    def _toward(self, target: np.ndarray, speed: float = 1.0) -> np.ndarray:
+        """Delta action moving the desired TCP straight towards `target` (clipped to the bounds)."""
+        target = np.clip(target, WORKSPACE_LOW, WORKSPACE_HIGH)
+        delta = (target - self.p.desired_tcp) / self.p.max_step
+        norm = np.max(np.abs(delta))
+        return delta * (speed / norm) if norm > speed else delta
+
+    def _at(self, target: np.ndarray, tol: float = 0.004) -> bool:
+        target = np.clip(target, WORKSPACE_LOW, WORKSPACE_HIGH)
+        return bool(np.linalg.norm(self.p.tcp_pos() - target) < tol)
+
+    @staticmethod
+    def _act(move: np.ndarray, close: bool) -> np.ndarray:
+        return np.array([*np.clip(move, -1, 1), 1.0 if close else -1.0], dtype=np.float32)
+
+    # ----------------------------------------------------------------- grasping
+    def _grasp(self, i: int, grip_height: float = 0.0) -> np.ndarray | None:
+        """Actions that pick block `i` up (TCP `grip_height` above its centre); None once held.
+
+        Closing parallel fingers squares a block up only when its faces are within ~20 degrees of
+        the pads; a more rotated block is first turned by a grasp offset 1.2 cm along the pads
+        (the off-centre squeeze rotates it), released, and then grasped centred."""
+        if self.phase == "start":
+            self.phase = "close" if self.holding(i) else "above"
+            self.timer = 0
+        if self.phase not in ("above", "descend", "close"):
+            return None
+        block = self.p.block_pos(i)
+        turn = abs(self.p.block_yaw_error(i)) > TURN_YAW
+        # alternate the side: near 45 degrees one side may leave the block where it was
+        side = 1.0 if self.turns % 2 == 0 else -1.0
+        offset = np.array([0.0, side * TURN_OFFSET if turn else 0.0, 0.0])
+        if self.phase == "above":
+            target = block + offset + [0.0, 0.0, ABOVE]
+            if self.p.gripper_closed or np.min(self.p.fingers()) < 0.95:
+                return self._act(self._toward(np.r_[self.p.desired_tcp[:2], target[2]]), False)
+            if self._at(target, 0.006):
+                self.phase, self.turning, self.timer = "descend", turn, 0
+            return self._act(self._toward(target), False)
+        if self.phase == "descend":
+            target = block + offset + [0.0, 0.0, grip_height]
+            self.timer += 1
+            if self._at(target, 0.004) or self.timer > 40:  # or stalled on something
+                self.phase, self.timer = "close", 0
+                self.turns += int(self.turning)
+            return self._act(self._toward(target, 0.6), False)
+        # close
+        self.timer += 1
+        if self.timer >= 8 and (self.turning or self.timer > 30 or not self.holding(i)):
+            self.phase = "above"  # turned, or missed: approach again
+            self.turning = False
+            return self._act(np.zeros(3), False)
+        if self.timer >= 8 and abs(self.p.block_yaw_error(i)) < HELD_YAW:
+            self.phase = "held"
+            return None
+        return self._act(np.zeros(3), True)
+
+    # ----------------------------------------------------------------- tasks
+    def act(self) -> np.ndarray:
+        return getattr(self, "_task_" + self.task.replace("-", "_"))()
+
+    def _task_open(self) -> np.ndarray:
+        return self._hover_then(False)
+
+    def _task_close(self) -> np.ndarray:
+        return self._hover_then(True)
+
+    def _hover_then(self, close: bool) -> np.ndarray:
+        target = self.p.block_pos(0) + [0.0, 0.0, ABOVE]
+        if self.phase == "start":
+            self.phase = "go"
+        if self.phase == "go":
+            if self._at(target, 0.01):
+                self.phase = "still"
+            return self._act(self._toward(target), self.p.gripper_closed)
+        return self._act(np.zeros(3), close)
+
+    def _task_reach(self) -> np.ndarray:
+        if self.phase == "start":
+            self.phase = "above" if not self.p.gripper_closed else "release"
+        if self.phase == "release":
+            self.phase = "above"
+            return self._act(np.zeros(3), False)
+        block = self.p.block_pos(0)
+        if self.phase == "above":
+            target = block + [0.0, 0.0, ABOVE]
+            if self._at(target, 0.006):
+                self.phase = "descend"
+            return self._act(self._toward(target), False)
+        return self._act(self._toward(block, 0.6), False)
+
+    def _task_grasp(self) -> np.ndarray:
+        a = self._grasp(0)
+        return a if a is not None else self._act(np.zeros(3), True)
+
+
+    def _task_lift(self) -> np.ndarray:
+        a = self._grasp(0)
+        if a is not None:
+            return a
+        return self._act(self._toward(np.r_[self.p.desired_tcp[:2], CARRY_Z], 0.7), True)
+
+    def _task_move_object(self) -> np.ndarray:
+        a = self._grasp(0)
+        if a is not None:
+            return a
+        if self.circle is None:
+            if self.p.desired_tcp[2] < 0.19:
+                return self._act(self._toward(np.r_[self.p.desired_tcp[:2], 0.2], 0.7), True)
+            radius = 0.05
+            centre = np.r_[TRAY_CENTER, 0.2]
+            start = self.p.desired_tcp - centre
+            self.circle = (centre, float(np.arctan2(start[1], start[0])))
+            self.aim = centre + radius * np.r_[np.cos(self.circle[1]), np.sin(self.circle[1]), 0.0]
+            return self._act(self._toward(self.aim, 0.6), True)
+        centre, angle = self.circle
+        if not self._at(self.aim, 0.02) and self.timer == 0:
+            return self._act(self._toward(self.aim, 0.6), True)
+        self.timer += 1
+        angle += 0.12 * self.p.control_dt / 0.05  # 0.12 m/s on a 5 cm circle
+        self.circle = (centre, angle)
+        self.aim = centre + 0.05 * np.r_[np.cos(angle), np.sin(angle), 0.0]
+        return self._act(self._toward(self.aim), True)
+
+    def _place(self, i: int, xy: np.ndarray, z_block: float, precise: bool = False) -> np.ndarray:
+        """Carry held block `i` over `xy`, lower its centre to `z_block`, open, retreat."""
+        block = self.p.block_pos(i)
+        offset = block - self.p.tcp_pos()  # where the block sits in the hand
+        if self.phase == "held":
+            self.phase = "carry"
+        if self.phase in ("carry", "lower") and not self.holding(i):
+            self.phase = "start"  # dropped it: the caller grasps again
+            return self._act(np.zeros(3), False)
+        if self.phase == "carry":
+            target = np.r_[xy - offset[:2], CARRY_Z]
+            if self._at(target, 0.006):
+                self.phase = "lower"
+            return self._act(self._toward(target), True)
+        if self.phase == "lower":
+            target = np.r_[xy - offset[:2], z_block - offset[2]]
+            err = xy - block[:2]
+            if precise:
+                # integral correction on the measured block position: servo error below 1 mm
+                target[:2] = self.p.desired_tcp[:2] + 0.5 * err
+            if self._at(target, 0.003) and (not precise or np.max(np.abs(err)) < 0.0004):
+                self.phase, self.timer = "release", 0
+            return self._act(self._toward(target, 0.4), True)
+        if self.phase == "release":
+            self.timer += 1
+            if self.timer > 6:
+                self.phase = "retreat"
+            return self._act(np.zeros(3), False)
+        target = np.r_[self.p.desired_tcp[:2], min(CARRY_Z, block[2] + 0.07)]
+        return self._act(self._toward(target, 0.5), False)
+
+    def _task_stack(self) -> np.ndarray:
+        a = self._grasp(0)
+        if a is not None:
+            return a
+        green = self.p.block_pos(1)
+        return self._place(0, green[:2], green[2] + 2 * BLOCK_HALF + 0.004)
+
+    def _relocate_green(self, avoid: np.ndarray) -> np.ndarray | None:
+        """Move the green block to the free spot farthest from the `avoid` points (xy rows);
+        None once done."""
+        if self.released:
+            return None
+        a = self._grasp(1)
+        if a is not None:
+            return a
+        if not np.any(self.aim):
+            spots = TRAY_CENTER + np.array([[-0.09, -0.08], [0.09, -0.08], [-0.09, 0.08], [0.09, 0.08], [0.0, 0.09]])
+            clearance = np.min(np.linalg.norm(spots[:, None] - avoid[None], axis=2), axis=1)
+            self.aim = np.r_[spots[np.argmax(clearance)], 0.0]
+        a = self._place(1, self.aim[:2], BLOCK_REST_Z + 0.003)
+        if self.phase == "retreat" and self.p.tcp_pos()[2] > self.p.block_pos(1)[2] + 0.06:
+            self.released = True
+            self.phase = "start"
+            return None
+        return a
+
+    def _clear_then(self, target_xy: np.ndarray) -> np.ndarray | None:
+        """Relocate green first when it sits within 8 cm of `target_xy` (where blue goes)."""
+        if self.phase == "start" and not self.released and not self.holding(0):
+            if np.linalg.norm(self.p.block_pos(1)[:2] - target_xy) > 0.08:
+                self.released = True
+        if not self.released:
+            return self._relocate_green(np.array([target_xy, self.p.block_pos(0)[:2]]))
+        return None
+
+    def _task_unstack_stack(self) -> np.ndarray:
+        if self.phase == "start" and not self.released:
+            blue, green = self.p.block_pos(0), self.p.block_pos(1)
+            if not (green[2] > blue[2] + BLOCK_HALF and not self.holding(0)):
+                self.released = True  # nothing to unstack
+        if not self.released:
+            a = self._relocate_green(self.p.block_pos(0)[None, :2])
+            if a is not None:
+                return a
+        return self._task_stack()
+
+    def _task_bring(self) -> np.ndarray:
+        a = self._clear_then(ZONE_XY[0])
+        if a is not None:
+            return a
+        a = self._grasp(0)
+        if a is not None:
+            return a
+        return self._place(0, ZONE_XY[0], BLOCK_REST_Z + 0.004)
+
+    def _task_insert(self) -> np.ndarray:
+        a = self._clear_then(ZONE_XY[0])
+        if a is not None:
+            return a
+        # grasp 8 mm above the centre so the held block can go 1 cm down into the slot
+        a = self._grasp(0, grip_height=0.008)
+        if a is not None:
+            return a
+        return self._place(0, INSERT_TARGETS[0, :2], INSERT_TARGETS[0, 2] + 0.0015, precise=True)
+
+@dataclass
+class Rollout:
+    """One recorded episode: arrays indexed by frame (observation before the action)."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    success: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    segments: list[dict[str, Any]] = field(default_factory=list)
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    depth: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def succeeded(self) -> bool:
+        return bool(self.success.any())
+
+
+class _Recorder:
+    def __init__(self, env: PandaPlayEnv, cameras: tuple[str, ...], depth: bool) -> None:
+        self.env, self.cameras, self.with_depth = env, cameras, depth
+        self.obs: list[np.ndarray] = []
+        self.actions: list[np.ndarray] = []
+        self.success: list[bool] = []
+        self.qpos: list[np.ndarray] = []
+        self.qvel: list[np.ndarray] = []
+        self.images: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
+        self.depth: dict[str, list[np.ndarray]] = {c: [] for c in cameras} if depth else {}
+
+    def frame(self, obs: np.ndarray, info: dict[str, Any]) -> None:
+        self.obs.append(obs)
+        self.qpos.append(info["qpos"])
+        self.qvel.append(info["qvel"])
+        for c in self.cameras:
+            self.images[c].append(self.env.render_rgb(c))
+            if self.with_depth:
+                self.depth[c].append(self.env.render_depth(c))
+
+    def done(self, segments: list[dict[str, Any]]) -> Rollout:
+        return Rollout(
+            observations=np.array(self.obs[: len(self.actions)], dtype=np.float32),
+            actions=np.array(self.actions, dtype=np.float32),
+            success=np.array(self.success, dtype=bool),
+            qpos=np.array(self.qpos[: len(self.actions)]),
+            qvel=np.array(self.qvel[: len(self.actions)]),
+            segments=segments,
+            images={c: np.array(v[: len(self.actions)]) for c, v in self.images.items()},
+            depth={c: np.array(v[: len(self.actions)], dtype=np.float32) for c, v in self.depth.items()},
+        )
+
+
+def rollout(
+    env: PandaPlayEnv,
+    seed: int,
+    cameras: tuple[str, ...] = (),
+    depth: bool = False,
+    extra_steps: int = 0,
+) -> Rollout:
+    """Run the env's task expert from `reset(seed=seed)` until success has held (plus `extra_steps`)
+    or the episode is truncated. Frame t holds the observation before action t and `success[t]`
+    the env's `is_success` after it (LeRobot's `next.success`)."""
+    rec = _Recorder(env, cameras, depth)
+    obs, info = env.reset(seed=seed)
+    expert = PandaPlayExpert(env)
+    rec.frame(obs, info)
+    left = None
+    while True:
+        action = expert.act()
+        obs, _, _, truncated, info = env.step(action)
+        rec.actions.append(action)
+        rec.success.append(info["is_success"])
+        if info["is_success"] and left is None:
+            left = extra_steps
+        if truncated or (left is not None and left <= 0):
+            break
+        if left is not None:
+            left -= 1
+        rec.frame(obs, info)
+    return rec.done([])
+
+
+def play_rollout(
+    env: PandaPlayEnv,
+    seed: int,
+    sequence: tuple[str, ...],
+    segment_seconds: float = 8.0,
+    cameras: tuple[str, ...] = (),
+    depth: bool = False,
+) -> Rollout:
+    """One play episode: a single reset, then each task of `sequence` run by its expert until that
+    task's success holds (or `segment_seconds` pass). Segments record task, start, end (exclusive)
+    and success; `success[t]` is the current segment's held success."""
+    unknown = [t for t in sequence if t not in TASKS]
+    if unknown:
+        raise ValueError(f"unknown play task(s) {unknown}; known: {', '.join(TASKS)}")
+    rec = _Recorder(env, cameras, depth)
+    obs, info = env.reset(seed=seed)
+    rec.frame(obs, info)
+    segments: list[dict[str, Any]] = []
+    limit = int(round(segment_seconds * env.control_hz))
+    truncated = False
+    for task in sequence:
+        expert = PandaPlayExpert(env, task)
+        start = len(rec.actions)
+        ok = False
+        for _ in range(limit):
+            action = expert.act()
+            obs, _, _, truncated, info = env.step(action)
+            ok = env.task_successes()[task]
+            rec.actions.append(action)
+            rec.success.append(ok)
+            rec.frame(obs, info)
+            if ok or truncated:
+                break
+        segments.append({"task": task, "start": start, "end": len(rec.actions), "success": bool(ok)})
+        if truncated:
+            break
+    return rec.done(segments)

@@ -1,0 +1,123 @@
+"""Conformance of every registered environment/task: spaces, reset/step API, determinism, the
+success flag, simulator state in info, and render shapes."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import shiftkit.envs as envs
+from shiftkit.envs.panda_play import OBSERVATION_NAMES, PandaPlayPhysics
+
+PAIRS = [(env, task) for env, tasks in envs.ENV_TASKS.items() for task in tasks]
+
+
+def _run(env, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    frames, qpos = [obs], []
+    for _ in range(steps):
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 4))
+        frames.append(obs)
+        qpos.append(info["qpos"])
+    return np.array(frames), np.array(qpos)
+
+
+@pytest.fixture(scope="module")
+def shared_envs():
+    made = {pair: envs.make(*pair) for pair in PAIRS}
+    yield made
+    for env in made.values():
+        env.close()
+
+
+@pytest.mark.parametrize("pair", PAIRS, ids=[f"{e}-{t}" for e, t in PAIRS])
+def test_reset_step_spaces_and_info(shared_envs, pair):
+    env = shared_envs[pair]
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.shape == (59,) and env.observation_space.dtype == np.float32
+    assert env.action_space.shape == (4,)
+    assert len(env.observation_names) == 59 and tuple(env.observation_names) == OBSERVATION_NAMES
+    assert env.observation_space.contains(obs)
+    for key in ("is_success", "qpos", "qvel"):
+        assert key in info
+    for _ in range(3):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert env.observation_space.contains(obs) and np.isfinite(obs).all()
+        assert isinstance(info["is_success"], bool) and reward == float(info["is_success"])
+        assert terminated is False and truncated is False
+        assert info["qpos"].shape == (env.physics.model.nq,) and info["qvel"].shape == (env.physics.model.nv,)
+    with pytest.raises(ValueError):
+        env.step(np.array([np.nan, 0, 0, 0]))
+
+
+@pytest.mark.parametrize("pair", PAIRS, ids=[f"{e}-{t}" for e, t in PAIRS])
+def test_same_seed_same_arrays(shared_envs, pair):
+    env = shared_envs[pair]
+    a_obs, a_q = _run(env, seed=7, steps=15)
+    b_obs, b_q = _run(env, seed=7, steps=15)
+    c_obs, _ = _run(env, seed=8, steps=2)
+    assert np.array_equal(a_obs, b_obs) and np.array_equal(a_q, b_q)
+    assert not np.array_equal(a_obs[0], c_obs[0])
+
+
+def test_gym_ids_registered_and_kwargs_pass_through():
+    for env_name, task in PAIRS:
+        env_id = envs.gym_id(env_name, task)
+        assert env_id in gym.registry
+    env = gym.make("shiftkit/PandaPlay-Lift-v0", control_hz=5)
+    obs, _ = env.reset(seed=1)
+    assert obs.shape == (59,)
+    assert env.unwrapped.physics.n_substeps == 100 and env.unwrapped.max_episode_steps == 90
+    env.close()
+
+
+def test_reset_state_matches_reference_conventions(shared_envs):
+    env = shared_envs[("panda-play", "lift")]
+    for seed in range(5):
+        obs, _ = env.reset(seed=seed)
+        assert np.allclose(obs[[14, 21]], 0.145, atol=5e-4)  # resting block centre height
+        assert np.allclose(obs[6:12], 1.0, atol=0.02)  # gripper open, history filled
+        assert np.all(np.abs(obs[[12, 19]]) <= 0.075 + 1e-6) and np.all(np.abs(obs[[13, 20]] - 0.5) <= 0.075 + 1e-6)
+        assert 0.175 - 1e-3 <= obs[2] <= 0.27 + 1e-3
+        assert np.all(obs[[18, 25]] >= 0)  # quaternion w >= 0 (xyzw order)
+        assert np.abs(obs[26:38]).max() < 0.05
+        assert np.allclose(obs[38:41], obs[12:15] - obs[0:3], atol=1e-6)
+        assert np.allclose(obs[47:50] + obs[12:15], [0.075, 0.5, 0.125], atol=1e-6)
+
+
+def test_unstack_stack_starts_green_on_blue(shared_envs):
+    env = shared_envs[("panda-play", "unstack-stack")]
+    obs, _ = env.reset(seed=3)
+    assert obs[21] == pytest.approx(0.185, abs=2e-3) and np.linalg.norm(obs[19:21] - obs[12:14]) < 2e-3
+
+
+def test_hold_counts_and_5hz():
+    physics = PandaPlayPhysics(5)
+    assert physics.n_substeps == 100 and physics.max_step == pytest.approx(0.04)
+    from shiftkit.envs.panda_play_tasks import TASKS
+
+    assert TASKS["lift"].hold_steps(20) == 10 and TASKS["move-object"].hold_steps(20) == 20
+
+
+def test_render_shapes(shared_envs):
+    env = envs.make("panda-play", "reach", render_mode="rgb_array", width=64, height=48)
+    env.reset(seed=0)
+    rgb = env.render()
+    assert rgb.shape == (48, 64, 3) and rgb.dtype == np.uint8 and rgb.std() > 5
+    depth = env.render_depth()
+    assert depth.shape == (48, 64) and depth.dtype == np.float32
+    assert 0.3 < float(np.median(depth)) < 2.0  # metres from the front camera to the scene
+    full = envs.make("panda-play", "reach", width=32, height=24, render_quality="full")
+    full.reset(seed=0)
+    assert full.render_rgb("overhead").shape == (24, 32, 3)
+    env.close()
+    full.close()
+
+
+def test_unknown_names_raise():
+    with pytest.raises(ValueError, match="unknown task"):
+        envs.make("panda-play", "fly")
+    with pytest.raises(ValueError, match="unknown env"):
+        envs.make("kitchen", "lift")
