@@ -45,6 +45,10 @@ class DestinationConfig:
     """Dataset ID recorded in the dataset (default: local/<directory name>)."""
     push: bool = False
     """Push the finished dataset to the hub as `repo_id` (endpoint from HF_ENDPOINT)."""
+    revision: str | None = None
+    """Hub branch to push to (default: main)."""
+    private: bool = False
+    """Create the hub repository as private."""
 
 
 @dataclass

@@ -1,8 +1,9 @@
 """The demo pipeline on embedded defaults: record episodes, run a pipeline, validate the result.
 
-It records scripted-expert episodes in the Panda play simulator when the environment is
-available, otherwise a synthetic point-reaching recording, then runs a pipeline config (written
-next to the outputs so it can be edited and re-run) and validates the LeRobot dataset it made.
+It records scripted-expert lift episodes (state + a 64x48 camera, with simulator state) in the
+Panda play simulator with `shiftkit collect`, runs a pipeline config (written next to the
+outputs so it can be edited and re-run) that keeps successful episodes, trims them and drops the
+simulator state, and validates the LeRobot dataset it made.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ path = "raw"
 
 [[stages]]
 name = "filter"
-params = {{ min_length = 5 }}
+params = {{ outcomes = ["success"] }}
 
 [[stages]]
 name = "trim"
@@ -60,7 +61,8 @@ def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: boo
 
 def record(raw_dir: Path, episodes: int, seed: int) -> str:
     """Write the demo's raw episodes; returns the TOML list of features the pipeline drops."""
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.pipelines.collect import CollectConfig, collect
 
-    write_synthetic_raw(raw_dir, episodes=episodes, length=30, seed=seed, camera=(48, 64))
-    return '["observation.environment_state"]'
+    collect(CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=seed, out=str(raw_dir),
+                          cameras=("front",)))
+    return '["sim.qpos", "sim.qvel"]'

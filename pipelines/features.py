@@ -31,10 +31,11 @@ def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
     return feature
 
 
-def image_feature(height: int, width: int, channels: int = 3, **info: Any) -> dict[str, Any]:
-    feature: dict[str, Any] = {"dtype": "image", "shape": (height, width, channels), "names": list(IMAGE_NAMES)}
+def image_feature(shape: tuple[int, int, int], info: dict[str, Any] | None = None) -> dict[str, Any]:
+    """An RGB camera feature; `info` carries the view's intrinsics/extrinsics when known."""
+    feature: dict[str, Any] = {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
     if info:
-        feature["info"] = info
+        feature["info"] = dict(info)
     return feature
 
 

@@ -249,9 +249,10 @@ class RawDataset:
             if len(dims) != dim:
                 raise DatasetError(f"{self.root}/dataset.json: names[{name!r}] has {len(dims)} entries for {dim} dims")
             features[key] = vector_feature(str(arr.dtype), dims)
+        cameras = self.index.get("info", {}).get("cameras", {})  # intrinsics/extrinsics per view
         for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
             first = _read_png(cam_dir / "frame_000000.png")
-            features[_camera_feature(cam_dir.name)] = image_feature(*first.shape)
+            features[_camera_feature(cam_dir.name)] = image_feature(first.shape, cameras.get(cam_dir.name))
         for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
             d = np.load(path, mmap_mode="r", allow_pickle=False)
             features[_depth_feature(path.stem)] = {

@@ -176,7 +176,10 @@ def run_pipeline(
     if config.destination.push:
         from shiftkit.pipelines import hub
 
-        hub.push_dataset(path, repo_id=plan.repo_id)
+        # After the atomic rename: a failed push leaves the local dataset for `shiftkit push`.
+        result = hub.push_dataset(path, plan.repo_id, revision=config.destination.revision,
+                                  private=config.destination.private)
+        logging.getLogger("shiftkit").warning("pushed %s to %s", path, result.url)
     return path
 
 

@@ -1,0 +1,42 @@
+"""`shiftkit eval`: roll out a trained policy in a registered env and report its success rate."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--policy", required=True, help="run folder or checkpoint file of a trained policy")
+    parser.add_argument("--env", default="panda-play", help="environment name (default: panda-play)")
+    parser.add_argument("--task", required=True, help="task, e.g. lift")
+    parser.add_argument("--episodes", type=int, default=50, help="number of episodes (default: 50)")
+    parser.add_argument("--seed", type=int, default=1000, help="episode i uses seed SEED+i (default: 1000)")
+    parser.add_argument("--out", help="per-episode results JSON (default: <run>/eval/<env>-<task>-seed<S>.json)")
+    parser.add_argument("--videos", help="folder for one MP4 per episode (default: none)")
+    parser.add_argument("--control-hz", type=int, choices=(5, 20), help="env control rate (default: the env's)")
+    parser.add_argument("--device", default="cpu", help="torch device for the policy (default: cpu)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from shiftkit.policies.evaluation import evaluate, load_policy
+
+    policy = load_policy(args.policy, device=args.device)
+    env_kwargs = {"control_hz": args.control_hz} if args.control_hz else {}
+    report = evaluate(
+        policy, args.env, args.task, args.episodes, args.seed, video_dir=args.videos,
+        policy_name=str(args.policy), env_kwargs=env_kwargs,
+        on_episode=lambda r: print(f"episode {r.episode} (seed {r.seed}): "
+                                   f"{'success' if r.success else 'failure'} after {r.steps} steps"),
+    )
+    run_dir = Path(args.policy) if Path(args.policy).is_dir() else Path(args.policy).parent.parent
+    out = Path(args.out) if args.out else run_dir / "eval" / f"{args.env}-{args.task}-seed{args.seed}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(report.to_json())
+    s = report.summary()
+    print(f"success rate {s['success_rate']:.1%} ({s['successes']}/{s['episodes']}), "
+          f"95% CI [{s['ci95'][0]:.1%}, {s['ci95'][1]:.1%}] (Wilson); results in {out}")
+    return 0
