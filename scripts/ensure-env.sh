@@ -18,5 +18,9 @@ if [ ! -f "$venv/.complete" ]; then
     touch "$venv/.complete"
 fi
 # Always (re)point the editable install at this checkout: several clones may share one venv.
-"$venv/bin/python" -m pip install -q --no-deps --no-build-isolation -e "$here" >&2
+log="$(mktemp)"
+if ! "$venv/bin/python" -m pip install -q --no-deps --no-build-isolation -e "$here" >"$log" 2>&1; then
+    cat "$log" >&2; rm -f "$log"; exit 1
+fi
+rm -f "$log"
 echo "$venv"
