@@ -12,9 +12,14 @@ venv="${SHIFTKIT_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/shiftkit/venv-$key}"
 if [ ! -f "$venv/.complete" ]; then
     echo "shiftkit: creating environment $venv (first run: ~3 min, ~8 GB)" >&2
     rm -rf "$venv"
-    "$python" -m venv "$venv"
-    "$venv/bin/python" -m pip install -q --upgrade pip setuptools wheel >&2
-    "$venv/bin/python" -m pip install -q "$here[dev]" >&2
+    log="$(mktemp)"
+    if ! { "$python" -m venv "$venv" &&
+           "$venv/bin/python" -m pip install --upgrade pip setuptools wheel &&
+           "$venv/bin/python" -m pip install -e "$here[dev]"; } >"$log" 2>&1; then
+        tail -n 40 "$log" >&2; rm -f "$log"
+        echo "shiftkit: creating $venv failed (see above)" >&2; exit 1
+    fi
+    rm -f "$log"
     touch "$venv/.complete"
 fi
 # Always (re)point the editable install at this checkout: several clones may share one venv.
