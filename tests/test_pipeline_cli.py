@@ -187,3 +187,20 @@ def test_lerobot_train_act_on_pipeline_output(tmp_path, synthetic_raw):
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "step:2" in out.stdout + out.stderr
+
+
+def test_validate_reports_broken_datasets(tmp_path, synthetic_raw, capsys):
+    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+
+    ds = write_raw_as_lerobot(synthetic_raw, "test/v", tmp_path / "ds")
+    assert main(["validate", str(ds)]) == 0
+    info = json.loads((ds / "meta" / "info.json").read_text())
+    (ds / "meta" / "info.json").write_text(json.dumps({**info, "total_frames": info["total_frames"] + 3}))
+    capsys.readouterr()
+    assert main(["validate", str(ds)]) == 2
+    assert "frames in the data, info.json says" in capsys.readouterr().err
+    (ds / "data" / "chunk-000" / "file-000.parquet").unlink()
+    assert main(["validate", str(ds)]) == 2
+    assert "data file is missing" in capsys.readouterr().err
+    assert main(["info", str(tmp_path / "nothing")]) == 2
+    assert "dataset not found" in capsys.readouterr().err
