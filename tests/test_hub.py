@@ -133,7 +133,12 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
     (variant / "README.md").write_text("---\nlicense: apache-2.0\ntags: [LeRobot, shiftkit]\n---\n# variant\n")
     extra = copy_tree(variant, tmp_path / "variant-extra")
     (extra / "meta" / "notes.json").write_text("{}")
+    from shiftkit.pipelines.synthetic import write_synthetic_raw
+
+    raw = write_synthetic_raw(tmp_path / "raw", episodes=2, length=6)
+    (tmp_path / "p.toml").write_text(f'[[sources]]\npath = "{raw}"\n[destination]\nroot = "{tmp_path / "piped"}"\n')
     results = shiftkit_batch([
+        (["run", str(tmp_path / "p.toml"), "--no-progress", "--push", "shiftkit-test/piped"], WRITE),
         (["push", str(dataset), "--repo-id", REPO], WRITE),
         (["pull", REPO], None),
         (["push", str(extra), "--repo-id", REPO, "--revision", "exp"], WRITE),
@@ -142,6 +147,12 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
         (["pull", REPO, "--force"], None),
     ], hub.endpoint, home)
     assert_ok(results)
+    # `shiftkit run --push` pushed the finished pipeline output, card and version tag included.
+    piped = hub.store.meta("dataset", "shiftkit-test/piped")
+    assert piped["tags"]["v3.0"] == piped["branches"]["main"]
+    _, piped_tree = hub.store.tree("dataset", "shiftkit-test/piped", "main")
+    assert {"README.md", "meta/info.json", "meta/shiftkit_provenance.json"} <= set(piped_tree)
+    results = results[1:]
     assert "tagged v3.0" in results[0]["stdout"] and "tagged" not in results[2]["stdout"] + results[3]["stdout"]
     # The card was validated by the configured endpoint (never the fixed public one) and travelled in
     # the same single commit as the data.
