@@ -230,8 +230,9 @@ class DatasetWriter:
         }
         return InMemoryTable.from_pydict(mapping=typed).table.cast(features.arrow_schema)
 
-    def close(self, provenance: dict[str, Any] | None = None, card: str | None = None) -> Path:
-        """Finalize, write provenance and card, and move the dataset into place."""
+    def close(self, provenance: dict[str, Any] | None = None) -> Path:
+        """Finalize, write provenance and the dataset card rendered from it, and move the dataset
+        into place."""
         if self._closed:
             return self.root
         if self.num_episodes == 0:
@@ -243,9 +244,10 @@ class DatasetWriter:
         self._meta._close_writer()
         self._write_info_and_stats()
         if provenance is not None:
+            from shiftkit.cards import render_dataset_card
+
             (self.tmp / PROVENANCE_PATH).write_text(json.dumps(provenance, indent=2, sort_keys=True, default=_json_default))
-        if card is not None:
-            (self.tmp / "README.md").write_text(card)
+            (self.tmp / "README.md").write_text(render_dataset_card(self.tmp, provenance))
         if self.root.exists():
             self.abort()
             raise DatasetError(f"destination already exists: {self.root}")

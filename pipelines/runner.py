@@ -28,6 +28,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import check_episode
 from shiftkit.pipelines.planner import Plan, plan_pipeline
+from shiftkit.pipelines.stage import select_outputs
 
 MAX_EPISODES_PER_UNIT = 16
 
@@ -117,12 +118,13 @@ def transform_episode(plan: Plan, source: int, episode: Episode) -> list[Episode
 _WORKER: dict[str, Any] = {}
 
 
-def init_worker(config: PipelineConfig) -> None:
+def init_worker(config: PipelineConfig) -> Plan:
     plan = plan_pipeline(config, check_destination=False)
     for stage in plan.stages:
         stage.setup()
     _WORKER["plan"] = plan
     _WORKER["parts"] = PartStore(work_dir_for(plan.destination))
+    return plan
 
 
 def process_unit(unit: WorkUnit) -> int:
@@ -133,7 +135,7 @@ def process_unit(unit: WorkUnit) -> int:
     for episode in plan.sources[unit.source].iter_episodes(todo):
         index = int(episode.meta["source_episode_index"])
         parts.write(unit.source, index, transform_episode(plan, unit.source, episode), plan.features)
-    return len(unit.episodes)
+    return len(todo)
 
 
 def plan_units(plan: Plan) -> list[WorkUnit]:
@@ -151,10 +153,12 @@ def run_pipeline(
     executor: str = "local",
     executor_options: dict[str, Any] | None = None,
     progress: bool = True,
-) -> Path:
-    """Run the pipeline to completion (resuming earlier partial work) and return the dataset path."""
+) -> Path | None:
+    """Run the pipeline to completion (resuming earlier partial work) and return the dataset path,
+    or None when the executor handed the work to a scheduler (slurm): re-running then assembles."""
     from shiftkit.pipelines.executors import get_executor
 
+    engine = get_executor(executor, workers, **(executor_options or {}))
     plan = plan_pipeline(config)
     dest = plan.destination
     work = work_dir_for(dest)
@@ -162,16 +166,16 @@ def run_pipeline(
     _prepare_work_dir(work, key, dest)
     parts = PartStore(work)
     units = plan_units(plan)
-    pending = [u for u in units if not all(parts.done(u.source, i) for i in u.episodes)]
-    done = plan.num_source_episodes - sum(len(u.episodes) for u in pending)
+    done = sum(parts.done(u.source, i) for u in units for i in u.episodes)
     if done:
         logging.getLogger("shiftkit").warning(
             "resuming: %d of %d source episodes were already transformed", done, plan.num_source_episodes
         )
     with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
-        get_executor(executor, workers, **(executor_options or {})).run(config, pending, bar)
+        if not engine.run(plan, units, parts, bar):
+            return None
     with _progress(plan.num_source_episodes, 0, "write", progress) as bar:
-        path = write_dataset(plan, parts, {"name": executor, "workers": workers}, bar)
+        path = engine.assemble(plan, parts, bar)
     shutil.rmtree(work, ignore_errors=True)
     if config.destination.push:
         from shiftkit.pipelines import hub
@@ -184,20 +188,25 @@ def run_pipeline(
 
 
 def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], bar: Any) -> Path:
-    from shiftkit.cards import render_dataset_card
     from shiftkit.pipelines.lerobot_io import DatasetWriter
     from shiftkit.pipelines.provenance import build_provenance
 
-    writer = DatasetWriter(plan.repo_id, plan.destination, plan.fps, plan.features, robot_type=plan.robot_type)
-    with writer:
+    def outputs() -> Iterator[tuple[Episode, dict]]:
         for s, source in enumerate(plan.sources):
             for i in range(source.num_episodes):
-                for episode, stats in parts.read(s, i):
-                    writer.add_episode(episode, stats)
+                yield from parts.read(s, i)
                 bar.update(1)
+
+    # Dataset-level selection (e.g. N examples per task) sees the metas of all outputs first.
+    keep = select_outputs(plan.stages, lambda: [episode.meta for episode, _ in outputs()])
+    bar.reset()
+    writer = DatasetWriter(plan.repo_id, plan.destination, plan.fps, plan.features, robot_type=plan.robot_type)
+    with writer:
+        for k, (episode, stats) in enumerate(outputs()):
+            if keep is None or keep[k]:
+                writer.add_episode(episode, stats)
         provenance = build_provenance(plan, executor_info, writer.num_episodes, writer.num_frames)
-        card = render_dataset_card(writer.tmp, provenance)
-        writer.close(provenance=provenance, card=card)
+        writer.close(provenance=provenance)
     return plan.destination
 
 

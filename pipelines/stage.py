@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -59,6 +59,13 @@ class Stage(ABC):
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         """Transform one episode into zero or more episodes. Must not modify `episode` in place."""
 
+    def select(self, metas: list[dict[str, Any]]) -> list[bool] | None:
+        """Optional dataset-level step, run once after `process` has seen every source episode:
+        given the `meta` of every output episode (in output order), which ones to keep. None (the
+        default) keeps all. Only metadata is seen, so a choice made from values that `process`
+        drew from its `rng` (e.g. a random key per episode) does not depend on workers or order."""
+        return None
+
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "version": self.version, "params": to_dict(self.config)}
 
@@ -76,6 +83,28 @@ def register_stage(cls: type[Stage]) -> type[Stage]:
         raise TypeError(f"stage name {cls.name!r} is registered twice ({existing.__name__}, {cls.__name__})")
     _REGISTRY[cls.name] = cls
     return cls
+
+
+def select_outputs(stages: list[Stage], read_metas: Callable[[], list[dict[str, Any]]]) -> list[bool] | None:
+    """Apply the stages' `select` hooks in pipeline order to the metas of all output episodes.
+
+    Returns a keep-mask, or None without calling `read_metas` when no stage overrides `select`.
+    """
+    selecting = [s for s in stages if type(s).select is not Stage.select]
+    if not selecting:
+        return None
+    metas = read_metas()
+    keep = [True] * len(metas)
+    for stage in selecting:
+        kept = [k for k, flag in enumerate(keep) if flag]
+        chosen = stage.select([metas[k] for k in kept])
+        if chosen is None:
+            continue
+        if len(chosen) != len(kept):
+            raise TypeError(f"stage {stage.name!r}: select() returned {len(chosen)} flags for {len(kept)} episodes")
+        for k, flag in zip(kept, chosen, strict=True):
+            keep[k] = bool(flag)
+    return keep
 
 
 def load_builtin_stages() -> None:

@@ -63,6 +63,8 @@ def test_run_info_validate(tmp_path, synthetic_raw, capsys):
     info = json.loads(capsys.readouterr().out.split("\n", 2)[-1])
     assert info["episodes"] == 5 and info["provenance"]["stages"][0]["name"] == "trim"
     assert info["provenance"]["pipeline"]["destination"]["repo_id"] == "test/pipe"
+    card = (tmp_path / "out" / "README.md").read_text()
+    assert f"{info['episodes']} episodes, {info['frames']} frames at 10 fps" in card and "`trim` v1" in card
 
 
 def test_two_workers_give_the_same_bytes(tmp_path, synthetic_raw):

@@ -26,6 +26,7 @@ EXAMPLE_PARAMS = {
     "rename": {"mapping": {"observation.environment_state": "observation.goal"}},
     "drop": {"features": ["observation.environment_state"]},
     "cast": {"dtypes": {"action": "float64"}},
+    "success_examples": {"n_per_task": 3, "states": "success"},
 }
 
 STAGES = sorted(registered_stages())

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
+HELP = "evaluate a trained policy in a registered environment (success rate with a 95%% interval)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -20,9 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from shiftkit.policies.evaluation import evaluate, load_policy
+    from shiftkit.policies.evaluation import evaluate, load_policy, record_evaluation
 
     policy = load_policy(args.policy, device=args.device)
     env_kwargs = {"control_hz": args.control_hz} if args.control_hz else {}
@@ -32,10 +30,7 @@ def run(args: argparse.Namespace) -> int:
         on_episode=lambda r: print(f"episode {r.episode} (seed {r.seed}): "
                                    f"{'success' if r.success else 'failure'} after {r.steps} steps"),
     )
-    run_dir = Path(args.policy) if Path(args.policy).is_dir() else Path(args.policy).parent.parent
-    out = Path(args.out) if args.out else run_dir / "eval" / f"{args.env}-{args.task}-seed{args.seed}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(report.to_json())
+    out = record_evaluation(report, args.policy, args.out)
     s = report.summary()
     print(f"success rate {s['success_rate']:.1%} ({s['successes']}/{s['episodes']}), "
           f"95% CI [{s['ci95'][0]:.1%}, {s['ci95'][1]:.1%}] (Wilson); results in {out}")

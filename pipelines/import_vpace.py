@@ -1,0 +1,274 @@
+"""Import the VPACE / LfGP authors' published expert buffers (utiasSTARS/vpace `expert_data/`) as
+LeRobot datasets.
+
+A buffer file is gzip + pickle of a dict of numpy arrays written by their circular replay buffer
+(format facts: shared/data/vpace/README.md). Two kinds exist:
+
+* example files (`1200_per_task/<i>_<task>.gz`): independent success states of one task. Each row
+  becomes a one-frame episode whose `task` is the file's task (as `success_examples` writes them).
+* trajectory files (`full_trajectories/.../<i>_<task>.gz`): expert transitions. Rows are put back in
+  insertion order and split into episodes where `next_observations[t] != observations[t + 1]`;
+  actions and rewards are kept.
+
+Observations (59 dims + absorbing flag in LfGP-era files, 53 + flag in VPACE-era files) are split
+into `observation.state` / `observation.environment_state` with the Panda play env's names, the
+always-zero absorbing flag is dropped, and the gripper action is converted to shiftkit's sign.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import io
+import pickle
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.features import Features, vector_feature
+
+Kind = Literal["auto", "examples", "trajectories"]
+
+# Observation width without the absorbing flag -> control rate of the data: the LfGP-era Panda
+# tasks (59 dims, with force-torque) ran at 20 Hz, the VPACE-era ones (53 dims) at 5 Hz (thesis B.2).
+ERA_FPS = {59: 20, 53: 5}
+_REQUIRED_KEYS = ("observations", "next_observations", "actions", "rewards", "memory_size", "pointer", "count")
+_TASK_IN_NAME = re.compile(r"(?:^|_)\d+_([A-Za-z][A-Za-z0-9-]*)$")
+
+
+@dataclass
+class VpaceBuffer:
+    """One published buffer, rows in insertion order, absorbing flag removed."""
+
+    path: Path
+    sha256: str
+    task: str
+    observations: np.ndarray
+    """(N, 59 or 53) float32."""
+    next_observations: np.ndarray
+    actions: np.ndarray
+    """(N, 4) float32, gripper dim in shiftkit's sign convention (> 0 opens)."""
+    rewards: np.ndarray
+    """(N, num_tasks) float32 as stored (the generating env's task order)."""
+    overwritten_rows: int
+    """Oldest rows the circular buffer dropped (count - memory_size when it wrapped)."""
+
+    @property
+    def obs_dim(self) -> int:
+        return int(self.observations.shape[1])
+
+    def kind(self) -> str:
+        """"trajectories" if any row continues into the next one, else "examples"."""
+        continues = np.all(self.next_observations[:-1] == self.observations[1:], axis=1)
+        return "trajectories" if continues.any() else "examples"
+
+    def episode_bounds(self) -> list[tuple[int, int]]:
+        """[start, end) row ranges of the episodes: a new one starts wherever a row's next
+        observation is not the following row's observation (the files' `dones` are all False)."""
+        breaks = np.flatnonzero(np.any(self.next_observations[:-1] != self.observations[1:], axis=1)) + 1
+        edges = [0, *breaks.tolist(), len(self.observations)]
+        return list(zip(edges[:-1], edges[1:], strict=True))
+
+
+@dataclass
+class ImportSummary:
+    root: Path
+    kind: str
+    fps: int
+    episodes: int
+    frames: int
+    per_file: list[dict[str, Any]] = field(default_factory=list)
+    """Per source file: name, task, rows, episodes and their lengths."""
+
+
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickles numpy arrays, scalars and RandomState only: a buffer file cannot run code."""
+
+    _ALLOWED = {
+        ("numpy", "ndarray"), ("numpy", "dtype"),
+        ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
+        ("numpy.random._pickle", "__randomstate_ctor"), ("numpy.random._pickle", "__bit_generator_ctor"),
+    }
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in self._ALLOWED:
+            return super().find_class(module, name)
+        if module == "numpy" or module.startswith("numpy.dtypes"):
+            obj = super().find_class(module, name)
+            if isinstance(obj, type) and (issubclass(obj, np.generic) or issubclass(obj, np.dtype)):
+                return obj
+        raise pickle.UnpicklingError(f"refusing to load {module}.{name} (only numpy arrays are expected)")
+
+
+def task_from_filename(path: str | Path) -> str:
+    """`3_lift.gz` / `examples_1200_3_lift.gz` -> "lift" (the reference names files <index>_<task>)."""
+    stem = Path(path).name.removesuffix(".gz")
+    m = _TASK_IN_NAME.search(stem)
+    if m is None:
+        raise DatasetError(f"{path}: cannot tell the task from the file name (expected ..._<index>_<task>.gz); give --task")
+    return m.group(1)
+
+
+def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
+    """Load and check one buffer file; rows come back oldest first."""
+    from shiftkit.envs.vpace_compat import vpace_action_to_shiftkit
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such file")
+    raw_bytes = path.read_bytes()
+    try:
+        data = _NumpyOnlyUnpickler(gzip.GzipFile(fileobj=io.BytesIO(raw_bytes))).load()
+    except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ImportError, ValueError) as exc:
+        raise DatasetError(f"{path}: not a VPACE buffer (gzip + pickle of numpy arrays): {exc}") from None
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path}: expected a dict of arrays, got {type(data).__name__}")
+    missing = [k for k in _REQUIRED_KEYS if k not in data]
+    if missing:
+        raise DatasetError(f"{path}: missing key(s) {missing}")
+    size, pointer, count = int(data["memory_size"]), int(data["pointer"]), int(data["count"])
+    arrays = {k: np.asarray(data[k], dtype=np.float32) for k in ("observations", "next_observations", "actions", "rewards")}
+    if any(len(a) != size for a in arrays.values()):
+        raise DatasetError(f"{path}: array lengths {[len(a) for a in arrays.values()]} differ from memory_size {size}")
+    # Circular buffer: once it has wrapped, the oldest row is at `pointer`.
+    order = np.roll(np.arange(size), -pointer) if count > size else np.arange(min(count, size))
+    arrays = {k: a[order] for k, a in arrays.items()}
+    obs, next_obs = arrays["observations"], arrays["next_observations"]
+    width = obs.shape[1] if obs.ndim == 2 else None
+    if width is None or width - 1 not in ERA_FPS or next_obs.shape != obs.shape:
+        raise DatasetError(f"{path}: observation shape {obs.shape} is neither (N, 60) nor (N, 54)")
+    if np.any(obs[:, -1] != 0) or np.any(next_obs[:, -1] != 0):
+        raise DatasetError(f"{path}: rows with the absorbing-state flag set are not supported")
+    actions = arrays["actions"]
+    if actions.ndim != 2 or actions.shape[1] != 4:
+        raise DatasetError(f"{path}: actions have shape {actions.shape}, expected (N, 4)")
+    rewards = arrays["rewards"].reshape(len(order), -1)
+    for key, a in (("observations", obs), ("actions", actions), ("rewards", rewards)):
+        if not np.isfinite(a).all():
+            raise DatasetError(f"{path}: {key} contain NaN/inf")
+    return VpaceBuffer(
+        path=path,
+        sha256=hashlib.sha256(raw_bytes).hexdigest(),
+        task=task or task_from_filename(path),
+        observations=obs[:, :-1],
+        next_observations=next_obs[:, :-1],
+        actions=vpace_action_to_shiftkit(actions),
+        rewards=rewards,
+        overwritten_rows=max(count - size, 0),
+    )
+
+
+def observation_features(obs_dim: int) -> Features:
+    """The env's split of the reference observation (`envs.panda_play`), trimmed to `obs_dim`."""
+    from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
+
+    state = [OBSERVATION_NAMES[i] for i in STATE_INDICES if i < obs_dim]
+    env_state = [OBSERVATION_NAMES[i] for i in ENVIRONMENT_STATE_INDICES]
+    info = {"source_layout": f"VPACE/LfGP Panda play, {obs_dim} dims (see docs/panda_play.md)"}
+    return {
+        "observation.state": vector_feature("float32", state, **info),
+        "observation.environment_state": vector_feature("float32", env_state, **info),
+    }
+
+
+def _split_observations(obs: np.ndarray) -> dict[str, np.ndarray]:
+    from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, STATE_INDICES
+
+    state_idx = STATE_INDICES[STATE_INDICES < obs.shape[1]]
+    return {
+        "observation.state": np.ascontiguousarray(obs[:, state_idx]),
+        "observation.environment_state": np.ascontiguousarray(obs[:, ENVIRONMENT_STATE_INDICES]),
+    }
+
+
+def _reward_names(buffers: list[VpaceBuffer]) -> list[str]:
+    """One `next.reward` column when every file's reward columns agree row by row (true for the
+    published files: a sparse reward replicated over the generating env's tasks), else one per task."""
+    if all(np.all(b.rewards == b.rewards[:, :1]) for b in buffers):
+        return ["reward"]
+    widths = sorted({b.rewards.shape[1] for b in buffers})
+    if len(widths) != 1:
+        raise DatasetError(f"reward widths differ between files ({widths}); import them into separate datasets")
+    return [f"reward_{i}" for i in range(widths[0])]
+
+
+def import_vpace(
+    files: list[str | Path],
+    repo_id: str,
+    root: str | Path,
+    kind: Kind = "auto",
+    task: str | None = None,
+    fps: int | None = None,
+) -> ImportSummary:
+    """Write the buffers in `files` into one new LeRobot dataset at `root` (atomically)."""
+    from shiftkit.envs.panda_play import ACTION_NAMES
+    from shiftkit.pipelines.lerobot_io import DatasetWriter
+    from shiftkit.pipelines.provenance import PROVENANCE_VERSION, versions
+
+    if not files:
+        raise DatasetError("no input files given")
+    if kind not in ("auto", "examples", "trajectories"):
+        raise DatasetError(f"unknown kind {kind!r} (auto, examples, trajectories)")
+    buffers = [read_vpace_buffer(f, task) for f in files]
+    dims = sorted({b.obs_dim for b in buffers})
+    if len(dims) != 1:
+        raise DatasetError(f"files mix observation widths {dims} (LfGP-era and VPACE-era data); import them separately")
+    kinds = sorted({b.kind() for b in buffers}) if kind == "auto" else [kind]
+    if len(kinds) != 1:
+        raise DatasetError("files mix example sets and trajectories; import them separately or give --kind")
+    kind_used = kinds[0]
+    if fps is not None and fps < 1:
+        raise DatasetError(f"fps must be a positive integer, got {fps}")
+    fps = fps or ERA_FPS[dims[0]]
+
+    features = observation_features(dims[0])
+    reward_names: list[str] = []
+    if kind_used == "trajectories":
+        reward_names = _reward_names(buffers)
+        features["action"] = vector_feature("float32", list(ACTION_NAMES))
+        features["next.reward"] = vector_feature("float32", reward_names)
+
+    per_file = []
+    with DatasetWriter(repo_id, root, fps, features, robot_type="franka_panda") as writer:
+        for b in buffers:
+            obs = _split_observations(b.observations)
+            if kind_used == "examples":
+                bounds = [(r, r + 1) for r in range(len(b.observations))]
+            else:
+                bounds = b.episode_bounds()
+            for e, (start, end) in enumerate(bounds):
+                n = end - start
+                frames = {k: v[start:end] for k, v in obs.items()}
+                frames["timestamp"] = np.arange(n, dtype=np.float64) / fps
+                frames["task"] = np.array([b.task] * n)
+                source: dict[str, Any] = {"file": b.path.name, "rows": [start, end]}
+                if kind_used == "trajectories":
+                    frames["action"] = b.actions[start:end]
+                    rewards = b.rewards[start:end]
+                    frames["next.reward"] = np.ascontiguousarray(rewards[:, :1] if len(reward_names) == 1 else rewards)
+                    # The wrapped buffer dropped the oldest rows: the first episode may lack its start.
+                    source["start_overwritten"] = bool(e == 0 and b.overwritten_rows > 0)
+                writer.add_episode(Episode(frames, {"task": b.task, "source": source}))
+            per_file.append({"file": b.path.name, "task": b.task, "rows": len(b.observations),
+                             "episodes": len(bounds), "lengths": [end - start for start, end in bounds]})
+        provenance = {
+            "provenance_version": PROVENANCE_VERSION,
+            "tool": "shiftkit",
+            "versions": versions(),
+            "sources": [{"kind": "vpace", "path": str(b.path.resolve()), "sha256": b.sha256, "task": b.task,
+                         "rows": len(b.observations), "overwritten_rows": b.overwritten_rows} for b in buffers],
+            "stages": [],
+            "importer": {"name": "vpace", "kind": kind_used, "fps": fps, "observation_dims": dims[0],
+                         "dropped": "absorbing-state flag (last observation column)",
+                         "gripper": "negated: published > 0 closes, shiftkit > 0 opens"},
+            "seed": None,
+            "output": {"repo_id": repo_id, "fps": fps, "episodes": writer.num_episodes, "frames": writer.num_frames},
+        }
+        writer.close(provenance=provenance)
+    return ImportSummary(Path(root), kind_used, fps, writer.num_episodes, writer.num_frames, per_file)
