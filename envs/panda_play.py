@@ -53,6 +53,10 @@ PHYSICS_DT = 0.002
 # |action| = 1 moves the desired TCP by 2 mm per 10 ms (reference: 0.002 m per 0.01 s substep),
 # i.e. 1 cm per step at 20 Hz and 4 cm per step at 5 Hz
 MAX_TCP_SPEED = 0.2
+# The Cartesian controller runs at 20 Hz (50 ms ticks of 25 physics steps): an action is held
+# for the whole control period, the desired TCP advancing every tick, as the reference advances
+# it every 10 ms substep (a 5 Hz action moves the arm steadily, not in one 4 cm jump).
+TICK_SUBSTEPS = 25
 FINGER_OPEN = 0.04
 # TCP distance from the link7 flange along its z axis: 1.5 cm above the (1.75x long) fingertips,
 # so a block grasped at its centre sits fully between the pads and the tips clear the floor
@@ -83,11 +87,27 @@ OBS_DIM = len(OBSERVATION_NAMES)
 # dataset split: robot proprioception vs privileged object state (full = state[:12] + env + state[12:])
 STATE_INDICES = np.r_[0:12, 53:59]
 ENVIRONMENT_STATE_INDICES = np.r_[12:53]
-ACTION_NAMES = ("delta_x", "delta_y", "delta_z", "gripper_close")
+# gripper: > 0 opens, < 0 closes (SPEC §7; the published VPACE data use the opposite sign, see
+# `vpace_compat`)
+ACTION_NAMES = ("delta_x", "delta_y", "delta_z", "gripper_open")
 
 # geom groups: robot visual meshes 0, scene 1, robot collision 3 (the fast render mode shows 1 and 3)
 SCENE_GROUP = 1
 _IK_DAMPING = 1e-4 * np.eye(6)
+
+
+def _rotation_error_matrix() -> np.ndarray:
+    """(3, 9) matrix C with C @ R.ravel() = the small-angle rotation from a TCP orientation R to
+    TCP_ROTATION: the skew-symmetric part of E = TCP_ROTATION @ R.T, (E21 - E12, E02 - E20,
+    E10 - E01) / 2, which is linear in R (one matrix product per IK step)."""
+    c = np.zeros((3, 3, 3))
+    for k, (i, j) in enumerate(((2, 1), (0, 2), (1, 0))):
+        c[k, j] += 0.5 * TCP_ROTATION[i]  # E_ij = TCP_ROTATION[i] . R[j]
+        c[k, i] -= 0.5 * TCP_ROTATION[j]
+    return c.reshape(3, 9)
+
+
+_ROTATION_ERROR = _rotation_error_matrix()
 FINGER_FRICTION = 0.3
 BLOCK_FRICTION = 0.5
 
@@ -254,10 +274,8 @@ def build_spec() -> mujoco.MjSpec:
     return spec
 
 
-def quat_wxyz_to_xyzw_positive(q: np.ndarray) -> np.ndarray:
-    """MuJoCo (w, x, y, z) -> the reference's (x, y, z, w) with w >= 0."""
-    out = np.array([q[1], q[2], q[3], q[0]])
-    return -out if out[3] < 0 else out
+# tanh squashing of the wrist force (scale 100 N) and torque (10 Nm) in the observation
+_INV_WRENCH_SCALE = 1.0 / np.array([100.0, 100.0, 100.0, 10.0, 10.0, 10.0])
 
 
 def block_reset_quat(yaw: float) -> np.ndarray:
@@ -284,6 +302,18 @@ class ContactFlags:
 
 # part codes for the contact table
 _OTHER, _BLUE, _GREEN, _TRAY, _HAND, _LEFT, _RIGHT = range(7)
+# one bit per ContactFlags field: the part pairs it looks at
+_CONTACT_BITS = {
+    "blue_green": ((_BLUE, _GREEN),),
+    "blue_tray": ((_BLUE, _TRAY),),
+    "green_tray": ((_GREEN, _TRAY),),
+    "blue_gripper": ((_BLUE, _HAND), (_BLUE, _LEFT), (_BLUE, _RIGHT)),
+    "green_gripper": ((_GREEN, _HAND), (_GREEN, _LEFT), (_GREEN, _RIGHT)),
+    "blue_left_finger": ((_BLUE, _LEFT),),
+    "blue_right_finger": ((_BLUE, _RIGHT),),
+    "green_left_finger": ((_GREEN, _LEFT),),
+    "green_right_finger": ((_GREEN, _RIGHT),),
+}
 
 
 class PandaPlayPhysics:
@@ -297,19 +327,30 @@ class PandaPlayPhysics:
         self.data = mujoco.MjData(self.model)
         self._ik = mujoco.MjData(self.model)
         self.n_substeps = int(round(1.0 / (control_hz * PHYSICS_DT)))
+        self.n_ticks = self.n_substeps // TICK_SUBSTEPS
         self.control_dt = self.n_substeps * PHYSICS_DT
         self.max_step = MAX_TCP_SPEED * self.control_dt
+        self._tick_step = MAX_TCP_SPEED * TICK_SUBSTEPS * PHYSICS_DT
         m = self.model
         self.tcp_site = m.site("tcp").id
         arm_joints = [m.joint(f"robot:panda0_joint{i}") for i in range(1, 8)]
-        self.arm_qpos = np.array([j.qposadr[0] for j in arm_joints])
-        self.arm_dofs = np.array([j.dofadr[0] for j in arm_joints])
-        self.arm_range = np.array([j.range for j in arm_joints])
-        self.finger_qpos = np.array([m.joint(f"robot:panda0_finger_joint{i}").qposadr[0] for i in (1, 2)])
+        # the kitchen model lists the arm joints first: slices index faster than index arrays
+        qadr, vadr = arm_joints[0].qposadr[0], arm_joints[0].dofadr[0]
+        assert [j.qposadr[0] for j in arm_joints] == list(range(qadr, qadr + 7))
+        assert [j.dofadr[0] for j in arm_joints] == list(range(vadr, vadr + 7))
+        self.arm_qpos = slice(qadr, qadr + 7)
+        self.arm_dofs = slice(vadr, vadr + 7)
+        self.arm_low, self.arm_high = np.array([j.range for j in arm_joints]).T.copy()
+        finger = m.joint("robot:panda0_finger_joint1").qposadr[0]
+        assert m.joint("robot:panda0_finger_joint2").qposadr[0] == finger + 1
+        self.finger_qpos = slice(finger, finger + 2)
         self.block_qpos = np.array([m.joint(f"{c}_free").qposadr[0] for c in ("blue", "green")])
         self.block_dof = np.array([m.joint(f"{c}_free").dofadr[0] for c in ("blue", "green")])
         self.block_body = np.array([m.body(f"{c}_block").id for c in ("blue", "green")])
         self._block_linvel_idx = np.concatenate([np.arange(a, a + 3) for a in self.block_dof])
+        self._block_angvel_idx = self._block_linvel_idx + 3
+        # flat indices of the block quaternions in xquat, reordered MuJoCo wxyz -> reference xyzw
+        self._block_xyzw_idx = (4 * self.block_body[:, None] + [1, 2, 3, 0]).ravel()
         parts = np.full(m.ngeom, _OTHER, dtype=np.int64)
         parts[m.geom("blue_geom").id] = _BLUE
         parts[m.geom("green_geom").id] = _GREEN
@@ -324,12 +365,17 @@ class PandaPlayPhysics:
                 parts[g] = _LEFT
             elif body == m.body("panda0_rightfinger").id:
                 parts[g] = _RIGHT
-        self._parts = parts
         self._gripper_part = np.isin(parts, (_HAND, _LEFT, _RIGHT))
-        self._jacp = np.zeros((3, m.nv))
-        self._jacr = np.zeros((3, m.nv))
+        # geom pair -> bit mask of the ContactFlags fields a contact between them sets
+        pair_bits = np.zeros((7, 7), dtype=np.int64)
+        for bit, pairs in enumerate(_CONTACT_BITS.values()):
+            for a, b in pairs:
+                pair_bits[a, b] |= 1 << bit
+                pair_bits[b, a] |= 1 << bit
+        self._contact_bits = pair_bits[parts[:, None], parts[None, :]]
+        self._jac = np.zeros((6, m.nv))  # rows 0:3 translation, 3:6 rotation
+        self._ik_sol = np.zeros(6)
         self._vel6 = np.zeros(6)
-        self._cforce = np.zeros(6)
         self.desired_tcp = np.zeros(3)
         self.q_target = HOME_QPOS.copy()
         self.gripper_closed = False
@@ -346,6 +392,11 @@ class PandaPlayPhysics:
 
     def block_quat_wxyz(self, i: int) -> np.ndarray:
         return self.data.xquat[self.block_body[i]].copy()
+
+    def block_tilt(self, i: int) -> float:
+        """Angle (rad) between block `i`'s most vertical axis and the world z axis."""
+        rot = self.data.xmat[self.block_body[i]].reshape(3, 3)
+        return float(np.arccos(min(1.0, np.max(np.abs(rot[2])))))
 
     def block_yaw_error(self, i: int) -> float:
         """Angle (rad, in [-pi/4, pi/4)) between block `i`'s faces and the finger closing axis."""
@@ -453,36 +504,49 @@ class PandaPlayPhysics:
         data.qpos[self.arm_qpos] = self.q_target
         mujoco.mj_kinematics(m, data)
         mujoco.mj_comPos(m, data)
-        mujoco.mj_jacSite(m, data, self._jacp, self._jacr, self.tcp_site)
-        rot = data.site_xmat[self.tcp_site].reshape(3, 3)
-        e = TCP_ROTATION @ rot.T  # small-angle rotation error from its skew-symmetric part
-        err = np.array([*(target - data.site_xpos[self.tcp_site]),
-                        0.5 * (e[2, 1] - e[1, 2]), 0.5 * (e[0, 2] - e[2, 0]), 0.5 * (e[1, 0] - e[0, 1])])
-        jac = np.vstack([self._jacp[:, self.arm_dofs], self._jacr[:, self.arm_dofs]])
+        mujoco.mj_jacSite(m, data, self._jac[:3], self._jac[3:], self.tcp_site)
+        err = np.concatenate((target - data.site_xpos[self.tcp_site], _ROTATION_ERROR @ data.site_xmat[self.tcp_site]))
+        jac = self._jac[:, self.arm_dofs]
         # null-space pull towards the home posture keeps the elbow up and away from joint limits
         posture = 0.05 * (HOME_QPOS - self.q_target)
-        sol = np.linalg.solve(jac @ jac.T + _IK_DAMPING, np.column_stack([err, jac @ posture]))
-        dq = jac.T @ (sol[:, 0] - sol[:, 1]) + posture
-        dq = np.clip(dq, -0.2, 0.2)  # large errors (reset) converge over several calls
-        self.q_target = np.clip(self.q_target + dq, self.arm_range[:, 0], self.arm_range[:, 1])
+        # dq = J^T (J J^T + D)^-1 (err - J posture) + posture; MuJoCo's 6x6 Cholesky costs a
+        # fraction of numpy.linalg's per-call overhead
+        a = jac @ jac.T + _IK_DAMPING
+        mujoco.mju_cholFactor(a, 0.0)
+        mujoco.mju_cholSolve(self._ik_sol, a, err - jac @ posture)
+        dq = jac.T @ self._ik_sol + posture
+        dq = dq.clip(-0.2, 0.2)  # large errors (reset) converge over several calls
+        self.q_target = (self.q_target + dq).clip(self.arm_low, self.arm_high)
 
     def _write_controls(self) -> None:
         self.data.ctrl[:7] = self.q_target
         self.data.ctrl[7:9] = 0.0 if self.gripper_closed else FINGER_OPEN
 
     def step(self, action: np.ndarray) -> None:
-        """Apply one control step: delta TCP position (clipped to [-1, 1], scaled to the step, desired
-        position kept inside the workspace bounds) and the gripper (> 0 closes, < 0 opens)."""
-        a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
-        self.desired_tcp = np.clip(self.desired_tcp + a[:3] * self.max_step, WORKSPACE_LOW, WORKSPACE_HIGH)
+        """Apply one control step: delta TCP position (clipped to [-1, 1]; each 50 ms tick moves the
+        desired position by up to 1 cm, kept inside the workspace bounds) and the gripper (> 0 opens,
+        < 0 closes, 0 keeps)."""
+        a = np.asarray(action, dtype=np.float64).clip(-1.0, 1.0)
         if a[3] != 0.0:
-            self.gripper_closed = bool(a[3] > 0.0)
-        for _ in range(2 if self.control_hz < 20 else 1):
+            self.gripper_closed = bool(a[3] < 0.0)
+        move = a[:3] * self._tick_step
+        m, d = self.model, self.data
+        for tick in range(self.n_ticks):
+            self.desired_tcp = (self.desired_tcp + move).clip(WORKSPACE_LOW, WORKSPACE_HIGH)
             self._ik_step(self.desired_tcp, self._ik)
-        self._write_controls()
-        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
+            self._write_controls()
+            if tick == 0:
+                # Every method that changes the state ends with mj_forward, so the position and
+                # velocity stages of the current state are up to date: the first substep recomputes
+                # only what the new controls change (bitwise the same as mj_step), which pays for
+                # the final forward below.
+                mujoco.mj_forwardSkip(m, d, mujoco.mjtStage.mjSTAGE_VEL, 1)
+                mujoco.mj_implicit(m, d)
+                mujoco.mj_step(m, d, nstep=TICK_SUBSTEPS - 1)
+            else:
+                mujoco.mj_step(m, d, nstep=TICK_SUBSTEPS)
         # observation, contacts and predicates must describe the state that is returned
-        mujoco.mj_forward(self.model, self.data)
+        mujoco.mj_forward(m, d)
         self.finger_history[:2] = self.finger_history[1:]
         self.finger_history[2] = self.fingers()
         vel = self.block_linvels()
@@ -493,72 +557,52 @@ class PandaPlayPhysics:
     def contacts(self) -> ContactFlags:
         d = self.data
         n = d.ncon
-        pairs: set[tuple[int, int]] = set()
+        mask = 0
         if n:
-            g1 = self._parts[d.contact.geom1[:n]]
-            g2 = self._parts[d.contact.geom2[:n]]
-            pairs = set(zip(np.minimum(g1, g2).tolist(), np.maximum(g1, g2).tolist()))
-        grip = lambda b: any((min(b, p), max(b, p)) in pairs for p in (_HAND, _LEFT, _RIGHT))  # noqa: E731
-        return ContactFlags(
-            blue_green=(_BLUE, _GREEN) in pairs,
-            blue_tray=(_BLUE, _TRAY) in pairs,
-            green_tray=(_GREEN, _TRAY) in pairs,
-            blue_gripper=grip(_BLUE),
-            green_gripper=grip(_GREEN),
-            blue_left_finger=(_BLUE, _LEFT) in pairs,
-            blue_right_finger=(_BLUE, _RIGHT) in pairs,
-            green_left_finger=(_GREEN, _LEFT) in pairs,
-            green_right_finger=(_GREEN, _RIGHT) in pairs,
-        )
+            geoms = d.contact.geom[:n]
+            mask = int(np.bitwise_or.reduce(self._contact_bits[geoms[:, 0], geoms[:, 1]]))
+        return ContactFlags(**{name: bool(mask >> bit & 1) for bit, name in enumerate(_CONTACT_BITS)})
 
     def wrist_wrench(self) -> np.ndarray:
         """External contact wrench on the hand + fingers about the TCP, in the TCP frame (what a
         gravity-compensated wrist force-torque sensor reads in quasi-static contact)."""
         d = self.data
-        wrench = np.zeros(6)
         n = d.ncon
         if not n:
-            return wrench
-        g1 = d.contact.geom1[:n]
-        g2 = d.contact.geom2[:n]
-        on1 = self._gripper_part[g1]
-        on2 = self._gripper_part[g2]
-        tcp = d.site_xpos[self.tcp_site]
-        for i in np.nonzero(on1 ^ on2)[0]:
-            mujoco.mj_contactForce(self.model, d, int(i), self._cforce)
-            frame = d.contact.frame[i].reshape(3, 3)
-            force = frame.T @ self._cforce[:3]  # force of geom1 on geom2, world frame
-            if on1[i]:
-                force = -force
-            wrench[:3] += force
-            wrench[3:] += np.cross(d.contact.pos[i] - tcp, force)
+            return np.zeros(6)
+        contact = d.contact
+        on1 = self._gripper_part[contact.geom1[:n]]
+        idx = np.flatnonzero(on1 ^ self._gripper_part[contact.geom2[:n]])
+        if not idx.size:
+            return np.zeros(6)
+        local = np.zeros((idx.size, 6))
+        for row, i in zip(local, idx.tolist()):
+            mujoco.mj_contactForce(self.model, d, i, row)
+        # contact frame rows are (normal, tangents): world force of geom1 on geom2 = frame^T f
+        force = (local[:, None, :3] @ contact.frame[idx].reshape(-1, 3, 3))[:, 0]
+        force[on1[idx]] *= -1.0  # the force on the gripper side
+        torque = np.cross(contact.pos[idx] - d.site_xpos[self.tcp_site], force)
         rot = d.site_xmat[self.tcp_site].reshape(3, 3)
-        return np.concatenate([rot.T @ wrench[:3], rot.T @ wrench[3:]])
+        return np.concatenate([force.sum(axis=0) @ rot, torque.sum(axis=0) @ rot])
 
     def observation(self) -> np.ndarray:
         """The 59-dim reference observation (see OBSERVATION_NAMES and docs/panda_play.md)."""
         d = self.data
-        obs = np.empty(OBS_DIM, dtype=np.float64)
         tcp = d.site_xpos[self.tcp_site]
-        obs[0:3] = tcp
         mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_SITE, self.tcp_site, self._vel6, 0)
-        obs[3:6] = self._vel6[3:]
-        obs[6:8] = self.finger_history[2]
-        obs[8:10] = self.finger_history[0]
-        obs[10:12] = self.finger_history[1]
         pos = d.xpos[self.block_body]
-        for i in range(2):
-            obs[12 + 7 * i:15 + 7 * i] = pos[i]
-            obs[15 + 7 * i:19 + 7 * i] = quat_wxyz_to_xyzw_positive(d.xquat[self.block_body[i]])
-            a = self.block_dof[i]
-            obs[26 + 6 * i:29 + 6 * i] = d.qvel[a:a + 3]
-            # free-joint angular velocity is in the body frame; the reference reports the base frame
-            obs[29 + 6 * i:32 + 6 * i] = d.xmat[self.block_body[i]].reshape(3, 3) @ d.qvel[a + 3:a + 6]
-        obs[38:41] = pos[0] - tcp
-        obs[41:44] = pos[1] - tcp
-        obs[44:47] = pos[1] - pos[0]
-        obs[47:53] = (BRING_TARGETS - pos).ravel()
-        wrench = self.wrist_wrench()
-        obs[53:56] = np.tanh(wrench[:3] / 100.0)
-        obs[56:59] = np.tanh(wrench[3:] / 10.0)
+        quat = d.xquat.ravel()[self._block_xyzw_idx].reshape(2, 4)
+        quat[quat[:, 3] < 0] *= -1.0  # the reference's w >= 0
+        linvel = d.qvel[self._block_linvel_idx].reshape(2, 3)
+        # free-joint angular velocity is in the body frame; the reference reports the base frame
+        rot = d.xmat[self.block_body].reshape(2, 3, 3)
+        angvel = (rot @ d.qvel[self._block_angvel_idx].reshape(2, 3, 1)).reshape(2, 3)
+        fingers = self.finger_history
+        obs = np.concatenate([
+            tcp, self._vel6[3:], fingers[2], fingers[0], fingers[1],
+            pos[0], quat[0], pos[1], quat[1],
+            linvel[0], angvel[0], linvel[1], angvel[1],
+            pos[0] - tcp, pos[1] - tcp, pos[1] - pos[0], (BRING_TARGETS - pos).ravel(),
+            np.tanh(self.wrist_wrench() * _INV_WRENCH_SCALE),
+        ])
         return obs.astype(np.float32)

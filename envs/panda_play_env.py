@@ -2,9 +2,10 @@
 
 Observation: the 59-dim reference vector, names in `observation_names` (docs/panda_play.md).
 Action: Box(-1, 1, (4,)): delta TCP position (1 = 1 cm per step at 20 Hz, 4 cm at 5 Hz) and the
-gripper (> 0 closes, < 0 opens; the sign convention of the reference code and the published VPACE
-data). Reward: 1.0 on steps where the task counts as solved, else 0. Episodes never terminate
-on their own; they are truncated after `max_episode_seconds` (18 s = 360 steps at 20 Hz).
+gripper (> 0 opens, < 0 closes, as SPEC §7 and thesis appendix A.1; the published VPACE data use
+the opposite sign, see `vpace_compat`). Reward: 1.0 on steps where the task counts as solved,
+else 0. Episodes never terminate on their own; they are truncated after `max_episode_seconds`
+(18 s = 360 steps at 20 Hz).
 `info` every step: `is_success`, `success_now` (instantaneous predicate), `qpos`, `qvel`.
 """
 
@@ -72,7 +73,7 @@ class PandaPlayEnv(gym.Env):
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
-        if a.shape != (4,) or not np.all(np.isfinite(a)):
+        if a.shape != (4,) or not np.isfinite(a).all():
             raise ValueError(f"action must be 4 finite numbers, got {action!r}")
         self.physics.step(a)
         self._gripper_action = max(-1.0, min(1.0, float(a[3])))

@@ -9,6 +9,7 @@ labelled as a segment.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,13 +25,17 @@ from shiftkit.envs.panda_play import (
     ZONE_XY,
 )
 from shiftkit.envs.panda_play_env import PandaPlayEnv
-from shiftkit.envs.panda_play_tasks import TASKS
+from shiftkit.envs.panda_play_tasks import INSERT_THRESHOLD, TASKS
 
 CARRY_Z = 0.23
 ABOVE = 0.05
 TURN_YAW = np.deg2rad(20.0)
 TURN_OFFSET = 0.012
 HELD_YAW = np.deg2rad(6.0)
+# a block held more tilted than this cannot enter its slot (0.5 mm clearance per side)
+MAX_INSERT_TILT = np.deg2rad(3.0)
+# spots on the flat tray floor, clear of the slots, to put a block down
+FREE_SPOTS = TRAY_CENTER + np.array([[-0.09, -0.08], [0.09, -0.08], [-0.09, 0.08], [0.09, 0.08], [0.0, 0.09]])
 # handcrafted play sequences (thesis section 6.4: "Reach, Lift, Main, Open-Gripper, ...")
 PLAY_SEQUENCES: dict[str, tuple[str, ...]] = {
     "stack": ("reach", "lift", "stack", "open"),
@@ -58,6 +63,7 @@ class PandaPlayExpert:
         self.turning = False
         self.turns = 0
         self.circle: tuple[np.ndarray, float] | None = None
+        self.reseat: np.ndarray | None = None
 
     # ----------------------------------------------------------------- state helpers
     @property
@@ -80,9 +86,13 @@ class PandaPlayExpert:
         target = np.clip(target, WORKSPACE_LOW, WORKSPACE_HIGH)
         return bool(np.linalg.norm(self.p.tcp_pos() - target) < tol)
 
+    def _steps(self, seconds: float) -> int:
+        """Control steps in `seconds` (timers are in time, so experts run at 5 and 20 Hz alike)."""
+        return max(1, math.ceil(seconds * self.p.control_hz - 1e-9))
+
     @staticmethod
     def _act(move: np.ndarray, close: bool) -> np.ndarray:
-        return np.array([*np.clip(move, -1, 1), 1.0 if close else -1.0], dtype=np.float32)
+        return np.array([*np.clip(move, -1, 1), -1.0 if close else 1.0], dtype=np.float32)
 
     # ----------------------------------------------------------------- grasping
     def _grasp(self, i: int, grip_height: float = 0.0) -> np.ndarray | None:
@@ -111,17 +121,18 @@ class PandaPlayExpert:
         if self.phase == "descend":
             target = block + offset + [0.0, 0.0, grip_height]
             self.timer += 1
-            if self._at(target, 0.004) or self.timer > 40:  # or stalled on something
+            if self._at(target, 0.004) or self.timer > self._steps(2.0):  # or stalled on something
                 self.phase, self.timer = "close", 0
                 self.turns += int(self.turning)
             return self._act(self._toward(target, 0.6), False)
         # close
         self.timer += 1
-        if self.timer >= 8 and (self.turning or self.timer > 30 or not self.holding(i)):
+        closed = self.timer >= self._steps(0.4)
+        if closed and (self.turning or self.timer > self._steps(1.5) or not self.holding(i)):
             self.phase = "above"  # turned, or missed: approach again
             self.turning = False
             return self._act(np.zeros(3), False)
-        if self.timer >= 8 and abs(self.p.block_yaw_error(i)) < HELD_YAW:
+        if closed and abs(self.p.block_yaw_error(i)) < HELD_YAW:
             self.phase = "held"
             return None
         return self._act(np.zeros(3), True)
@@ -218,7 +229,7 @@ class PandaPlayExpert:
             return self._act(self._toward(target, 0.4), True)
         if self.phase == "release":
             self.timer += 1
-            if self.timer > 6:
+            if self.timer > self._steps(0.3):
                 self.phase = "retreat"
             return self._act(np.zeros(3), False)
         target = np.r_[self.p.desired_tcp[:2], min(CARRY_Z, block[2] + 0.07)]
@@ -240,9 +251,7 @@ class PandaPlayExpert:
         if a is not None:
             return a
         if not np.any(self.aim):
-            spots = TRAY_CENTER + np.array([[-0.09, -0.08], [0.09, -0.08], [-0.09, 0.08], [0.09, 0.08], [0.0, 0.09]])
-            clearance = np.min(np.linalg.norm(spots[:, None] - avoid[None], axis=2), axis=1)
-            self.aim = np.r_[spots[np.argmax(clearance)], 0.0]
+            self.aim = np.r_[_free_spot(avoid), 0.0]
         a = self._place(1, self.aim[:2], BLOCK_REST_Z + 0.003)
         if self.phase == "retreat" and self.p.tcp_pos()[2] > self.p.block_pos(1)[2] + 0.06:
             self.released = True
@@ -287,7 +296,28 @@ class PandaPlayExpert:
         a = self._grasp(0, grip_height=0.008)
         if a is not None:
             return a
-        return self._place(0, INSERT_TARGETS[0, :2], INSERT_TARGETS[0, 2] + 0.0015, precise=True)
+        if self.phase == "held" and self.p.block_tilt(0) > MAX_INSERT_TILT:
+            # picked up tilted (e.g. out of a slot it fell into): put it down flat, grasp again
+            self.reseat = _free_spot(np.vstack([ZONE_XY, self.p.block_pos(1)[:2]]))
+        if self.reseat is not None:
+            # centre 8 mm up: the lowest corner of a block tilted up to 30 degrees clears the floor
+            a = self._place(0, self.reseat, BLOCK_REST_Z + 0.008)
+            if self.phase == "retreat" and self.p.tcp_pos()[2] > self.p.block_pos(0)[2] + 0.06:
+                self.reseat, self.phase = None, "start"
+            return a
+        a = self._place(0, INSERT_TARGETS[0, :2], INSERT_TARGETS[0, 2] + 0.0015, precise=True)
+        block = self.p.block_pos(0)
+        if (self.phase == "retreat" and self.p.tcp_pos()[2] > block[2] + 0.06
+                and np.linalg.norm(block - INSERT_TARGETS[0]) > INSERT_THRESHOLD):
+            self.phase = "start"  # it did not go in: grasp again
+        return a
+
+
+def _free_spot(avoid: np.ndarray) -> np.ndarray:
+    """The FREE_SPOTS entry farthest from the `avoid` points (xy rows)."""
+    clearance = np.min(np.linalg.norm(FREE_SPOTS[:, None] - avoid[None], axis=2), axis=1)
+    return FREE_SPOTS[np.argmax(clearance)]
+
 
 @dataclass
 class Rollout:

@@ -45,13 +45,13 @@ def _near_a_block(f: SceneFacts) -> bool:
 
 
 def open_gripper(f: SceneFacts) -> bool:
-    """Opening command (< 0) near a block with the arm nearly still."""
-    return f.gripper_action < 0 and _near_a_block(f) and np.linalg.norm(f.tcp_velocity) < OPEN_CLOSE_MAX_SPEED
+    """Opening command (> 0) near a block with the arm nearly still."""
+    return f.gripper_action > 0 and _near_a_block(f) and np.linalg.norm(f.tcp_velocity) < OPEN_CLOSE_MAX_SPEED
 
 
 def close_gripper(f: SceneFacts) -> bool:
-    """Closing command (> 0) near a block with the arm nearly still."""
-    return f.gripper_action > 0 and _near_a_block(f) and np.linalg.norm(f.tcp_velocity) < OPEN_CLOSE_MAX_SPEED
+    """Closing command (< 0) near a block with the arm nearly still."""
+    return f.gripper_action < 0 and _near_a_block(f) and np.linalg.norm(f.tcp_velocity) < OPEN_CLOSE_MAX_SPEED
 
 
 def reach(f: SceneFacts) -> bool:

@@ -38,28 +38,21 @@ class DatasetSource:
 
     id: str
     root: str
-    fingerprint: str | None
+    fingerprint: str
 
 
 def open_dataset(ref: str):
     """Open a LeRobot dataset by ID or local path; returns (LeRobotDataset, DatasetSource)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    from shiftkit.pipelines.lerobot_io import resolve_dataset
+
+    resolved = resolve_dataset(ref)
     try:
-        from shiftkit.pipelines.lerobot_io import resolve_dataset
-    except ImportError:  # the shared resolver is not in this checkout yet: local path or $HF_LEROBOT_HOME
-        resolve_dataset = None
-    if resolve_dataset is not None:
-        resolved = resolve_dataset(ref)
-        repo_id, root, fingerprint = resolved.repo_id, Path(resolved.root), resolved.fingerprint
-    else:
-        path = Path(ref).expanduser()
-        repo_id, root, fingerprint = (path.name, path, None) if path.exists() else (ref, None, None)
-    try:
-        dataset = LeRobotDataset(repo_id, root=root)
+        dataset = LeRobotDataset(resolved.repo_id, root=resolved.root)
     except Exception as exc:  # lerobot raises many types for a missing/corrupt dataset
         raise DatasetError(f"cannot open example dataset {ref!r}: {exc}") from exc
-    return dataset, DatasetSource(ref, str(dataset.root), fingerprint)
+    return dataset, DatasetSource(resolved.repo_id, str(resolved.root), resolved.fingerprint)
 
 
 def load_dataset_examples(
@@ -135,7 +128,8 @@ class ExampleBuffer:
         self.aug_factor = aug_factor
         self.obs = [examples[t].obs[:max_per_task] for t in tasks]
         self.act = [None if examples[t].act is None else examples[t].act[:max_per_task] for t in tasks]
-        self.std = [o.std(axis=0) for o in self.obs]
+        # Exactly 0 where a dimension never varies (float rounding could leave a tiny std otherwise).
+        self.std = [np.where(np.ptp(o, axis=0) == 0, 0.0, o.std(axis=0)).astype(np.float32) for o in self.obs]
         dims = {o.shape[1] for o in self.obs}
         if len(dims) != 1:
             raise DatasetError(f"example observation widths differ between tasks: {sorted(dims)}")

@@ -70,9 +70,17 @@ class ReplayBuffer:
         return {k: torch.from_numpy(getattr(self, k)[: self.size].copy()) for k in self._ARRAYS} | {
             "pointer": self.pointer,
             "size": self.size,
+            "capacity": self.capacity,
         }
 
     def load_state_dict(self, state: dict) -> None:
-        self.pointer, self.size = int(state["pointer"]), int(state["size"])
+        """Restore rows as stored; into a different capacity (a resumed run made longer or shorter) the
+        rows are laid out oldest first, keeping the newest that fit."""
+        size, pointer = int(state["size"]), int(state["pointer"])
+        rows = np.arange(size)
+        if int(state["capacity"]) != self.capacity:
+            rows = np.roll(rows, -pointer)[-self.capacity :] if size else rows
+            pointer = len(rows) % self.capacity
         for k in self._ARRAYS:
-            getattr(self, k)[: self.size] = state[k].numpy()
+            getattr(self, k)[: len(rows)] = state[k].numpy()[rows]
+        self.pointer, self.size = pointer, len(rows)

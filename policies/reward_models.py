@@ -44,8 +44,8 @@ class DACReward(nn.Module):
         self.gradient_penalty = gradient_penalty
 
     def logit(self, x: torch.Tensor) -> torch.Tensor:
-        """(T, B, in_dim) -> (T, B)."""
-        return self.net(x).squeeze(-1)
+        """(T, ..., in_dim) -> (T, ...)."""
+        return self.net(x.reshape(x.shape[0], -1, x.shape[-1])).reshape(x.shape[:-1])
 
     @torch.no_grad()
     def buffer_reward(self, x: torch.Tensor) -> torch.Tensor:
@@ -54,7 +54,7 @@ class DACReward(nn.Module):
     example_reward = buffer_reward
 
     def loss(self, buffer_x: torch.Tensor, example_x: torch.Tensor) -> torch.Tensor:
-        """Cross-entropy + gradient penalty, summed over tasks (each task's term touches only its net)."""
+        """Cross-entropy + gradient penalty per task (T,); each task's term touches only its own net."""
         buffer_logit, example_logit = self.logit(buffer_x), self.logit(example_x)
         bce = F.binary_cross_entropy_with_logits(
             buffer_logit, torch.zeros_like(buffer_logit), reduction="none"
@@ -66,7 +66,7 @@ class DACReward(nn.Module):
         interp = (mix * example_x[:, :n] + (1 - mix) * buffer_x[:, :n]).requires_grad_(True)
         (grad,) = torch.autograd.grad(self.logit(interp).sum(), interp, create_graph=True)
         penalty = (grad.norm(dim=-1) - 1.0).square().mean(-1)
-        return (bce + self.gradient_penalty * penalty).sum()
+        return bce + self.gradient_penalty * penalty
 
 
 def rce_targets(next_prob: torch.Tensor, gamma: float, eps: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
@@ -83,7 +83,8 @@ def rce_targets(next_prob: torch.Tensor, gamma: float, eps: float = 1e-4) -> tup
 def rce_loss(
     buffer_logit: torch.Tensor, example_logit: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, gamma: float
 ) -> torch.Tensor:
-    """Weighted binary cross-entropy of the critic's logits, mean over buffer + example rows per critic."""
+    """Weighted binary cross-entropy of the critic's logits (2, T, ·), mean over buffer + example rows."""
+    target, weight = target.expand_as(buffer_logit), weight.expand_as(buffer_logit)
     buffer_term = weight * F.binary_cross_entropy_with_logits(buffer_logit, target, reduction="none")
     example_term = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
         example_logit, torch.ones_like(example_logit), reduction="none"

@@ -16,14 +16,6 @@ from shiftkit.pipelines.errors import ConfigError
 
 MAIN = "main"  # how handcrafted sequences name the main task
 
-# The thesis' Panda sequences (8 periods, aux tasks reach/grasp/lift/release), e.g. for `--handcrafted`.
-PANDA_SEQUENCES = (
-    "reach,lift,main,release,reach,lift,main,release",
-    "lift,main,release,lift,main,release,lift,main",
-    "main,release,main,release,main,release,main,release",
-)
-
-
 class WeightedRandomScheduler:
     """Weighted random task choice per period, mixed with handcrafted sequences per episode."""
 

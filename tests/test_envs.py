@@ -3,7 +3,10 @@ success flag, simulator state in info, and render shapes."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gymnasium as gym
+import mujoco
 import numpy as np
 import pytest
 
@@ -95,10 +98,60 @@ def test_unstack_stack_starts_green_on_blue(shared_envs):
 
 def test_hold_counts_and_5hz():
     physics = PandaPlayPhysics(5)
-    assert physics.n_substeps == 100 and physics.max_step == pytest.approx(0.04)
+    assert physics.n_substeps == 100 and physics.n_ticks == 4 and physics.max_step == pytest.approx(0.04)
     from shiftkit.envs.panda_play_tasks import TASKS
 
     assert TASKS["lift"].hold_steps(20) == 10 and TASKS["move-object"].hold_steps(20) == 20
+
+
+def test_gripper_positive_opens_negative_closes(shared_envs):
+    """SPEC §7: gripper action > 0 opens, < 0 closes; 0 keeps the last command."""
+    env = shared_envs[("panda-play", "grasp")]
+    obs, _ = env.reset(seed=0)
+    for command, check in ((-1.0, lambda f: f < 0.1), (0.0, lambda f: f < 0.1), (1.0, lambda f: f > 0.95)):
+        for _ in range(10):
+            obs, *_ = env.step(np.array([0.0, 0.0, 0.0, command]))
+        assert check(obs[6]) and check(obs[7]), (command, obs[6:8])
+    from shiftkit.envs.panda_play_tasks import close_gripper, open_gripper
+
+    facts = replace(env.facts(), tcp=env.facts().blocks[0] + [0.0, 0.0, 0.05])  # near a block, still
+    assert open_gripper(replace(facts, gripper_action=1.0)) and not open_gripper(replace(facts, gripper_action=-1.0))
+    assert close_gripper(replace(facts, gripper_action=-1.0)) and not close_gripper(replace(facts, gripper_action=1.0))
+
+
+@pytest.mark.parametrize("control_hz", [20, 5])
+def test_step_simulates_exactly_like_mj_step(control_hz):
+    """The first substep of a control step reuses the position/velocity stages computed at the end
+    of the previous step; the result must be bitwise what plain mj_step gives."""
+    physics = PandaPlayPhysics(control_hz)
+    physics.reset(np.random.default_rng(0))
+    model, data = physics.model, physics.data
+    replay = mujoco.MjData(model)
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        mujoco.mj_copyData(replay, model, data)
+        physics.step(rng.uniform(-1, 1, 4))
+        if control_hz == 20:  # one controller tick: the controls now in data are the ones used
+            replay.ctrl[:] = data.ctrl
+            mujoco.mj_step(model, replay, nstep=physics.n_substeps)
+            assert np.array_equal(replay.qpos, data.qpos) and np.array_equal(replay.qvel, data.qvel)
+    # and the state returned is fully forwarded (kinematics match the new qpos)
+    site = physics.tcp_site
+    before = data.site_xpos[site].copy()
+    mujoco.mj_forward(model, data)
+    assert np.array_equal(before, data.site_xpos[site])
+
+
+def test_5hz_action_is_held_over_the_control_period():
+    """At 5 Hz the desired TCP advances every 50 ms tick (as the reference advances it every
+    substep), so the arm is still moving at full speed at the end of a step."""
+    physics = PandaPlayPhysics(5)
+    physics.reset(np.random.default_rng(0))
+    start = physics.desired_tcp.copy()
+    direction = np.sign(0.5 - start[1])  # towards the tray centre line: clear of the bounds
+    physics.step(np.array([0.0, direction, 0.0, 1.0]))
+    assert physics.desired_tcp[1] - start[1] == pytest.approx(direction * 0.04)
+    assert direction * physics.tcp_velocity()[1] > 0.12  # 0.2 m/s commanded (one 4 cm jump: 0.07)
 
 
 def test_render_shapes(shared_envs):

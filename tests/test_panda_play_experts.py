@@ -28,6 +28,14 @@ def test_expert_succeeds_on_a_few_seeds(task):
     env.close()
 
 
+@pytest.mark.parametrize("task", TASKS)
+def test_expert_succeeds_at_5hz(task):
+    env = make("panda-play", task, control_hz=5)
+    for seed in (0, 1):
+        assert rollout(env, seed).succeeded, f"{task} expert failed at 5 Hz on seed {seed}"
+    env.close()
+
+
 def test_expert_rollouts_are_deterministic():
     env = make("panda-play", "stack")
     a, b = rollout(env, 5), rollout(env, 5)

@@ -21,6 +21,7 @@ import pytest
 
 from shiftkit.envs import make
 from shiftkit.envs.panda_play_tasks import lift, reach
+from shiftkit.envs.vpace_compat import vpace_action_to_shiftkit
 
 DATA = Path(os.environ.get("SHIFTKIT_VPACE_DATA", Path(__file__).resolve().parents[2] / "shared" / "data" / "vpace"))
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"VPACE data not found at {DATA}")
@@ -84,9 +85,10 @@ def test_reset_states_match_published_episode_starts(env):
     assert ours[:, 2].max() <= starts[:, 2].max() + 0.01
 
 
-def test_published_gripper_action_sign_matches_ours():
+def test_published_gripper_sign_is_the_negative_of_ours():
     """Published lift trajectories: a positive gripper action closes the fingers (the finger
-    reading drops within a frame or two; the simulated gripper lags), the convention our env uses."""
+    reading drops within a frame or two; the simulated gripper lags). Ours closes on < 0 (SPEC §7),
+    so `vpace_action_to_shiftkit` negates that dimension."""
     d = _load("full_trajectories_3_lift.gz")
     o, a, no = d["observations"], d["actions"], d["next_observations"]
     # finger reading two frames later (same episode: next_observations chain)
@@ -99,13 +101,22 @@ def test_published_gripper_action_sign_matches_ours():
     assert closing.sum() >= 5 and opening.sum() >= 5
     assert np.mean(change[closing] < -0.05) > 0.8
     assert np.mean(rise[opening] > 0.05) > 0.8
-    # and ours: +1 closes, -1 opens
+
+    ours = vpace_action_to_shiftkit(a)
+    assert np.array_equal(ours[:, :3], a[:, :3]) and np.array_equal(ours[:, 3], -a[:, 3])
+    assert (ours[closing, 3] < -0.5).all() and (ours[opening, 3] > 0.5).all()
+    assert ours.dtype == a.dtype and not np.shares_memory(ours, a)
+    with pytest.raises(ValueError, match="4 dims"):
+        vpace_action_to_shiftkit(np.zeros((2, 7)))
+
+    # the converted published actions do in our env what they did in theirs
     env = make("panda-play", "grasp")
     obs, _ = env.reset(seed=0)
+    close = vpace_action_to_shiftkit(np.array([0.0, 0.0, 0.0, 1.0]))
     for _ in range(10):
-        obs, *_ = env.step(np.array([0, 0, 0, 1.0]))
+        obs, *_ = env.step(close)
     assert obs[6] < 0.1
     for _ in range(10):
-        obs, *_ = env.step(np.array([0, 0, 0, -1.0]))
+        obs, *_ = env.step(-close)
     assert obs[6] > 0.95
     env.close()

@@ -1,0 +1,100 @@
+"""Success curves across seeds: interquartile mean (IQM) with stratified bootstrap 95% CIs (rliable-style).
+
+Each run contributes its evaluation success rates (`split == "eval"` lines of metrics.jsonl) at the
+evaluation steps it shares with the other runs of its method. At each step the IQM is the mean of the
+middle 50% of all run scores (the lowest and highest 25% cut, as scipy's trim_mean); its confidence
+interval comes from bootstrap resamples that draw runs with replacement separately within each task
+(stratum), so every task keeps its number of runs (Agarwal et al. 2021).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shiftkit.pipelines.errors import ShiftkitError
+
+
+def iqm(scores: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Interquartile mean along `axis`: cut floor(25%) of the values from each end, average the rest."""
+    scores = np.sort(np.asarray(scores, float), axis=axis)
+    n = scores.shape[axis]
+    cut = int(0.25 * n)
+    return np.take(scores, np.arange(cut, n - cut), axis=axis).mean(axis=axis)
+
+
+def stratified_bootstrap_ci(
+    scores: np.ndarray, strata: np.ndarray, reps: int = 2000, level: float = 0.95, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Percentile CI of the IQM of `scores` (runs, steps); runs are resampled within each stratum."""
+    rng = np.random.default_rng(seed)
+    groups = [np.flatnonzero(strata == s) for s in np.unique(strata)]
+    picks = np.concatenate([g[rng.integers(0, len(g), (reps, len(g)))] for g in groups], axis=1)  # (reps, runs)
+    boot = iqm(scores[picks], axis=1)  # (reps, steps)
+    tail = (1.0 - level) / 2.0 * 100.0
+    return np.percentile(boot, tail, axis=0), np.percentile(boot, 100.0 - tail, axis=0)
+
+
+@dataclass
+class Curve:
+    """One method's aggregate curve."""
+
+    label: str
+    steps: np.ndarray
+    iqm: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    runs: int
+
+
+def read_success(run_dir: Path, metric: str = "success_rate") -> tuple[str, dict[int, float]]:
+    """(task, {step: success}) from a run directory's config.json and metrics.jsonl."""
+    try:
+        config = json.loads((run_dir / "config.json").read_text())
+        lines = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if x.strip()]
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ShiftkitError(f"cannot read run {run_dir}: {exc}") from exc
+    points = {int(x["step"]): float(x[metric]) for x in lines if x.get("split") == "eval" and metric in x}
+    if not points:
+        raise ShiftkitError(f"run {run_dir} has no evaluation lines with {metric!r}")
+    return str(config.get("args", {}).get("main_task", "")), points
+
+
+def aggregate(label: str, run_dirs: list[Path], reps: int = 2000, seed: int = 0) -> Curve:
+    """IQM curve and CI of `run_dirs` over the evaluation steps all of them reached."""
+    runs = [read_success(Path(d)) for d in run_dirs]
+    steps = sorted(set.intersection(*(set(points) for _, points in runs)))
+    if not steps:
+        raise ShiftkitError(f"runs of {label!r} share no evaluation step")
+    scores = np.array([[points[s] for s in steps] for _, points in runs])
+    strata = np.array([task for task, _ in runs])
+    low, high = stratified_bootstrap_ci(scores, strata, reps, seed=seed)
+    return Curve(label, np.array(steps), iqm(scores, axis=0), low, high, len(runs))
+
+
+def plot_curves(curves: list[Curve], out: Path, title: str = "") -> Path:
+    """Draw IQM lines with shaded CIs into a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    for c in curves:
+        (line,) = ax.plot(c.steps, c.iqm, label=f"{c.label} ({c.runs} runs)")
+        ax.fill_between(c.steps, c.low, c.high, color=line.get_color(), alpha=0.25, linewidth=0)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("success rate (IQM, 95% CI)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best")
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out

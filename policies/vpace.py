@@ -1,0 +1,491 @@
+"""VPACE / LfGP trainer: scheduled auxiliary control (SAC-X) learning from success examples (SPEC 6.2).
+
+One SAC intention per task (main + auxiliary), all learning off-policy from one shared replay buffer of
+every interaction; a scheduler picks which intention acts in each fixed period of an episode. Rewards
+come from a reward model (SQIL labels, a DAC discriminator, or RCE's classifier critic); value
+penalization keeps Q inside [Q_min, Q_max]. At test time only the main intention runs (mean action).
+
+Variants (`--variant`) are presets of three switches, any of which can be overridden:
+    vpace   SQIL, all tasks, VP          ace     SQIL, all tasks, no VP
+    vp-sqil SQIL, main task only, VP     sqil    SQIL, main task only, no VP
+    dac     DAC, main task only          rce     RCE, main task only
+    lfgp    DAC on (s, a) from full expert trajectories, all tasks, critic on buffer data only
+
+The loop below reads top to bottom: set-up, then per episode a scheduler plan, per step act, store and
+update, with periodic evaluation, metrics and resumable checkpoints (written at episode ends, where the
+state to restore is only models, optimizers, buffer and random generators: each episode's environment
+reset is seeded by the run seed and the episode number).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.policies.example_buffer import STATE_KEYS, DatasetSource, ExampleBuffer, TaskExamples, load_dataset_examples
+from shiftkit.policies.replay import ReplayBuffer, ReplaySample
+from shiftkit.policies.reward_models import DACReward, SQILReward, rce_loss, rce_targets
+from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member, polyak_update
+from shiftkit.policies.schedulers import WeightedRandomScheduler
+from shiftkit.policies.value_penalty import ValueBounds, value_penalty
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "vpace": dict(reward_model="sqil", multitask=True, value_penalty=10.0, full_trajectories=False),
+    "ace": dict(reward_model="sqil", multitask=True, value_penalty=0.0, full_trajectories=False),
+    "vp-sqil": dict(reward_model="sqil", multitask=False, value_penalty=10.0, full_trajectories=False),
+    "sqil": dict(reward_model="sqil", multitask=False, value_penalty=0.0, full_trajectories=False),
+    "dac": dict(reward_model="dac", multitask=False, value_penalty=0.0, full_trajectories=False),
+    "rce": dict(reward_model="rce", multitask=False, value_penalty=0.0, full_trajectories=False),
+    "lfgp": dict(reward_model="dac", multitask=True, value_penalty=0.0, full_trajectories=True),
+}
+
+EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes never reuse a training reset seed
+
+
+@dataclass
+class VPACEArgs:
+    """Arguments of `shiftkit train vpace|lfgp`; defaults are the thesis hyperparameters (SPEC 6.2)."""
+
+    examples: list[str] = field(default_factory=list)
+    """Example dataset IDs or local roots; each frame's `task` names the task it is an example of."""
+    env: str = "panda-play"
+    """Environment name for `shiftkit.envs.make` (or a registered gymnasium id)."""
+    main_task: str = ""
+    """Task the agent must learn; evaluation runs its intention."""
+    aux_tasks: list[str] = field(default_factory=list)
+    """Auxiliary tasks (multitask variants only), e.g. reach, grasp, lift, release."""
+    output_dir: str = "outputs/vpace"
+    """Run directory: config, checkpoints, metrics.jsonl, model card."""
+    variant: str = "vpace"
+    """Preset of reward_model / multitask / value_penalty / full_trajectories (see module docstring)."""
+    reward_model: str = "sqil"
+    """sqil | dac | rce."""
+    multitask: bool = True
+    """Scheduled auxiliary intentions (ACE/LfGP) rather than the main task alone."""
+    value_penalty: float = 10.0
+    """VP weight lambda; 0 turns value penalization off."""
+    full_trajectories: bool = False
+    """LfGP: examples are expert trajectories with actions; DAC on (s, a); critic on buffer data only."""
+    examples_per_task: int | None = None
+    """Use at most this many examples per task (thesis: 200 in simulation); None uses all."""
+    aug_factor: float = 0.1
+    """Example augmentation: Gaussian noise of this many per-dimension example stds; 0 turns it off."""
+    total_steps: int = 300_000
+    """Environment interactions to train for (also the replay capacity)."""
+    seed: int = 0
+    """Seeds networks, exploration, sampling and environment resets."""
+    device: str = "auto"
+    """torch device; auto picks cuda when available."""
+    torch_threads: int | None = None
+    """CPU threads for torch (None keeps torch's default); 1 is fastest on a busy or small machine."""
+    gamma: float = 0.99
+    """Discount."""
+    reward_scale: float = 0.1
+    """Multiplies every reward."""
+    batch_size: int = 128
+    """Replay rows per update (shared by all intentions)."""
+    example_batch_size: int = 128
+    """Example rows per task per update."""
+    lr: float = 3e-4
+    """Adam learning rate of policies, critics, discriminators and temperatures."""
+    weight_decay: float = 1e-2
+    """Adam L2 weight decay of policies, critics and discriminators."""
+    initial_alpha: float = 1e-2
+    """Initial SAC temperature of every intention (target entropy is -dim(action))."""
+    polyak: float = 1e-3
+    """Target critic averaging rate."""
+    max_grad_norm: float = 10.0
+    """Gradient norm clip, per intention."""
+    buffer_warmup: int = 5_000
+    """Interactions before the first update."""
+    random_steps: int = 10_000
+    """Interactions with uniform random actions at the start."""
+    n_step: int = 1
+    """n-step returns for buffer rows (1: plain TD)."""
+    hidden: tuple[int, ...] = (256, 256)
+    """Hidden layer widths of every network."""
+    vp_filter_size: int = 50
+    """Median filter length for Q_max (and a learned reward's minimum)."""
+    gradient_penalty: float = 10.0
+    """DAC discriminator gradient penalty weight."""
+    num_periods: int = 8
+    """Scheduler periods per episode (8 Panda, 5 others)."""
+    main_rate: float = 0.5
+    """Weighted random scheduler probability of the main task."""
+    handcraft_rate: float = 0.5
+    """Probability that an episode follows a handcrafted sequence (when any are given)."""
+    handcrafted: list[str] = field(default_factory=list)
+    """Handcrafted sequences, comma-separated task names per period (`main` = main task)."""
+    episode_steps: int | None = None
+    """Episode length; None takes the environment's time limit."""
+    eval_every: int = 25_000
+    """Evaluate the main intention every this many interactions (0: never)."""
+    eval_episodes: int = 50
+    """Episodes per evaluation."""
+    checkpoint_every: int = 25_000
+    """Write a checkpoint at the first episode end after every this many interactions."""
+    log_every: int = 1_000
+    """Write training metrics every this many interactions."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Extra keyword arguments for the environment constructor."""
+    resume: bool = False
+    """Continue the run in output_dir from its newest checkpoint."""
+
+    @classmethod
+    def for_variant(cls, variant: str, **overrides: Any) -> VPACEArgs:
+        if variant not in VARIANTS:
+            raise ConfigError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+        return cls(variant=variant, **(VARIANTS[variant] | overrides))
+
+    def validate(self) -> None:
+        if not self.main_task:
+            raise ConfigError("--main-task is required")
+        if self.reward_model not in ("sqil", "dac", "rce"):
+            raise ConfigError(f"unknown reward model {self.reward_model!r}; choose sqil, dac or rce")
+        if self.reward_model == "rce" and self.value_penalty > 0:
+            raise ConfigError("RCE's classifier critic is bounded already; value penalty must be 0 with rce")
+        if self.full_trajectories and self.reward_model != "dac":
+            raise ConfigError("full trajectories (lfgp) need the dac reward model")
+        if (self.full_trajectories or self.reward_model == "rce") and self.n_step != 1:
+            raise ConfigError("n-step returns are only supported with state-only sqil/dac rewards; use n_step 1")
+        if self.multitask and self.main_task in self.aux_tasks:
+            raise ConfigError(f"main task {self.main_task!r} is also listed as an auxiliary task")
+        for name in ("total_steps", "batch_size", "example_batch_size", "n_step", "num_periods", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1")
+
+    @property
+    def tasks(self) -> list[str]:
+        return [self.main_task, *self.aux_tasks] if self.multitask else [self.main_task]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Environment glue (gymnasium API; success from info["is_success"])
+
+
+def make_env(name: str, task: str, env_kwargs: dict[str, Any]) -> gym.Env:
+    """A registered gymnasium id as is; otherwise `shiftkit.envs.make(name, task, **kw)`."""
+    if name in gym.registry:
+        return gym.make(name, **env_kwargs)
+    try:
+        from shiftkit.envs import make
+    except ImportError:
+        raise ConfigError(f"unknown environment {name!r} (not a gymnasium id, and shiftkit.envs has no make)") from None
+    try:
+        return make(name, task, **env_kwargs)
+    except ValueError as exc:  # unknown env/task names
+        raise ConfigError(str(exc)) from None
+
+
+def flat_obs(obs: Any) -> np.ndarray:
+    """Vector observation; dict observations concatenate the LeRobot state keys, like the examples."""
+    if isinstance(obs, dict):
+        obs = np.concatenate([np.ravel(obs[k]) for k in STATE_KEYS if k in obs])
+    return np.asarray(obs, np.float32).ravel()
+
+
+def evaluate(agent: Agent, env: gym.Env, episodes: int, horizon: int, seed: int) -> dict[str, float]:
+    """Main intention, mean action; an episode succeeds if the env ever reports `is_success`."""
+    successes, returns = [], []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + i)
+        success, ret = False, 0.0
+        for _ in range(horizon):
+            obs, reward, terminated, truncated, info = env.step(agent.env_action(agent.act(flat_obs(obs), 0, True)))
+            success |= bool(info.get("is_success", False))
+            ret += float(reward)
+            if terminated or truncated:
+                break
+        successes.append(success)
+        returns.append(ret)
+    return {"success_rate": float(np.mean(successes)), "env_return": float(np.mean(returns)), "episodes": episodes}
+
+
+# ---------------------------------------------------------------------------------------------------
+# The learner: intentions, reward model, value bounds and their optimizers
+
+
+class Agent:
+    """Everything that learns, plus one update step over all intentions at once."""
+
+    def __init__(self, args: VPACEArgs, obs_dim: int, action_space: gym.spaces.Box, device: torch.device):
+        self.args, self.device = args, device
+        self.num_tasks = len(args.tasks)
+        act_dim = int(np.prod(action_space.shape))
+        self.action_low, self.action_high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
+        self.target_entropy = -float(act_dim)
+        self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
+        self.actor_opt = torch.optim.Adam(self.intentions.actor.parameters(), args.lr, weight_decay=args.weight_decay)
+        self.critic_opt = torch.optim.Adam(self.intentions.critic.parameters(), args.lr, weight_decay=args.weight_decay)
+        self.alpha_opt = torch.optim.Adam([self.intentions.log_alpha], args.lr)
+        if args.reward_model == "dac":
+            in_dim = obs_dim + (act_dim if args.full_trajectories else 0)
+            self.reward = DACReward(self.num_tasks, in_dim, args.hidden, args.gradient_penalty).to(device)
+            self.reward_opt = torch.optim.Adam(self.reward.parameters(), args.lr, weight_decay=args.weight_decay)
+        else:
+            self.reward = SQILReward()
+        self.bounds = ValueBounds(self.num_tasks, args.reward_scale, args.gamma, args.vp_filter_size)
+
+    # -- acting -------------------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, task: int, deterministic: bool = False) -> np.ndarray:
+        """Action in [-1, 1] of intention `task` (all intentions run batched; one is kept)."""
+        x = torch.as_tensor(obs, device=self.device).expand(self.num_tasks, 1, -1)
+        action = self.intentions.mean_action(x) if deterministic else self.intentions.sample(x)[0]
+        return action[task, 0].cpu().numpy()
+
+    def env_action(self, action: np.ndarray) -> np.ndarray:
+        """Map [-1, 1] to the environment's action bounds."""
+        return self.action_low + (action + 1.0) * 0.5 * (self.action_high - self.action_low)
+
+    # -- learning -----------------------------------------------------------------------------------
+
+    def update(self, batch: ReplaySample, example_obs: np.ndarray, example_act: np.ndarray | None) -> dict:
+        """One gradient step of every intention (and discriminator) on one shared replay batch."""
+        a, T, dev = self.args, self.num_tasks, self.device
+        tensor = lambda x: torch.as_tensor(x, device=dev)  # noqa: E731
+        shared = lambda x: tensor(x).expand(T, *x.shape)  # noqa: E731  same replay rows for every task
+        obs, act, next_obs = shared(batch.obs), shared(batch.act), shared(batch.next_obs)
+        ex_obs = tensor(example_obs)
+        stats: dict[str, torch.Tensor] = {}
+
+        # Reward model: train the discriminators, then score the batch (SQIL: fixed labels).
+        if self.reward.learned:
+            buffer_x = torch.cat([obs, act], -1) if a.full_trajectories else obs
+            example_x = torch.cat([ex_obs, tensor(example_act)], -1) if a.full_trajectories else ex_obs
+            d_loss = self.reward.loss(buffer_x, example_x)
+            self.reward_opt.zero_grad(set_to_none=True)
+            d_loss.sum().backward()
+            clip_grad_norm_per_member(self.reward.parameters(), a.max_grad_norm)
+            self.reward_opt.step()
+            stats["discriminator_loss"] = d_loss.detach()
+        if a.full_trajectories:
+            step_rewards = self.reward.buffer_reward(torch.cat([obs, act], -1)).unsqueeze(-1)
+        else:
+            reward_obs = shared(batch.reward_obs)  # (T, B, n, obs)
+            step_rewards = self.reward.buffer_reward(reward_obs)  # (T, B, n)
+        steps = tensor(batch.steps)
+        n = step_rewards.shape[-1]
+        discounts = a.gamma ** torch.arange(n, device=dev, dtype=torch.float32)
+        valid = (torch.arange(n, device=dev) < steps.unsqueeze(-1)).float()  # (B, n)
+        buffer_reward = a.reward_scale * (step_rewards * discounts * valid).sum(-1)  # (T, B)
+        bootstrap_discount = a.gamma ** steps.float()  # (B,)
+        use_examples = not a.full_trajectories  # LfGP's critic learns from the buffer only (DAC)
+
+        # Critic targets: buffer rows bootstrap from s'; examples transition to themselves.
+        alpha = self.intentions.alpha.detach().unsqueeze(-1)  # (T, 1)
+        with torch.no_grad():
+            next_act, next_logp = self.intentions.sample(next_obs)
+            next_q = self.intentions.q(next_obs, next_act, target=True).min(0).values
+            ex_act, _ = self.intentions.sample(ex_obs)  # a* ~ pi(s*)
+            if a.reward_model == "rce":
+                target, weight = rce_targets(torch.sigmoid(next_q), a.gamma)
+            else:
+                target = buffer_reward + bootstrap_discount * (next_q - alpha * next_logp)
+            if use_examples:
+                ex_reward = self.reward.example_reward(ex_obs)
+                ex_target = a.reward_scale * ex_reward + a.gamma * self.intentions.q(ex_obs, ex_act, target=True).min(0).values
+
+        q = self.intentions.q(obs, act)  # (2, T, B)
+        q_ex = self.intentions.q(ex_obs, ex_act)  # (2, T, B*)
+        if a.reward_model == "rce":
+            critic_loss = rce_loss(q, q_ex, target, weight, a.gamma)
+        else:
+            errors = (q - target).square()
+            if use_examples:
+                errors = torch.cat([errors, (q_ex - ex_target).square()], dim=-1)
+            critic_loss = errors.mean(-1)  # (2, T)
+            if a.value_penalty > 0:
+                if self.reward.learned:  # minimum of the learned reward over this batch (thesis Alg. 4)
+                    min_reward = step_rewards.flatten(1).min(1).values
+                    if use_examples:
+                        min_reward = torch.minimum(min_reward, ex_reward.min(1).values)
+                else:
+                    min_reward = torch.full((T,), self.reward.policy_label, device=dev)
+                q_max, q_min = self.bounds.update(q_ex.detach().min(0).values.mean(-1), min_reward, self.reward.learned)
+                critic_loss = critic_loss + value_penalty(q, q_max.unsqueeze(-1), q_min.unsqueeze(-1), a.value_penalty)
+                stats["q_max"], stats["q_min"] = q_max, q_min
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.sum().backward()
+        clip_grad_norm_per_member(self.intentions.critic.parameters(), a.max_grad_norm)
+        self.critic_opt.step()
+
+        # Policies and temperatures learn from buffer states only.
+        self.intentions.critic.requires_grad_(False)
+        new_act, logp = self.intentions.sample(obs)
+        q_pi = self.intentions.q(obs, new_act)
+        value = (torch.sigmoid(q_pi) if a.reward_model == "rce" else q_pi).min(0).values
+        actor_loss = (alpha * logp - value).mean(-1)  # (T,)
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.sum().backward()
+        clip_grad_norm_per_member(self.intentions.actor.parameters(), a.max_grad_norm)
+        self.actor_opt.step()
+        self.intentions.critic.requires_grad_(True)
+
+        alpha_loss = -(self.intentions.log_alpha.unsqueeze(-1) * (logp.detach() + self.target_entropy)).mean(-1)
+        self.alpha_opt.zero_grad(set_to_none=True)
+        alpha_loss.sum().backward()
+        self.alpha_opt.step()
+
+        polyak_update(self.intentions.target_critic, self.intentions.critic, a.polyak)
+        stats |= {
+            "critic_loss": critic_loss.detach().mean(0),
+            "actor_loss": actor_loss.detach(),
+            "alpha": self.intentions.alpha.detach(),
+            "q_buffer": q.detach().min(0).values.mean(-1),
+            "q_examples": q_ex.detach().min(0).values.mean(-1),
+        }
+        return stats
+
+    # -- checkpoints --------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        state = {
+            "intentions": self.intentions.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "alpha_opt": self.alpha_opt.state_dict(),
+            "bounds": self.bounds.state_dict(),
+        }
+        if self.reward.learned:
+            state |= {"reward": self.reward.state_dict(), "reward_opt": self.reward_opt.state_dict()}
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        self.intentions.load_state_dict(state["intentions"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.alpha_opt.load_state_dict(state["alpha_opt"])
+        self.bounds.load_state_dict(state["bounds"])
+        if self.reward.learned:
+            self.reward.load_state_dict(state["reward"])
+            self.reward_opt.load_state_dict(state["reward_opt"])
+
+
+def metrics_row(stats: dict[str, torch.Tensor], tasks: list[str]) -> dict[str, float]:
+    """Flatten per-task tensors (num_tasks,) to `name/task` floats for metrics.jsonl."""
+    return {f"{name}/{t}": v for name, value in stats.items() for t, v in zip(tasks, value.tolist(), strict=True)}
+
+
+# ---------------------------------------------------------------------------------------------------
+# The training loop
+
+
+def train(
+    args: VPACEArgs,
+    env_factory: Callable[[str], gym.Env] | None = None,
+    examples: dict[str, TaskExamples] | None = None,
+) -> dict[str, float]:
+    """Train; returns the last evaluation's metrics (empty if none ran).
+
+    `env_factory(task)` and `examples` (per task) replace the environment lookup and the example datasets,
+    e.g. in tests or when examples come from numpy files.
+    """
+    from shiftkit.policies.run_dir import RunDir, versions
+
+    args.validate()
+    tasks = args.tasks
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if args.device == "auto" else args.device))
+    run = RunDir(Path(args.output_dir), resume=args.resume)
+
+    # Data and environments.
+    sources: list[DatasetSource] = []
+    if examples is None:
+        examples, sources = load_dataset_examples(args.examples, tasks, with_actions=args.full_trajectories)
+    missing = [t for t in tasks if t not in examples]
+    if missing:
+        raise ConfigError(f"no examples given for task(s) {missing}")
+    example_buffer = ExampleBuffer(examples, tasks, args.aug_factor, args.examples_per_task)
+    env_factory = env_factory or (lambda task: make_env(args.env, task, args.env_kwargs))
+    env, eval_env = env_factory(args.main_task), env_factory(args.main_task)
+    if not isinstance(env.action_space, gym.spaces.Box):
+        raise ConfigError(f"environment {args.env!r} needs a continuous (Box) action space")
+    obs_dim = flat_obs(env.observation_space.sample()).shape[0]
+    if obs_dim != example_buffer.obs_dim:
+        raise ConfigError(f"examples have {example_buffer.obs_dim}-dim states but {args.env!r} observes {obs_dim}")
+    horizon = args.episode_steps or (env.spec.max_episode_steps if env.spec else None) or getattr(
+        env.unwrapped, "max_episode_steps", None)  # shiftkit envs built by make() carry their own limit
+    if not horizon:
+        raise ConfigError(f"environment {args.env!r} has no time limit; set --episode-steps")
+    period = math.ceil(horizon / args.num_periods)
+
+    # Learner, buffer, scheduler, random generators.
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    agent = Agent(args, obs_dim, env.action_space, device)
+    act_dim = int(np.prod(env.action_space.shape))
+    replay = ReplayBuffer(args.total_steps, obs_dim, act_dim)
+    scheduler = WeightedRandomScheduler(tasks, args.num_periods, args.main_rate, args.handcraft_rate, args.handcrafted)
+    step, episode, last_eval = 0, 0, {}
+    state = run.load_latest() if args.resume else None
+    if state is not None:
+        agent.load_state_dict(state["agent"])
+        replay.load_state_dict(state["replay"])
+        rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        step, episode, last_eval = state["step"], state["episode"], state["last_eval"]
+    run.write_config({
+        "trainer": "lfgp" if args.full_trajectories else "vpace",
+        "env": args.env,
+        "args": dataclasses.asdict(args),
+        "datasets": [dataclasses.asdict(s) for s in sources],
+        "seed": args.seed,
+        "versions": versions(),
+        "examples_per_task": example_buffer.sizes(),
+    }, ignore_on_resume=("resume", "total_steps"))  # a finished run may be continued for longer
+
+    def checkpoint() -> None:
+        run.save_checkpoint(step, {
+            "agent": agent.state_dict(), "replay": replay.state_dict(), "numpy_rng": rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(), "step": step, "episode": episode, "last_eval": last_eval,
+        })
+
+    next_checkpoint = (step // args.checkpoint_every + 1) * args.checkpoint_every
+    stats: dict[str, torch.Tensor] = {}
+    while step < args.total_steps:
+        obs = flat_obs(env.reset(seed=args.seed * 1_000_000 + episode)[0])
+        plan = scheduler.plan_episode(rng)
+        for t in range(horizon):
+            task = plan[min(t // period, args.num_periods - 1)]
+            if step < args.random_steps:
+                action = rng.uniform(-1.0, 1.0, act_dim).astype(np.float32)
+            else:
+                action = agent.act(obs, task)
+            next_obs, _, terminated, truncated, _ = env.step(agent.env_action(action))
+            next_obs = flat_obs(next_obs)
+            step += 1
+            episode_over = terminated or truncated or t + 1 == horizon or step == args.total_steps
+            replay.add(obs, action, next_obs, episode_over)
+            obs = next_obs
+
+            if step >= args.buffer_warmup:
+                batch = replay.sample(rng, args.batch_size, args.n_step)
+                stats = agent.update(batch, *example_buffer.sample(rng, args.example_batch_size))
+            if step % args.log_every == 0 and stats:
+                run.log(step, "train", episode=episode, **metrics_row(stats, tasks))
+            if args.eval_every and step % args.eval_every == 0:
+                last_eval = evaluate(agent, eval_env, args.eval_episodes, horizon, EVAL_SEED_OFFSET + args.seed * 1_000_000)
+                run.log(step, "eval", **last_eval)
+            if episode_over:
+                break
+        episode += 1
+        if step >= next_checkpoint or step == args.total_steps:
+            checkpoint()
+            next_checkpoint = (step // args.checkpoint_every + 1) * args.checkpoint_every
+
+    run.write_model_card({"step": step, **{f"eval/{k}": v for k, v in last_eval.items()}})
+    env.close()
+    eval_env.close()
+    return last_eval

@@ -1,0 +1,296 @@
+"""VPACE/LfGP trainer core on a tiny point-mass env: smoke runs of every variant, shapes, exact resume,
+reward-model signs, example loading and augmentation."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_dataset_examples
+from shiftkit.policies.replay import ReplayBuffer
+from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
+from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member
+from shiftkit.policies.schedulers import WeightedRandomScheduler
+from shiftkit.policies.vpace import VPACEArgs, make_env, train
+
+GOAL = np.array([0.5, 0.5], np.float32)
+
+
+class PointMass(gym.Env):
+    """A point in the unit square moved by 0.1 * action; main task: reach GOAL; aux: get right (x > 0.8)."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos = self.np_random.uniform(-1.0, 0.0, 2).astype(np.float32)
+        return self.pos.copy(), {}
+
+    def step(self, action):
+        self.pos = np.clip(self.pos + 0.1 * np.asarray(action, np.float32), -1.0, 1.0)
+        success = bool(np.linalg.norm(self.pos - GOAL) < 0.1)
+        return self.pos.copy(), float(success), False, False, {"is_success": success}
+
+
+def point_examples(with_actions: bool = False) -> dict[str, TaskExamples]:
+    rng = np.random.default_rng(0)
+    main = GOAL + rng.uniform(-0.05, 0.05, (40, 2)).astype(np.float32)
+    right = np.stack([rng.uniform(0.8, 1.0, 40), rng.uniform(-1.0, 1.0, 40)], 1).astype(np.float32)
+    act = (lambda n: rng.uniform(-1, 1, (n, 2)).astype(np.float32)) if with_actions else (lambda n: None)
+    return {"reach-goal": TaskExamples(main, act(40)), "go-right": TaskExamples(right, act(40))}
+
+
+def tiny_args(tmp_path, name="run", **kw) -> VPACEArgs:
+    base = dict(
+        main_task="reach-goal", aux_tasks=["go-right"], output_dir=str(tmp_path / name), total_steps=300,
+        buffer_warmup=100, random_steps=100, batch_size=16, example_batch_size=16, hidden=(16, 16),
+        episode_steps=50, num_periods=2, eval_every=150, eval_episodes=2, checkpoint_every=100, log_every=50,
+        env="point-mass", device="cpu", handcrafted=["main,go-right"], torch_threads=1,
+    )
+    variant = kw.pop("variant", "vpace")
+    return VPACEArgs.for_variant(variant, **(base | kw))
+
+
+def run(args, with_actions=False):
+    return train(args, env_factory=lambda task: PointMass(), examples=point_examples(with_actions))
+
+
+def final_state(out_dir):
+    last = (out_dir / "checkpoints" / "last.txt").read_text().strip()
+    return torch.load(out_dir / "checkpoints" / last, weights_only=False)
+
+
+def test_vpace_smoke_run_writes_run_dir(tmp_path):
+    metrics = run(tiny_args(tmp_path))
+    out = tmp_path / "run"
+    assert set(metrics) == {"success_rate", "env_return", "episodes"} and metrics["episodes"] == 2
+    lines = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    train_lines = [x for x in lines if x["split"] == "train"]
+    assert [x["step"] for x in lines if x["split"] == "eval"] == [150, 300]
+    assert [x["step"] for x in train_lines] == [100, 150, 200, 250, 300]
+    row = train_lines[-1]
+    for key in ("critic_loss", "actor_loss", "alpha", "q_max", "q_min"):
+        assert np.isfinite(row[f"{key}/reach-goal"]) and np.isfinite(row[f"{key}/go-right"])
+    assert row["q_min/reach-goal"] == pytest.approx(-10.0, abs=1e-3)
+    config = json.loads((out / "config.json").read_text())
+    assert config["trainer"] == "vpace" and config["args"]["value_penalty"] == 10.0
+    assert (out / "README.md").exists()
+    state = final_state(out)
+    assert state["step"] == 300 and state["replay"]["size"] == 300
+
+
+def test_resume_gives_the_same_result(tmp_path):
+    run(tiny_args(tmp_path, "straight"))
+    run(tiny_args(tmp_path, "split", total_steps=200))
+    run(tiny_args(tmp_path, "split", total_steps=300, resume=True))
+    a, b = final_state(tmp_path / "straight"), final_state(tmp_path / "split")
+    for key, value in a["agent"]["intentions"].items():
+        assert torch.equal(value, b["agent"]["intentions"][key]), key
+    metrics = lambda name: (tmp_path / name / "metrics.jsonl").read_text()  # noqa: E731
+    assert metrics("straight") == metrics("split")
+
+
+def test_same_seed_same_bytes_other_seed_differs(tmp_path):
+    run(tiny_args(tmp_path, "a", total_steps=150, eval_every=0))
+    run(tiny_args(tmp_path, "b", total_steps=150, eval_every=0))
+    run(tiny_args(tmp_path, "c", total_steps=150, eval_every=0, seed=1))
+    sa, sb, sc = (final_state(tmp_path / n)["agent"]["intentions"]["actor.0.weight"] for n in "abc")
+    assert torch.equal(sa, sb) and not torch.equal(sa, sc)
+
+
+@pytest.mark.parametrize("variant", ["ace", "sqil", "vp-sqil", "dac", "rce", "lfgp"])
+def test_variants_run(tmp_path, variant):
+    args = tiny_args(tmp_path, variant=variant, total_steps=150, eval_every=150, n_step=1)
+    if not args.multitask:
+        args.handcrafted = []
+    metrics = run(args, with_actions=variant == "lfgp")
+    assert 0.0 <= metrics["success_rate"] <= 1.0
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    last_train = [x for x in lines if x["split"] == "train"][-1]
+    assert np.isfinite(last_train["critic_loss/reach-goal"])
+    assert ("critic_loss/go-right" in last_train) == args.multitask
+    assert ("discriminator_loss/reach-goal" in last_train) == (args.reward_model == "dac")
+
+
+def test_n_step_run(tmp_path):
+    assert "success_rate" in run(tiny_args(tmp_path, n_step=3, total_steps=150))
+
+
+def test_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="variant"):
+        VPACEArgs.for_variant("nope")
+    with pytest.raises(ConfigError, match="value penalty"):
+        run(tiny_args(tmp_path, variant="rce", value_penalty=10.0))
+    with pytest.raises(ConfigError, match="unknown task"):
+        run(tiny_args(tmp_path, "h", handcrafted=["main,lift"]))
+    with pytest.raises(ConfigError, match="unknown env"):
+        make_env("no-such-env", "reach", {})
+    bad = {"reach-goal": TaskExamples(np.zeros((5, 3), np.float32)), "go-right": TaskExamples(np.zeros((5, 3), np.float32))}
+    with pytest.raises(ConfigError, match="3-dim"):
+        train(tiny_args(tmp_path, "d"), env_factory=lambda task: PointMass(), examples=bad)
+
+
+def test_intentions_are_independent_per_task():
+    torch.manual_seed(0)
+    net = Intentions(num_tasks=3, obs_dim=4, act_dim=2, hidden=(8, 8))
+    obs = torch.randn(3, 5, 4)
+    act, logp = net.sample(obs)
+    assert act.shape == (3, 5, 2) and logp.shape == (3, 5) and act.abs().max() <= 1.0
+    assert net.q(obs, act).shape == (2, 3, 5)
+    # Task 1's loss leaves every other task's parameters untouched (no weight sharing).
+    net.q(obs, act.detach())[:, 1].sum().backward()
+    for p in net.critic.parameters():
+        assert p.grad[[0, 2, 3, 5]].abs().sum() == 0 and p.grad[[1, 4]].abs().sum() > 0
+    # Per-member clipping scales each member to the bound separately.
+    norms = clip_grad_norm_per_member(net.critic.parameters(), max_norm=1e-3)
+    after = torch.stack([p.grad.flatten(1).square().sum(1) for p in net.critic.parameters()]).sum(0).sqrt()
+    assert torch.allclose(after[[1, 4]], torch.full((2,), 1e-3), rtol=1e-3) and norms[0] == 0
+
+
+def test_reward_model_signs():
+    sqil = SQILReward()
+    x = torch.zeros(2, 3, 4)
+    assert torch.all(sqil.buffer_reward(x) == -1.0) and torch.all(sqil.example_reward(x) == 1.0)
+
+    torch.manual_seed(0)
+    dac = DACReward(num_tasks=2, in_dim=2, hidden=(32, 32))
+    opt = torch.optim.Adam(dac.parameters(), 1e-2)
+    buffer_x, example_x = torch.randn(2, 64, 2) - 2.0, torch.randn(2, 64, 2) + 2.0
+    for _ in range(100):
+        opt.zero_grad()
+        dac.loss(buffer_x, example_x).sum().backward()
+        opt.step()
+    assert torch.all(dac.example_reward(example_x).mean(-1) > 0) and torch.all(dac.buffer_reward(buffer_x).mean(-1) < 0)
+
+    target, weight = rce_targets(torch.tensor([0.01, 0.5, 0.99]), gamma=0.99)
+    assert torch.all((target > 0) & (target < 1)) and torch.all(target.diff() > 0) and torch.all(weight >= 1)
+
+
+def test_replay_n_step_stops_at_episode_end():
+    buf = ReplayBuffer(capacity=10, obs_dim=1, act_dim=1)
+    for t in range(6):
+        buf.add(np.array([t]), np.zeros(1), np.array([t + 1]), episode_end=t == 2)
+    rng = np.random.default_rng(0)
+    s = buf.sample(rng, 200, n_step=3)
+    start = s.obs[:, 0].astype(int)
+    expected_steps = np.array([3, 2, 1, 3, 2, 1])[start]
+    assert np.array_equal(s.steps, expected_steps)
+    assert np.array_equal(s.next_obs[:, 0], start + expected_steps)
+
+
+def test_example_augmentation_keeps_constant_dims_exact():
+    rng = np.random.default_rng(0)
+    obs = np.stack([rng.normal(0, 2.0, 5000), np.full(5000, 0.3)], 1).astype(np.float32)
+    buf = ExampleBuffer({"t": TaskExamples(obs)}, ["t"], aug_factor=0.1)
+    a = np.random.default_rng(1)
+    sampled, _ = buf.sample(a, 5000)
+    assert np.all(sampled[0, :, 1] == np.float32(0.3))
+    idx = np.random.default_rng(1).integers(0, 5000, 5000)
+    noise = sampled[0, :, 0] - obs[idx, 0]
+    assert noise.std() == pytest.approx(0.1 * obs[:, 0].std(), rel=0.1)
+
+
+def test_scheduler_rates_and_handcrafted():
+    s = WeightedRandomScheduler(["main-task", "a", "b"], num_periods=4, main_rate=0.5, handcraft_rate=0.0)
+    rng = np.random.default_rng(0)
+    picks = np.array([s.plan_episode(rng) for _ in range(2000)]).ravel()
+    assert np.mean(picks == 0) == pytest.approx(0.5, abs=0.03) and np.mean(picks == 1) == pytest.approx(0.25, abs=0.03)
+    h = WeightedRandomScheduler(["m", "a"], 2, handcraft_rate=1.0, handcrafted=["a,main"])
+    assert h.plan_episode(rng) == [1, 0]
+
+
+def test_examples_from_lerobot_dataset(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+        "observation.environment_state": {"dtype": "float32", "shape": (1,), "names": ["z"]},
+        "action": {"dtype": "float32", "shape": (2,), "names": ["dx", "dy"]},
+    }
+    root = tmp_path / "examples"
+    ds = LeRobotDataset.create("test/examples", fps=5, features=features, root=root, use_videos=False)
+    for ep, task in enumerate(["reach-goal", "go-right", "reach-goal"]):
+        for i in range(3):
+            ds.add_frame({
+                "observation.state": np.array([ep, i], np.float32),
+                "observation.environment_state": np.array([7], np.float32),
+                "action": np.ones(2, np.float32), "task": task,
+            })
+        ds.save_episode()
+    ds.finalize()
+
+    examples, sources = load_dataset_examples([str(root)], ["reach-goal", "go-right"])
+    assert examples["reach-goal"].obs.shape == (6, 3) and examples["go-right"].obs.shape == (3, 3)
+    assert set(examples["reach-goal"].obs[:, 0]) == {0.0, 2.0} and np.all(examples["go-right"].obs[:, 2] == 7)
+    assert sources[0].fingerprint
+    traj, _ = load_dataset_examples([str(root)], ["reach-goal"], with_actions=True)
+    # 6 frames + one (s_T, 0) pair per episode
+    assert traj["reach-goal"].obs.shape == (8, 3) and np.all(traj["reach-goal"].act[-2:] == 0)
+
+
+def test_cli_train_and_plot(tmp_path, monkeypatch):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.pipelines.cli import main
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    if "ShiftkitTestPointMass-v0" not in gym.registry:
+        gym.register("ShiftkitTestPointMass-v0", entry_point=PointMass, max_episode_steps=50)
+    features = {"observation.state": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]}}
+    root = tmp_path / "point_examples"
+    ds = LeRobotDataset.create("test/point_examples", fps=5, features=features, root=root, use_videos=False)
+    for task, ex in point_examples().items():
+        for row in ex.obs[:10]:
+            ds.add_frame({"observation.state": row, "task": task})
+        ds.save_episode()
+    ds.finalize()
+
+    common = ["--examples", str(root), "--env", "ShiftkitTestPointMass-v0", "--main-task", "reach-goal",
+              "--total-steps", "150", "--buffer-warmup", "50", "--random-steps", "50", "--batch-size", "8",
+              "--example-batch-size", "8", "--hidden", "8,8", "--num-periods", "2", "--eval-every", "75",
+              "--eval-episodes", "1", "--threads", "1", "--device", "cpu"]
+    for seed in ("0", "1"):
+        out = tmp_path / f"vpace{seed}"
+        assert main(["train", "vpace", *common, "--aux-tasks", "go-right", "--handcrafted", "main,go-right",
+                     "--output", str(out), "--seed", seed]) == 0
+    config = json.loads((tmp_path / "vpace0" / "config.json").read_text())
+    assert config["args"]["aux_tasks"] == ["go-right"] and config["args"]["value_penalty"] == 10.0
+    assert config["args"]["total_steps"] == 150 and config["datasets"][0]["fingerprint"]
+    assert main(["train", "vpace", *common, "--variant", "sqil", "--output", str(tmp_path / "sqil")]) == 0
+    assert json.loads((tmp_path / "sqil" / "config.json").read_text())["args"]["multitask"] is False
+
+    # User mistakes: one line, exit 2.
+    assert main(["train", "vpace", *common, "--variant", "rce", "--value-penalty", "10",
+                 "--output", str(tmp_path / "bad")]) == 2
+    assert main(["train", "vpace", *common, "--aux-tasks", "lift", "--output", str(tmp_path / "bad2")]) == 2
+
+    import argparse
+
+    from shiftkit.policies import vpace_cli
+
+    parser = argparse.ArgumentParser()
+    vpace_cli.add_plot_arguments(parser)
+    png = tmp_path / "curves.png"
+    groups = [f"vpace={tmp_path / 'vpace0'},{tmp_path / 'vpace1'}", f"sqil={tmp_path / 'sqil'}"]
+    assert vpace_cli.run_plot(parser.parse_args([*groups, "--out", str(png)])) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_iqm_and_stratified_bootstrap():
+    from shiftkit.policies.curves import iqm, stratified_bootstrap_ci
+
+    assert iqm(np.array([0.0, 1.0, 2.0, 3.0, 100.0, 5.0, 6.0, 7.0])) == pytest.approx(np.mean([2, 3, 5, 6]))
+    scores = np.array([[0.0, 0.2], [0.0, 0.4], [1.0, 0.6], [1.0, 0.8]])
+    low, high = stratified_bootstrap_ci(scores, np.array(["a", "a", "b", "b"]), reps=500)
+    assert np.all(low <= iqm(scores, axis=0)) and np.all(iqm(scores, axis=0) <= high)
+    # Stratification: every resample keeps two runs of task a (score 0) and two of task b (score 1),
+    # so the IQM of the first column is exactly 0.5 in every resample.
+    assert low[0] == pytest.approx(0.5) and high[0] == pytest.approx(0.5)
+    assert low[1] < high[1]
