@@ -82,6 +82,9 @@ class BCArgs:
     """Write mean training loss to metrics.jsonl every this many steps."""
     device: str = "auto"
     """`auto` (CUDA when present), `cpu` or `cuda[:N]`."""
+    threads: int | None = None
+    """CPU threads for torch (default: torch's choice); 1 is often fastest for small models on a busy
+    machine, where idle OpenMP threads spinning for work slow every step down."""
     resume: bool = False
     """Continue the run in output_dir from its last checkpoint."""
 
@@ -105,6 +108,10 @@ class BCArgs:
         for name, value in positive.items():
             if not value > 0:
                 raise ConfigError(f"{name} must be positive, got {value}")
+        if out.root is not None and len(out.datasets) != 1:
+            raise ConfigError("--root names one dataset's folder; with several datasets give their IDs or paths")
+        if out.threads is not None and out.threads <= 0:
+            raise ConfigError(f"threads must be positive, got {out.threads}")
         if out.steps is not None and out.steps <= 0:
             raise ConfigError(f"steps must be positive, got {out.steps}")
         if not 0.0 <= out.val_fraction < 1.0:
@@ -132,27 +139,50 @@ class PolicySpec:
     ensemble_size: int
 
     def image_keys(self) -> list[str]:
-        return [k for k, ft in self.features.items() if ft["dtype"] in ("image", "video")]
+        """Camera features: RGB (`image`/`video`, uint8) and float maps named (height, width, channels),
+        e.g. depth; each gets its own image encoder."""
+        return [k for k, ft in self.features.items() if is_image_feature(ft)]
 
     def numeric_keys(self) -> list[str]:
-        return [k for k, ft in self.features.items() if ft["dtype"] not in ("image", "video")]
+        return [k for k, ft in self.features.items() if not is_image_feature(ft)]
+
+
+def is_image_feature(ft: dict) -> bool:
+    """Whether a LeRobot feature is a camera image (RGB or e.g. a depth map)."""
+    names = ft.get("names")
+    return ft["dtype"] in ("image", "video") or (
+        len(ft["shape"]) == 3 and isinstance(names, list) and names[:2] == ["height", "width"])
+
+
+def _channel_stats(mean: np.ndarray, std: np.ndarray, channels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel mean/std from stats that are per channel (lerobot's images: (C, 1, 1)) or per
+    pixel (float maps: (H, W, C)), pooling the pixels' moments."""
+    mean, std = mean.reshape(-1, channels), std.reshape(-1, channels)
+    if mean.shape[0] == 1 and mean.size == channels and std.size == channels:
+        return mean.reshape(-1), std.reshape(-1)
+    pooled = mean.mean(axis=0)
+    return pooled, np.sqrt(np.maximum((std**2 + mean**2).mean(axis=0) - pooled**2, 0.0))
 
 
 class Normalizer(nn.Module):
-    """Dataset-stats normalisation: numeric features `(x - mean) / std`; images uint8 `(B, H, W, C)` to
-    float `(B, C, H, W)` in [0, 1], then per-channel `(x - mean) / std`."""
+    """Dataset-stats normalisation: numeric features `(x - mean) / std`; images `(B, H, W, C)` to float
+    `(B, C, H, W)` (uint8 scaled to [0, 1], as lerobot's image stats are), then per-channel
+    `(x - mean) / std`."""
 
     def __init__(self, spec: PolicySpec) -> None:
         super().__init__()
         self.keys = [*spec.numeric_keys(), *spec.image_keys(), "action"]
         self.images = set(spec.image_keys())
+        self.uint8 = {k for k in self.images if spec.features[k]["dtype"] in ("image", "video")}
         for i, key in enumerate(self.keys):
-            mean = torch.as_tensor(np.asarray(spec.stats[key]["mean"], dtype=np.float32))
-            std = torch.as_tensor(np.asarray(spec.stats[key]["std"], dtype=np.float32))
+            mean = np.asarray(spec.stats[key]["mean"], dtype=np.float32)
+            std = np.asarray(spec.stats[key]["std"], dtype=np.float32)
+            if key in self.images:
+                channels = spec.features[key]["shape"][-1]
+                mean, std = (x.reshape(1, -1, 1, 1) for x in _channel_stats(mean, std, channels))
+            mean, std = torch.as_tensor(mean), torch.as_tensor(std)
             # constant dimensions (std ~ 0) pass through centred instead of blowing up
             std = torch.where(std < 1e-6, torch.ones_like(std), std)
-            if key in self.images:
-                mean, std = mean.reshape(1, -1, 1, 1), std.reshape(1, -1, 1, 1)
             self.register_buffer(f"mean{i}", mean)
             self.register_buffer(f"std{i}", std)
 
@@ -166,7 +196,7 @@ class Normalizer(nn.Module):
             mean, std = self._ms(key)
             x = batch[key]
             if key in self.images:
-                x = x.permute(0, 3, 1, 2).float() / 255.0
+                x = x.permute(0, 3, 1, 2).float() / (255.0 if key in self.uint8 else 1.0)
             out[key] = (x.float() - mean) / std
         return out
 
@@ -262,6 +292,33 @@ def load_policy(path: str | Path, device: str = "cpu") -> BCPolicy:
     return policy.to(device).eval()
 
 
+def update_members(
+    policy: BCPolicy,
+    optimizers: list[torch.optim.Optimizer],
+    batch: dict[str, torch.Tensor],
+    batch_size: int,
+    active: list[bool],
+    lr: float,
+) -> list[float | None]:
+    """One gradient step of every active member on its own slice `[m*B, (m+1)*B)` of `batch`;
+    returns each member's MSE (normalised units), None for inactive members."""
+    obs, target = policy.normalizer(batch), policy.normalizer.action(batch["action"])
+    losses: list[float | None] = []
+    for m, (net, opt) in enumerate(zip(policy.members, optimizers)):
+        if not active[m]:
+            losses.append(None)
+            continue
+        for group in opt.param_groups:
+            group["lr"] = lr
+        part = slice(m * batch_size, (m + 1) * batch_size)
+        loss = ((net({k: v[part] for k, v in obs.items()}) - target[part]) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    return losses
+
+
 def _select_inputs(features: dict[str, dict], inputs: list[str] | None) -> list[str]:
     if inputs is None:
         inputs = [k for k in features if k.startswith("observation.")]
@@ -304,6 +361,8 @@ def train(args: BCArgs) -> dict:
     args = args.resolved()
     run = RunDir(args.output_dir, args.resume)
     device = _device(args.device)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
 
     # --- data: one frame table over all datasets, episodes split into train / held-out ---
     opened = open_datasets(args.datasets, args.root)
@@ -333,7 +392,10 @@ def train(args: BCArgs) -> dict:
     run.write_config({
         "trainer": "bc",
         "args": dataclasses.asdict(args),
-        "datasets": [{"id": r.repo_id, "root": str(r.root), "fingerprint": r.fingerprint} for r, _ in opened],
+        "datasets": [
+            {"id": r.repo_id, "root": str(r.root), "revision": r.revision, "fingerprint": r.fingerprint}
+            for r, _ in opened
+        ],
         "seed": args.seed,
         "versions": versions(),
         "inputs": inputs,
@@ -346,7 +408,7 @@ def train(args: BCArgs) -> dict:
     best_val = [math.inf] * M
     bad_epochs = [0] * M
     best_weights: list[dict | None] = [None] * M
-    loss_sum, loss_count = torch.zeros(M), 0
+    loss_sum, loss_count = torch.zeros(M), torch.zeros(M)  # per member since the last log line
     state = run.load_latest() if args.resume else None
     if state is not None:
         policy.load_state_dict(state["model"])
@@ -398,27 +460,21 @@ def train(args: BCArgs) -> dict:
     with Prefetcher(table, step_rows(step), pin=device.type == "cuda") as batches:
         for batch in batches:
             batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
-            obs, target = policy.normalizer(batch), policy.normalizer.action(batch["action"])
             lr = args.lr * (0.5 if args.regime == "fixed" and step >= total_steps // 2 else 1.0)
-            for m, (net, opt) in enumerate(zip(members, optimizers)):
-                if not active[m]:
-                    continue
-                for group in opt.param_groups:
-                    group["lr"] = lr
-                part = slice(m * B, (m + 1) * B)
-                loss = ((net({k: v[part] for k, v in obs.items()}) - target[part]) ** 2).mean()
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                loss_sum[m] += loss.detach().cpu()
-            loss_count += 1
+            losses = update_members(policy, optimizers, batch, B, active, lr)
+            for m, loss in enumerate(losses):
+                if loss is not None:
+                    loss_sum[m] += loss
+                    loss_count[m] += 1
             step += 1
 
             if step % args.log_every == 0:
-                run.log(step, "train", loss=(loss_sum / loss_count).mean().item(),
-                        member_loss=(loss_sum / loss_count).tolist(), lr=lr,
+                trained = loss_count > 0
+                member_loss = [s / c if c else None for s, c in zip(loss_sum.tolist(), loss_count.tolist())]
+                run.log(step, "train", loss=(loss_sum[trained] / loss_count[trained]).mean().item(),
+                        member_loss=member_loss, lr=lr,
                         steps_per_s=(step - start_step) / (time.perf_counter() - started))
-                loss_sum, loss_count = torch.zeros(M), 0
+                loss_sum, loss_count = torch.zeros(M), torch.zeros(M)
             if step % per_epoch == 0 and val_batches:
                 losses = val_losses()
                 for m in range(M):

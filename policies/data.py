@@ -17,49 +17,18 @@ data is slower than the model. Several datasets with the same features are read 
 
 from __future__ import annotations
 
-import logging
 import queue
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.lerobot_io import ResolvedDataset, resolve_dataset
 
-log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class DatasetRef:
-    """A LeRobot dataset opened for training: its ID, local root and content fingerprint."""
-
-    repo_id: str
-    root: Path
-    fingerprint: str
-
-
-def _resolve(ref: str, root: str | None) -> DatasetRef:
-    try:
-        from shiftkit.pipelines.lerobot_io import resolve_dataset
-    except ImportError:  # TEMPORARY until the lead's resolver lands: local folders only
-        import hashlib
-        import os
-
-        path = Path(root) if root else Path(ref) if Path(ref).is_dir() else None
-        if path is None:
-            path = Path(os.environ.get("HF_LEROBOT_HOME", Path.home() / ".cache/huggingface/lerobot")) / ref
-        if not (path / "meta" / "info.json").is_file():
-            raise DatasetError(f"no LeRobot dataset at {path} (for {ref!r})")
-        digest = hashlib.sha256((path / "meta" / "info.json").read_bytes()).hexdigest()[:16]
-        return DatasetRef(ref if not Path(ref).is_dir() else path.name, path, digest)
-    resolved = resolve_dataset(ref, root=root)
-    return DatasetRef(resolved.repo_id, Path(resolved.root), resolved.fingerprint)
-
-
-def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[DatasetRef, object]]:
+def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[ResolvedDataset, object]]:
     """Resolve dataset IDs (or local paths) and open them with lerobot's reader."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -67,7 +36,7 @@ def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Datase
         raise DatasetError("no dataset given")
     opened = []
     for ref in refs:
-        resolved = _resolve(ref, root)
+        resolved = resolve_dataset(ref, root=root)
         try:
             ds = LeRobotDataset(resolved.repo_id, root=resolved.root)
         except Exception as exc:  # lerobot raises many types for a bad folder

@@ -8,6 +8,8 @@
       checkpoints/last.txt           name of the newest complete checkpoint
       metrics.jsonl      one JSON object per line, always with "step" and "split" ("train"/"eval"/...)
       README.md          model card rendered by shiftkit.cards
+      card.json          the training metrics the card shows (so evaluations can re-render it)
+      eval/*.json        evaluation results (`shiftkit eval`), summarised in the card
 
 Checkpoints and last.txt are written to a temporary file and renamed into place, so a run killed at
 any moment leaves the previous checkpoint loadable. Resuming drops the metric lines a killed run
@@ -29,6 +31,8 @@ from shiftkit.pipelines.errors import ConfigError, ShiftkitError
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
 CARD = "README.md"
+CARD_METRICS = "card.json"
+EVAL = "eval"
 CHECKPOINTS = "checkpoints"
 LAST = "last.txt"
 
@@ -160,18 +164,33 @@ class RunDir:
         return [json.loads(ln) for ln in path.read_text().splitlines() if ln.strip()]
 
     def write_model_card(self, metrics: dict) -> None:
-        """Render README.md from config.json and the final `metrics`."""
+        """Render README.md from config.json, the final training `metrics` and the evaluations in eval/."""
+        text = json.dumps(_jsonable(metrics), indent=2, sort_keys=True) + "\n"
+        _atomic_write(self.path / CARD_METRICS, lambda f: f.write(text.encode()))
+        self.refresh_model_card()
+
+    def refresh_model_card(self) -> None:
+        """Re-render README.md (e.g. after an evaluation wrote eval/*.json)."""
         from shiftkit.cards import render_model_card
 
         config = self.read_config()
         if config is None:
             raise ShiftkitError(f"{self.path} has no {CONFIG} to describe in a model card")
+        stored = self.path / CARD_METRICS
+        metrics = json.loads(stored.read_text()) if stored.exists() else {}
+        envs = []
+        for path in sorted((self.path / EVAL).glob("*.json")):
+            ev = json.loads(path.read_text())
+            name = f"{ev['env']}/{ev['task']} ({ev['episodes']} episodes from seed {ev['seed']})"
+            lo, hi = ev["ci95"]
+            metrics[f"success {name}"] = f"{ev['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%})"
+            envs.append(f"{ev['env']} / {ev['task']}")
         card = {
             "trainer": config["trainer"],
             "datasets": config.get("datasets", []),
             "args": config.get("args", {}),
-            "metrics": _jsonable(metrics),
-            "env": config.get("env"),
+            "metrics": metrics,
+            "env": ", ".join(dict.fromkeys(envs)) or config.get("env"),
             "versions": config.get("versions", {}),
         }
         text = render_model_card(card)

@@ -1,0 +1,275 @@
+"""BC trainer: data loading, networks, ensembles, both regimes, resume after a kill, CLI errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
+from shiftkit.policies.bc import BCArgs, BCPolicy, PolicySpec, load_policy, train
+from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
+
+
+def make_dataset(root: Path, episodes: int = 8, length: int = 25, image: str | None = None,
+                 learnable: bool = True, depth: bool = False, seed: int = 0) -> Path:
+    """A tiny LeRobot dataset written by lerobot's own writer. State-only: action = linear function
+    of the state. `image="image"|"video"`: a bright square whose position is the action (`depth`:
+    plus a float depth map of it)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    rng = np.random.default_rng(seed)
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (4,), "names": ["s0", "s1", "s2", "s3"]},
+        "action": {"dtype": "float32", "shape": (2,), "names": ["a0", "a1"]},
+    }
+    if image:
+        features["observation.images.front"] = {
+            "dtype": image, "shape": (48, 64, 3), "names": ["height", "width", "channels"]}
+    if depth:
+        features["observation.depth.front"] = {
+            "dtype": "float32", "shape": (48, 64, 1), "names": ["height", "width", "channels"]}
+    ds = LeRobotDataset.create("test/bc", fps=10, root=root, features=features, use_videos=image == "video")
+    for _ in range(episodes):
+        for _ in range(length):
+            s = rng.normal(size=4).astype(np.float32)
+            a = np.array([s[0] + 0.5 * s[1], -s[2]], np.float32) if learnable else rng.normal(size=2).astype(np.float32)
+            frame = {"observation.state": s, "task": "synthetic"}
+            if image:
+                x, y = int(rng.integers(6, 58)), int(rng.integers(6, 42))
+                img = np.full((48, 64, 3), 20, np.uint8)
+                img[y - 4 : y + 4, x - 4 : x + 4] = 235
+                frame["observation.images.front"] = img
+                if depth:
+                    frame["observation.depth.front"] = np.where(img[..., :1] > 100, 0.5, 1.5).astype(np.float32)
+                a = np.array([x / 32 - 1, y / 24 - 1], np.float32)
+            frame["action"] = a
+            ds.add_frame(frame)
+        ds.save_episode()
+    ds.finalize()
+    return root
+
+
+@pytest.fixture(scope="module")
+def state_ds(tmp_path_factory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("data") / "state")
+
+
+def small_args(ds: Path, out: Path, **kw) -> BCArgs:
+    base = dict(datasets=[str(ds)], output_dir=str(out), regime="fixed", steps=200, ensemble_size=2,
+                hidden=[32, 32], batch_size=32, log_every=20, checkpoint_every=50, device="cpu")
+    return BCArgs(**{**base, **kw})
+
+
+def metric_lines(run: Path, split: str) -> list[dict]:
+    return [m for m in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if m["split"] == split]
+
+
+# ------------------------------------------------------------------------------ data
+
+
+@pytest.mark.parametrize("kind", ["image", "video"])
+def test_frame_table_matches_lerobot_reader(tmp_path, kind):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.policies.data import FrameTable
+
+    root = make_dataset(tmp_path / kind, episodes=3, length=6, image=kind)
+    ds = LeRobotDataset("test/bc", root=root, video_backend="pyav")
+    table = FrameTable([ds, ds], ["observation.state", "observation.images.front", "action"])
+    assert table.num_frames == 36 and table.episodes[:2] == [(0, 6), (6, 12)] and len(table.episodes) == 6
+    rows = np.array([17, 0, 5, 18, 35])
+    batch = table.gather(rows)
+    assert batch["observation.images.front"].dtype == np.uint8
+    for i, row in enumerate(rows):
+        item = ds[int(row % 18)]
+        np.testing.assert_array_equal(batch["observation.state"][i], item["observation.state"].numpy())
+        np.testing.assert_array_equal(batch["action"][i], item["action"].numpy())
+        img = np.round(item["observation.images.front"].numpy().transpose(1, 2, 0) * 255)
+        np.testing.assert_array_equal(batch["observation.images.front"][i], img)
+
+
+def test_episode_split_is_seeded_and_by_episode(state_ds):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.policies.data import FrameTable
+
+    table = FrameTable([LeRobotDataset("test/bc", root=state_ds)], ["action"])
+    train_rows, val_rows = table.split_episodes(0.2, seed=3)
+    assert len(val_rows) == 2 * 25 and len(train_rows) == 6 * 25
+    assert not set(train_rows) & set(val_rows)
+    assert np.array_equal(val_rows, table.split_episodes(0.2, seed=3)[1])
+    assert all(r % 25 == 0 for r in val_rows[::25])  # whole episodes
+
+
+# ------------------------------------------------------------------------------ networks
+
+
+def test_spatial_soft_argmax_finds_the_peak():
+    ssam = SpatialSoftArgmax(5, 7)
+    fmap = torch.full((1, 2, 5, 7), -50.0)
+    fmap[0, 0, 0, 6] = 50.0  # top right
+    fmap[0, 1, 4, 0] = 50.0  # bottom left
+    kp = ssam(fmap)
+    torch.testing.assert_close(kp, torch.tensor([[[1.0, -1.0], [-1.0, 1.0]]]), atol=1e-4, rtol=0)
+
+
+def test_cnn_and_resnet_keypoint_shapes_and_range(tmp_path):
+    images = torch.rand(3, 3, 48, 64) * 4 - 2
+    cnn = KeypointCNN(3, 48, 64, num_keypoints=16)
+    kp = cnn.keypoints(images)
+    assert kp.shape == (3, 16, 2) and cnn(images).shape == (3, 32)
+    assert kp.abs().max() <= 1.0
+    resnet = ResNet18Keypoints(4, 48, 64, num_keypoints=8)
+    out = resnet(torch.rand(2, 4, 48, 64))
+    assert out.shape == (2, 16) and out.abs().max() <= 1.0
+
+    from torchvision.models import resnet18
+
+    weights = tmp_path / "resnet18.pt"
+    torch.save(resnet18(weights=None).state_dict(), weights)
+    loaded = ResNet18Keypoints(3, 48, 64, weights=weights)
+    torch.testing.assert_close(loaded.trunk[0].weight, torch.load(weights)["conv1.weight"])
+    first = KeypointCNN(3, 48, 64, weights=weights)
+    torch.testing.assert_close(first.conv1.weight, torch.load(weights)["conv1.weight"])
+    with pytest.raises(ConfigError, match="not found"):
+        KeypointCNN(3, 48, 64, weights=tmp_path / "missing.pt")
+
+
+def _spec(ensemble: int) -> PolicySpec:
+    return PolicySpec(
+        features={"observation.state": {"dtype": "float32", "shape": [4], "names": ["a", "b", "c", "d"]}},
+        action={"dtype": "float32", "shape": [2], "names": ["x", "y"]},
+        stats={"observation.state": {"mean": [0.0] * 4, "std": [1.0] * 4},
+               "action": {"mean": [1.0, -1.0], "std": [2.0, 0.5]}},
+        encoder="cnn", num_keypoints=8, hidden=[16], ensemble_size=ensemble)
+
+
+def test_ensemble_mean_and_spread():
+    policy = BCPolicy(_spec(3), seed=1)
+    batch = {"observation.state": torch.randn(5, 4)}
+    outs = policy.member_outputs(batch)
+    assert outs.shape == (3, 5, 2)
+    assert not torch.allclose(outs[0], outs[1])  # members start different
+    torch.testing.assert_close(policy(batch), outs.mean(0))
+    torch.testing.assert_close(policy.spread(batch), outs.var(0).norm(dim=-1))
+    assert (policy.spread(batch) > 0).all()
+    for m in policy.members[1:]:
+        m.load_state_dict(policy.members[0].state_dict())
+    assert torch.allclose(policy.spread(batch), torch.zeros(5))
+    assert BCPolicy(_spec(3), seed=1).state_dict().keys() == policy.state_dict().keys()
+    torch.testing.assert_close(BCPolicy(_spec(3), seed=1).members[2].head[0].weight,
+                               BCPolicy(_spec(3), seed=1).members[2].head[0].weight)
+
+
+# ------------------------------------------------------------------------------ training
+
+
+def test_fixed_regime_learns_and_writes_run(state_ds, tmp_path):
+    out = tmp_path / "run"
+    metrics = train(small_args(state_ds, out, steps=300, val_fraction=0.25))
+    train_loss = [m["loss"] for m in metric_lines(out, "train")]
+    assert train_loss[-1] < 0.2 * train_loss[0]
+    assert [m["lr"] for m in metric_lines(out, "train")][-1] == pytest.approx(3e-4 / 2)  # halved midway
+    assert metrics["val_loss"] < 0.3 and metrics["steps"] == 300  # normalised units: 1 = predicting the mean
+    config = json.loads((out / "config.json").read_text())
+    assert config["trainer"] == "bc" and config["args"]["weight_decay"] == 0.1
+    assert config["datasets"][0]["fingerprint"] and config["versions"]["lerobot"]
+    assert (out / "README.md").read_text().strip()
+    assert (out / "checkpoints" / "last.txt").read_text() == "step-00000300.pt"
+    assert len(list((out / "checkpoints").glob("step-*.pt"))) == 2  # keep=2
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    policy = load_policy(out)
+    frame = LeRobotDataset("test/bc", root=state_ds)[7]
+    action = policy.act({"observation.state": frame["observation.state"].numpy()})
+    assert action.shape == (2,) and np.abs(action - frame["action"].numpy()).max() < 0.5
+
+
+def test_early_stopping_stops_members_and_keeps_best(tmp_path):
+    ds = make_dataset(tmp_path / "noise", episodes=6, length=20, learnable=False)
+    out = tmp_path / "run"
+    metrics = train(small_args(ds, out, regime="early-stop", steps=None, max_epochs=100, patience=3,
+                               hidden=[64, 64], batch_size=16, log_every=1000))
+    val = metric_lines(out, "val")
+    assert val[-1]["active"] == 0 and len(val) < 100  # every member stopped before max_epochs
+    best = [min(m["member_loss"][i] for m in val) for i in range(2)]
+    assert metrics["val_member_loss"] == pytest.approx(best)  # best weights restored
+    assert json.loads((out / "config.json").read_text())["args"]["lr"] == 1e-3
+
+
+def test_image_policy_trains_end_to_end(tmp_path):
+    ds = make_dataset(tmp_path / "img", episodes=4, length=16, image="image", depth=True)
+    out = tmp_path / "run"
+    train(small_args(ds, out, steps=60, ensemble_size=1, batch_size=16, num_keypoints=8, hidden=[64, 64],
+                     lr=1e-3, log_every=10, checkpoint_every=60))
+    loss = [m["loss"] for m in metric_lines(out, "train")]
+    assert loss[-1] < 0.6 * loss[0], loss
+    policy = load_policy(out)
+    assert policy.spec.image_keys() == ["observation.images.front", "observation.depth.front"]
+    assert len(policy.members[0].encoders) == 2
+    depth_mean = policy.normalizer._ms("observation.depth.front")[0]
+    assert depth_mean.shape == (1, 1, 1, 1) and 0.5 < depth_mean.item() < 1.5
+    img = np.zeros((48, 64, 3), np.uint8)
+    batch = {"observation.images.front": torch.from_numpy(img)[None], "observation.state": torch.zeros(1, 4),
+             "observation.depth.front": torch.ones(1, 48, 64, 1)}
+    obs = policy.normalizer(batch)
+    kp = policy.members[0].encoders[0].keypoints(obs["observation.images.front"])
+    assert kp.shape == (1, 8, 2) and kp.abs().max() <= 1.0
+    assert policy.act({k: v[0].numpy() for k, v in batch.items()}).shape == (2,)
+
+
+def test_resume_after_kill_equals_uninterrupted_run(state_ds, tmp_path):
+    killed, clean = tmp_path / "killed", tmp_path / "clean"
+    cli = [sys.executable, "-m", "shiftkit.pipelines.cli", "train", "bc", "--dataset", str(state_ds),
+           "--output", str(killed), "--regime", "fixed", "--steps", "3000", "--ensemble", "2", "--hidden", "32,32",
+           "--batch-size", "32", "--log-every", "20", "--checkpoint-every", "100", "--device", "cpu"]
+    proc = subprocess.Popen(cli, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    last = killed / "checkpoints" / "last.txt"
+    deadline = time.time() + 120
+    while not last.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()
+    state = torch.load(killed / "checkpoints" / last.read_text(), weights_only=False)
+    assert not state["final"] and state["step"] < 3000  # really killed mid-run
+
+    args = small_args(state_ds, killed, steps=3000, checkpoint_every=100)
+    train(BCArgs(**{**args.__dict__, "resume": True}))
+    train(small_args(state_ds, clean, steps=3000, checkpoint_every=100))
+    a, b = load_policy(killed).state_dict(), load_policy(clean).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    strip = lambda lines: [{k: v for k, v in m.items() if k != "steps_per_s"} for m in lines]  # noqa: E731
+    assert strip(metric_lines(killed, "train")) == strip(metric_lines(clean, "train"))
+
+
+# ------------------------------------------------------------------------------ user errors
+
+
+def test_user_errors_are_one_line(state_ds, tmp_path):
+    with pytest.raises(DatasetError, match="not found"):
+        train(small_args(tmp_path / "nowhere", tmp_path / "r0"))
+    with pytest.raises(ConfigError, match="observation.nope"):
+        train(small_args(state_ds, tmp_path / "r1", inputs=["observation.nope"]))
+    with pytest.raises(ConfigError, match="regime"):
+        train(small_args(state_ds, tmp_path / "r2", regime="forever"))
+    train(small_args(state_ds, tmp_path / "r3", steps=20))
+    with pytest.raises(ShiftkitError, match="already holds a run"):
+        train(small_args(state_ds, tmp_path / "r3", steps=20))
+    with pytest.raises(ConfigError, match="different 'steps'"):
+        train(small_args(state_ds, tmp_path / "r3", steps=40, resume=True))
+
+    from shiftkit.pipelines.cli import main
+
+    assert main(["train", "bc", "--dataset", str(tmp_path / "nowhere"), "--output", str(tmp_path / "r4")]) == 2

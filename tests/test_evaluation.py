@@ -1,0 +1,108 @@
+"""Policy evaluation: Wilson interval, observation mapping, rollouts with results and videos, CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.policies.evaluation import EvalReport, ObservationMap, load_policy, run_episodes, wilson_interval
+
+
+def test_wilson_interval_known_values():
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)
+    assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+    assert wilson_interval(45, 50) == pytest.approx((0.7864, 0.9565), abs=1e-4)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_observation_map_picks_dims_by_name():
+    names = ["ee_x", "ee_y", "blue_x", "blue_y", "grip"]
+    features = {
+        "observation.state": {"dtype": "float32", "shape": [3], "names": ["ee_x", "ee_y", "grip"]},
+        "observation.environment_state": {"dtype": "float32", "shape": [2], "names": ["blue_y", "blue_x"]},
+    }
+    out = ObservationMap(features, names)(None, np.arange(5, dtype=np.float32))
+    np.testing.assert_array_equal(out["observation.state"], [0, 1, 4])
+    np.testing.assert_array_equal(out["observation.environment_state"], [3, 2])
+    with pytest.raises(ConfigError, match="'force_z'"):
+        ObservationMap({"observation.state": {"shape": [1], "names": ["force_z"]}}, names)
+
+
+class ExpertPolicy:
+    """The env's scripted expert behind the policy interface (it reads the simulator, not `obs`)."""
+
+    def __init__(self, env) -> None:
+        from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
+
+        self.env = env
+        self.features = {
+            key: {"shape": [len(idx)], "names": [OBSERVATION_NAMES[i] for i in idx]}
+            for key, idx in (("observation.state", STATE_INDICES),
+                             ("observation.environment_state", ENVIRONMENT_STATE_INDICES))
+        }
+        self.seen: list[dict] = []
+
+    def reset(self) -> None:
+        from shiftkit.envs.panda_play_experts import PandaPlayExpert
+
+        self.expert = PandaPlayExpert(self.env)
+
+    def act(self, obs):
+        self.seen.append(obs)
+        return self.expert.act()
+
+
+def test_run_episodes_with_results_and_videos(tmp_path):
+    import av
+
+    from shiftkit.envs import make
+
+    env = make("panda-play", "lift")
+    policy = ExpertPolicy(env)
+    results = run_episodes(policy, env, episodes=2, seed=100, video_dir=tmp_path / "videos")
+    assert [e.seed for e in results] == [100, 101]
+    # an episode stops at its first success, else at the env's time limit
+    assert all(e.success or e.steps == env.max_episode_steps for e in results)
+    first = policy.seen[0]
+    assert first["observation.state"].shape == (18,) and first["observation.environment_state"].shape == (41,)
+    report = EvalReport(env="panda-play", task="lift", policy="expert", seed=100, episodes=results)
+    summary = json.loads(report.to_json())
+    wins = sum(e.success for e in results)
+    assert summary["success_rate"] == wins / 2 and summary["ci95"] == pytest.approx(list(wilson_interval(wins, 2)))
+    assert len(summary["results"]) == 2
+    with av.open(results[0].video) as container:
+        frames = sum(1 for _ in container.decode(video=0))
+    assert frames == results[0].steps + 1
+
+
+def test_eval_cli_runs_a_trained_bc_policy(tmp_path, capsys):
+    from shiftkit.pipelines.cli import main
+    from shiftkit.pipelines.collect import CollectConfig, collect
+
+    collect(CollectConfig(task="lift", episodes=3, seed=0, lerobot="local/lift3", root=str(tmp_path / "lift3")))
+    run = tmp_path / "run"
+    assert main(["train", "bc", "--dataset", str(tmp_path / "lift3"), "--output", str(run), "--regime", "fixed",
+                 "--steps", "40", "--ensemble", "2", "--hidden", "32,32", "--checkpoint-every", "40",
+                 "--threads", "1"]) == 0
+    assert main(["eval", "--policy", str(run), "--task", "lift", "--episodes", "1", "--seed", "500"]) == 0
+    printed = capsys.readouterr().out
+    assert "success rate" in printed and "95% CI" in printed
+    result = json.loads((run / "eval" / "panda-play-lift-seed500.json").read_text())
+    assert result["episodes"] == 1 and result["results"][0]["seed"] == 500
+    assert result["results"][0]["steps"] > 0
+    card = (run / "README.md").read_text()
+    assert "success panda-play/lift (1 episodes from seed 500)" in card and "panda-play / lift" in card
+
+    assert main(["eval", "--policy", str(tmp_path / "missing"), "--task", "lift"]) == 2
+    assert main(["eval", "--policy", str(run), "--task", "fly"]) == 2
+
+
+def test_load_policy_errors(tmp_path):
+    with pytest.raises(DatasetError, match="not found"):
+        load_policy(tmp_path / "missing")
+    (tmp_path / "plain").mkdir()
+    with pytest.raises(DatasetError, match="not a shiftkit run"):
+        load_policy(tmp_path / "plain")
