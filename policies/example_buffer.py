@@ -55,13 +55,28 @@ def open_dataset(ref: str):
     return dataset, DatasetSource(resolved.repo_id, str(resolved.root), resolved.fingerprint)
 
 
+def _column_order(dataset, keys: list[str], observation_names: list[str] | None, ref: str) -> np.ndarray | None:
+    """Columns of the concatenated state features in the env's observation order (by dimension
+    name): datasets split the observation into robot and object state, the env observes one vector."""
+    if observation_names is None:
+        return None
+    names = [n for k in keys for n in (dataset.features[k].get("names") or [])]
+    if sorted(names) != sorted(observation_names):
+        missing = sorted(set(observation_names) - set(names))[:3]
+        raise DatasetError(f"example dataset {ref!r}: state dimensions do not match the env observation "
+                           f"(e.g. missing {missing})")
+    index = {n: i for i, n in enumerate(names)}
+    return np.asarray([index[n] for n in observation_names])
+
+
 def load_dataset_examples(
-    refs: list[str], tasks: list[str], with_actions: bool = False
+    refs: list[str], tasks: list[str], with_actions: bool = False, observation_names: list[str] | None = None
 ) -> tuple[dict[str, TaskExamples], list[DatasetSource]]:
     """Collect each task's frames from LeRobot datasets, keyed by the frame's `task` string.
 
     With `with_actions` (LfGP), frames keep their actions and every episode's final state is added once
-    more with a zero action, the `(s_T, 0)` pair that marks the end of a demonstration.
+    more with a zero action, the `(s_T, 0)` pair that marks the end of a demonstration. Given the
+    env's `observation_names`, state columns are put in that order by their dimension names.
     """
     obs_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
     act_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
@@ -76,6 +91,9 @@ def load_dataset_examples(
             raise DatasetError(f"example dataset {ref!r} has no 'action' feature (LfGP needs full trajectories)")
         table = dataset.hf_dataset.with_format("numpy")
         obs = np.concatenate([np.asarray(table[k], np.float32).reshape(len(table), -1) for k in keys], axis=1)
+        order = _column_order(dataset, keys, observation_names, ref)
+        if order is not None:
+            obs = obs[:, order]
         task_index = np.asarray(table["task_index"]).reshape(-1)
         episode = np.asarray(table["episode_index"]).reshape(-1)
         act = np.asarray(table["action"], np.float32) if with_actions else None

@@ -402,14 +402,16 @@ def train(
 
     # Data and environments.
     sources: list[DatasetSource] = []
+    env_factory = env_factory or (lambda task: make_env(args.env, task, args.env_kwargs))
+    env, eval_env = env_factory(args.main_task), env_factory(args.main_task)
     if examples is None:
-        examples, sources = load_dataset_examples(args.examples, tasks, with_actions=args.full_trajectories)
+        names = getattr(env.unwrapped, "observation_names", None)
+        examples, sources = load_dataset_examples(args.examples, tasks, with_actions=args.full_trajectories,
+                                                  observation_names=list(names) if names is not None else None)
     missing = [t for t in tasks if t not in examples]
     if missing:
         raise ConfigError(f"no examples given for task(s) {missing}")
     example_buffer = ExampleBuffer(examples, tasks, args.aug_factor, args.examples_per_task)
-    env_factory = env_factory or (lambda task: make_env(args.env, task, args.env_kwargs))
-    env, eval_env = env_factory(args.main_task), env_factory(args.main_task)
     if not isinstance(env.action_space, gym.spaces.Box):
         raise ConfigError(f"environment {args.env!r} needs a continuous (Box) action space")
     obs_dim = flat_obs(env.observation_space.sample()).shape[0]
@@ -489,3 +491,40 @@ def train(
     env.close()
     eval_env.close()
     return last_eval
+
+
+class MainIntentionPolicy:
+    """A trained agent's main intention acting with its mean action (SPEC 6.2), in the policy
+    interface of `shiftkit eval`: one `observation.state` input named like the env's observation."""
+
+    def __init__(self, agent: Agent, task: int, observation_names: list[str]) -> None:
+        self.agent, self.task = agent, task
+        self.features = {"observation.state": {"shape": (len(observation_names),), "names": list(observation_names)}}
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        action = self.agent.act(np.asarray(obs["observation.state"], np.float32), self.task, deterministic=True)
+        return self.agent.env_action(action)
+
+
+def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
+    """The main intention of a VPACE/LfGP run folder (its newest checkpoint) or checkpoint file."""
+    import json
+
+    from shiftkit.pipelines.dataclass_config import from_dict
+    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.policies.run_dir import RunDir
+
+    path = Path(path)
+    run_dir = path if path.is_dir() else path.parent.parent
+    checkpoint = RunDir(run_dir, resume=True).latest_checkpoint() if path.is_dir() else path
+    if checkpoint is None or not checkpoint.is_file():
+        raise DatasetError(f"{path}: no VPACE checkpoint")
+    args = from_dict(VPACEArgs, json.loads((run_dir / "config.json").read_text())["args"], f"{run_dir}/config.json")
+    env = make_env(args.env, args.main_task, args.env_kwargs)
+    names = getattr(env.unwrapped, "observation_names", None)
+    if names is None:
+        raise ConfigError(f"environment {args.env!r} does not name its observation dimensions")
+    agent = Agent(args, flat_obs(env.observation_space.sample()).shape[0], env.action_space, torch.device(device))
+    env.close()
+    agent.load_state_dict(torch.load(checkpoint, map_location=device, weights_only=False)["agent"])
+    return MainIntentionPolicy(agent, args.tasks.index(args.main_task), list(names))

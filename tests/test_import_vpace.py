@@ -90,6 +90,12 @@ def test_published_example_sets(tmp_path):
     assert provenance["sources"][0]["path"] == str(files[0].resolve())
     assert provenance["importer"]["kind"] == "examples"
 
+    # The VPACE trainer reads the example set back in the env's observation order, by dimension name.
+    from shiftkit.policies.example_buffer import load_dataset_examples
+
+    examples, _ = load_dataset_examples([str(tmp_path / "ex")], ["reach"], observation_names=list(OBSERVATION_NAMES))
+    np.testing.assert_array_equal(examples["reach"].obs, raw_reach["observations"][:10, :59])
+
 
 @needs_data
 def test_published_trajectories_split_into_episodes(tmp_path):

@@ -4,6 +4,7 @@ reward-model signs, example loading and augmentation."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -294,3 +295,24 @@ def test_iqm_and_stratified_bootstrap():
     # so the IQM of the first column is exactly 0.5 in every resample.
     assert low[0] == pytest.approx(0.5) and high[0] == pytest.approx(0.5)
     assert low[1] < high[1]
+
+
+PUBLISHED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vpace"
+
+
+@pytest.mark.skipif(not PUBLISHED.is_dir(), reason=f"published VPACE data not found at {PUBLISHED}")
+def test_panda_run_from_imported_examples_evaluates_with_shiftkit_eval(tmp_path, capsys):
+    """Published examples -> `shiftkit import vpace` -> `train vpace` on Panda reach -> `shiftkit eval`."""
+    from shiftkit.pipelines.cli import main
+
+    assert main(["import", "vpace", str(PUBLISHED / "examples_1200_4_reach.gz"), "--repo-id", "test/reach-ex",
+                 "--root", str(tmp_path / "ex")]) == 0
+    run = tmp_path / "run"
+    assert main(["train", "vpace", "--examples", str(tmp_path / "ex"), "--env", "panda-play", "--main-task", "reach",
+                 "--variant", "sqil", "--total-steps", "60", "--buffer-warmup", "30", "--random-steps", "30",
+                 "--batch-size", "8", "--example-batch-size", "8", "--hidden", "16,16", "--eval-every", "0",
+                 "--threads", "1", "--device", "cpu", "--output", str(run)]) == 0
+    capsys.readouterr()
+    assert main(["eval", "--policy", str(run), "--env", "panda-play", "--task", "reach", "--episodes", "1",
+                 "--seed", "5", "--out", str(tmp_path / "eval.json")]) == 0
+    assert "success" in capsys.readouterr().out

@@ -74,6 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             p = sub.add_parser(name, help=help_text, description=help_text)
             vpace_cli.add_arguments(p)
             p.set_defaults(_train_run=vpace_cli.run, trainer=name)
+        plot = sub.add_parser("plot", help="success curves across seeds: IQM with stratified bootstrap 95%% CIs (PNG)",
+                              description="Plot evaluation success curves of runs: LABEL=RUN[,RUN...] per method.")
+        vpace_cli.add_plot_arguments(plot)
+        plot.set_defaults(_train_run=vpace_cli.run_plot)
 
 
 def run(args: argparse.Namespace) -> int:
