@@ -1,36 +1,56 @@
-"""Executors run work units (groups of source episodes) and report progress; they know nothing
-about what a stage does. `local` is a process pool on this machine (in-process for 1 worker)."""
+"""Executors run the work units (groups of source episodes) of a pipeline and assemble the
+finished episodes into the destination dataset; they know nothing about what a stage does.
+
+`local` is a process pool on this machine (in-process for 1 worker) followed by one ordered
+writer pass; it is the default. `datatrove-local`, `ray` and `slurm` run on datatrove
+(`shiftkit.pipelines.datatrove_executor`): shard datasets merged with lerobot's aggregation.
+"""
 
 from __future__ import annotations
 
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
 from typing import Any, Protocol
 
-from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.errors import ConfigError
 
 
 class Executor(Protocol):
-    def run(self, config: PipelineConfig, units: list[Any], bar: Any) -> None: ...
+    def describe(self) -> dict[str, Any]:
+        """The executor fields of the provenance (name, workers, ...)."""
+
+    def run(self, plan: Any, units: list[Any], parts: Any, bar: Any) -> bool:
+        """Transform every unit's unfinished episodes (into `parts` or the executor's own store).
+        False when the work was handed to a scheduler and the dataset cannot be assembled yet."""
+
+    def assemble(self, plan: Any, parts: Any, bar: Any) -> Path:
+        """Write the destination dataset atomically from the finished work; returns its path."""
 
 
 class LocalExecutor:
+    name = "local"
+
     def __init__(self, workers: int = 1) -> None:
         if workers < 1:
             raise ConfigError(f"--workers must be >= 1, got {workers}")
         self.workers = workers
 
-    def run(self, config: PipelineConfig, units: list[Any], bar: Any) -> None:
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "workers": self.workers}
+
+    def run(self, plan: Any, units: list[Any], parts: Any, bar: Any) -> bool:
         from shiftkit.pipelines import runner
 
+        units = [u for u in units if not all(parts.done(u.source, i) for i in u.episodes)]
         if not units:
-            return
+            return True
+        config = plan.config
         if self.workers == 1:
             runner.init_worker(config)
             for unit in units:
                 bar.update(runner.process_unit(unit))
-            return
+            return True
         # spawn, not fork: stages may hold threads (torch, EGL) that do not survive a fork.
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config,)) as pool:
@@ -42,12 +62,36 @@ class LocalExecutor:
                 for f in futures:
                     f.cancel()
                 raise
+        return True
+
+    def assemble(self, plan: Any, parts: Any, bar: Any) -> Path:
+        from shiftkit.pipelines.runner import write_dataset
+
+        return write_dataset(plan, parts, self.describe(), bar)
 
 
-EXECUTORS = {"local": LocalExecutor}
+def _datatrove(name: str) -> Any:
+    def make(workers: int = 1, **options: Any) -> Executor:
+        from shiftkit.pipelines import datatrove_executor
+
+        return datatrove_executor.DATATROVE_EXECUTORS[name](workers=workers, **options)
+
+    return make
+
+
+EXECUTORS = {
+    "local": LocalExecutor,
+    # datatrove (and ray) are imported only when one of these is chosen.
+    "datatrove-local": _datatrove("datatrove-local"),
+    "ray": _datatrove("ray"),
+    "slurm": _datatrove("slurm"),
+}
 
 
 def get_executor(name: str, workers: int = 1, **options: Any) -> Executor:
     if name not in EXECUTORS:
         raise ConfigError(f"unknown executor {name!r} (available: {', '.join(EXECUTORS)})")
-    return EXECUTORS[name](workers=workers, **options)
+    try:
+        return EXECUTORS[name](workers=workers, **options)
+    except TypeError:  # an option this executor does not take, e.g. --address for local
+        raise ConfigError(f"executor {name!r} does not take these options: {', '.join(options)}") from None

@@ -11,7 +11,11 @@ HELP = "run a pipeline config; re-running after an interruption resumes it"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", help="pipeline config (.toml, .yaml or .json)")
     parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--executor", default="local", help="executor: local (default)")
+    parser.add_argument("--executor", default="local",
+                        help="local (default, process pool), datatrove-local, ray or slurm (see docs/executors.md)")
+    parser.add_argument("--address", help="ray: address of the cluster to join (default: start a local Ray instance)")
+    parser.add_argument("--partition", help="slurm: partition of the generated job array (required for slurm)")
+    parser.add_argument("--time", help="slurm: time limit per array task (default 04:00:00)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--push", metavar="ORG/NAME", help="push the result to the hub under this dataset ID")
     parser.add_argument("--push-revision", metavar="BRANCH", help="hub branch for --push (default main)")
@@ -31,6 +35,11 @@ def run(args: argparse.Namespace) -> int:
             config.destination, repo_id=args.push, push=True, revision=args.push_revision,
             private=args.private or config.destination.private,
         )
-    path = run_pipeline(config, workers=args.workers, executor=args.executor, progress=not args.no_progress)
+    options = {k: v for k in ("address", "partition", "time") if (v := getattr(args, k)) is not None}
+    path = run_pipeline(config, workers=args.workers, executor=args.executor, executor_options=options,
+                        progress=not args.no_progress)
+    if path is None:  # handed to a scheduler; the executor said what to submit
+        print(f"{config.destination.root} not written yet: run this command again when the job has finished")
+        return 0
     print(f"wrote {path}")
     return 0

@@ -1,0 +1,154 @@
+"""Executor scaling: wall time of a CPU-heavy stage with 1 vs 2 workers, local and Ray executors.
+
+The stage re-renders every frame of recorded Panda play episodes from their simulator state
+(`sim.qpos`, written by `shiftkit collect --env panda-play`) with MuJoCo (visual meshes, 64x48),
+adding a camera feature. It is registered here only, for the bench: the Ray executor ships it to
+its workers with the step, the local executor's spawned workers re-import this file.
+
+In one run: the same pipeline on the same episodes with the `local` executor (1 and 2 workers) and
+the `ray` executor (1 and 2 workers, on a local Ray instance started once beforehand, as a cluster
+would be). Goal: speed-up >= 1.6x with 2 workers, for each executor; the reported value is the
+smaller of the two. The machine's load average is recorded, since other jobs share its cores.
+The last line printed is the JSON result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+# Mesa's llvmpipe rasterises with one thread per core by default, so a single renderer would
+# already occupy both cores: one thread per renderer makes "workers" the unit of parallelism.
+os.environ.setdefault("LP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from shiftkit.pipelines.episode import Episode  # noqa: E402
+from shiftkit.pipelines.features import Features  # noqa: E402
+from shiftkit.pipelines.stage import Stage, register_stage  # noqa: E402
+
+
+@dataclasses.dataclass
+class RerenderConfig:
+    camera: str = "front"
+    """Panda play camera to render."""
+    quality: str = "full"
+    """"full" (visual meshes, the costly mode) or "fast" (collision geometry)."""
+    width: int = 64
+    """Image width."""
+    height: int = 48
+    """Image height."""
+
+
+@register_stage
+class Rerender(Stage):
+    """Re-render each frame from its recorded simulator state (bench-only stage)."""
+
+    name = "bench-rerender"
+    version = 1
+    Config = RerenderConfig
+
+    def setup(self) -> None:
+        from shiftkit.envs.panda_play import PandaPlayPhysics
+        from shiftkit.envs.rendering import CameraRenderer
+
+        self._physics = PandaPlayPhysics()
+        self._renderer = CameraRenderer(self._physics.model, self.config.width, self.config.height, self.config.quality)
+
+    def transform_features(self, features: Features) -> Features:
+        image = {"dtype": "image", "shape": (self.config.height, self.config.width, 3),
+                 "names": ["height", "width", "channels"]}
+        return {**features, f"observation.images.{self.config.camera}_rerendered": image}
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        qpos = episode.frames["sim.qpos"]
+        zeros = np.zeros(self._physics.model.nv)
+        images = []
+        for q in qpos:
+            self._physics.set_state(q.astype(np.float64), zeros)
+            images.append(self._renderer.rgb(self._physics.data, self.config.camera).copy())
+        key = f"observation.images.{self.config.camera}_rerendered"
+        yield Episode({**episode.frames, key: np.stack(images)}, dict(episode.meta))
+
+
+def make_source(root: Path, episodes: int) -> Path:
+    from shiftkit.pipelines.collect import CollectConfig, collect
+
+    path, _ = collect(CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=0, out=str(root)))
+    return path
+
+
+def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episodes: int) -> float:
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+
+    config = PipelineConfig(sources=[SourceConfig(path=str(source))], stages=[StageSpec(name="bench-rerender")],
+                            destination=DestinationConfig(root=str(dest)))
+    options = {} if executor == "local" else {"shard_episodes": shard_episodes}
+    t0 = time.perf_counter()
+    run_pipeline(config, workers=workers, executor=executor, executor_options=options, progress=False)
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="2 episodes (about a minute; start-up dominates)")
+    parser.add_argument("--episodes", type=int, help="recorded lift episodes (default 12, quick 2)")
+    args = parser.parse_args()
+    episodes = args.episodes or (2 if args.quick else 12)
+
+
+    with tempfile.TemporaryDirectory(prefix="shiftkit-bench-exec-") as tmp:
+        tmp = Path(tmp)
+        os.environ.setdefault("HF_LEROBOT_HOME", str(tmp / "home"))
+        os.environ.setdefault("HF_DATASETS_CACHE", str(tmp / "datasets-cache"))
+        source = make_source(tmp / "raw", episodes)
+        from shiftkit.pipelines.raw_format import open_raw_dataset
+
+        raw = open_raw_dataset(source)
+        frames = sum(len(raw.read_episode(i)) for i in range(raw.num_episodes))
+        load_before = os.getloadavg()
+        import ray
+
+        ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING",
+                 runtime_env={"env_vars": {k: os.environ[k] for k in ("HF_HUB_OFFLINE", "HF_LEROBOT_HOME",
+                                                                     "HF_DATASETS_CACHE", "MUJOCO_GL",
+                                                                     "LP_NUM_THREADS")}})
+        seconds: dict[str, dict[int, float]] = {}
+        # One episode per unit (raw sources); shards of 1 episode balance 2 workers best.
+        for name in ("local", "ray"):
+            seconds[name] = {w: timed_run(source, tmp / f"{name}-{w}", name, w, shard_episodes=1) for w in (1, 2)}
+        ray.shutdown()
+        load_after = os.getloadavg()
+
+    speedups = {name: s[1] / s[2] for name, s in seconds.items()}
+    print(json.dumps({
+        "bench": "executors",
+        "metric": "speedup_2_workers_min_over_executors",
+        "value": round(min(speedups.values()), 3),
+        "goal": 1.6,
+        "higher_is_better": True,
+        "speedup": {k: round(v, 3) for k, v in speedups.items()},
+        "seconds": {k: {str(w): round(t, 2) for w, t in v.items()} for k, v in seconds.items()},
+        "stage": "bench-rerender (MuJoCo, visual meshes, 64x48)",
+        "episodes": episodes,
+        "frames": frames,
+        "cpu_count": os.cpu_count(),
+        "lp_num_threads": os.environ["LP_NUM_THREADS"],
+        "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
+        "quick": args.quick,
+    }))
+
+
+if __name__ == "__main__":
+    main()
