@@ -22,6 +22,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    # The Ray executor tests run first, from a fresh pytest process: after the BC tests had run in
+    # the same process, datatrove's Ray rank pool sometimes never received its task (seen here;
+    # never when these tests ran first or alone). Known issue, see docs/executors.md.
+    items.sort(key=lambda item: 0 if item.path.name == "test_executors.py" else 1)
     if config.getoption("--run-learning"):
         return
     skip = pytest.mark.skip(reason="long learning check: run with --run-learning")
