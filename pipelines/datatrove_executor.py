@@ -470,8 +470,7 @@ def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any]) ->
     """Aggregate the shard datasets (in order) into the destination, atomically."""
     from lerobot.datasets.aggregate import aggregate_datasets
 
-    from shiftkit.cards import render_dataset_card
-    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, _json_default
+    from shiftkit.pipelines.lerobot_io import write_provenance
     from shiftkit.pipelines.provenance import build_provenance
 
     dest = plan.destination
@@ -481,8 +480,7 @@ def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any]) ->
             aggregate_datasets([plan.repo_id] * len(roots), plan.repo_id, roots=roots, aggr_root=tmp)
         num_episodes, num_frames = fix_position_stats(tmp)
         provenance = build_provenance(plan, executor_info, num_episodes, num_frames)
-        (tmp / PROVENANCE_PATH).write_text(json.dumps(provenance, indent=2, sort_keys=True, default=_json_default))
-        (tmp / "README.md").write_text(render_dataset_card(tmp, provenance))
+        write_provenance(tmp, provenance)
         if dest.exists():
             raise DatasetError(f"destination already exists: {dest}")
         os.rename(tmp, dest)

@@ -29,6 +29,7 @@ import numpy as np
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import CAMERA_DTYPES, Features, check_episode, check_features, user_features
+from shiftkit.pipelines.jsonutil import dumps
 
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
 PROVENANCE_PATH = "meta/shiftkit_provenance.json"
@@ -206,7 +207,7 @@ class DatasetWriter:
             "data/file_index": self._chunk_file[1],
             "dataset_from_index": start,
             "dataset_to_index": start + n,
-            META_COLUMN: json.dumps(episode.meta, sort_keys=True, default=_json_default),
+            META_COLUMN: dumps(episode.meta),
             **flatten_dict({"stats": stats}),
         })
         info["total_episodes"] += 1
@@ -244,10 +245,7 @@ class DatasetWriter:
         self._meta._close_writer()
         self._write_info_and_stats()
         if provenance is not None:
-            from shiftkit.cards import render_dataset_card
-
-            (self.tmp / PROVENANCE_PATH).write_text(json.dumps(provenance, indent=2, sort_keys=True, default=_json_default))
-            (self.tmp / "README.md").write_text(render_dataset_card(self.tmp, provenance))
+            write_provenance(self.tmp, provenance)
         if self.root.exists():
             self.abort()
             raise DatasetError(f"destination already exists: {self.root}")
@@ -274,14 +272,12 @@ class DatasetWriter:
         self._closed = True
 
 
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")
+def write_provenance(root: Path, provenance: dict[str, Any]) -> None:
+    """The machine-readable provenance and the dataset card rendered from it (after info/stats)."""
+    from shiftkit.cards import render_dataset_card
+
+    (root / PROVENANCE_PATH).write_text(dumps(provenance, indent=2))
+    (root / "README.md").write_text(render_dataset_card(root, provenance))
 
 
 # --------------------------------------------------------------------------- reading

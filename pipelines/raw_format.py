@@ -32,6 +32,7 @@ import numpy as np
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, image_feature, vector_feature
+from shiftkit.pipelines.jsonutil import dumps
 
 FORMAT = "shiftkit-raw"
 VERSION = 1
@@ -165,7 +166,7 @@ class RawDatasetWriter:
             (ep_dir / "depth").mkdir(exist_ok=True)
             np.save(ep_dir / "depth" / f"{cam}.npy", d, allow_pickle=False)
         meta["length"] = length
-        (ep_dir / "meta.json").write_text(json.dumps(meta, indent=1, sort_keys=True, default=_json_default))
+        (ep_dir / "meta.json").write_text(dumps(meta, indent=1))
         self._episodes.append({"name": ep_dir.name, "length": length, "task": meta["task"]})
 
     def _write_index(self) -> None:
@@ -179,15 +180,7 @@ class RawDatasetWriter:
             "info": self.info,
             "episodes": self._episodes,
         }
-        (self._tmp / "dataset.json").write_text(json.dumps(index, indent=1, sort_keys=True, default=_json_default))
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON-serialisable: {type(obj).__name__}")
+        (self._tmp / "dataset.json").write_text(dumps(index, indent=1))
 
 
 def _validate_arrays(arrays: dict[str, np.ndarray], where: str) -> None:

@@ -2,8 +2,8 @@
 
 Examples are states where a task is complete (VPACE); for LfGP they are full expert trajectories with
 actions. Loaders read them from LeRobot datasets (`observation.state` [+ `observation.environment_state`],
-`task` naming the task of each frame) or from the thesis authors' published expert buffers
-(gzip + pickle of numpy dicts, see shared/data/vpace/README.md).
+`task` naming the task of each frame); the thesis authors' published expert buffers become such
+datasets with `shiftkit import vpace`.
 
 Augmentation (thesis B.2.6): Gaussian noise per observation dimension, scaled by that dimension's
 standard deviation within the task's example set times `aug_factor` (0.1), so dimensions that never
@@ -12,10 +12,7 @@ vary (std 0) stay exact.
 
 from __future__ import annotations
 
-import gzip
-import pickle
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -114,27 +111,6 @@ def load_dataset_examples(
             np.concatenate(obs_parts[task]), np.concatenate(act_parts[task]) if with_actions else None
         )
     return examples, sources
-
-
-def load_vpace_buffer(path: str | Path) -> TaskExamples:
-    """Read one of the VPACE authors' published buffers (gzip + pickle of numpy arrays).
-
-    Rows are put back in insertion order (circular buffer) and the always-zero absorbing-state flag
-    (last observation column) is dropped.
-    """
-    try:
-        with gzip.open(path, "rb") as f:
-            data = pickle.load(f)
-        obs, act = np.asarray(data["observations"], np.float32), np.asarray(data["actions"], np.float32)
-        count, size, pointer = int(data["count"]), int(data["memory_size"]), int(data["pointer"])
-    except (OSError, KeyError, pickle.UnpicklingError, EOFError) as exc:
-        raise DatasetError(f"cannot read VPACE expert buffer {path}: {exc}") from exc
-    if count > size:
-        order = np.roll(np.arange(size), -pointer)
-        obs, act = obs[order], act[order]
-    else:
-        obs, act = obs[:count], act[:count]
-    return TaskExamples(obs[:, :-1], act)
 
 
 class ExampleBuffer:
