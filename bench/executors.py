@@ -103,9 +103,9 @@ def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episo
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 episodes (about a minute; start-up dominates)")
-    parser.add_argument("--episodes", type=int, help="recorded lift episodes (default 12, quick 2)")
+    parser.add_argument("--episodes", type=int, help="recorded lift episodes (default 24, quick 2)")
     args = parser.parse_args()
-    episodes = args.episodes or (2 if args.quick else 12)
+    episodes = args.episodes or (2 if args.quick else 24)
 
 
     with tempfile.TemporaryDirectory(prefix="shiftkit-bench-exec-") as tmp:
