@@ -23,3 +23,17 @@ def json_default(obj: Any) -> Any:
 def dumps(obj: Any, indent: int | None = None) -> str:
     """Sorted keys, so equal content gives equal bytes."""
     return json.dumps(obj, indent=indent, sort_keys=True, default=json_default)
+
+
+def read_json_file(path: Path, missing: str) -> Any:
+    """Parse a metadata file; a missing or malformed file is a one-line DatasetError."""
+    from shiftkit.pipelines.errors import DatasetError
+
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DatasetError(f"{path} is missing ({missing})") from None
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: unreadable ({exc.strerror})") from None

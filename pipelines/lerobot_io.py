@@ -29,7 +29,7 @@ import numpy as np
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import CAMERA_DTYPES, Features, check_episode, check_features, user_features
-from shiftkit.pipelines.jsonutil import dumps
+from shiftkit.pipelines.jsonutil import dumps, read_json_file
 
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
 PROVENANCE_PATH = "meta/shiftkit_provenance.json"
@@ -407,12 +407,7 @@ def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     info_path = root / "meta" / "info.json"
     if not root.is_dir():
         raise DatasetError(f"dataset not found: {root}")
-    try:
-        info = json.loads(info_path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{info_path} is missing (not a LeRobot dataset)") from None
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{info_path}: invalid JSON ({exc.msg})") from None
+    info = read_json_file(info_path, "not a LeRobot dataset")
     version = str(info.get("codebase_version", ""))
     if version != "v3.0":
         hint = " (convert v2.1 with lerobot's convert_dataset_v21_to_v30)" if version.startswith("v2") else ""

@@ -17,7 +17,6 @@ recording gives the same files.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import uuid
@@ -32,7 +31,7 @@ import numpy as np
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, image_feature, vector_feature
-from shiftkit.pipelines.jsonutil import dumps
+from shiftkit.pipelines.jsonutil import dumps, read_json_file
 
 FORMAT = "shiftkit-raw"
 VERSION = 1
@@ -259,12 +258,7 @@ class RawDataset:
     def read_episode(self, i: int) -> Episode:
         ep = self.episode_dir(i)
         where = f"{ep}"
-        try:
-            meta = json.loads((ep / "meta.json").read_text())
-        except FileNotFoundError:
-            raise DatasetError(f"{where}: meta.json is missing") from None
-        except json.JSONDecodeError as exc:
-            raise DatasetError(f"{where}/meta.json: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+        meta = read_json_file(ep / "meta.json", "episode metadata")
         arrays: dict[str, np.ndarray] = {}
         for path in sorted((ep / "arrays").glob("*.npy")):
             try:
@@ -332,12 +326,7 @@ def open_raw_dataset(root: str | Path) -> RawDataset:
     index_path = root / "dataset.json"
     if not root.is_dir():
         raise DatasetError(f"raw dataset not found: {root}")
-    try:
-        index = json.loads(index_path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{index_path} is missing (not a shiftkit raw dataset)") from None
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{index_path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+    index = read_json_file(index_path, "not a shiftkit raw dataset")
     if index.get("format") != FORMAT:
         raise DatasetError(f"{index_path}: format is {index.get('format')!r}, expected {FORMAT!r}")
     if index.get("version") != VERSION:
