@@ -29,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
-from shiftkit.pipelines.lerobot_io import lerobot_home
+from shiftkit.pipelines.lerobot_io import find_local_dataset, lerobot_home
 
 log = logging.getLogger(__name__)
 
@@ -80,14 +80,13 @@ def validate_repo_id(repo_id: str) -> None:
 
 def local_dataset_root(source: str | Path) -> Path:
     """The root of a local LeRobot dataset given as a folder or as an ID under $HF_LEROBOT_HOME."""
-    path = Path(source).expanduser()
-    if not path.is_dir() and (lerobot_home() / str(source)).is_dir():
-        path = lerobot_home() / str(source)
-    if not path.is_dir():
-        raise DatasetError(f"{source}: no such dataset folder, nor a local dataset ID under {lerobot_home()}")
-    if not (path / "meta" / "info.json").is_file():
-        raise DatasetError(f"{path}: not a LeRobot dataset (no meta/info.json)")
-    return path
+    path = find_local_dataset(source)
+    if path is not None:
+        return path
+    folder = Path(source).expanduser()
+    if folder.is_dir():
+        raise DatasetError(f"{folder}: not a LeRobot dataset (no meta/info.json)")
+    raise DatasetError(f"{source}: no such dataset folder, nor a local dataset ID under {lerobot_home()}")
 
 
 def push_dataset(

@@ -471,19 +471,28 @@ def lerobot_home() -> Path:
     return Path(os.environ.get("HF_LEROBOT_HOME", Path.home() / ".cache" / "huggingface" / "lerobot")).expanduser()
 
 
+def find_local_dataset(ref: str | Path) -> Path | None:
+    """The dataset directory `ref` names locally: the directory itself, or `$HF_LEROBOT_HOME/<ref>`."""
+    for path in (Path(ref).expanduser(), lerobot_home() / str(ref)):
+        if (path / "meta" / "info.json").is_file():
+            return path
+    return None
+
+
 def resolve_dataset(ref: str, root: str | Path | None = None, revision: str | None = None) -> ResolvedDataset:
     """Find a dataset given a local path or a dataset ID.
 
     Order: `root` (the dataset directory) if given; `ref` itself if it is a dataset directory;
     `$HF_LEROBOT_HOME/<ref>`; then the hub (`HF_ENDPOINT`), pulled into the cache at `revision`.
     """
-    candidates = [Path(root)] if root is not None else [Path(ref), lerobot_home() / ref]
-    for path in candidates:
-        if (path / "meta" / "info.json").is_file():
-            repo_id = ref if root is not None or not Path(ref).exists() else Path(ref).name
-            return ResolvedDataset(repo_id, path, revision, fingerprint(path))
     if root is not None:
-        raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json missing)")
+        if not (Path(root) / "meta" / "info.json").is_file():
+            raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json missing)")
+        return ResolvedDataset(ref, Path(root), revision, fingerprint(root))
+    path = find_local_dataset(ref)
+    if path is not None:
+        repo_id = Path(ref).name if Path(ref).exists() else ref
+        return ResolvedDataset(repo_id, path, revision, fingerprint(path))
     if Path(ref).exists() or ref.startswith((".", "/")) or ref.count("/") != 1:
         raise DatasetError(f"dataset not found: {ref} (neither a dataset directory nor an ORG/NAME id)")
     from shiftkit.pipelines import hub
