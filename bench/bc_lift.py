@@ -43,6 +43,7 @@ def main() -> None:
     os.environ.setdefault("HF_DATASETS_CACHE", str(work / "hf-cache"))
 
     from shiftkit.envs import make
+    from shiftkit.envs.panda_play_experts import ExpertPolicy
     from shiftkit.pipelines.collect import CollectConfig, collect
     from shiftkit.policies.bc import BCArgs, load_policy, train
     from shiftkit.policies.evaluation import evaluate, run_episodes, wilson_interval
@@ -67,22 +68,8 @@ def main() -> None:
     (run / "eval" / "panda-play-lift-seed1000.json").write_text(report.to_json())
     eval_s = time.perf_counter() - t0
 
-    class Expert:
-        features = policy.features
-
-        def __init__(self, env) -> None:
-            from shiftkit.envs.panda_play_experts import PandaPlayExpert
-
-            self.env, self.cls = env, PandaPlayExpert
-
-        def reset(self) -> None:
-            self.expert = self.cls(self.env)
-
-        def act(self, obs):
-            return self.expert.act()
-
     env = make("panda-play", "lift")
-    expert = run_episodes(Expert(env), env, eval_episodes, seed=1000)
+    expert = run_episodes(ExpertPolicy(env), env, eval_episodes, seed=1000)
     env.close()
     expert_rate = sum(e.success for e in expert) / len(expert)
 

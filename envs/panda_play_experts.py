@@ -313,6 +313,23 @@ class PandaPlayExpert:
         return a
 
 
+class ExpertPolicy:
+    """The scripted expert in the policy interface of `shiftkit.policies.evaluation` (a baseline on the
+    same seeds as a learned policy). It reads the simulator, so it asks for no observation features."""
+
+    features: dict[str, dict] = {}
+
+    def __init__(self, env: PandaPlayEnv) -> None:
+        self.env = env
+        self.expert = PandaPlayExpert(env)
+
+    def reset(self) -> None:
+        self.expert = PandaPlayExpert(self.env)
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return self.expert.act()
+
+
 def _free_spot(avoid: np.ndarray) -> np.ndarray:
     """The FREE_SPOTS entry farthest from the `avoid` points (xy rows)."""
     clearance = np.min(np.linalg.norm(FREE_SPOTS[:, None] - avoid[None], axis=2), axis=1)

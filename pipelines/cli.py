@@ -1,6 +1,6 @@
 """The `shiftkit` command line: a thin dispatcher over `shiftkit.pipelines.commands.*`.
 
-Each command module defines `HELP` (one line), `add_arguments(parser)` and `run(args) -> int`, and
+Each command module defines `HELP` (one line, plain text), `add_arguments(parser)` and `run(args) -> int`, and
 imports its heavy dependencies inside `run`, so `shiftkit --help` stays fast. User mistakes raise
 `ShiftkitError`, printed here as one line with exit code 2.
 """
@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--verbose", "-v", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module in _available_commands().items():
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        p = sub.add_parser(name, help=module.HELP.replace("%", "%%"), description=module.HELP)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser

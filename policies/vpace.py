@@ -34,7 +34,7 @@ from shiftkit.policies.example_buffer import STATE_KEYS, DatasetSource, ExampleB
 from shiftkit.policies.replay import ReplayBuffer, ReplaySample
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_loss, rce_targets
 from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member, polyak_update
-from shiftkit.policies.schedulers import WeightedRandomScheduler
+from shiftkit.policies.schedulers import QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.value_penalty import ValueBounds, value_penalty
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -95,9 +95,11 @@ class VPACEArgs:
     example_batch_size: int = 128
     """Example rows per task per update."""
     lr: float = 3e-4
-    """Adam learning rate of policies, critics, discriminators and temperatures."""
+    """Adam(W) learning rate of policies, critics, discriminators and temperatures."""
     weight_decay: float = 1e-2
-    """Adam L2 weight decay of policies, critics and discriminators."""
+    """Decoupled (AdamW) weight decay of policies, critics and discriminators. Adam's coupled L2 form must
+    not be used here: where a critic's data gradients are small, Adam normalises the decay term itself to
+    steps of size lr and shrinks the whole network to zero within a few thousand updates."""
     initial_alpha: float = 1e-2
     """Initial SAC temperature of every intention (target entropy is -dim(action))."""
     polyak: float = 1e-3
@@ -123,7 +125,11 @@ class VPACEArgs:
     handcraft_rate: float = 0.5
     """Probability that an episode follows a handcrafted sequence (when any are given)."""
     handcrafted: list[str] = field(default_factory=list)
-    """Handcrafted sequences, comma-separated task names per period (`main` = main task)."""
+    """Handcrafted sequences, comma-separated task names per period (`main` = main task), or the name of
+    one of the thesis' sets: panda (VPACE), panda-lfgp (LfGP), reach-grasp (Sawyer/Adroit)."""
+    scheduler: str = "wrs"
+    """wrs (weighted random + handcrafted) or learned (SAC-Q's Q-table over task histories, scored by the
+    main task's learned reward; needs the dac reward model)."""
     episode_steps: int | None = None
     """Episode length; None takes the environment's time limit."""
     eval_every: int = 25_000
@@ -156,6 +162,11 @@ class VPACEArgs:
             raise ConfigError("full trajectories (lfgp) need the dac reward model")
         if (self.full_trajectories or self.reward_model == "rce") and self.n_step != 1:
             raise ConfigError("n-step returns are only supported with state-only sqil/dac rewards; use n_step 1")
+        if self.scheduler not in ("wrs", "learned"):
+            raise ConfigError(f"unknown scheduler {self.scheduler!r}; choose wrs or learned")
+        if self.scheduler == "learned" and not (self.multitask and self.reward_model == "dac"):
+            raise ConfigError("the learned scheduler needs several tasks and a learned reward (dac): it scores "
+                              "plans by the main task's reward, which SQIL/RCE do not provide")
         if self.multitask and self.main_task in self.aux_tasks:
             raise ConfigError(f"main task {self.main_task!r} is also listed as an auxiliary task")
         for name in ("total_steps", "batch_size", "example_batch_size", "n_step", "num_periods", "eval_episodes"):
@@ -223,13 +234,13 @@ class Agent:
         self.action_low, self.action_high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
         self.target_entropy = -float(act_dim)
         self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
-        self.actor_opt = torch.optim.Adam(self.intentions.actor.parameters(), args.lr, weight_decay=args.weight_decay)
-        self.critic_opt = torch.optim.Adam(self.intentions.critic.parameters(), args.lr, weight_decay=args.weight_decay)
+        self.actor_opt = torch.optim.AdamW(self.intentions.actor.parameters(), args.lr, weight_decay=args.weight_decay)
+        self.critic_opt = torch.optim.AdamW(self.intentions.critic.parameters(), args.lr, weight_decay=args.weight_decay)
         self.alpha_opt = torch.optim.Adam([self.intentions.log_alpha], args.lr)
         if args.reward_model == "dac":
             in_dim = obs_dim + (act_dim if args.full_trajectories else 0)
             self.reward = DACReward(self.num_tasks, in_dim, args.hidden, args.gradient_penalty).to(device)
-            self.reward_opt = torch.optim.Adam(self.reward.parameters(), args.lr, weight_decay=args.weight_decay)
+            self.reward_opt = torch.optim.AdamW(self.reward.parameters(), args.lr, weight_decay=args.weight_decay)
         else:
             self.reward = SQILReward()
         self.bounds = ValueBounds(self.num_tasks, args.reward_scale, args.gamma, args.vp_filter_size)
@@ -242,6 +253,12 @@ class Agent:
         x = torch.as_tensor(obs, device=self.device).expand(self.num_tasks, 1, -1)
         action = self.intentions.mean_action(x) if deterministic else self.intentions.sample(x)[0]
         return action[task, 0].cpu().numpy()
+
+    @torch.no_grad()
+    def main_task_rewards(self, obs: np.ndarray, act: np.ndarray) -> np.ndarray:
+        """Scaled learned reward of the main task for an episode's (L, ·) states (and actions for LfGP)."""
+        x = torch.as_tensor(np.concatenate([obs, act], -1) if self.args.full_trajectories else obs, device=self.device)
+        return (self.args.reward_scale * self.reward.buffer_reward(x.expand(self.num_tasks, *x.shape))[0]).cpu().numpy()
 
     def env_action(self, action: np.ndarray) -> np.ndarray:
         """Map [-1, 1] to the environment's action bounds."""
@@ -429,12 +446,18 @@ def train(
     agent = Agent(args, obs_dim, env.action_space, device)
     act_dim = int(np.prod(env.action_space.shape))
     replay = ReplayBuffer(args.total_steps, obs_dim, act_dim)
-    scheduler = WeightedRandomScheduler(tasks, args.num_periods, args.main_rate, args.handcraft_rate, args.handcrafted)
+    if args.scheduler == "learned":
+        scheduler = QTableScheduler(tasks, args.num_periods, args.gamma, handcraft_rate=args.handcraft_rate,
+                                    handcrafted=args.handcrafted)
+    else:
+        scheduler = WeightedRandomScheduler(tasks, args.num_periods, args.main_rate, args.handcraft_rate,
+                                            args.handcrafted)
     step, episode, last_eval = 0, 0, {}
     state = run.load_latest() if args.resume else None
     if state is not None:
         agent.load_state_dict(state["agent"])
         replay.load_state_dict(state["replay"])
+        scheduler.load_state_dict(state["scheduler"])
         rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
         step, episode, last_eval = state["step"], state["episode"], state["last_eval"]
@@ -450,7 +473,8 @@ def train(
 
     def checkpoint() -> None:
         run.save_checkpoint(step, {
-            "agent": agent.state_dict(), "replay": replay.state_dict(), "numpy_rng": rng.bit_generator.state,
+            "agent": agent.state_dict(), "replay": replay.state_dict(), "scheduler": scheduler.state_dict(),
+            "numpy_rng": rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(), "step": step, "episode": episode, "last_eval": last_eval,
         })
 
@@ -459,6 +483,7 @@ def train(
     while step < args.total_steps:
         obs = flat_obs(env.reset(seed=args.seed * 1_000_000 + episode)[0])
         plan = scheduler.plan_episode(rng)
+        start = replay.pointer  # this episode's rows, for a learned scheduler
         for t in range(horizon):
             task = plan[min(t // period, args.num_periods - 1)]
             if step < args.random_steps:
@@ -482,6 +507,9 @@ def train(
                 run.log(step, "eval", **last_eval)
             if episode_over:
                 break
+        if scheduler.learned:
+            rows = (start + np.arange(t + 1)) % replay.capacity
+            scheduler.update(plan, agent.main_task_rewards(replay.obs[rows], replay.act[rows]), period)
         episode += 1
         if step >= next_checkpoint or step == args.total_steps:
             checkpoint()

@@ -55,8 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--single-task", dest="multitask", action="store_false", default=None,
                    help="main intention only (no scheduler), overriding the variant")
     p.add_argument("--handcrafted", action="append", default=None, metavar="T1,T2,...",
-                   help=docs["handcrafted"] + " Repeat for several; the thesis' Panda ones: "
-                        "reach,lift,main,release,reach,lift,main,release")
+                   help=docs["handcrafted"] + " Repeatable, e.g. --handcrafted panda or "
+                        "--handcrafted reach,lift,main,open,reach,lift,main,open")
     p.add_argument("--hidden", type=lambda s: tuple(int(x) for x in _csv(s)), default=None,
                    help="hidden widths, comma-separated (default: 256,256)")
     p.add_argument("--env-kwarg", dest="env_kwargs", action="append", type=_key_value, default=None,

@@ -16,7 +16,7 @@ from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_d
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
 from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member
-from shiftkit.policies.schedulers import WeightedRandomScheduler
+from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.vpace import VPACEArgs, make_env, train
 
 GOAL = np.array([0.5, 0.5], np.float32)
@@ -130,6 +130,10 @@ def test_config_errors(tmp_path):
         run(tiny_args(tmp_path, variant="rce", value_penalty=10.0))
     with pytest.raises(ConfigError, match="unknown task"):
         run(tiny_args(tmp_path, "h", handcrafted=["main,lift"]))
+    with pytest.raises(ConfigError, match="learned scheduler needs"):
+        run(tiny_args(tmp_path, "q", scheduler="learned"))  # SQIL labels give the scheduler no signal
+    with pytest.raises(ConfigError, match="unknown scheduler"):
+        run(tiny_args(tmp_path, "u", scheduler="round-robin"))
     with pytest.raises(ConfigError, match="unknown env"):
         make_env("no-such-env", "reach", {})
     bad = {"reach-goal": TaskExamples(np.zeros((5, 3), np.float32)), "go-right": TaskExamples(np.zeros((5, 3), np.float32))}
@@ -152,6 +156,22 @@ def test_intentions_are_independent_per_task():
     norms = clip_grad_norm_per_member(net.critic.parameters(), max_norm=1e-3)
     after = torch.stack([p.grad.flatten(1).square().sum(1) for p in net.critic.parameters()]).sum(0).sqrt()
     assert torch.allclose(after[[1, 4]], torch.full((2,), 1e-3), rtol=1e-3) and norms[0] == 0
+
+
+def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
+    # Coupled L2 in Adam normalises the decay term to lr-sized steps and zeroes an idle critic within a
+    # few thousand updates (it killed early Panda reach runs); decoupled decay shrinks by lr * wd per step.
+    from shiftkit.policies.vpace import Agent
+
+    args = VPACEArgs.for_variant("vpace", main_task="m", aux_tasks=["a"], hidden=(8, 8))
+    agent = Agent(args, 3, gym.spaces.Box(-1.0, 1.0, (2,), np.float32), torch.device("cpu"))
+    before = [p.detach().clone() for p in agent.intentions.critic.parameters()]
+    for _ in range(2000):
+        for p in agent.intentions.critic.parameters():
+            p.grad = torch.zeros_like(p)
+        agent.critic_opt.step()
+    for p, p0 in zip(agent.intentions.critic.parameters(), before):
+        assert p.norm() / p0.norm() > 0.98
 
 
 def test_reward_model_signs():
@@ -204,6 +224,44 @@ def test_scheduler_rates_and_handcrafted():
     assert np.mean(picks == 0) == pytest.approx(0.5, abs=0.03) and np.mean(picks == 1) == pytest.approx(0.25, abs=0.03)
     h = WeightedRandomScheduler(["m", "a"], 2, handcraft_rate=1.0, handcrafted=["a,main"])
     assert h.plan_episode(rng) == [1, 0]
+
+
+def test_handcrafted_presets_expand_to_the_thesis_sequences():
+    tasks = ["stack", "reach", "grasp", "lift", "open"]
+    s = WeightedRandomScheduler(tasks, 8, handcraft_rate=1.0, handcrafted=["panda"])
+    assert len(s.sequences) == len(HANDCRAFTED_PRESETS["panda"]) == 3
+    assert s.sequences[0] == [1, 3, 0, 4, 1, 3, 0, 4]  # reach, lift, main, open, ...
+    with pytest.raises(ConfigError, match=r"unknown task\(s\) \['move-object'\]"):
+        WeightedRandomScheduler(tasks, 8, handcrafted=["panda-lfgp"])
+
+
+def test_learned_scheduler_prefers_the_plan_with_the_higher_main_return():
+    # Two periods of 3 steps; main-task reward 1 per step only when task 1 runs in the first period.
+    s = QTableScheduler(["main", "aux"], num_periods=2, gamma=0.9, temperature=1.0, temperature_min=0.05,
+                        temperature_decay=0.99, handcraft_rate=0.0)
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        plan = s.plan_episode(rng)
+        s.update(plan, np.full(6, float(plan[0] == 1)), period=3)
+    q0 = s.q_values([])
+    assert q0[1] == pytest.approx(sum(0.9**t for t in range(6)), rel=1e-3) and q0[0] == pytest.approx(0.0, abs=1e-3)
+    picks = [s.plan_episode(rng)[0] for _ in range(200)]
+    assert np.mean(np.array(picks) == 1) > 0.95
+    restored = QTableScheduler(["main", "aux"], 2, 0.9)
+    restored.load_state_dict(s.state_dict())
+    assert restored.temperature == s.temperature and np.array_equal(restored.q_values([1]), s.q_values([1]))
+
+
+def test_learned_scheduler_run_resumes_exactly(tmp_path):
+    kw = dict(variant="dac", multitask=True, scheduler="learned", eval_every=0)
+    run(tiny_args(tmp_path, "straight", total_steps=300, **kw))
+    run(tiny_args(tmp_path, "split", total_steps=200, **kw))
+    run(tiny_args(tmp_path, "split", total_steps=300, resume=True, **kw))
+    a, b = final_state(tmp_path / "straight"), final_state(tmp_path / "split")
+    assert a["scheduler"]["table"] and a["scheduler"]["temperature"] < 360.0
+    assert a["scheduler"]["table"].keys() == b["scheduler"]["table"].keys()
+    assert all(np.array_equal(v, b["scheduler"]["table"][k]) for k, v in a["scheduler"]["table"].items())
+    assert torch.equal(a["agent"]["intentions"]["actor.0.weight"], b["agent"]["intentions"]["actor.0.weight"])
 
 
 def test_examples_from_lerobot_dataset(tmp_path, monkeypatch):

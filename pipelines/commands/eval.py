@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "evaluate a trained policy in a registered environment (success rate with a 95%% interval)"
+HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,0 +1,103 @@
+"""VPACE learning check on Panda reach (issue acceptance, SPEC 6.2): from 200 published success examples
+per task (main task reach, auxiliary task lift), the main intention must reach >= 90% success.
+
+Steps, all through shiftkit's own entry points:
+1. `shiftkit import vpace` of the VPACE authors' example files (../shared/data/vpace) into one LeRobot
+   example dataset;
+2. `shiftkit train vpace --main-task reach --aux-tasks lift --env-kwarg control_hz=5
+   --examples-per-task 200` with the thesis hyperparameters, evaluating the main intention (mean action)
+   every `--eval-every` environment steps (the success curve);
+3. a final evaluation of the last checkpoint on `--final-episodes` seeds no training episode used; the
+   baseline, in the same run, is the scripted reach expert on the same seeds.
+
+    python bench/vpace_reach.py [--quick] [--total-steps N] [--workdir DIR] [--data DIR]
+
+Last line: {"bench": "vpace_reach", "metric": "success_rate", "value": ..., "goal": 0.9, "curve": ...}
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+FILES = ("examples_1200_4_reach.gz", "examples_1200_3_lift.gz")
+FINAL_SEED = 5000  # training resets use seed * 1e6 + episode; periodic evaluations 1_000_003 + ...
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="smoke run: 2500 steps, 5 evaluation episodes")
+    parser.add_argument("--total-steps", type=int, help="environment steps (default 100000)")
+    parser.add_argument("--eval-every", type=int, help="steps between curve points (default 10000)")
+    parser.add_argument("--eval-episodes", type=int, default=20, help="episodes per curve point")
+    parser.add_argument("--final-episodes", type=int, help="episodes of the final evaluation (default 50)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "vpace"),
+                        help="folder with the published VPACE example files")
+    parser.add_argument("--workdir", help="keep dataset and run here (default: a temporary folder)")
+    args = parser.parse_args()
+    quick = dict(total_steps=2500, buffer_warmup=1500, random_steps=1500, eval_every=2500) if args.quick else {}
+    total_steps = args.total_steps or quick.get("total_steps", 100_000)
+    eval_every = args.eval_every or quick.get("eval_every", 10_000)
+    final_episodes = args.final_episodes or (5 if args.quick else 50)
+    eval_episodes = 5 if args.quick else args.eval_episodes
+    tmp = None if args.workdir else tempfile.TemporaryDirectory(prefix="bench-vpace-reach-")
+    work = Path(args.workdir or tmp.name)
+    work.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("HF_DATASETS_CACHE", str(work / "hf-cache"))
+
+    from shiftkit.envs import make
+    from shiftkit.envs.panda_play_experts import ExpertPolicy
+    from shiftkit.pipelines.import_vpace import import_vpace
+    from shiftkit.policies.evaluation import evaluate, run_episodes, wilson_interval
+    from shiftkit.policies.vpace import VPACEArgs, load_policy, train
+
+    examples, run = work / "examples", work / f"vpace-reach-seed{args.seed}"
+    if not examples.exists():
+        import_vpace([Path(args.data) / f for f in FILES], "local/vpace-examples", examples)
+    env_kwargs = {"control_hz": 5}
+    t0 = time.perf_counter()
+    train(VPACEArgs.for_variant(
+        "vpace", examples=[str(examples)], env="panda-play", main_task="reach", aux_tasks=["lift"],
+        output_dir=str(run), examples_per_task=200, env_kwargs=env_kwargs, seed=args.seed,
+        torch_threads=args.threads, eval_episodes=eval_episodes, resume=run.exists(),
+        **(quick | dict(total_steps=total_steps, eval_every=eval_every))))
+    train_s = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    report = evaluate(load_policy(run), "panda-play", "reach", final_episodes, seed=FINAL_SEED,
+                      policy_name=str(run), env_kwargs=env_kwargs)
+    eval_s = time.perf_counter() - t0
+    env = make("panda-play", "reach", **env_kwargs)
+    expert = run_episodes(ExpertPolicy(env), env, final_episodes, seed=FINAL_SEED)
+    env.close()
+    expert_successes = sum(e.success for e in expert)
+
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    curve = [[r["step"], r["success_rate"]] for r in rows if r["split"] == "eval"]
+    s = report.summary()
+    for step, rate in curve:
+        print(f"step {step:>7}: main-task success {rate:.0%} ({eval_episodes} episodes)")
+    print(f"train {train_s:.0f}s for {total_steps} env steps, final eval {eval_s:.0f}s")
+    print(f"VPACE reach success {s['successes']}/{s['episodes']} = {s['success_rate']:.0%}, 95% CI "
+          f"[{s['ci95'][0]:.0%}, {s['ci95'][1]:.0%}]; expert on the same seeds {expert_successes}/{len(expert)}")
+    print(json.dumps({
+        "bench": "vpace_reach", "metric": "success_rate", "value": s["success_rate"], "goal": 0.9,
+        "higher_is_better": True, "ci95": s["ci95"], "expert_success_rate": expert_successes / len(expert),
+        "expert_ci95": list(wilson_interval(expert_successes, len(expert))), "curve": curve,
+        "env_steps": total_steps, "examples_per_task": 200, "final_episodes": final_episodes,
+        "final_seeds": [FINAL_SEED, FINAL_SEED + final_episodes - 1], "seed": args.seed,
+        "train_s": round(train_s, 1), "eval_s": round(eval_s, 1), "threads": args.threads, "quick": args.quick,
+    }))
+
+
+if __name__ == "__main__":
+    main()
