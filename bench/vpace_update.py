@@ -1,6 +1,8 @@
 """Cost of one VPACE update with 5 intentions vs 1 intention (same run, same machine).
 
-All intentions are stacked into batched matmuls, so adding tasks should cost much less than linearly.
+All intentions are stacked into batched matmuls, so adding tasks costs much less than linearly where
+an update is bound by per-operation latency (a GPU). Nothing is shared between tasks, so the arithmetic
+itself grows linearly, and on a CPU, where it dominates, the ratio stays near 4 (docs/vpace.md).
 Panda-sized problem: 59-dim observations, 4-dim actions, 256x256 networks, 128 replay + 128 example rows.
 Prints one JSON line last: {"bench": "vpace_update", "metric": "update_time_ratio_5_vs_1", ...}.
 """
