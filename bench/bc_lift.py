@@ -46,7 +46,7 @@ def main() -> None:
     from shiftkit.envs.panda_play_experts import ExpertPolicy
     from shiftkit.pipelines.collect import CollectConfig, collect
     from shiftkit.policies.bc import BCArgs, load_policy, train
-    from shiftkit.policies.evaluation import evaluate, run_episodes, wilson_interval
+    from shiftkit.policies.evaluation import evaluate, record_evaluation, run_episodes, wilson_interval
 
     dataset, run = work / f"lift{episodes}", work / f"bc-{args.regime}"
     t0 = time.perf_counter()
@@ -64,8 +64,7 @@ def main() -> None:
     t0 = time.perf_counter()
     policy = load_policy(run)
     report = evaluate(policy, "panda-play", "lift", eval_episodes, seed=1000, policy_name=str(run))
-    (run / "eval").mkdir(exist_ok=True)
-    (run / "eval" / "panda-play-lift-seed1000.json").write_text(report.to_json())
+    record_evaluation(report, run)
     eval_s = time.perf_counter() - t0
 
     env = make("panda-play", "lift")

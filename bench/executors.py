@@ -116,7 +116,7 @@ def main() -> None:
         from shiftkit.pipelines.raw_format import open_raw_dataset
 
         raw = open_raw_dataset(source)
-        frames = sum(len(raw.read_episode(i)) for i in range(raw.num_episodes))
+        frames = sum(int(e["length"]) for e in raw.index["episodes"])  # from the index, no episode reads
         load_before = os.getloadavg()
         import ray
 

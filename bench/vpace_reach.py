@@ -58,6 +58,7 @@ def main() -> None:
     from shiftkit.envs.panda_play_experts import ExpertPolicy
     from shiftkit.pipelines.import_vpace import import_vpace
     from shiftkit.policies.evaluation import evaluate, run_episodes, wilson_interval
+    from shiftkit.policies.run_dir import RunDir
     from shiftkit.policies.vpace import VPACEArgs, load_policy, train
 
     examples, run = work / "examples", work / f"vpace-reach-seed{args.seed}"
@@ -81,8 +82,7 @@ def main() -> None:
     env.close()
     expert_successes = sum(e.success for e in expert)
 
-    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    curve = [[r["step"], r["success_rate"]] for r in rows if r["split"] == "eval"]
+    curve = [[r["step"], r["success_rate"]] for r in RunDir(run, resume=True).read_metrics() if r["split"] == "eval"]
     s = report.summary()
     for step, rate in curve:
         print(f"step {step:>7}: main-task success {rate:.0%} ({eval_episodes} episodes)")

@@ -30,7 +30,7 @@ from torch import nn
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.policies.data import FrameTable, Prefetcher, batches_per_epoch, epoch_batches, open_datasets
 from shiftkit.policies.networks import image_encoder, mlp, orthogonal_init_
-from shiftkit.policies.run_dir import RunDir, versions
+from shiftkit.policies.run_dir import RunDir, dataset_records, load_checkpoint, torch_device, versions
 
 REGIMES = ("early-stop", "fixed")
 
@@ -284,7 +284,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> BCPolicy:
         path = ckpt_path
     if not path.is_file():
         raise DatasetError(f"policy checkpoint not found: {path}")
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = load_checkpoint(path)
     if state.get("trainer") != "bc":
         raise DatasetError(f"{path} is not a BC checkpoint (trainer {state.get('trainer')!r})")
     policy = BCPolicy(PolicySpec(**state["policy_spec"]))
@@ -347,20 +347,11 @@ def _merged_stats(datasets: list, keys: list[str]) -> dict[str, dict[str, list]]
     return out
 
 
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        return torch.device(name)
-    except RuntimeError as exc:
-        raise ConfigError(f"unknown device {name!r}") from exc
-
-
 def train(args: BCArgs) -> dict:
     """Train (or resume) a BC ensemble; returns the final metrics written to the model card."""
     args = args.resolved()
     run = RunDir(args.output_dir, args.resume)
-    device = _device(args.device)
+    device = torch_device(args.device)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
 
@@ -392,10 +383,7 @@ def train(args: BCArgs) -> dict:
     run.write_config({
         "trainer": "bc",
         "args": dataclasses.asdict(args),
-        "datasets": [
-            {"id": r.repo_id, "root": str(r.root), "revision": r.revision, "fingerprint": r.fingerprint}
-            for r, _ in opened
-        ],
+        "datasets": dataset_records([r for r, _ in opened]),
         "seed": args.seed,
         "versions": versions(),
         "inputs": inputs,

@@ -45,7 +45,7 @@ def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Resolv
     return opened
 
 
-def _numeric_column(ds, key: str) -> np.ndarray:
+def numeric_column(ds, key: str) -> np.ndarray:
     """A numeric feature of every frame as one `(N, *shape)` float32 array."""
     column = ds.hf_dataset.with_format("numpy", columns=[key])[key]
     shape = tuple(ds.meta.features[key]["shape"])
@@ -153,7 +153,7 @@ class FrameTable:
                     [_decode_video_feature(ds, key, max_decoded_bytes) for ds in datasets]
                 )
             else:
-                self._arrays[key] = np.concatenate([_numeric_column(ds, key) for ds in datasets])
+                self._arrays[key] = np.concatenate([numeric_column(ds, key) for ds in datasets])
 
     def gather(self, rows: np.ndarray) -> dict[str, np.ndarray]:
         """Feature arrays for the frames at global indices `rows`: numeric as float32, images as uint8

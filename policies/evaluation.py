@@ -128,16 +128,18 @@ class EvalReport:
 
 def load_policy(path: str | Path, device: str = "cpu") -> Policy:
     """A trained policy from a run folder or checkpoint file, whichever trainer made it."""
+    from shiftkit.policies.run_dir import RunDir, run_folder, torch_device
+
     path = Path(path)
-    run_dir = path if path.is_dir() else path.parent.parent
-    config = run_dir / "config.json"
     if not path.exists():
         raise DatasetError(f"policy not found: {path}")
-    if not config.is_file():
-        raise DatasetError(f"{path} is not a shiftkit run (no {config})")
-    trainer = json.loads(config.read_text()).get("trainer")
+    config = RunDir(run_folder(path), resume=True).read_config()
+    if config is None:
+        raise DatasetError(f"{path} is not a shiftkit run (no {run_folder(path) / 'config.json'})")
+    torch_device(device)  # an unknown or absent device fails here, in one line
+    trainer = config.get("trainer")
     if trainer not in POLICY_LOADERS:
-        raise DatasetError(f"{config}: unknown trainer {trainer!r}")
+        raise DatasetError(f"{run_folder(path) / 'config.json'}: unknown trainer {trainer!r}")
     try:
         module = import_module(POLICY_LOADERS[trainer])
     except ModuleNotFoundError as exc:
@@ -237,10 +239,9 @@ def evaluate(
 def record_evaluation(report: EvalReport, policy_path: str | Path, out: str | Path | None = None) -> Path:
     """Write the per-episode results JSON (default: `<run>/eval/<env>-<task>-seed<S>.json`) and, when
     it lands in the policy's run folder, add the result to the run's model card."""
-    from shiftkit.policies.run_dir import EVAL, RunDir
+    from shiftkit.policies.run_dir import EVAL, RunDir, run_folder
 
-    path = Path(policy_path)
-    run_dir = path if path.is_dir() else path.parent.parent
+    run_dir = run_folder(policy_path)
     target = Path(out) if out else run_dir / EVAL / f"{report.env}-{report.task}-seed{report.seed}.json"
     target.parent.mkdir(parents=True, exist_ok=True)
     target.write_text(report.to_json())

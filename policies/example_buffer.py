@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.policies.data import numeric_column, open_datasets
 
 STATE_KEYS = ("observation.state", "observation.environment_state")
 
@@ -27,29 +29,6 @@ class TaskExamples:
 
     obs: np.ndarray  # (N, obs_dim) float32
     act: np.ndarray | None = None  # (N, act_dim) float32, expert actions (full trajectories only)
-
-
-@dataclass
-class DatasetSource:
-    """Provenance of one example dataset."""
-
-    id: str
-    root: str
-    fingerprint: str
-
-
-def open_dataset(ref: str):
-    """Open a LeRobot dataset by ID or local path; returns (LeRobotDataset, DatasetSource)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    from shiftkit.pipelines.lerobot_io import resolve_dataset
-
-    resolved = resolve_dataset(ref)
-    try:
-        dataset = LeRobotDataset(resolved.repo_id, root=resolved.root)
-    except Exception as exc:  # lerobot raises many types for a missing/corrupt dataset
-        raise DatasetError(f"cannot open example dataset {ref!r}: {exc}") from exc
-    return dataset, DatasetSource(resolved.repo_id, str(resolved.root), resolved.fingerprint)
 
 
 def _column_order(dataset, keys: list[str], observation_names: list[str] | None, ref: str) -> np.ndarray | None:
@@ -68,7 +47,7 @@ def _column_order(dataset, keys: list[str], observation_names: list[str] | None,
 
 def load_dataset_examples(
     refs: list[str], tasks: list[str], with_actions: bool = False, observation_names: list[str] | None = None
-) -> tuple[dict[str, TaskExamples], list[DatasetSource]]:
+) -> tuple[dict[str, TaskExamples], list[ResolvedDataset]]:
     """Collect each task's frames from LeRobot datasets, keyed by the frame's `task` string.
 
     With `with_actions` (LfGP), frames keep their actions and every episode's final state is added once
@@ -77,23 +56,20 @@ def load_dataset_examples(
     """
     obs_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
     act_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
-    sources = []
-    for ref in refs:
-        dataset, source = open_dataset(ref)
-        sources.append(source)
+    opened = open_datasets(refs)
+    for ref, (_, dataset) in zip(refs, opened, strict=True):
         keys = [k for k in STATE_KEYS if k in dataset.features]
         if "observation.state" not in keys:
             raise DatasetError(f"example dataset {ref!r} has no 'observation.state' feature")
         if with_actions and "action" not in dataset.features:
             raise DatasetError(f"example dataset {ref!r} has no 'action' feature (LfGP needs full trajectories)")
-        table = dataset.hf_dataset.with_format("numpy")
-        obs = np.concatenate([np.asarray(table[k], np.float32).reshape(len(table), -1) for k in keys], axis=1)
+        obs = np.concatenate([numeric_column(dataset, k).reshape(len(dataset), -1) for k in keys], axis=1)
         order = _column_order(dataset, keys, observation_names, ref)
         if order is not None:
             obs = obs[:, order]
-        task_index = np.asarray(table["task_index"]).reshape(-1)
-        episode = np.asarray(table["episode_index"]).reshape(-1)
-        act = np.asarray(table["action"], np.float32) if with_actions else None
+        table = dataset.hf_dataset.with_format("numpy", columns=["task_index", "episode_index"])[:]
+        task_index, episode = table["task_index"].reshape(-1), table["episode_index"].reshape(-1)
+        act = numeric_column(dataset, "action") if with_actions else None
         for task, row in dataset.meta.tasks.iterrows():
             if task not in obs_parts:
                 continue
@@ -110,7 +86,7 @@ def load_dataset_examples(
         examples[task] = TaskExamples(
             np.concatenate(obs_parts[task]), np.concatenate(act_parts[task]) if with_actions else None
         )
-    return examples, sources
+    return examples, [resolved for resolved, _ in opened]
 
 
 class ExampleBuffer:

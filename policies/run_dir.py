@@ -2,7 +2,7 @@
 
     OUTPUT_DIR/
       config.json        {"trainer": "bc"|"vpace"|..., "args": {...full dataclass...},
-                          "datasets": [{"id":..., "root":..., "fingerprint":...}], "seed": ...,
+                          "datasets": [{"id":..., "root":..., "revision":..., "fingerprint":...}], "seed": ...,
                           "versions": {"shiftkit":..., "lerobot":..., "torch":...}, ...}
       checkpoints/step-00001000.pt   torch.save dict (models, optimizers, rng states, "step", ...)
       checkpoints/last.txt           name of the newest complete checkpoint
@@ -26,7 +26,9 @@ from typing import Any
 
 import torch
 
-from shiftkit.pipelines.errors import ConfigError, ShiftkitError
+from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
+from shiftkit.pipelines.jsonutil import read_json_file
+from shiftkit.pipelines.lerobot_io import ResolvedDataset
 
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
@@ -46,6 +48,45 @@ def versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             out[pkg] = "unknown"
     return out
+
+
+def torch_device(name: str) -> torch.device:
+    """`auto` (cuda when available, else cpu) or a torch device name; an unknown or absent device is a
+    one-line ConfigError rather than torch's error at the first tensor moved there."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"unknown device {name!r} (e.g. cpu, cuda, cuda:1, auto)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device {name!r} asked for, but torch sees no CUDA GPU here")
+    return device
+
+
+def run_folder(path: str | Path) -> Path:
+    """The run folder of a run folder or of one of its checkpoint files (`RUN/checkpoints/step-*.pt`)."""
+    path = Path(path)
+    return path if path.is_dir() else path.parent.parent
+
+
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
+    """A checkpoint's state dict; a truncated or foreign file is a one-line DatasetError."""
+    try:
+        state = torch.load(path, map_location=device, weights_only=False)
+    except FileNotFoundError:
+        raise DatasetError(f"checkpoint not found: {path}") from None
+    except Exception as exc:  # torch/pickle raise many types for a file that is not a checkpoint
+        raise DatasetError(f"{path} is not a readable checkpoint ({type(exc).__name__}: {exc})") from None
+    if not isinstance(state, dict):
+        raise DatasetError(f"{path} is not a shiftkit checkpoint")
+    return state
+
+
+def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | None]]:
+    """The `datasets` entry of config.json: what a run trained on, pinned by content fingerprint."""
+    return [{"id": r.repo_id, "root": str(r.root), "revision": r.revision, "fingerprint": r.fingerprint}
+            for r in resolved]
 
 
 def _atomic_write(path: Path, write) -> None:
@@ -82,7 +123,6 @@ class RunDir:
             raise ShiftkitError(f"output folder {self.path} already holds a run; pass --resume or choose another")
         if self.path.exists() and not self.path.is_dir():
             raise ShiftkitError(f"output path {self.path} is a file, not a folder")
-        (self.path / CHECKPOINTS).mkdir(parents=True, exist_ok=True)
 
     @property
     def checkpoint_dir(self) -> Path:
@@ -91,7 +131,7 @@ class RunDir:
     def read_config(self) -> dict | None:
         """The stored config.json, or None before `write_config`."""
         path = self.path / CONFIG
-        return json.loads(path.read_text()) if path.exists() else None
+        return read_json_file(path, "the run's config") if path.exists() else None
 
     def write_config(self, config: dict, ignore_on_resume: tuple[str, ...] = ("resume",)) -> None:
         """Store the run's config; on resume it must match the stored one's `args` (apart from the
@@ -107,6 +147,9 @@ class RunDir:
                         f"now {new_args.get(key)!r})"
                     )
         text = json.dumps(config, indent=2, sort_keys=True) + "\n"
+        # The folder appears with the config, after a trainer has checked its data and env: a run that
+        # fails to start leaves nothing that would block the corrected command.
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         _atomic_write(self.path / CONFIG, lambda f: f.write(text.encode()))
 
     def save_checkpoint(self, step: int, state: dict, keep: int = 2) -> Path:
@@ -136,7 +179,7 @@ class RunDir:
         path = self.latest_checkpoint()
         if path is None:
             return None
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = load_checkpoint(path)
         self._truncate_metrics(int(state["step"]))
         return state
 

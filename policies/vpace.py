@@ -30,7 +30,8 @@ import numpy as np
 import torch
 
 from shiftkit.pipelines.errors import ConfigError
-from shiftkit.policies.example_buffer import STATE_KEYS, DatasetSource, ExampleBuffer, TaskExamples, load_dataset_examples
+from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.policies.example_buffer import STATE_KEYS, ExampleBuffer, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer, ReplaySample
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_loss, rce_targets
 from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member, polyak_update
@@ -407,18 +408,17 @@ def train(
     `env_factory(task)` and `examples` (per task) replace the environment lookup and the example datasets,
     e.g. in tests or when examples come from numpy files.
     """
-    from shiftkit.policies.run_dir import RunDir, versions
+    from shiftkit.policies.run_dir import RunDir, dataset_records, torch_device, versions
 
     args.validate()
     tasks = args.tasks
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if args.device == "auto" else args.device))
+    device = torch_device(args.device)
     run = RunDir(Path(args.output_dir), resume=args.resume)
 
     # Data and environments.
-    sources: list[DatasetSource] = []
+    sources: list[ResolvedDataset] = []
     env_factory = env_factory or (lambda task: make_env(args.env, task, args.env_kwargs))
     env, eval_env = env_factory(args.main_task), env_factory(args.main_task)
     if examples is None:
@@ -465,7 +465,7 @@ def train(
         "trainer": "lfgp" if args.full_trajectories else "vpace",
         "env": args.env,
         "args": dataclasses.asdict(args),
-        "datasets": [dataclasses.asdict(s) for s in sources],
+        "datasets": dataset_records(sources),
         "seed": args.seed,
         "versions": versions(),
         "examples_per_task": example_buffer.sizes(),
@@ -536,23 +536,21 @@ class MainIntentionPolicy:
 
 def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
     """The main intention of a VPACE/LfGP run folder (its newest checkpoint) or checkpoint file."""
-    import json
-
     from shiftkit.pipelines.dataclass_config import from_dict
     from shiftkit.pipelines.errors import DatasetError
-    from shiftkit.policies.run_dir import RunDir
+    from shiftkit.policies.run_dir import RunDir, load_checkpoint, run_folder, torch_device
 
-    path = Path(path)
-    run_dir = path if path.is_dir() else path.parent.parent
-    checkpoint = RunDir(run_dir, resume=True).latest_checkpoint() if path.is_dir() else path
-    if checkpoint is None or not checkpoint.is_file():
-        raise DatasetError(f"{path}: no VPACE checkpoint")
-    args = from_dict(VPACEArgs, json.loads((run_dir / "config.json").read_text())["args"], f"{run_dir}/config.json")
+    path, run = Path(path), RunDir(run_folder(path), resume=True)
+    checkpoint = run.latest_checkpoint() if path.is_dir() else path
+    config = run.read_config()
+    if checkpoint is None or not checkpoint.is_file() or config is None:
+        raise DatasetError(f"{path}: no VPACE checkpoint with its run's config.json")
+    args = from_dict(VPACEArgs, config["args"], f"{run.path}/config.json")
     env = make_env(args.env, args.main_task, args.env_kwargs)
     names = getattr(env.unwrapped, "observation_names", None)
     if names is None:
         raise ConfigError(f"environment {args.env!r} does not name its observation dimensions")
-    agent = Agent(args, flat_obs(env.observation_space.sample()).shape[0], env.action_space, torch.device(device))
+    agent = Agent(args, flat_obs(env.observation_space.sample()).shape[0], env.action_space, torch_device(device))
     env.close()
-    agent.load_state_dict(torch.load(checkpoint, map_location=device, weights_only=False)["agent"])
+    agent.load_state_dict(load_checkpoint(checkpoint, device)["agent"])
     return MainIntentionPolicy(agent, args.tasks.index(args.main_task), list(names))

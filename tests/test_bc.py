@@ -264,6 +264,8 @@ def test_user_errors_are_one_line(state_ds, tmp_path):
         train(small_args(state_ds, tmp_path / "r1", inputs=["observation.nope"]))
     with pytest.raises(ConfigError, match="regime"):
         train(small_args(state_ds, tmp_path / "r2", regime="forever"))
+    # a run that fails to start leaves no folder behind that would block the corrected command
+    assert not any((tmp_path / r).exists() for r in ("r0", "r1", "r2"))
     train(small_args(state_ds, tmp_path / "r3", steps=20))
     with pytest.raises(ShiftkitError, match="already holds a run"):
         train(small_args(state_ds, tmp_path / "r3", steps=20))

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.envs.panda_play_experts import ExpertPolicy
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.policies.evaluation import EvalReport, ObservationMap, load_policy, run_episodes, wilson_interval
 
@@ -31,13 +32,13 @@ def test_observation_map_picks_dims_by_name():
         ObservationMap({"observation.state": {"shape": [1], "names": ["force_z"]}}, names)
 
 
-class ExpertPolicy:
-    """The env's scripted expert behind the policy interface (it reads the simulator, not `obs`)."""
+class RecordingExpert(ExpertPolicy):
+    """The scripted expert asking for the split state features, recording what it is given."""
 
     def __init__(self, env) -> None:
         from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
 
-        self.env = env
+        super().__init__(env)
         self.features = {
             key: {"shape": [len(idx)], "names": [OBSERVATION_NAMES[i] for i in idx]}
             for key, idx in (("observation.state", STATE_INDICES),
@@ -45,14 +46,9 @@ class ExpertPolicy:
         }
         self.seen: list[dict] = []
 
-    def reset(self) -> None:
-        from shiftkit.envs.panda_play_experts import PandaPlayExpert
-
-        self.expert = PandaPlayExpert(self.env)
-
     def act(self, obs):
         self.seen.append(obs)
-        return self.expert.act()
+        return super().act(obs)
 
 
 def test_run_episodes_with_results_and_videos(tmp_path):
@@ -61,7 +57,7 @@ def test_run_episodes_with_results_and_videos(tmp_path):
     from shiftkit.envs import make
 
     env = make("panda-play", "lift")
-    policy = ExpertPolicy(env)
+    policy = RecordingExpert(env)
     results = run_episodes(policy, env, episodes=2, seed=100, video_dir=tmp_path / "videos")
     assert [e.seed for e in results] == [100, 101]
     # an episode stops at its first success, else at the env's time limit
@@ -106,3 +102,15 @@ def test_load_policy_errors(tmp_path):
     (tmp_path / "plain").mkdir()
     with pytest.raises(DatasetError, match="not a shiftkit run"):
         load_policy(tmp_path / "plain")
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "config.json").write_text("{bad")
+    with pytest.raises(DatasetError, match="invalid JSON"):
+        load_policy(tmp_path / "broken")
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"trainer": "bc", "args": {}}))
+    (run / "checkpoints" / "step-00000001.pt").write_text("not a checkpoint")
+    with pytest.raises(DatasetError, match="not a readable checkpoint"):
+        load_policy(run / "checkpoints" / "step-00000001.pt")
+    with pytest.raises(ConfigError, match="unknown device 'gpu0'"):
+        load_policy(run, device="gpu0")

@@ -139,6 +139,7 @@ def test_config_errors(tmp_path):
     bad = {"reach-goal": TaskExamples(np.zeros((5, 3), np.float32)), "go-right": TaskExamples(np.zeros((5, 3), np.float32))}
     with pytest.raises(ConfigError, match="3-dim"):
         train(tiny_args(tmp_path, "d"), env_factory=lambda task: PointMass(), examples=bad)
+    assert not any((tmp_path / r).exists() for r in ("h", "q", "u", "d"))  # failed starts leave no run folder
 
 
 def test_intentions_are_independent_per_task():

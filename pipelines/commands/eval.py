@@ -20,8 +20,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from shiftkit.pipelines.errors import ConfigError
     from shiftkit.policies.evaluation import evaluate, load_policy, record_evaluation
 
+    # Output paths are checked before the rollouts, which can take minutes.
+    if args.out and Path(args.out).is_dir():
+        raise ConfigError(f"--out {args.out} is a folder; give the JSON file to write")
+    if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
+        raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
     policy = load_policy(args.policy, device=args.device)
     env_kwargs = {"control_hz": args.control_hz} if args.control_hz else {}
     report = evaluate(
