@@ -133,6 +133,8 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     if missing:
         raise DatasetError(f"{path}: missing key(s) {missing}")
     size, pointer, count = int(data["memory_size"]), int(data["pointer"]), int(data["count"])
+    if min(count, size) == 0:
+        raise DatasetError(f"{path}: empty buffer (no rows)")
     arrays = {k: np.asarray(data[k], dtype=np.float32) for k in ("observations", "next_observations", "actions", "rewards")}
     if any(len(a) != size for a in arrays.values()):
         raise DatasetError(f"{path}: array lengths {[len(a) for a in arrays.values()]} differ from memory_size {size}")
@@ -208,11 +210,13 @@ def import_vpace(
 ) -> ImportSummary:
     """Write the buffers in `files` into one new LeRobot dataset at `root` (atomically)."""
     from shiftkit.envs.panda_play import ACTION_NAMES
+    from shiftkit.pipelines.hub import validate_repo_id
     from shiftkit.pipelines.lerobot_io import DatasetWriter
     from shiftkit.pipelines.provenance import PROVENANCE_VERSION, versions
 
     if not files:
         raise DatasetError("no input files given")
+    validate_repo_id(repo_id)  # fail before reading anything, not later at `shiftkit push`
     if kind not in ("auto", "examples", "trajectories"):
         raise DatasetError(f"unknown kind {kind!r} (auto, examples, trajectories)")
     buffers = [read_vpace_buffer(f, task) for f in files]

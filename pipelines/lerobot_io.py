@@ -121,7 +121,10 @@ class DatasetWriter:
         self.fps = int(fps)
         self.repo_id = repo_id
         self.tmp = self.root.parent / f".{self.root.name}.partial-{uuid.uuid4().hex[:8]}"
-        self.root.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.root.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DatasetError(f"cannot create the destination's folder {self.root.parent}: {exc.strerror}") from None
         self._ds = LeRobotDataset.create(
             repo_id, self.fps, dict(self.features), root=self.tmp, robot_type=robot_type, use_videos=False
         )

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from shiftkit.pipelines.cli import main
-from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.errors import DatasetError, ShiftkitError
 from shiftkit.pipelines.import_vpace import import_vpace, read_vpace_buffer, task_from_filename
 from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
 
@@ -183,6 +183,13 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
                               np.zeros((3, 4), np.float32), np.zeros((3, 1), np.float32), 0, 3)
     with pytest.raises(DatasetError, match=r"neither \(N, 60\) nor \(N, 54\)"):
         read_vpace_buffer(bad_width)
+    empty = _write_buffer(tmp_path / "3_lift.gz", *(np.zeros((0, 60), np.float32),) * 2,
+                          np.zeros((0, 4), np.float32), np.zeros((0, 1), np.float32), 0, 0)
+    with pytest.raises(DatasetError, match="empty buffer"):
+        read_vpace_buffer(empty)
+    with pytest.raises(ShiftkitError, match="invalid repo id"):
+        import_vpace([bad_width], "not a repo id", tmp_path / "never")
+    assert not (tmp_path / "never").exists()
 
     assert main(["import", "vpace", str(tmp_path / "missing_3_lift.gz"), "--repo-id", "a/b", "--root",
                  str(tmp_path / "o")]) == 2

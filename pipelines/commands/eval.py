@@ -28,6 +28,8 @@ def run(args: argparse.Namespace) -> int:
     # Output paths are checked before the rollouts, which can take minutes.
     if args.out and Path(args.out).is_dir():
         raise ConfigError(f"--out {args.out} is a folder; give the JSON file to write")
+    if args.out and any(p.exists() and not p.is_dir() for p in Path(args.out).parents):
+        raise ConfigError(f"--out {args.out}: a parent of it is a file, not a folder")
     if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
         raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
     policy = load_policy(args.policy, device=args.device)
