@@ -39,7 +39,7 @@ from datatrove.pipeline.base import PipelineStep
 from shiftkit.pipelines import runner
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.runner import PartStore, WorkUnit, plan_units
-from shiftkit.pipelines.stage import Stage, register_stage, registered_stages, select_outputs
+from shiftkit.pipelines.stage import Stage, register_stage, registered_stages, select_outputs, selecting_stages
 
 SHARD_EPISODES = 16
 ATTEMPTS = 3
@@ -210,7 +210,7 @@ class DatatroveExecutor:
     def run(self, plan: Any, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
         shards = plan_shards(units, self.shard_episodes)
         store = ShardStore(parts.dir.parent)
-        if any(type(s).select is not Stage.select for s in plan.stages):
+        if selecting_stages(plan.stages):
             if self.schedules:
                 raise ConfigError(f"executor {self.name!r} cannot run stages with a dataset-level select; "
                                   "use local, datatrove-local or ray")
@@ -267,9 +267,9 @@ def _with_selection(plan: Any, shards: list[Shard], parts: PartStore) -> list[Sh
         metas = []
         for shard in shards:
             for s, i in shard.episodes:
-                for episode, _ in parts.read(s, i):
+                for meta in parts.metas(s, i):
                     owners.append((s, i))
-                    metas.append(episode.meta)
+                    metas.append(meta)
         return metas
 
     keep = select_outputs(plan.stages, read_metas)

@@ -41,12 +41,20 @@ class WorkUnit:
     episodes: tuple[int, ...]
 
 
+def _atomic_pickle(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
+    with open(tmp, "wb") as f:
+        pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.rename(tmp, path)
+
+
 class PartStore:
     """Finished per-source-episode outputs in `<dest>/../.<name>.shiftkit-work/parts`.
 
     One file per source episode holds its output episodes and their position-independent
     statistics, computed by the worker so the writer does not have to. Parts are private to one
     run of one pipeline (the work directory is keyed by `run_key`), so they are plain pickles.
+    A second, small file per source episode in `metas/` holds just the output metas.
     """
 
     def __init__(self, work_dir: Path) -> None:
@@ -62,12 +70,20 @@ class PartStore:
         from shiftkit.pipelines.lerobot_io import episode_stats
 
         records = [(ep.frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
-        final = self.path(source, episode)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = final.with_name(final.stem + f".tmp-{os.getpid()}")
-        with open(tmp, "wb") as f:
-            pickle.dump(records, f, protocol=pickle.HIGHEST_PROTOCOL)
-        os.rename(tmp, final)
+        for folder in (self.dir, self.meta_path(source, episode).parent):
+            folder.mkdir(parents=True, exist_ok=True)
+        # The metas alone first: a dataset-level `select` reads them without loading frames, and the
+        # part file (whose presence marks the episode done) only appears once both are complete.
+        _atomic_pickle(self.meta_path(source, episode), [ep.meta for ep in outputs])
+        _atomic_pickle(self.path(source, episode), records)
+
+    def meta_path(self, source: int, episode: int) -> Path:
+        return self.dir.parent / "metas" / self.path(source, episode).name
+
+    def metas(self, source: int, episode: int) -> list[dict[str, Any]]:
+        """The metas of one source episode's outputs, without their frames."""
+        with open(self.meta_path(source, episode), "rb") as f:
+            return pickle.load(f)
 
     def read(self, source: int, episode: int) -> Iterator[tuple[Episode, dict]]:
         with open(self.path(source, episode), "rb") as f:
@@ -198,8 +214,8 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
                 bar.update(1)
 
     # Dataset-level selection (e.g. N examples per task) sees the metas of all outputs first.
-    keep = select_outputs(plan.stages, lambda: [episode.meta for episode, _ in outputs()])
-    bar.reset()
+    keep = select_outputs(plan.stages, lambda: [m for s, source in enumerate(plan.sources)
+                                                for i in range(source.num_episodes) for m in parts.metas(s, i)])
     writer = DatasetWriter(plan.repo_id, plan.destination, plan.fps, plan.features, robot_type=plan.robot_type)
     with writer:
         for k, (episode, stats) in enumerate(outputs()):

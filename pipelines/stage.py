@@ -85,12 +85,17 @@ def register_stage(cls: type[Stage]) -> type[Stage]:
     return cls
 
 
+def selecting_stages(stages: list[Stage]) -> list[Stage]:
+    """The stages that override the dataset-level `select` hook."""
+    return [s for s in stages if type(s).select is not Stage.select]
+
+
 def select_outputs(stages: list[Stage], read_metas: Callable[[], list[dict[str, Any]]]) -> list[bool] | None:
     """Apply the stages' `select` hooks in pipeline order to the metas of all output episodes.
 
     Returns a keep-mask, or None without calling `read_metas` when no stage overrides `select`.
     """
-    selecting = [s for s in stages if type(s).select is not Stage.select]
+    selecting = selecting_stages(stages)
     if not selecting:
         return None
     metas = read_metas()
