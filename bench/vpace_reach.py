@@ -1,16 +1,21 @@
-"""VPACE learning check on Panda reach (issue acceptance, SPEC 6.2): from 200 published success examples
-per task (main task reach, auxiliary task lift), the main intention must reach >= 90% success.
+"""VPACE learning check on Panda reach (issue acceptance, SPEC 6.2): from 200 success examples per task,
+the main intention must reach >= 90% success.
 
 Steps, all through shiftkit's own entry points:
-1. `shiftkit import vpace` of the VPACE authors' example files (../shared/data/vpace) into one LeRobot
-   example dataset;
-2. `shiftkit train vpace --main-task reach --aux-tasks lift --env-kwarg control_hz=5
+1. one LeRobot example dataset with 200 examples per task, from either source (`--examples`):
+   * `published` (default): `shiftkit import vpace` of the VPACE authors' reach and lift example files
+     (../shared/data/vpace), recorded in their own simulator; auxiliary task lift;
+   * `scene`: final states of scripted-expert episodes in shiftkit's Panda play scene,
+     `shiftkit collect --task reach|open --control-hz 5 --only-successful` + the `success_examples`
+     stage; auxiliary task open (the thesis' pairing for reach). See docs/vpace.md for how the two
+     compare;
+2. `shiftkit train vpace --main-task reach --aux-tasks open|lift --env-kwarg control_hz=5
    --examples-per-task 200` with the thesis hyperparameters, evaluating the main intention (mean action)
    every `--eval-every` environment steps (the success curve);
 3. a final evaluation of the last checkpoint on `--final-episodes` seeds no training episode used; the
    baseline, in the same run, is the scripted reach expert on the same seeds.
 
-    python bench/vpace_reach.py [--quick] [--total-steps N] [--workdir DIR] [--data DIR]
+    python bench/vpace_reach.py [--quick] [--examples published|scene] [--total-steps N] [--workdir DIR]
 
 Last line: {"bench": "vpace_reach", "metric": "success_rate", "value": ..., "goal": 0.9, "curve": ...}
 """
@@ -27,8 +32,30 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-FILES = ("examples_1200_4_reach.gz", "examples_1200_3_lift.gz")
+PUBLISHED = {"files": ("examples_1200_4_reach.gz", "examples_1200_3_lift.gz"), "aux": "lift"}
+SCENE_AUX = "open"
 FINAL_SEED = 5000  # training resets use seed * 1e6 + episode; periodic evaluations 1_000_003 + ...
+COLLECT_SEED = 100_000  # scripted episodes for scene examples: seeds no training or evaluation reset uses
+COLLECT_EPISODES = 240  # successful episodes per task, more than the 200 examples kept
+
+
+def scene_examples(work: Path, tasks: list[str]) -> Path:
+    """200 final states per task of successful scripted-expert episodes at 5 Hz, one example dataset."""
+    from shiftkit.pipelines.collect import CollectConfig, collect
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+
+    raws = []
+    for i, task in enumerate(tasks):
+        raw = work / f"{task}-raw"
+        if not raw.exists():
+            collect(CollectConfig(env="panda-play", task=task, episodes=COLLECT_EPISODES, control_hz=5,
+                                  seed=COLLECT_SEED + i * COLLECT_EPISODES, out=str(raw), only_successful=True))
+        raws.append(SourceConfig(path=str(raw)))
+    return run_pipeline(PipelineConfig(
+        sources=raws, destination=DestinationConfig(root=str(work / "scene-examples"), repo_id="local/panda-examples"),
+        stages=[StageSpec("success_examples", {"n_per_task": 200, "states": "final"})]), progress=False)
 
 
 def main() -> None:
@@ -38,6 +65,8 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, help="steps between curve points (default 10000)")
     parser.add_argument("--eval-episodes", type=int, default=20, help="episodes per curve point")
     parser.add_argument("--final-episodes", type=int, help="episodes of the final evaluation (default 50)")
+    parser.add_argument("--examples", choices=("published", "scene"), default="published",
+                        help="example source: the published files (default) or scripted episodes in shiftkit's scene")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "vpace"),
@@ -61,13 +90,21 @@ def main() -> None:
     from shiftkit.policies.run_dir import RunDir
     from shiftkit.policies.vpace import VPACEArgs, load_policy, train
 
-    examples, run = work / "examples", work / f"vpace-reach-seed{args.seed}"
-    if not examples.exists():
-        import_vpace([Path(args.data) / f for f in FILES], "local/vpace-examples", examples)
+    run = work / f"vpace-reach-{args.examples}-seed{args.seed}"
+    if args.examples == "scene":
+        aux = SCENE_AUX
+        examples = work / "scene-examples"
+        if not examples.exists():
+            scene_examples(work, ["reach", aux])
+    else:
+        aux = PUBLISHED["aux"]
+        examples = work / "published-examples"
+        if not examples.exists():
+            import_vpace([Path(args.data) / f for f in PUBLISHED["files"]], "local/vpace-examples", examples)
     env_kwargs = {"control_hz": 5}
     t0 = time.perf_counter()
     train(VPACEArgs.for_variant(
-        "vpace", examples=[str(examples)], env="panda-play", main_task="reach", aux_tasks=["lift"],
+        "vpace", examples=[str(examples)], env="panda-play", main_task="reach", aux_tasks=[aux],
         output_dir=str(run), examples_per_task=200, env_kwargs=env_kwargs, seed=args.seed,
         torch_threads=args.threads, eval_episodes=eval_episodes, resume=run.exists(),
         **(quick | dict(total_steps=total_steps, eval_every=eval_every))))
@@ -93,7 +130,8 @@ def main() -> None:
         "bench": "vpace_reach", "metric": "success_rate", "value": s["success_rate"], "goal": 0.9,
         "higher_is_better": True, "ci95": s["ci95"], "expert_success_rate": expert_successes / len(expert),
         "expert_ci95": list(wilson_interval(expert_successes, len(expert))), "curve": curve,
-        "env_steps": total_steps, "examples_per_task": 200, "final_episodes": final_episodes,
+        "env_steps": total_steps, "examples": args.examples, "aux_task": aux, "examples_per_task": 200,
+        "final_episodes": final_episodes,
         "final_seeds": [FINAL_SEED, FINAL_SEED + final_episodes - 1], "seed": args.seed,
         "train_s": round(train_s, 1), "eval_s": round(eval_s, 1), "threads": args.threads, "quick": args.quick,
     }))

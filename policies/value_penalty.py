@@ -2,7 +2,7 @@
 
     L_pen = lambda * E_B[ max(Q - Q_max, 0)^2 + max(Q_min - Q, 0)^2 ]
 
-`Q_max` is the mean of Q(s*, a* ~ pi(s*)) over the example batch, smoothed with a median filter over the
+`Q_max` is the mean (or, as an option, the max) of Q(s*, a* ~ pi(s*)) over the example batch, smoothed with a median filter over the
 last 50 updates; `Q_min = reward_scale * min_reward / (1 - gamma)`, where a learned reward model's minimum
 reward is median-filtered the same way (thesis B.2.6).
 """
@@ -55,15 +55,15 @@ class ValueBounds:
         self.min_reward_filter = MedianFilter(num_tasks, filter_size)
 
     def update(
-        self, example_q_mean: torch.Tensor, min_reward: torch.Tensor, learned_reward: bool
+        self, example_q: torch.Tensor, min_reward: torch.Tensor, learned_reward: bool
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Returns (q_max, q_min), each (num_tasks,).
 
-        `example_q_mean` is the batch mean of Q(s*, a*) per task; `min_reward` the (unscaled) minimum
+        `example_q` is the batch mean (or max) of Q(s*, a*) per task; `min_reward` the (unscaled) minimum
         reward per task, median-filtered only when the reward is learned (DAC) since fixed labels (SQIL)
         are exact.
         """
-        q_max = self.q_max_filter.update(example_q_mean)
+        q_max = self.q_max_filter.update(example_q)
         if learned_reward:
             min_reward = self.min_reward_filter.update(min_reward)
         q_min = self.reward_scale * min_reward / (1.0 - self.gamma)

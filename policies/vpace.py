@@ -117,6 +117,9 @@ class VPACEArgs:
     """Hidden layer widths of every network."""
     vp_filter_size: int = 50
     """Median filter length for Q_max (and a learned reward's minimum)."""
+    vp_q_max: str = "mean"
+    """How Q_max is read from the example batch's Q(s*, a*): mean (thesis) or max (the reference code's
+    other choice, a looser bound)."""
     gradient_penalty: float = 10.0
     """DAC discriminator gradient penalty weight."""
     num_periods: int = 8
@@ -163,6 +166,8 @@ class VPACEArgs:
             raise ConfigError("full trajectories (lfgp) need the dac reward model")
         if (self.full_trajectories or self.reward_model == "rce") and self.n_step != 1:
             raise ConfigError("n-step returns are only supported with state-only sqil/dac rewards; use n_step 1")
+        if self.vp_q_max not in ("mean", "max"):
+            raise ConfigError(f"unknown vp_q_max {self.vp_q_max!r}; choose mean or max")
         if self.scheduler not in ("wrs", "learned"):
             raise ConfigError(f"unknown scheduler {self.scheduler!r}; choose wrs or learned")
         if self.scheduler == "learned" and not (self.multitask and self.reward_model == "dac"):
@@ -329,7 +334,9 @@ class Agent:
                         min_reward = torch.minimum(min_reward, ex_reward.min(1).values)
                 else:
                     min_reward = torch.full((T,), self.reward.policy_label, device=dev)
-                q_max, q_min = self.bounds.update(q_ex.detach().min(0).values.mean(-1), min_reward, self.reward.learned)
+                q_ex_min = q_ex.detach().min(0).values
+                example_q = q_ex_min.amax(-1) if a.vp_q_max == "max" else q_ex_min.mean(-1)
+                q_max, q_min = self.bounds.update(example_q, min_reward, self.reward.learned)
                 critic_loss = critic_loss + value_penalty(q, q_max.unsqueeze(-1), q_min.unsqueeze(-1), a.value_penalty)
                 stats["q_max"], stats["q_min"] = q_max, q_min
         self.critic_opt.zero_grad(set_to_none=True)

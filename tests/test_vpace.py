@@ -17,7 +17,7 @@ from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
 from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member
 from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
-from shiftkit.policies.vpace import VPACEArgs, make_env, train
+from shiftkit.policies.vpace import Agent, VPACEArgs, make_env, train
 
 GOAL = np.array([0.5, 0.5], np.float32)
 
@@ -132,6 +132,8 @@ def test_config_errors(tmp_path):
         run(tiny_args(tmp_path, "h", handcrafted=["main,lift"]))
     with pytest.raises(ConfigError, match="learned scheduler needs"):
         run(tiny_args(tmp_path, "q", scheduler="learned"))  # SQIL labels give the scheduler no signal
+    with pytest.raises(ConfigError, match="unknown vp_q_max"):
+        run(tiny_args(tmp_path, "m", vp_q_max="median"))
     with pytest.raises(ConfigError, match="unknown scheduler"):
         run(tiny_args(tmp_path, "u", scheduler="round-robin"))
     with pytest.raises(ConfigError, match="unknown env"):
@@ -139,7 +141,25 @@ def test_config_errors(tmp_path):
     bad = {"reach-goal": TaskExamples(np.zeros((5, 3), np.float32)), "go-right": TaskExamples(np.zeros((5, 3), np.float32))}
     with pytest.raises(ConfigError, match="3-dim"):
         train(tiny_args(tmp_path, "d"), env_factory=lambda task: PointMass(), examples=bad)
-    assert not any((tmp_path / r).exists() for r in ("h", "q", "u", "d"))  # failed starts leave no run folder
+    assert not any((tmp_path / r).exists() for r in ("h", "q", "m", "u", "d"))  # failed starts leave no run folder
+
+
+@pytest.mark.parametrize("reduce", ["mean", "max"])
+def test_q_max_is_the_mean_or_max_of_the_example_batch(tmp_path, reduce):
+    args = tiny_args(tmp_path, vp_q_max=reduce, vp_filter_size=1)
+    torch.manual_seed(0)
+    agent = Agent(args, 2, PointMass.action_space, torch.device("cpu"))
+    replay = ReplayBuffer(64, 2, 2)
+    rng = np.random.default_rng(0)
+    for t in range(64):
+        replay.add(rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2), episode_end=t % 8 == 7)
+    examples = ExampleBuffer(point_examples(), args.tasks, aug_factor=0.0)
+    stats = agent.update(replay.sample(rng, 16), *examples.sample(rng, 16))
+    # The first update's bound is this batch's reduction of min-twin Q(s*, a*); `q_examples` is its mean.
+    if reduce == "mean":
+        assert torch.equal(stats["q_max"], stats["q_examples"])
+    else:
+        assert torch.all(stats["q_max"] > stats["q_examples"])
 
 
 def test_intentions_are_independent_per_task():
