@@ -32,15 +32,16 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-PUBLISHED = {"files": ("examples_1200_4_reach.gz", "examples_1200_3_lift.gz"), "aux": "lift"}
-SCENE_AUX = "open"
+PUBLISHED_FILES = ("examples_1200_4_reach.gz", "examples_1200_3_lift.gz")
+AUX_TASK = {"published": "lift", "scene": "open"}  # the auxiliary task each example source provides
 FINAL_SEED = 5000  # training resets use seed * 1e6 + episode; periodic evaluations 1_000_003 + ...
 COLLECT_SEED = 100_000  # scripted episodes for scene examples: seeds no training or evaluation reset uses
-COLLECT_EPISODES = 240  # successful episodes per task, more than the 200 examples kept
+COLLECT_EPISODES = 240  # scripted episodes per task (failures skipped), enough for the 200 examples kept
 
 
-def scene_examples(work: Path, tasks: list[str]) -> Path:
-    """200 final states per task of successful scripted-expert episodes at 5 Hz, one example dataset."""
+def scene_examples(dest: Path, work: Path, tasks: list[str]) -> None:
+    """200 final states per task of successful scripted-expert episodes at 5 Hz, one example dataset at
+    `dest`; the raw episodes are kept in `work` (written atomically, so a rerun reuses them)."""
     from shiftkit.pipelines.collect import CollectConfig, collect
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
@@ -53,8 +54,8 @@ def scene_examples(work: Path, tasks: list[str]) -> Path:
             collect(CollectConfig(env="panda-play", task=task, episodes=COLLECT_EPISODES, control_hz=5,
                                   seed=COLLECT_SEED + i * COLLECT_EPISODES, out=str(raw), only_successful=True))
         raws.append(SourceConfig(path=str(raw)))
-    return run_pipeline(PipelineConfig(
-        sources=raws, destination=DestinationConfig(root=str(work / "scene-examples"), repo_id="local/panda-examples"),
+    run_pipeline(PipelineConfig(
+        sources=raws, destination=DestinationConfig(root=str(dest), repo_id="local/panda-examples"),
         stages=[StageSpec("success_examples", {"n_per_task": 200, "states": "final"})]), progress=False)
 
 
@@ -90,17 +91,13 @@ def main() -> None:
     from shiftkit.policies.run_dir import RunDir
     from shiftkit.policies.vpace import VPACEArgs, load_policy, train
 
-    run = work / f"vpace-reach-{args.examples}-seed{args.seed}"
-    if args.examples == "scene":
-        aux = SCENE_AUX
-        examples = work / "scene-examples"
-        if not examples.exists():
-            scene_examples(work, ["reach", aux])
-    else:
-        aux = PUBLISHED["aux"]
-        examples = work / "published-examples"
-        if not examples.exists():
-            import_vpace([Path(args.data) / f for f in PUBLISHED["files"]], "local/vpace-examples", examples)
+    aux = AUX_TASK[args.examples]
+    examples, run = work / f"{args.examples}-examples", work / f"vpace-reach-{args.examples}-seed{args.seed}"
+    if not examples.exists():
+        if args.examples == "scene":
+            scene_examples(examples, work, ["reach", aux])
+        else:
+            import_vpace([Path(args.data) / f for f in PUBLISHED_FILES], "local/vpace-examples", examples)
     env_kwargs = {"control_hz": 5}
     t0 = time.perf_counter()
     train(VPACEArgs.for_variant(
