@@ -237,12 +237,15 @@ def evaluate(
 
 
 def record_evaluation(report: EvalReport, policy_path: str | Path, out: str | Path | None = None) -> Path:
-    """Write the per-episode results JSON (default: `<run>/eval/<env>-<task>-seed<S>.json`) and, when
-    it lands in the policy's run folder, add the result to the run's model card."""
+    """Write the per-episode results JSON (default: `<run>/eval/<env>-<task>-seed<S>.json`, with
+    `-<checkpoint name>` added for a checkpoint file such as best.pt) and, when it lands in the policy's
+    run folder, add the result to the run's model card."""
     from shiftkit.policies.run_dir import EVAL, RunDir, run_folder
 
     run_dir = run_folder(policy_path)
-    target = Path(out) if out else run_dir / EVAL / f"{report.env}-{report.task}-seed{report.seed}.json"
+    checkpoint = f"-{Path(policy_path).stem}" if Path(policy_path).is_file() else ""
+    name = f"{report.env}-{report.task}-seed{report.seed}{checkpoint}.json"
+    target = Path(out) if out else run_dir / EVAL / name
     target.parent.mkdir(parents=True, exist_ok=True)
     target.write_text(report.to_json())
     if target.parent.resolve() == (run_dir / EVAL).resolve():

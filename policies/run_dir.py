@@ -6,6 +6,7 @@
                           "versions": {"shiftkit":..., "lerobot":..., "torch":...}, ...}
       checkpoints/step-00001000.pt   torch.save dict (models, optimizers, rng states, "step", ...)
       checkpoints/last.txt           name of the newest complete checkpoint
+      checkpoints/best.pt            (RL trainers) the policy at its best periodic evaluation
       metrics.jsonl      one JSON object per line, always with "step" and "split" ("train"/"eval"/...)
       README.md          model card rendered by shiftkit.cards
       card.json          the training metrics the card shows (so evaluations can re-render it)
@@ -37,6 +38,7 @@ CARD_METRICS = "card.json"
 EVAL = "eval"
 CHECKPOINTS = "checkpoints"
 LAST = "last.txt"
+BEST = "best.pt"
 
 
 def versions() -> dict[str, str]:
@@ -164,6 +166,12 @@ class RunDir:
                 old.unlink()
         return path
 
+    def save_best(self, step: int, state: dict) -> Path:
+        """Write `state` (with `step` added) as checkpoints/best.pt, replacing the previous best."""
+        path = self.checkpoint_dir / BEST
+        _atomic_write(path, lambda f: torch.save({**state, "step": step}, f))
+        return path
+
     def latest_checkpoint(self) -> Path | None:
         """Path of the newest complete checkpoint, or None."""
         last = self.checkpoint_dir / LAST
@@ -224,7 +232,8 @@ class RunDir:
         envs = []
         for path in sorted((self.path / EVAL).glob("*.json")):
             ev = json.loads(path.read_text())
-            name = f"{ev['env']}/{ev['task']} ({ev['episodes']} episodes from seed {ev['seed']})"
+            checkpoint = f"{Path(ev['policy']).name}, " if str(ev.get("policy", "")).endswith(".pt") else ""
+            name = f"{ev['env']}/{ev['task']} ({checkpoint}{ev['episodes']} episodes from seed {ev['seed']})"
             lo, hi = ev["ci95"]
             metrics[f"success {name}"] = f"{ev['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%})"
             envs.append(f"{ev['env']} / {ev['task']}")

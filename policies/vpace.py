@@ -14,7 +14,9 @@ Variants (`--variant`) are presets of three switches, any of which can be overri
 The loop below reads top to bottom: set-up, then per episode a scheduler plan, per step act, store and
 update, with periodic evaluation, metrics and resumable checkpoints (written at episode ends, where the
 state to restore is only models, optimizers, buffer and random generators: each episode's environment
-reset is seeded by the run seed and the episode number).
+reset is seeded by the run seed and the episode number). The intentions at the best periodic evaluation
+are also kept (checkpoints/best.pt): a policy that solved the task can lose it with further training
+(docs/vpace.md), and the best evaluation picks the snapshot to deploy, the way early stopping does.
 """
 
 from __future__ import annotations
@@ -207,6 +209,11 @@ def flat_obs(obs: Any) -> np.ndarray:
     if isinstance(obs, dict):
         obs = np.concatenate([np.ravel(obs[k]) for k in STATE_KEYS if k in obs])
     return np.asarray(obs, np.float32).ravel()
+
+
+def improves(result: dict[str, float], best: dict[str, float]) -> bool:
+    """Whether an evaluation beats the best so far: higher success rate, then higher return."""
+    return not best or (result["success_rate"], result["env_return"]) > (best["success_rate"], best["env_return"])
 
 
 def evaluate(agent: Agent, env: gym.Env, episodes: int, horizon: int, seed: int) -> dict[str, float]:
@@ -459,7 +466,7 @@ def train(
     else:
         scheduler = WeightedRandomScheduler(tasks, args.num_periods, args.main_rate, args.handcraft_rate,
                                             args.handcrafted)
-    step, episode, last_eval = 0, 0, {}
+    step, episode, last_eval, best_eval = 0, 0, {}, {}
     state = run.load_latest() if args.resume else None
     if state is not None:
         agent.load_state_dict(state["agent"])
@@ -468,6 +475,7 @@ def train(
         rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
         step, episode, last_eval = state["step"], state["episode"], state["last_eval"]
+        best_eval = state.get("best_eval", {})
     run.write_config({
         "trainer": "lfgp" if args.full_trajectories else "vpace",
         "env": args.env,
@@ -483,6 +491,7 @@ def train(
             "agent": agent.state_dict(), "replay": replay.state_dict(), "scheduler": scheduler.state_dict(),
             "numpy_rng": rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(), "step": step, "episode": episode, "last_eval": last_eval,
+            "best_eval": best_eval,
         })
 
     next_checkpoint = (step // args.checkpoint_every + 1) * args.checkpoint_every
@@ -512,6 +521,9 @@ def train(
             if args.eval_every and step % args.eval_every == 0:
                 last_eval = evaluate(agent, eval_env, args.eval_episodes, horizon, EVAL_SEED_OFFSET + args.seed * 1_000_000)
                 run.log(step, "eval", **last_eval)
+                if improves(last_eval, best_eval):
+                    best_eval = {**last_eval, "step": step}
+                    run.save_best(step, {"agent": {"intentions": agent.intentions.state_dict()}, "eval": best_eval})
             if episode_over:
                 break
         if scheduler.learned:
@@ -522,7 +534,8 @@ def train(
             checkpoint()
             next_checkpoint = (step // args.checkpoint_every + 1) * args.checkpoint_every
 
-    run.write_model_card({"step": step, **{f"eval/{k}": v for k, v in last_eval.items()}})
+    run.write_model_card({"step": step, **{f"eval/{k}": v for k, v in last_eval.items()},
+                          **{f"best_eval/{k}": v for k, v in best_eval.items()}})
     env.close()
     eval_env.close()
     return last_eval
@@ -542,7 +555,8 @@ class MainIntentionPolicy:
 
 
 def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
-    """The main intention of a VPACE/LfGP run folder (its newest checkpoint) or checkpoint file."""
+    """The main intention of a VPACE/LfGP run folder (its newest checkpoint) or of a checkpoint file,
+    e.g. `RUN/checkpoints/best.pt` for the best evaluated one."""
     from shiftkit.pipelines.dataclass_config import from_dict
     from shiftkit.pipelines.errors import DatasetError
     from shiftkit.policies.run_dir import RunDir, load_checkpoint, run_folder, torch_device
@@ -559,5 +573,9 @@ def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
         raise ConfigError(f"environment {args.env!r} does not name its observation dimensions")
     agent = Agent(args, flat_obs(env.observation_space.sample()).shape[0], env.action_space, torch_device(device))
     env.close()
-    agent.load_state_dict(load_checkpoint(checkpoint, device)["agent"])
+    state = load_checkpoint(checkpoint, device)
+    try:
+        agent.intentions.load_state_dict(state["agent"]["intentions"])
+    except (KeyError, TypeError, RuntimeError) as exc:
+        raise DatasetError(f"{checkpoint}: not a checkpoint of this run's agent ({type(exc).__name__})") from None
     return MainIntentionPolicy(agent, args.tasks.index(args.main_task), list(names))

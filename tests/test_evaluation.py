@@ -91,6 +91,13 @@ def test_eval_cli_runs_a_trained_bc_policy(tmp_path, capsys):
     assert result["results"][0]["steps"] > 0
     card = (run / "README.md").read_text()
     assert "success panda-play/lift (1 episodes from seed 500)" in card and "panda-play / lift" in card
+    # A checkpoint file's result is kept beside the run's, named for the checkpoint.
+    checkpoint = run / "checkpoints" / (run / "checkpoints" / "last.txt").read_text().strip()
+    assert main(["eval", "--policy", str(checkpoint), "--task", "lift", "--episodes", "1", "--seed", "500"]) == 0
+    assert json.loads((run / "eval" / f"panda-play-lift-seed500-{checkpoint.stem}.json").read_text())["episodes"] == 1
+    card = (run / "README.md").read_text()
+    assert f"success panda-play/lift ({checkpoint.name}, 1 episodes from seed 500)" in card
+    assert "success panda-play/lift (1 episodes from seed 500)" in card
 
     assert main(["eval", "--policy", str(tmp_path / "missing"), "--task", "lift"]) == 2
     assert main(["eval", "--policy", str(run), "--task", "fly"]) == 2

@@ -26,6 +26,7 @@ class PointMass(gym.Env):
     """A point in the unit square moved by 0.1 * action; main task: reach GOAL; aux: get right (x > 0.8)."""
 
     observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    observation_names = ("x", "y")
     action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
 
     def reset(self, seed=None, options=None):
@@ -95,6 +96,32 @@ def test_resume_gives_the_same_result(tmp_path):
         assert torch.equal(value, b["agent"]["intentions"][key]), key
     metrics = lambda name: (tmp_path / name / "metrics.jsonl").read_text()  # noqa: E731
     assert metrics("straight") == metrics("split")
+
+
+def test_best_checkpoint_holds_the_intentions_of_the_best_evaluation(tmp_path):
+    from shiftkit.policies.vpace import load_policy
+
+    run(tiny_args(tmp_path, "long", total_steps=400, eval_every=50, eval_episodes=3, seed=3))
+    evals = [x for x in map(json.loads, (tmp_path / "long" / "metrics.jsonl").read_text().splitlines())
+             if x["split"] == "eval"]
+    best = max(evals, key=lambda x: (x["success_rate"], x["env_return"], -x["step"]))
+    assert best["step"] < 400  # the last evaluation is not the best one here, so best.pt differs from last
+    saved = torch.load(tmp_path / "long" / "checkpoints" / "best.pt", weights_only=False)
+    assert saved["step"] == best["step"] and saved["eval"]["success_rate"] == best["success_rate"]
+    # The same run stopped at that step ends with exactly these weights.
+    run(tiny_args(tmp_path, "short", total_steps=best["step"], eval_every=50, eval_episodes=3, seed=3))
+    for key, value in final_state(tmp_path / "short")["agent"]["intentions"].items():
+        assert torch.equal(value, saved["agent"]["intentions"][key]), key
+    card = json.loads((tmp_path / "long" / "card.json").read_text())
+    assert card["best_eval/step"] == best["step"]
+    # `shiftkit eval --policy RUN/checkpoints/best.pt` loads these weights.
+    gym.register("point-mass", entry_point=PointMass, max_episode_steps=50)
+    try:
+        policy = load_policy(tmp_path / "long" / "checkpoints" / "best.pt")
+    finally:
+        gym.registry.pop("point-mass")
+    for key, value in policy.agent.intentions.state_dict().items():
+        assert torch.equal(value, saved["agent"]["intentions"][key]), key
 
 
 def test_same_seed_same_bytes_other_seed_differs(tmp_path):
