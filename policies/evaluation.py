@@ -240,11 +240,11 @@ def record_evaluation(report: EvalReport, policy_path: str | Path, out: str | Pa
     """Write the per-episode results JSON (default: `<run>/eval/<env>-<task>-seed<S>.json`, with
     `-<checkpoint name>` added for a checkpoint file such as best.pt) and, when it lands in the policy's
     run folder, add the result to the run's model card."""
-    from shiftkit.policies.run_dir import EVAL, RunDir, run_folder
+    from shiftkit.policies.run_dir import EVAL, RunDir, checkpoint_name, run_folder
 
     run_dir = run_folder(policy_path)
-    checkpoint = f"-{Path(policy_path).stem}" if Path(policy_path).is_file() else ""
-    name = f"{report.env}-{report.task}-seed{report.seed}{checkpoint}.json"
+    checkpoint = checkpoint_name(policy_path)
+    name = f"{report.env}-{report.task}-seed{report.seed}{f'-{Path(checkpoint).stem}' if checkpoint else ''}.json"
     target = Path(out) if out else run_dir / EVAL / name
     target.parent.mkdir(parents=True, exist_ok=True)
     target.write_text(report.to_json())

@@ -72,6 +72,13 @@ def run_folder(path: str | Path) -> Path:
     return path if path.is_dir() else path.parent.parent
 
 
+def checkpoint_name(policy_path: str | Path) -> str | None:
+    """The checkpoint file a policy path names (e.g. `best.pt`), or None for a run folder. Read from the
+    path alone, so a model card can still say it after the file has been pruned."""
+    path = Path(policy_path)
+    return path.name if path.suffix == ".pt" else None
+
+
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
     """A checkpoint's state dict; a truncated or foreign file is a one-line DatasetError."""
     try:
@@ -232,8 +239,9 @@ class RunDir:
         envs = []
         for path in sorted((self.path / EVAL).glob("*.json")):
             ev = json.loads(path.read_text())
-            checkpoint = f"{Path(ev['policy']).name}, " if str(ev.get("policy", "")).endswith(".pt") else ""
-            name = f"{ev['env']}/{ev['task']} ({checkpoint}{ev['episodes']} episodes from seed {ev['seed']})"
+            checkpoint = checkpoint_name(ev.get("policy", ""))
+            name = (f"{ev['env']}/{ev['task']} ({f'{checkpoint}, ' if checkpoint else ''}{ev['episodes']} episodes "
+                    f"from seed {ev['seed']})")
             lo, hi = ev["ci95"]
             metrics[f"success {name}"] = f"{ev['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%})"
             envs.append(f"{ev['env']} / {ev['task']}")
