@@ -43,8 +43,8 @@ def main() -> None:
     os.environ.setdefault("HF_DATASETS_CACHE", str(work / "hf-cache"))
 
     from shiftkit.envs import make
-    from shiftkit.envs.panda_play_experts import ExpertPolicy
-    from shiftkit.pipelines.collect import CollectConfig, collect
+    from shiftkit.envs.panda_play.experts import ExpertPolicy
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
     from shiftkit.policies.bc import BCArgs, load_policy, train
     from shiftkit.policies.evaluation import evaluate, record_evaluation, run_episodes, wilson_interval
 

@@ -19,7 +19,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from shiftkit.envs import make  # noqa: E402
-from shiftkit.envs.rendering import scene_option, disable_costly_flags  # noqa: E402
+from shiftkit.envs.cameras import scene_option, disable_costly_flags  # noqa: E402
 
 
 def _best_rates(loops: dict[str, Callable[[int], None]], n: int, rounds: int,

@@ -58,8 +58,8 @@ class Rerender(Stage):
     Config = RerenderConfig
 
     def setup(self) -> None:
-        from shiftkit.envs.panda_play import PandaPlayPhysics
-        from shiftkit.envs.rendering import CameraRenderer
+        from shiftkit.envs.panda_play.physics import PandaPlayPhysics
+        from shiftkit.envs.cameras import CameraRenderer
 
         self._physics = PandaPlayPhysics()
         self._renderer = CameraRenderer(self._physics.model, self.config.width, self.config.height, self.config.quality)
@@ -81,7 +81,7 @@ class Rerender(Stage):
 
 
 def make_source(root: Path, episodes: int) -> Path:
-    from shiftkit.pipelines.collect import CollectConfig, collect
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     path, _ = collect(CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=0, out=str(root)))
     return path
@@ -113,7 +113,7 @@ def main() -> None:
         os.environ.setdefault("HF_LEROBOT_HOME", str(tmp / "home"))
         os.environ.setdefault("HF_DATASETS_CACHE", str(tmp / "datasets-cache"))
         source = make_source(tmp / "raw", episodes)
-        from shiftkit.pipelines.raw_format import open_raw_dataset
+        from shiftkit.pipelines.sources.raw import open_raw_dataset
 
         raw = open_raw_dataset(source)
         frames = sum(int(e["length"]) for e in raw.index["episodes"])  # from the index, no episode reads

@@ -13,7 +13,7 @@ import time
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from shiftkit.envs import ENV_TASKS, make  # noqa: E402
-from shiftkit.envs.panda_play_experts import rollout  # noqa: E402
+from shiftkit.envs.panda_play.experts import rollout  # noqa: E402
 
 
 def main() -> None:

@@ -1,43 +1,108 @@
-"""Environment registry: `make(env_name, task, **kw)` for the CLI names and gymnasium ids.
+"""The registry over environment families: CLI names, tasks, gymnasium ids and the facts that the
+dataset tools need (how an observation splits into LeRobot features, cameras, experts).
 
-Gymnasium ids: `shiftkit/PandaPlay-<Task>-v0` (e.g. `shiftkit/PandaPlay-Lift-v0`), registered when
-`shiftkit.envs` is imported; `gymnasium.make(id, control_hz=5, render_mode="rgb_array")` passes the
-keyword arguments through.
+A family is a package under `shiftkit/envs/` whose `__init__` calls `register_family(EnvFamily(...))`;
+`shiftkit.envs` imports every such package, so a new family only adds a folder. Gymnasium ids are
+`shiftkit/<gym_prefix>-<TaskName>-v0` (e.g. `shiftkit/PandaPlay-Lift-v0`); `gymnasium.make(id,
+control_hz=5, render_mode="rgb_array")` passes keyword arguments through.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
-from shiftkit.envs.panda_play_tasks import TASKS
 
-ENV_TASKS: dict[str, tuple[str, ...]] = {"panda-play": tuple(TASKS)}
-PANDA_PLAY_ENTRY = "shiftkit.envs.panda_play_env:PandaPlayEnv"
+@dataclass(frozen=True)
+class EnvFamily:
+    """One environment family (a scene with its tasks, experts and dataset layout)."""
+
+    name: str
+    """CLI name (`--env`)."""
+    tasks: dict[str, str]
+    """CLI task name -> CamelCase part of the gymnasium id."""
+    gym_prefix: str
+    """Family part of the gymnasium id."""
+    entry_point: str
+    """`module:Class` of the gymnasium env; its constructor takes `task=` plus keyword arguments."""
+    robot: str
+    """Robot type written into datasets."""
+    sim_model_id: str
+    """Identifier of the MuJoCo model recorded with simulator states (replay/re-render check it)."""
+    cameras: tuple[str, ...]
+    """Camera names that can be rendered into datasets."""
+    observation_names: tuple[str, ...]
+    """Names of the flat observation vector's dimensions."""
+    state_indices: np.ndarray
+    """Observation dims that form `observation.state` (robot proprioception)."""
+    environment_state_indices: np.ndarray
+    """Observation dims that form `observation.environment_state` (privileged object state)."""
+    action_names: tuple[str, ...]
+    """Names of the action dimensions."""
+    observation_layout: str
+    """One line saying how the observation splits (recorded in raw datasets)."""
+    rollout: Callable[..., Any]
+    """`rollout(env, seed, cameras=(), depth=False, extra_steps=0)`: one scripted-expert episode."""
+    play_rollout: Callable[..., Any] | None = None
+    """`play_rollout(env, seed, sequence, cameras=(), depth=False)`: one play episode, if supported."""
+    play_sequences: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    """Default play sequence per main task."""
+    action_conventions: dict[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
+    """Converters from other codebases' action conventions (e.g. "vpace") into this family's."""
+
+    def gym_id(self, task: str) -> str:
+        return f"shiftkit/{self.gym_prefix}-{self.tasks[task]}-v0"
+
+
+_FAMILIES: dict[str, EnvFamily] = {}
+
+
+def register_family(family: EnvFamily) -> EnvFamily:
+    """Add a family and register its gymnasium ids (idempotent)."""
+    _FAMILIES[family.name] = family
+    for task in family.tasks:
+        env_id = family.gym_id(task)
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=family.entry_point, kwargs={"task": task})
+    return family
+
+
+def env_family(env_name: str) -> EnvFamily:
+    """The registered family `env_name`; ValueError (one line) for unknown names."""
+    if env_name not in _FAMILIES:
+        raise ValueError(f"unknown env {env_name!r}; known: {', '.join(_FAMILIES)}")
+    return _FAMILIES[env_name]
+
+
+def families() -> dict[str, EnvFamily]:
+    """Every registered family by CLI name."""
+    return dict(_FAMILIES)
+
+
+def env_tasks() -> dict[str, tuple[str, ...]]:
+    """CLI env name -> its task names."""
+    return {name: tuple(f.tasks) for name, f in _FAMILIES.items()}
 
 
 def gym_id(env_name: str, task: str) -> str:
     """The gymnasium id of a registered env/task pair."""
-    if env_name != "panda-play" or task not in TASKS:
+    family = _FAMILIES.get(env_name)
+    if family is None or task not in family.tasks:
         raise ValueError(f"unknown env/task {env_name}/{task}")
-    return f"shiftkit/PandaPlay-{TASKS[task].gym_name}-v0"
+    return family.gym_id(task)
 
 
 def make(env_name: str, task: str, **kwargs: Any) -> gym.Env:
-    """Build an environment by CLI name; ValueError (one line) for unknown names."""
-    if env_name not in ENV_TASKS:
-        raise ValueError(f"unknown env {env_name!r}; known: {', '.join(ENV_TASKS)}")
-    if task not in ENV_TASKS[env_name]:
-        raise ValueError(f"unknown task {task!r} for env {env_name}; known: {', '.join(ENV_TASKS[env_name])}")
-    from shiftkit.envs.panda_play_env import PandaPlayEnv
+    """Build an environment by CLI name (unwrapped, with its own episode limit); ValueError (one
+    line) for unknown names."""
+    family = env_family(env_name)
+    if task not in family.tasks:
+        raise ValueError(f"unknown task {task!r} for env {env_name}; known: {', '.join(family.tasks)}")
+    module, _, cls = family.entry_point.partition(":")
+    import importlib
 
-    return PandaPlayEnv(task=task, **kwargs)
-
-
-def register_all() -> None:
-    for task in TASKS:
-        env_id = gym_id("panda-play", task)
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=PANDA_PLAY_ENTRY, kwargs={"task": task},
-                         disable_env_checker=False)
+    return getattr(importlib.import_module(module), cls)(task=task, **kwargs)

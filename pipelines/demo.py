@@ -61,7 +61,7 @@ def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: boo
 
 def record(raw_dir: Path, episodes: int, seed: int) -> str:
     """Write the demo's raw episodes; returns the TOML list of features the pipeline drops."""
-    from shiftkit.pipelines.collect import CollectConfig, collect
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     collect(CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=seed, out=str(raw_dir),
                           cameras=("front",)))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shiftkit.pipelines.raw_format import RawDatasetWriter
+from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
 
 def write_synthetic_raw(

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import shiftkit.envs as envs
-from shiftkit.envs.panda_play import OBSERVATION_NAMES, PandaPlayPhysics
+from shiftkit.envs.panda_play.physics import OBSERVATION_NAMES, PandaPlayPhysics
 
 PAIRS = [(env, task) for env, tasks in envs.ENV_TASKS.items() for task in tasks]
 
@@ -99,7 +99,7 @@ def test_unstack_stack_starts_green_on_blue(shared_envs):
 def test_hold_counts_and_5hz():
     physics = PandaPlayPhysics(5)
     assert physics.n_substeps == 100 and physics.n_ticks == 4 and physics.max_step == pytest.approx(0.04)
-    from shiftkit.envs.panda_play_tasks import TASKS
+    from shiftkit.envs.panda_play.tasks import TASKS
 
     assert TASKS["lift"].hold_steps(20) == 10 and TASKS["move-object"].hold_steps(20) == 20
 
@@ -112,7 +112,7 @@ def test_gripper_positive_opens_negative_closes(shared_envs):
         for _ in range(10):
             obs, *_ = env.step(np.array([0.0, 0.0, 0.0, command]))
         assert check(obs[6]) and check(obs[7]), (command, obs[6:8])
-    from shiftkit.envs.panda_play_tasks import close_gripper, open_gripper
+    from shiftkit.envs.panda_play.tasks import close_gripper, open_gripper
 
     facts = replace(env.facts(), tcp=env.facts().blocks[0] + [0.0, 0.0, 0.05])  # near a block, still
     assert open_gripper(replace(facts, gripper_action=1.0)) and not open_gripper(replace(facts, gripper_action=-1.0))

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from shiftkit.envs.panda_play_experts import ExpertPolicy
+from shiftkit.envs.panda_play.experts import ExpertPolicy
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.policies.evaluation import EvalReport, ObservationMap, load_policy, run_episodes, wilson_interval
 
@@ -36,7 +36,7 @@ class RecordingExpert(ExpertPolicy):
     """The scripted expert asking for the split state features, recording what it is given."""
 
     def __init__(self, env) -> None:
-        from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
+        from shiftkit.envs.panda_play.physics import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
 
         super().__init__(env)
         self.features = {
@@ -76,7 +76,7 @@ def test_run_episodes_with_results_and_videos(tmp_path):
 
 def test_eval_cli_runs_a_trained_bc_policy(tmp_path, capsys):
     from shiftkit.pipelines.cli import main
-    from shiftkit.pipelines.collect import CollectConfig, collect
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     collect(CollectConfig(task="lift", episodes=3, seed=0, lerobot="local/lift3", root=str(tmp_path / "lift3")))
     run = tmp_path / "run"

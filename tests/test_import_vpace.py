@@ -14,7 +14,7 @@ import pytest
 
 from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
-from shiftkit.pipelines.import_vpace import import_vpace, read_vpace_buffer, task_from_filename
+from shiftkit.pipelines.sources.vpace import import_vpace, read_vpace_buffer, task_from_filename
 from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vpace"
@@ -56,7 +56,7 @@ def _write_buffer(path, obs, next_obs, actions, rewards, pointer, count):
 def test_published_example_sets(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
+    from shiftkit.envs.panda_play.physics import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
 
     # Writing is ~10 ms per one-frame episode: the test writes the lift set (+ 10 reach rows) and reads
     # the full reach file; `shiftkit import vpace` of both files gives 2400 examples (see the docs).

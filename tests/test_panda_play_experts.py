@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shiftkit.envs import ENV_TASKS, make
-from shiftkit.envs.panda_play_experts import PLAY_SEQUENCES, play_rollout, rollout
+from shiftkit.envs.panda_play.experts import PLAY_SEQUENCES, play_rollout, rollout
 from shiftkit.pipelines.cli import main as cli
 
 TASKS = ENV_TASKS["panda-play"]
@@ -68,7 +68,7 @@ def test_play_episode_labels_contiguous_segments():
 
 
 def test_collect_raw_then_lerobot(tmp_path, capsys):
-    from shiftkit.pipelines.raw_format import open_raw_dataset
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     out = tmp_path / "raw"
     assert cli(["collect", "--env", "panda-play", "--task", "reach", "--episodes", "2", "--seed", "4",

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.raw_format import RawDatasetWriter, open_raw_dataset
+from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
 from tests.helpers import tree_hashes
 
 

@@ -12,7 +12,7 @@ from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSp
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.planner import plan_pipeline
-from shiftkit.pipelines.raw_format import open_raw_dataset
+from shiftkit.pipelines.sources.raw import open_raw_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
 from tests.helpers import tree_hashes
@@ -41,7 +41,7 @@ def _examples(root):
 @pytest.fixture(scope="module")
 def play_raw(tmp_path_factory):
     """Three real play episodes of the Panda env (reach, grasp, lift, move-object, close) at 5 Hz."""
-    from shiftkit.pipelines.collect import CollectConfig, collect
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     out = tmp_path_factory.mktemp("play") / "raw"
     collect(CollectConfig(task="lift", play=True, episodes=3, control_hz=5, out=str(out)))
@@ -113,7 +113,7 @@ def test_play_segments_give_one_example_set_per_task(play_raw, tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from shiftkit.envs import make
-    from shiftkit.envs.panda_play_tasks import TASKS
+    from shiftkit.envs.panda_play.tasks import TASKS
 
     raw = open_raw_dataset(play_raw)
     sources = list(raw.iter_episodes(list(range(raw.num_episodes))))

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from shiftkit.envs import make
-from shiftkit.envs.panda_play_tasks import lift, reach
-from shiftkit.envs.vpace_compat import vpace_action_to_shiftkit
+from shiftkit.envs.panda_play.tasks import lift, reach
+from shiftkit.envs.panda_play.vpace_compat import vpace_action_to_shiftkit
 
 DATA = Path(os.environ.get("SHIFTKIT_VPACE_DATA", Path(__file__).resolve().parents[2] / "shared" / "data" / "vpace"))
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"VPACE data not found at {DATA}")

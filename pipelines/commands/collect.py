@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shiftkit.pipelines.collect import CollectConfig, collect
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     split = lambda s: tuple(x.strip() for x in (s or "").split(",") if x.strip())  # noqa: E731
     config = CollectConfig(

@@ -5,8 +5,8 @@ Frame t holds the observation before action t; `success[t]` (LeRobot `next.succe
 env's held success after action t. Reset-based episodes end once success holds (plus
 `extra_steps`) or at the time limit; the outcome goes into the episode metadata. Play episodes
 (`play=True`) chain the experts of a task sequence after one reset and label each segment.
-The 59-dim reference observation is split into `state` (robot: reference dims 0:12 and 53:59)
-and `environment_state` (objects: dims 12:53); see docs/panda_play.md.
+The env family's observation is split into `state` (robot) and `environment_state` (objects) as
+its registry entry says (panda-play: reference dims 0:12 + 53:59 and 12:53; docs/panda_play.md).
 """
 
 from __future__ import annotations
@@ -64,12 +64,13 @@ class CollectConfig:
     """Play sequence override; default `PLAY_SEQUENCES[task]`."""
 
     def validate(self) -> None:
-        from shiftkit.envs import ENV_TASKS
+        from shiftkit.envs import ENV_TASKS, env_family
 
         if self.env not in ENV_TASKS:
             raise ConfigError(f"unknown env {self.env!r}; known: {', '.join(ENV_TASKS)}")
         if self.task not in ENV_TASKS[self.env]:
             raise ConfigError(f"unknown task {self.task!r} for {self.env}; known: {', '.join(ENV_TASKS[self.env])}")
+        family = env_family(self.env)
         if self.episodes < 1:
             raise ConfigError(f"--episodes must be >= 1, got {self.episodes}")
         if self.control_hz not in (5, 20):
@@ -81,57 +82,48 @@ class CollectConfig:
         target = Path(self.out if self.out is not None else self.root)
         if target.exists():
             raise ConfigError(f"output directory already exists: {target}")
-        if self.play and not self.sequence:
-            from shiftkit.envs.panda_play_experts import PLAY_SEQUENCES
-
-            if self.task not in PLAY_SEQUENCES:
-                raise ConfigError(f"no play sequence for task {self.task!r}; known: {', '.join(PLAY_SEQUENCES)}")
-        from shiftkit.envs.panda_play import CAMERAS
-
+        if self.play and family.play_rollout is None:
+            raise ConfigError(f"env {self.env} records no play episodes")
+        if self.play and not self.sequence and self.task not in family.play_sequences:
+            raise ConfigError(f"no play sequence for task {self.task!r}; known: {', '.join(family.play_sequences)}")
         for cam in self.cameras:
-            if cam not in CAMERAS:
-                raise ConfigError(f"unknown camera {cam!r}; known: {', '.join(CAMERAS)}")
+            if cam not in family.cameras:
+                raise ConfigError(f"unknown camera {cam!r}; known: {', '.join(family.cameras)}")
         if self.render_quality not in ("fast", "full"):
             raise ConfigError(f"render quality must be 'fast' or 'full', got {self.render_quality!r}")
 
 
 def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
-    from shiftkit.envs import make
-    from shiftkit.envs.panda_play import (
-        ACTION_NAMES,
-        ENVIRONMENT_STATE_INDICES,
-        OBSERVATION_NAMES,
-        SIM_MODEL_ID,
-        STATE_INDICES,
-    )
-    from shiftkit.envs.panda_play_experts import PLAY_SEQUENCES, play_rollout, rollout
-    from shiftkit.envs.rendering import camera_intrinsics
-    from shiftkit.pipelines.raw_format import RawDatasetWriter
+    from shiftkit.envs import env_family, make
+    from shiftkit.envs.cameras import camera_intrinsics
+    from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
+    family = env_family(config.env)
+    state_idx, env_idx = family.state_indices, family.environment_state_indices
     env = make(config.env, config.task, control_hz=config.control_hz, width=config.width,
                height=config.height, render_quality=config.render_quality)
     names = {
-        "state": [OBSERVATION_NAMES[i] for i in STATE_INDICES],
-        "environment_state": [OBSERVATION_NAMES[i] for i in ENVIRONMENT_STATE_INDICES],
-        "action": list(ACTION_NAMES),
+        "state": [family.observation_names[i] for i in state_idx],
+        "environment_state": [family.observation_names[i] for i in env_idx],
+        "action": list(family.action_names),
     }
     info = {
-        "observation_layout": "reference 59-dim = state[:12] + environment_state + state[12:]",
+        "observation_layout": family.observation_layout,
         "control_hz": config.control_hz,
         "cameras": {c: camera_intrinsics(env.physics.model, c, config.width, config.height) for c in config.cameras},
     }
     counts = {"episodes": 0, "successes": 0, "skipped": 0}
-    sequence = tuple(config.sequence) or PLAY_SEQUENCES.get(config.task, ())
-    with RawDatasetWriter(out_dir, fps=config.control_hz, robot="franka_panda", env=config.env,
+    sequence = tuple(config.sequence) or family.play_sequences.get(config.task, ())
+    with RawDatasetWriter(out_dir, fps=config.control_hz, robot=family.robot, env=config.env,
                           names=names, info=info) as writer:
         for i in range(config.episodes):
             seed = config.seed + i
             if config.play:
-                r = play_rollout(env, seed, sequence, cameras=config.cameras, depth=config.depth)
+                r = family.play_rollout(env, seed, sequence, cameras=config.cameras, depth=config.depth)
                 ok = all(s["success"] for s in r.segments)
                 task = f"play: {', '.join(sequence)}"
             else:
-                r = rollout(env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps)
+                r = family.rollout(env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps)
                 ok = r.succeeded
                 task = config.task
             log.info("episode %d (seed %d): %s, %d frames", i, seed, "success" if ok else "failure", len(r.actions))
@@ -143,8 +135,8 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
                 arrays={
                     "timestamp": np.arange(t, dtype=np.float64) / config.control_hz,
                     "action": r.actions,
-                    "state": r.observations[:, STATE_INDICES],
-                    "environment_state": r.observations[:, ENVIRONMENT_STATE_INDICES],
+                    "state": r.observations[:, state_idx],
+                    "environment_state": r.observations[:, env_idx],
                     "success": r.success,
                     "sim_qpos": r.qpos,
                     "sim_qvel": r.qvel,
@@ -152,7 +144,7 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
                 images=r.images or None,
                 depth=r.depth or None,
                 meta={"task": task, "outcome": "success" if ok else "failure", "seed": seed,
-                      "sim_model": SIM_MODEL_ID, "segments": r.segments, "control_hz": config.control_hz},
+                      "sim_model": family.sim_model_id, "segments": r.segments, "control_hz": config.control_hz},
             )
             counts["episodes"] += 1
             counts["successes"] += int(ok)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shiftkit.envs.panda_play import BLOCK_REST_Z, BRING_TARGETS, INSERT_TARGETS, ContactFlags
+from shiftkit.envs.panda_play.physics import BLOCK_REST_Z, BRING_TARGETS, INSERT_TARGETS, ContactFlags
 
 REACH_THRESHOLD = 0.015
 GRASP_DISTANCE = 0.03

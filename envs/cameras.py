@@ -1,4 +1,4 @@
-"""Offscreen RGB-D rendering for dataset cameras.
+"""Cameras shared by the scenes: placement, offscreen RGB-D rendering, intrinsics and extrinsics.
 
 Dataset renderers switch off shadows, reflections and the skybox (on CPU rendering through Mesa
 they cost most of the frame time). `quality="fast"` shows the low-poly collision geometry (geom
@@ -12,6 +12,16 @@ import mujoco
 import numpy as np
 
 QUALITIES = ("fast", "full")
+
+
+def look_at(pos, target) -> tuple[float, ...]:
+    """`xyaxes` of a camera at `pos` looking at `target` with world z up."""
+    fwd = np.asarray(target, float) - np.asarray(pos, float)
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    return (*right, *up)
 
 
 def scene_option(quality: str) -> mujoco.MjvOption:

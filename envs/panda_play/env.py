@@ -1,4 +1,4 @@
-"""The Panda play gymnasium environment: physics (`panda_play`) + one task (`panda_play_tasks`).
+"""The Panda play gymnasium environment: physics (`physics`) + one task (`tasks`).
 
 Observation: the 59-dim reference vector, names in `observation_names` (docs/panda_play.md).
 Action: Box(-1, 1, (4,)): delta TCP position (1 = 1 cm per step at 20 Hz, 4 cm at 5 Hz) and the
@@ -16,13 +16,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from shiftkit.envs.panda_play import ACTION_NAMES, CAMERAS, OBS_DIM, OBSERVATION_NAMES, PandaPlayPhysics
-from shiftkit.envs.panda_play_tasks import TASKS, HoldTimer, SceneFacts, get_task
-from shiftkit.envs.rendering import CameraRenderer
+from shiftkit.envs.panda_play.physics import ACTION_NAMES, CAMERAS, OBS_DIM, OBSERVATION_NAMES, PandaPlayPhysics
+from shiftkit.envs.panda_play.tasks import TASKS, HoldTimer, SceneFacts, get_task
+from shiftkit.envs.cameras import CameraRenderer
 
 
 class PandaPlayEnv(gym.Env):
-    """Franka Panda, tray, blue and green blocks; one task from `panda_play_tasks.TASKS`."""
+    """Franka Panda, tray, blue and green blocks; one task from `tasks.TASKS`."""
 
     metadata = {"render_modes": ["rgb_array", "depth_array"], "render_fps": 20}
 

@@ -1,6 +1,6 @@
 """Panda play scene: composition with `mujoco.MjSpec`, Cartesian control and the 59-dim observation.
 
-Physics only, no task logic (tasks live in `panda_play_tasks`). Numbers follow the reference
+Physics only, no task logic (tasks live in `tasks`). Numbers follow the reference
 environment (utiasSTARS/manipulator-learning, `PandaPlayInsertTrayXYZState`) and the LfGP thesis,
 appendix A.1. Everything is expressed in the robot base frame, which here *is* the MuJoCo world
 frame (robot base at the origin, identity orientation), the frame the published VPACE data use:
@@ -12,18 +12,20 @@ frame (robot base at the origin, identity orientation), the frame the published 
   (+-0.075, 0.5, 0.135);
 * tool centre point (TCP) bounds x in [-0.15, 0.15], y in [0.35, 0.65], z in [0.145, 0.28].
 
-The gymnasium robot model is the Franka Panda MJCF shipped by gymnasium-robotics (kitchen_franka);
-its mesh paths are resolved here because its `assets.xml` assumes a model file beside it.
+The robot is the gymnasium-robotics Franka Panda (`shiftkit.envs.panda_model`); the controller is
+the shared fixed-orientation differential IK (`shiftkit.envs.controllers`) feeding position servos.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import os
 from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+
+from shiftkit.envs.cameras import look_at
+from shiftkit.envs.controllers import FixedOrientationIK
+from shiftkit.envs.panda_model import panda_spec
 
 SIM_MODEL_ID = "panda-play-v1"
 
@@ -93,41 +95,8 @@ ACTION_NAMES = ("delta_x", "delta_y", "delta_z", "gripper_open")
 
 # geom groups: robot visual meshes 0, scene 1, robot collision 3 (the fast render mode shows 1 and 3)
 SCENE_GROUP = 1
-_IK_DAMPING = 1e-4 * np.eye(6)
-
-
-def _rotation_error_matrix() -> np.ndarray:
-    """(3, 9) matrix C with C @ R.ravel() = the small-angle rotation from a TCP orientation R to
-    TCP_ROTATION: the skew-symmetric part of E = TCP_ROTATION @ R.T, (E21 - E12, E02 - E20,
-    E10 - E01) / 2, which is linear in R (one matrix product per IK step)."""
-    c = np.zeros((3, 3, 3))
-    for k, (i, j) in enumerate(((2, 1), (0, 2), (1, 0))):
-        c[k, j] += 0.5 * TCP_ROTATION[i]  # E_ij = TCP_ROTATION[i] . R[j]
-        c[k, i] -= 0.5 * TCP_ROTATION[j]
-    return c.reshape(3, 9)
-
-
-_ROTATION_ERROR = _rotation_error_matrix()
 FINGER_FRICTION = 0.3
 BLOCK_FRICTION = 0.5
-
-
-def franka_assets_dir() -> str:
-    """The Franka Panda MJCF folder shipped by gymnasium-robotics (found without importing it)."""
-    spec = importlib.util.find_spec("gymnasium_robotics")
-    if spec is None or spec.origin is None:
-        raise ImportError("gymnasium-robotics is required for the Panda model")
-    return os.path.join(os.path.dirname(spec.origin), "envs", "assets", "kitchen_franka", "franka_assets")
-
-
-def _look_at(pos, target) -> tuple[float, ...]:
-    """`xyaxes` of a camera at `pos` looking at `target` with world z up."""
-    fwd = np.asarray(target, float) - np.asarray(pos, float)
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    return (*right, *up)
 
 
 CAMERAS = {
@@ -153,15 +122,7 @@ def _add_box(body, name, half, pos, rgba, quat=None, collide=True):
 
 def build_spec() -> mujoco.MjSpec:
     """Compose the scene: gymnasium-robotics Panda + tray with slots + two blocks + cameras."""
-    root = franka_assets_dir()
-    xml = (
-        f'<mujoco model="{SIM_MODEL_ID}"><include file="{root}/assets.xml"/>'
-        f'<include file="{root}/actuator.xml"/><worldbody><include file="{root}/chain.xml"/></worldbody></mujoco>'
-    )
-    spec = mujoco.MjSpec.from_string(xml)
-    spec.meshdir = ""
-    for mesh in spec.meshes:  # the include resolved them beside franka_assets/, not in meshes/
-        mesh.file = os.path.join(root, "meshes", os.path.relpath(mesh.file, root))
+    spec = panda_spec(SIM_MODEL_ID)
     spec.option.timestep = PHYSICS_DT
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
@@ -269,7 +230,7 @@ def build_spec() -> mujoco.MjSpec:
         camera.name = name
         camera.pos = list(cam["pos"])
         camera.alt.type = mujoco.mjtOrientation.mjORIENTATION_XYAXES
-        camera.alt.xyaxes = list(_look_at(cam["pos"], cam["target"]))
+        camera.alt.xyaxes = list(look_at(cam["pos"], cam["target"]))
         camera.fovy = cam["fovy"]
     return spec
 
@@ -373,8 +334,8 @@ class PandaPlayPhysics:
                 pair_bits[a, b] |= 1 << bit
                 pair_bits[b, a] |= 1 << bit
         self._contact_bits = pair_bits[parts[:, None], parts[None, :]]
-        self._jac = np.zeros((6, m.nv))  # rows 0:3 translation, 3:6 rotation
-        self._ik_sol = np.zeros(6)
+        self._controller = FixedOrientationIK(m, self.tcp_site, self.arm_qpos, self.arm_dofs, TCP_ROTATION,
+                                              HOME_QPOS, self.arm_low, self.arm_high)
         self._vel6 = np.zeros(6)
         self.desired_tcp = np.zeros(3)
         self.q_target = HOME_QPOS.copy()
@@ -498,25 +459,9 @@ class PandaPlayPhysics:
 
     # ----------------------------------------------------------------- control
     def _ik_step(self, target: np.ndarray, data: mujoco.MjData) -> None:
-        """One damped-least-squares IK update of `q_target` towards the TCP `target` (fixed hand
-        orientation), evaluated at `q_target` on `data` (kinematics only)."""
-        m = self.model
-        data.qpos[self.arm_qpos] = self.q_target
-        mujoco.mj_kinematics(m, data)
-        mujoco.mj_comPos(m, data)
-        mujoco.mj_jacSite(m, data, self._jac[:3], self._jac[3:], self.tcp_site)
-        err = np.concatenate((target - data.site_xpos[self.tcp_site], _ROTATION_ERROR @ data.site_xmat[self.tcp_site]))
-        jac = self._jac[:, self.arm_dofs]
-        # null-space pull towards the home posture keeps the elbow up and away from joint limits
-        posture = 0.05 * (HOME_QPOS - self.q_target)
-        # dq = J^T (J J^T + D)^-1 (err - J posture) + posture; MuJoCo's 6x6 Cholesky costs a
-        # fraction of numpy.linalg's per-call overhead
-        a = jac @ jac.T + _IK_DAMPING
-        mujoco.mju_cholFactor(a, 0.0)
-        mujoco.mju_cholSolve(self._ik_sol, a, err - jac @ posture)
-        dq = jac.T @ self._ik_sol + posture
-        dq = dq.clip(-0.2, 0.2)  # large errors (reset) converge over several calls
-        self.q_target = (self.q_target + dq).clip(self.arm_low, self.arm_high)
+        """One IK update of `q_target` towards the TCP `target` (fixed hand orientation), evaluated
+        at `q_target` on `data` (kinematics only)."""
+        self.q_target = self._controller.step(data, self.q_target, target)
 
     def _write_controls(self) -> None:
         self.data.ctrl[:7] = self.q_target

@@ -31,6 +31,7 @@ import numpy as np
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, vector_feature
+from shiftkit.pipelines.sources import Importer, ImportSummary, write_imported
 
 Kind = Literal["auto", "examples", "trajectories"]
 
@@ -75,17 +76,6 @@ class VpaceBuffer:
         return list(zip(edges[:-1], edges[1:], strict=True))
 
 
-@dataclass
-class ImportSummary:
-    root: Path
-    kind: str
-    fps: int
-    episodes: int
-    frames: int
-    per_file: list[dict[str, Any]] = field(default_factory=list)
-    """Per source file: name, task, rows, episodes and their lengths."""
-
-
 class _NumpyOnlyUnpickler(pickle.Unpickler):
     """Unpickles numpy arrays, scalars and RandomState only: a buffer file cannot run code."""
 
@@ -117,7 +107,7 @@ def task_from_filename(path: str | Path) -> str:
 
 def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     """Load and check one buffer file; rows come back oldest first."""
-    from shiftkit.envs.vpace_compat import vpace_action_to_shiftkit
+    vpace_action_to_shiftkit = _panda_play().action_conventions["vpace"]
 
     path = Path(path)
     if not path.is_file():
@@ -166,12 +156,18 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     )
 
 
-def observation_features(obs_dim: int) -> Features:
-    """The env's split of the reference observation (`envs.panda_play`), trimmed to `obs_dim`."""
-    from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, OBSERVATION_NAMES, STATE_INDICES
+def _panda_play():
+    """The Panda play family's dataset facts, through the env registry."""
+    from shiftkit.envs import env_family
 
-    state = [OBSERVATION_NAMES[i] for i in STATE_INDICES if i < obs_dim]
-    env_state = [OBSERVATION_NAMES[i] for i in ENVIRONMENT_STATE_INDICES]
+    return env_family("panda-play")
+
+
+def observation_features(obs_dim: int) -> Features:
+    """The env's split of the reference observation (panda-play), trimmed to `obs_dim`."""
+    family = _panda_play()
+    state = [family.observation_names[i] for i in family.state_indices if i < obs_dim]
+    env_state = [family.observation_names[i] for i in family.environment_state_indices]
     info = {"source_layout": f"VPACE/LfGP Panda play, {obs_dim} dims (see docs/panda_play.md)"}
     return {
         "observation.state": vector_feature("float32", state, **info),
@@ -180,12 +176,11 @@ def observation_features(obs_dim: int) -> Features:
 
 
 def _split_observations(obs: np.ndarray) -> dict[str, np.ndarray]:
-    from shiftkit.envs.panda_play import ENVIRONMENT_STATE_INDICES, STATE_INDICES
-
-    state_idx = STATE_INDICES[STATE_INDICES < obs.shape[1]]
+    family = _panda_play()
+    state_idx = family.state_indices[family.state_indices < obs.shape[1]]
     return {
         "observation.state": np.ascontiguousarray(obs[:, state_idx]),
-        "observation.environment_state": np.ascontiguousarray(obs[:, ENVIRONMENT_STATE_INDICES]),
+        "observation.environment_state": np.ascontiguousarray(obs[:, family.environment_state_indices]),
     }
 
 
@@ -209,13 +204,10 @@ def import_vpace(
     fps: int | None = None,
 ) -> ImportSummary:
     """Write the buffers in `files` into one new LeRobot dataset at `root` (atomically)."""
-    from shiftkit.envs.panda_play import ACTION_NAMES
-    from shiftkit.pipelines.hub import validate_repo_id
-    from shiftkit.pipelines.lerobot_io import DatasetWriter
-    from shiftkit.pipelines.provenance import PROVENANCE_VERSION, versions
-
     if not files:
         raise DatasetError("no input files given")
+    from shiftkit.pipelines.hub import validate_repo_id
+
     validate_repo_id(repo_id)  # fail before reading anything, not later at `shiftkit push`
     if kind not in ("auto", "examples", "trajectories"):
         raise DatasetError(f"unknown kind {kind!r} (auto, examples, trajectories)")
@@ -235,11 +227,12 @@ def import_vpace(
     reward_names: list[str] = []
     if kind_used == "trajectories":
         reward_names = _reward_names(buffers)
-        features["action"] = vector_feature("float32", list(ACTION_NAMES))
+        features["action"] = vector_feature("float32", list(_panda_play().action_names))
         features["next.reward"] = vector_feature("float32", reward_names)
 
     per_file = []
-    with DatasetWriter(repo_id, root, fps, features, robot_type="franka_panda") as writer:
+
+    def episodes():
         for b in buffers:
             obs = _split_observations(b.observations)
             if kind_used == "examples":
@@ -258,21 +251,42 @@ def import_vpace(
                     frames["next.reward"] = np.ascontiguousarray(rewards[:, :1] if len(reward_names) == 1 else rewards)
                     # The wrapped buffer dropped the oldest rows: the first episode may lack its start.
                     source["start_overwritten"] = bool(e == 0 and b.overwritten_rows > 0)
-                writer.add_episode(Episode(frames, {"task": b.task, "source": source}))
+                yield Episode(frames, {"task": b.task, "source": source})
             per_file.append({"file": b.path.name, "task": b.task, "rows": len(b.observations),
                              "episodes": len(bounds), "lengths": [end - start for start, end in bounds]})
-        provenance = {
-            "provenance_version": PROVENANCE_VERSION,
-            "tool": "shiftkit",
-            "versions": versions(),
-            "sources": [{"kind": "vpace", "path": str(b.path.resolve()), "sha256": b.sha256, "task": b.task,
-                         "rows": len(b.observations), "overwritten_rows": b.overwritten_rows} for b in buffers],
-            "stages": [],
-            "importer": {"name": "vpace", "kind": kind_used, "fps": fps, "observation_dims": dims[0],
-                         "dropped": "absorbing-state flag (last observation column)",
-                         "gripper": "negated: published > 0 closes, shiftkit > 0 opens"},
-            "seed": None,
-            "output": {"repo_id": repo_id, "fps": fps, "episodes": writer.num_episodes, "frames": writer.num_frames},
-        }
-        writer.close(provenance=provenance)
-    return ImportSummary(Path(root), kind_used, fps, writer.num_episodes, writer.num_frames, per_file)
+
+    num_episodes, num_frames = write_imported(
+        repo_id, root, fps, features, episodes(), robot_type=_panda_play().robot,
+        sources=[{"kind": "vpace", "path": str(b.path.resolve()), "sha256": b.sha256, "task": b.task,
+                  "rows": len(b.observations), "overwritten_rows": b.overwritten_rows} for b in buffers],
+        importer={"name": "vpace", "kind": kind_used, "fps": fps, "observation_dims": dims[0],
+                  "dropped": "absorbing-state flag (last observation column)",
+                  "gripper": "negated: published > 0 closes, shiftkit > 0 opens"},
+    )
+    return ImportSummary(Path(root), kind_used, fps, num_episodes, num_frames, per_file)
+
+
+def _add_arguments(parser) -> None:
+    parser.add_argument("files", nargs="+", metavar="FILE", help="buffer files (all go into one dataset)")
+    parser.add_argument("--kind", default="auto", choices=("auto", "examples", "trajectories"),
+                        help="success-example sets or expert trajectories (default: detected)")
+    parser.add_argument("--task", help="task name for every file (default: from the file name, 3_lift -> lift)")
+    parser.add_argument("--fps", type=int, help="frame rate (default: 20 for 60-column files, 5 for 54)")
+
+
+def _report(summary: ImportSummary) -> list[str]:
+    lines = []
+    for f in summary.per_file:
+        detail = f"{f['rows']} examples" if summary.kind == "examples" else (
+            f"{f['rows']} transitions in {f['episodes']} episodes (lengths {f['lengths']})")
+        lines.append(f"{f['file']}: task {f['task']!r}, {detail}")
+    return lines
+
+
+IMPORTER = Importer(
+    name="vpace",
+    help="the VPACE/LfGP authors' published expert buffers (gzipped pickles)",
+    add_arguments=_add_arguments,
+    run=lambda args: import_vpace(args.files, args.repo_id, args.root, kind=args.kind, task=args.task, fps=args.fps),
+    report=_report,
+)

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.envs.panda_play import (
+from shiftkit.envs.panda_play.physics import (
     BLOCK_HALF,
     BLOCK_REST_Z,
     INSERT_TARGETS,
@@ -24,8 +24,8 @@ from shiftkit.envs.panda_play import (
     WORKSPACE_LOW,
     ZONE_XY,
 )
-from shiftkit.envs.panda_play_env import PandaPlayEnv
-from shiftkit.envs.panda_play_tasks import INSERT_THRESHOLD, TASKS
+from shiftkit.envs.panda_play.env import PandaPlayEnv
+from shiftkit.envs.panda_play.tasks import INSERT_THRESHOLD, TASKS
 
 CARRY_Z = 0.23
 ABOVE = 0.05

@@ -344,3 +344,23 @@ def open_raw_dataset(root: str | Path) -> RawDataset:
 
 def is_raw_dataset(path: str | Path) -> bool:
     return (Path(path) / "dataset.json").is_file()
+
+
+class RawSource:
+    def __init__(self, root: Path) -> None:
+        self._raw = open_raw_dataset(root)
+        self.root = root
+        self.features = self._raw.features()
+        self.fps = self._raw.fps
+        self.robot_type = self._raw.index.get("robot") or None
+        self.num_episodes = self._raw.num_episodes
+
+    def episode_groups(self) -> list[list[int]]:
+        return [[i] for i in range(self.num_episodes)]  # one directory per episode
+
+    def iter_episodes(self, indices: list[int]) -> Iterator[Episode]:
+        return self._raw.iter_episodes(indices)
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": "raw", "path": str(self.root), "num_episodes": self.num_episodes,
+                "env": self._raw.index.get("env", ""), "format_version": self._raw.index.get("version")}
