@@ -35,8 +35,11 @@ def synthetic_dataset(root: Path, episodes: int, length: int, seed: int = 0) -> 
     rng = np.random.default_rng(seed)
     features = {
         "observation.state": {"dtype": "float32", "shape": (18,), "names": [f"robot_{i}" for i in range(18)]},
-        "observation.environment_state": {"dtype": "float32", "shape": (41,),
-                                          "names": [f"object_{i}" for i in range(41)]},
+        "observation.environment_state": {
+            "dtype": "float32",
+            "shape": (41,),
+            "names": [f"object_{i}" for i in range(41)],
+        },
         "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "grip"]},
     }
     ds = LeRobotDataset.create("bench/bc", fps=20, root=root, features=features, use_videos=False)
@@ -45,8 +48,14 @@ def synthetic_dataset(root: Path, episodes: int, length: int, seed: int = 0) -> 
         obs = np.cumsum(rng.normal(size=(length, 59)).astype(np.float32) * 0.1, axis=0)
         actions = np.tanh(obs @ mix)
         for t in range(length):
-            ds.add_frame({"observation.state": obs[t, :18], "observation.environment_state": obs[t, 18:],
-                          "action": actions[t], "task": "synthetic"})
+            ds.add_frame(
+                {
+                    "observation.state": obs[t, :18],
+                    "observation.environment_state": obs[t, 18:],
+                    "action": actions[t],
+                    "task": "synthetic",
+                }
+            )
         ds.save_episode()
     ds.finalize()
     return root
@@ -72,17 +81,28 @@ def main() -> None:
     steps = args.steps or (60 if args.quick else 300)
     members, batch_size = 5, 64
     t0 = time.perf_counter()
-    root = Path(args.dataset) if args.dataset else synthetic_dataset(
-        Path(tmp.name) / "ds", episodes=20 if args.quick else 100, length=100)
+    root = (
+        Path(args.dataset)
+        if args.dataset
+        else synthetic_dataset(Path(tmp.name) / "ds", episodes=20 if args.quick else 100, length=100)
+    )
     write_s = time.perf_counter() - t0
     ds = LeRobotDataset("bench/bc", root=root)
-    inputs = [k for k, ft in ds.meta.features.items()
-              if k.startswith("observation.") and ft["dtype"] not in ("image", "video")]
+    inputs = [
+        k
+        for k, ft in ds.meta.features.items()
+        if k.startswith("observation.") and ft["dtype"] not in ("image", "video")
+    ]
     keys = [*inputs, "action"]
     spec = PolicySpec(
         features={k: {f: ds.meta.features[k].get(f) for f in ("dtype", "shape", "names")} for k in inputs},
         action={f: ds.meta.features["action"].get(f) for f in ("dtype", "shape", "names")},
-        stats=_merged_stats([ds], keys), encoder="cnn", num_keypoints=32, hidden=[512, 512], ensemble_size=members)
+        stats=_merged_stats([ds], keys),
+        encoder="cnn",
+        num_keypoints=32,
+        hidden=[512, 512],
+        ensemble_size=members,
+    )
     policy = BCPolicy(spec, seed=0)
     optimizers = [torch.optim.AdamW(m.parameters(), lr=1e-3, weight_decay=0.0) for m in policy.members]
     active = [True] * members
@@ -114,15 +134,24 @@ def main() -> None:
     from_memory(0)  # warm-up (allocator, lazy init)
     times = {"lerobot": 0.0, "memory": 0.0}
     for r in range(args.rounds):
-        order = (("lerobot", from_lerobot), ("memory", from_memory)) if r % 2 == 0 else (
-            ("memory", from_memory), ("lerobot", from_lerobot))
+        order = (
+            (("lerobot", from_lerobot), ("memory", from_memory))
+            if r % 2 == 0
+            else (("memory", from_memory), ("lerobot", from_lerobot))
+        )
         for name, fn in order:
             times[name] += fn(r + 1)
     rate = {k: args.rounds * steps / v for k, v in times.items()}
 
     # context: lerobot's per-frame reader through a torch DataLoader (main process, same batch size)
-    loader = torch.utils.data.DataLoader(ds, batch_size=members * batch_size, shuffle=True, num_workers=0,
-                                         generator=torch.Generator().manual_seed(0), drop_last=True)
+    loader = torch.utils.data.DataLoader(
+        ds,
+        batch_size=members * batch_size,
+        shuffle=True,
+        num_workers=0,
+        generator=torch.Generator().manual_seed(0),
+        drop_last=True,
+    )
     ctx_steps, start = 0, time.perf_counter()
     for item in loader:
         batch = {k: item[k].float() for k in keys}
@@ -132,19 +161,35 @@ def main() -> None:
             break
     getitem_rate = ctx_steps / (time.perf_counter() - start)
 
-    print(f"frames {n}, {members} members x batch {batch_size}, {args.rounds} rounds x {steps} steps, "
-          f"threads {args.threads}")
+    print(
+        f"frames {n}, {members} members x batch {batch_size}, {args.rounds} rounds x {steps} steps, "
+        f"threads {args.threads}"
+    )
     print(f"  FrameTable + Prefetcher : {rate['lerobot']:7.1f} steps/s")
     print(f"  in-memory tensors       : {rate['memory']:7.1f} steps/s")
     print(f"  LeRobotDataset+DataLoader: {getitem_rate:7.1f} steps/s (context, {ctx_steps} steps)")
-    print(json.dumps({
-        "bench": "bc_dataloader", "metric": "steps_per_s_ratio",
-        "value": round(rate["lerobot"] / rate["memory"], 3), "goal": 0.8, "higher_is_better": True,
-        "lerobot_steps_per_s": round(rate["lerobot"], 2), "memory_steps_per_s": round(rate["memory"], 2),
-        "lerobot_getitem_dataloader_steps_per_s": round(getitem_rate, 2), "frames": n,
-        "steps": args.rounds * steps, "members": members, "batch_size": batch_size, "threads": args.threads,
-        "dataset": str(args.dataset or "synthetic"), "dataset_write_s": round(write_s, 2), "quick": args.quick,
-    }))
+    print(
+        json.dumps(
+            {
+                "bench": "bc_dataloader",
+                "metric": "steps_per_s_ratio",
+                "value": round(rate["lerobot"] / rate["memory"], 3),
+                "goal": 0.8,
+                "higher_is_better": True,
+                "lerobot_steps_per_s": round(rate["lerobot"], 2),
+                "memory_steps_per_s": round(rate["memory"], 2),
+                "lerobot_getitem_dataloader_steps_per_s": round(getitem_rate, 2),
+                "frames": n,
+                "steps": args.rounds * steps,
+                "members": members,
+                "batch_size": batch_size,
+                "threads": args.threads,
+                "dataset": str(args.dataset or "synthetic"),
+                "dataset_write_s": round(write_s, 2),
+                "quick": args.quick,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

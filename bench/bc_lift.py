@@ -51,14 +51,24 @@ def main() -> None:
     dataset, run = work / f"lift{episodes}", work / f"bc-{args.regime}"
     t0 = time.perf_counter()
     if not dataset.exists():
-        collect(CollectConfig(task="lift", episodes=episodes, seed=0, lerobot=f"local/lift{episodes}",
-                              root=str(dataset)))
+        collect(
+            CollectConfig(task="lift", episodes=episodes, seed=0, lerobot=f"local/lift{episodes}", root=str(dataset))
+        )
     collect_s = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     quick = dict(steps=600, ensemble_size=2) if args.quick else {}
-    train(BCArgs(datasets=[str(dataset)], output_dir=str(run), regime=args.regime, threads=args.threads,
-                 inputs=["observation.state", "observation.environment_state"], resume=run.exists(), **quick))
+    train(
+        BCArgs(
+            datasets=[str(dataset)],
+            output_dir=str(run),
+            regime=args.regime,
+            threads=args.threads,
+            inputs=["observation.state", "observation.environment_state"],
+            resume=run.exists(),
+            **quick,
+        )
+    )
     train_s = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -75,16 +85,33 @@ def main() -> None:
     s = report.summary()
     train_steps = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])["step"]
     print(f"collect {collect_s:.0f}s, train {train_s:.0f}s ({train_steps} steps/member), eval {eval_s:.0f}s")
-    print(f"BC success {s['successes']}/{s['episodes']} = {s['success_rate']:.0%}, 95% CI "
-          f"[{s['ci95'][0]:.0%}, {s['ci95'][1]:.0%}]; expert on the same seeds {expert_rate:.0%}")
-    print(json.dumps({
-        "bench": "bc_lift", "metric": "success_rate", "value": s["success_rate"], "goal": 0.8,
-        "higher_is_better": True, "ci95": s["ci95"], "expert_success_rate": expert_rate,
-        "expert_ci95": list(wilson_interval(sum(e.success for e in expert), len(expert))),
-        "train_episodes": episodes, "eval_episodes": eval_episodes, "eval_seeds": [1000, 1000 + eval_episodes - 1],
-        "regime": args.regime, "train_steps": train_steps, "collect_s": round(collect_s, 1),
-        "train_s": round(train_s, 1), "eval_s": round(eval_s, 1), "quick": args.quick,
-    }))
+    print(
+        f"BC success {s['successes']}/{s['episodes']} = {s['success_rate']:.0%}, 95% CI "
+        f"[{s['ci95'][0]:.0%}, {s['ci95'][1]:.0%}]; expert on the same seeds {expert_rate:.0%}"
+    )
+    print(
+        json.dumps(
+            {
+                "bench": "bc_lift",
+                "metric": "success_rate",
+                "value": s["success_rate"],
+                "goal": 0.8,
+                "higher_is_better": True,
+                "ci95": s["ci95"],
+                "expert_success_rate": expert_rate,
+                "expert_ci95": list(wilson_interval(sum(e.success for e in expert), len(expert))),
+                "train_episodes": episodes,
+                "eval_episodes": eval_episodes,
+                "eval_seeds": [1000, 1000 + eval_episodes - 1],
+                "regime": args.regime,
+                "train_steps": train_steps,
+                "collect_s": round(collect_s, 1),
+                "train_s": round(train_s, 1),
+                "eval_s": round(eval_s, 1),
+                "quick": args.quick,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

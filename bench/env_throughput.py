@@ -19,11 +19,12 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from shiftkit.envs import make  # noqa: E402
-from shiftkit.envs.cameras import scene_option, disable_costly_flags  # noqa: E402
+from shiftkit.envs.cameras import disable_costly_flags, scene_option  # noqa: E402
 
 
-def _best_rates(loops: dict[str, Callable[[int], None]], n: int, rounds: int,
-                prepare: Callable[[], None] = lambda: None) -> dict[str, float]:
+def _best_rates(
+    loops: dict[str, Callable[[int], None]], n: int, rounds: int, prepare: Callable[[], None] = lambda: None
+) -> dict[str, float]:
     """Calls per CPU second of each `loops[name](n)` (after an untimed `prepare()`), best of
     `rounds`. CPU time, not wall time: on the shared machine this process is often descheduled.
     The loops alternate inside every round, so what other processes still cost (caches, memory
@@ -78,6 +79,7 @@ def main() -> None:
     env_sps, bare_sps = rates["env"], rates["bare"]
 
     env.render_rgb()  # create the renderer before timing
+
     def env_render(n: int) -> None:
         for _ in range(n):
             env.render_rgb("front")

@@ -58,15 +58,18 @@ class Rerender(Stage):
     Config = RerenderConfig
 
     def setup(self) -> None:
-        from shiftkit.envs.panda_play.physics import PandaPlayPhysics
         from shiftkit.envs.cameras import CameraRenderer
+        from shiftkit.envs.panda_play.physics import PandaPlayPhysics
 
         self._physics = PandaPlayPhysics()
         self._renderer = CameraRenderer(self._physics.model, self.config.width, self.config.height, self.config.quality)
 
     def transform_features(self, features: Features) -> Features:
-        image = {"dtype": "image", "shape": (self.config.height, self.config.width, 3),
-                 "names": ["height", "width", "channels"]}
+        image = {
+            "dtype": "image",
+            "shape": (self.config.height, self.config.width, 3),
+            "names": ["height", "width", "channels"],
+        }
         return {**features, f"observation.images.{self.config.camera}_rerendered": image}
 
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
@@ -92,8 +95,11 @@ def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episo
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig
 
-    config = PipelineConfig(sources=[SourceConfig(path=str(source))], stages=[StageSpec(name="bench-rerender")],
-                            destination=DestinationConfig(root=str(dest)))
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(source))],
+        stages=[StageSpec(name="bench-rerender")],
+        destination=DestinationConfig(root=str(dest)),
+    )
     options = {} if executor == "local" else {"shard_episodes": shard_episodes}
     t0 = time.perf_counter()
     run_pipeline(config, workers=workers, executor=executor, executor_options=options, progress=False)
@@ -107,7 +113,6 @@ def main() -> None:
     args = parser.parse_args()
     episodes = args.episodes or (2 if args.quick else 24)
 
-
     with tempfile.TemporaryDirectory(prefix="shiftkit-bench-exec-") as tmp:
         tmp = Path(tmp)
         os.environ.setdefault("HF_LEROBOT_HOME", str(tmp / "home"))
@@ -120,10 +125,17 @@ def main() -> None:
         load_before = os.getloadavg()
         import ray
 
-        ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING",
-                 runtime_env={"env_vars": {k: os.environ[k] for k in ("HF_HUB_OFFLINE", "HF_LEROBOT_HOME",
-                                                                     "HF_DATASETS_CACHE", "MUJOCO_GL",
-                                                                     "LP_NUM_THREADS")}})
+        ray.init(
+            num_cpus=2,
+            include_dashboard=False,
+            logging_level="WARNING",
+            runtime_env={
+                "env_vars": {
+                    k: os.environ[k]
+                    for k in ("HF_HUB_OFFLINE", "HF_LEROBOT_HOME", "HF_DATASETS_CACHE", "MUJOCO_GL", "LP_NUM_THREADS")
+                }
+            },
+        )
         seconds: dict[str, dict[int, float]] = {}
         # One episode per unit (raw sources); shards of 1 episode balance 2 workers best.
         for name in ("local", "ray"):
@@ -132,22 +144,26 @@ def main() -> None:
         load_after = os.getloadavg()
 
     speedups = {name: s[1] / s[2] for name, s in seconds.items()}
-    print(json.dumps({
-        "bench": "executors",
-        "metric": "speedup_2_workers_min_over_executors",
-        "value": round(min(speedups.values()), 3),
-        "goal": 1.6,
-        "higher_is_better": True,
-        "speedup": {k: round(v, 3) for k, v in speedups.items()},
-        "seconds": {k: {str(w): round(t, 2) for w, t in v.items()} for k, v in seconds.items()},
-        "stage": "bench-rerender (MuJoCo, visual meshes, 64x48)",
-        "episodes": episodes,
-        "frames": frames,
-        "cpu_count": os.cpu_count(),
-        "lp_num_threads": os.environ["LP_NUM_THREADS"],
-        "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
-        "quick": args.quick,
-    }))
+    print(
+        json.dumps(
+            {
+                "bench": "executors",
+                "metric": "speedup_2_workers_min_over_executors",
+                "value": round(min(speedups.values()), 3),
+                "goal": 1.6,
+                "higher_is_better": True,
+                "speedup": {k: round(v, 3) for k, v in speedups.items()},
+                "seconds": {k: {str(w): round(t, 2) for w, t in v.items()} for k, v in seconds.items()},
+                "stage": "bench-rerender (MuJoCo, visual meshes, 64x48)",
+                "episodes": episodes,
+                "frames": frames,
+                "cpu_count": os.cpu_count(),
+                "lp_num_threads": os.environ["LP_NUM_THREADS"],
+                "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
+                "quick": args.quick,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

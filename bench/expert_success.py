@@ -36,11 +36,24 @@ def main() -> None:
         failed[task] = [s for s, r in enumerate(results) if not r.succeeded]
         print(f"{task:15s} {rates[task]:9.2f} {lengths[task]:9.1f}  {failed[task]}", flush=True)
     worst = min(rates, key=rates.get)
-    print(json.dumps({
-        "bench": "expert_success", "metric": "min_success_rate", "value": rates[worst], "goal": 0.9,
-        "higher_is_better": True, "worst_task": worst, "episodes_per_task": n, "control_hz": args.control_hz,
-        "success": rates, "mean_length": lengths, "failed_seeds": failed, "seconds": round(time.time() - start, 1),
-    }))
+    print(
+        json.dumps(
+            {
+                "bench": "expert_success",
+                "metric": "min_success_rate",
+                "value": rates[worst],
+                "goal": 0.9,
+                "higher_is_better": True,
+                "worst_task": worst,
+                "episodes_per_task": n,
+                "control_hz": args.control_hz,
+                "success": rates,
+                "mean_length": lengths,
+                "failed_seeds": failed,
+                "seconds": round(time.time() - start, 1),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

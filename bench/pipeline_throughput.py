@@ -36,14 +36,18 @@ def make_source(root: Path, episodes: int, length: int, seed: int = 0) -> Path:
     }
     with DatasetWriter("bench/source", root, 20, features) as w:
         for _ in range(episodes):
-            w.add_episode(Episode({
-                "observation.state": rng.normal(size=(length, 8)).astype(np.float32),
-                "observation.environment_state": rng.normal(size=(length, 14)).astype(np.float32),
-                "action": rng.uniform(-1, 1, size=(length, 4)).astype(np.float32),
-                "next.success": (np.arange(length) >= length - 5).reshape(-1, 1),
-                "timestamp": np.arange(length) / 20.0,
-                "task": np.array(["lift"] * length),
-            }))
+            w.add_episode(
+                Episode(
+                    {
+                        "observation.state": rng.normal(size=(length, 8)).astype(np.float32),
+                        "observation.environment_state": rng.normal(size=(length, 14)).astype(np.float32),
+                        "action": rng.uniform(-1, 1, size=(length, 4)).astype(np.float32),
+                        "next.success": (np.arange(length) >= length - 5).reshape(-1, 1),
+                        "timestamp": np.arange(length) / 20.0,
+                        "task": np.array(["lift"] * length),
+                    }
+                )
+            )
     return root
 
 
@@ -53,7 +57,11 @@ def lerobot_copy(src: Path, dst: Path) -> float:
 
     t0 = time.perf_counter()
     ds = LeRobotDataset("bench/source", root=src)
-    features = {k: v for k, v in ds.features.items() if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")}
+    features = {
+        k: v
+        for k, v in ds.features.items()
+        if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")
+    }
     out = LeRobotDataset.create("bench/copy", ds.fps, features, root=dst, use_videos=False)
     current = 0
     for i in range(len(ds)):
@@ -75,18 +83,21 @@ def shiftkit_copy(src: Path, dst: Path, workers: int = 1) -> float:
     from shiftkit.pipelines.sources import SourceConfig
 
     t0 = time.perf_counter()
-    run_pipeline(PipelineConfig(sources=[SourceConfig(path=str(src))], destination=DestinationConfig(root=str(dst))),
-                 workers=workers, progress=False)
+    run_pipeline(
+        PipelineConfig(sources=[SourceConfig(path=str(src))], destination=DestinationConfig(root=str(dst))),
+        workers=workers,
+        progress=False,
+    )
     return time.perf_counter() - t0
 
 
 def peak_rss_mb(src: Path, dst: Path) -> float:
     """Peak RSS of a fresh process that runs the pass-through pipeline."""
     code = (
-        "import resource, sys; from pathlib import Path; sys.path.insert(0, %r);"
-        "from pipeline_throughput import shiftkit_copy; shiftkit_copy(Path(%r), Path(%r));"
+        f"import resource, sys; from pathlib import Path; sys.path.insert(0, {str(Path(__file__).parent)!r});"
+        f"from pipeline_throughput import shiftkit_copy; shiftkit_copy(Path({str(src)!r}), Path({str(dst)!r}));"
         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"
-    ) % (str(Path(__file__).parent), str(src), str(dst))
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(out.stdout.strip().splitlines()[-1])
 
@@ -115,14 +126,27 @@ def main() -> None:
     print(f"lerobot copy loop : {fps_lerobot:9.0f} frames/s ({frames} frames, {episodes} episodes)")
     print(f"shiftkit pipeline : {fps_shiftkit:9.0f} frames/s  -> speed-up {speedup:.1f}x")
     print(f"peak RSS 1x ({rss_episodes} eps): {rss_1x:.0f} MB, 4x: {rss_4x:.0f} MB -> ratio {rss_4x / rss_1x:.2f}")
-    print(json.dumps({
-        "bench": "pipeline_throughput", "metric": "speedup_vs_lerobot_copy_loop", "value": round(speedup, 2),
-        "goal": 5.0, "higher_is_better": True,
-        "frames_per_s_shiftkit": round(fps_shiftkit, 1), "frames_per_s_lerobot": round(fps_lerobot, 1),
-        "episodes": episodes, "frames_per_episode": length,
-        "rss_mb_1x": round(rss_1x, 1), "rss_mb_4x": round(rss_4x, 1), "rss_ratio_4x_over_1x": round(rss_4x / rss_1x, 3),
-        "rss_goal": 1.2, "rss_ok": rss_4x <= 1.2 * rss_1x, "quick": args.quick,
-    }))
+    print(
+        json.dumps(
+            {
+                "bench": "pipeline_throughput",
+                "metric": "speedup_vs_lerobot_copy_loop",
+                "value": round(speedup, 2),
+                "goal": 5.0,
+                "higher_is_better": True,
+                "frames_per_s_shiftkit": round(fps_shiftkit, 1),
+                "frames_per_s_lerobot": round(fps_lerobot, 1),
+                "episodes": episodes,
+                "frames_per_episode": length,
+                "rss_mb_1x": round(rss_1x, 1),
+                "rss_mb_4x": round(rss_4x, 1),
+                "rss_ratio_4x_over_1x": round(rss_4x / rss_1x, 3),
+                "rss_goal": 1.2,
+                "rss_ok": rss_4x <= 1.2 * rss_1x,
+                "quick": args.quick,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -44,21 +44,35 @@ COLLECT_EPISODES = 240  # scripted episodes per task (failures skipped), enough 
 def scene_examples(dest: Path, work: Path, tasks: list[str]) -> None:
     """200 final states per task of successful scripted-expert episodes at 5 Hz, one example dataset at
     `dest`; the raw episodes are kept in `work` (written atomically, so a rerun reuses them)."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     raws = []
     for i, task in enumerate(tasks):
         raw = work / f"{task}-raw"
         if not raw.exists():
-            collect(CollectConfig(env="panda-play", task=task, episodes=COLLECT_EPISODES, control_hz=5,
-                                  seed=COLLECT_SEED + i * COLLECT_EPISODES, out=str(raw), only_successful=True))
+            collect(
+                CollectConfig(
+                    env="panda-play",
+                    task=task,
+                    episodes=COLLECT_EPISODES,
+                    control_hz=5,
+                    seed=COLLECT_SEED + i * COLLECT_EPISODES,
+                    out=str(raw),
+                    only_successful=True,
+                )
+            )
         raws.append(SourceConfig(path=str(raw)))
-    run_pipeline(PipelineConfig(
-        sources=raws, destination=DestinationConfig(root=str(dest), repo_id="local/panda-examples"),
-        stages=[StageSpec("success_examples", {"n_per_task": 200, "states": "final"})]), progress=False)
+    run_pipeline(
+        PipelineConfig(
+            sources=raws,
+            destination=DestinationConfig(root=str(dest), repo_id="local/panda-examples"),
+            stages=[StageSpec("success_examples", {"n_per_task": 200, "states": "final"})],
+        ),
+        progress=False,
+    )
 
 
 def main() -> None:
@@ -68,12 +82,19 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, help="steps between curve points (default 10000)")
     parser.add_argument("--eval-episodes", type=int, default=20, help="episodes per curve point")
     parser.add_argument("--final-episodes", type=int, help="episodes of the final evaluation (default 50)")
-    parser.add_argument("--examples", choices=("published", "scene"), default="published",
-                        help="example source: the published files (default) or scripted episodes in shiftkit's scene")
+    parser.add_argument(
+        "--examples",
+        choices=("published", "scene"),
+        default="published",
+        help="example source: the published files (default) or scripted episodes in shiftkit's scene",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "vpace"),
-                        help="folder with the published VPACE example files")
+    parser.add_argument(
+        "--data",
+        default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "vpace"),
+        help="folder with the published VPACE example files",
+    )
     parser.add_argument("--workdir", help="keep dataset and run here (default: a temporary folder)")
     args = parser.parse_args()
     quick = dict(total_steps=2500, buffer_warmup=1500, random_steps=1500, eval_every=2500) if args.quick else {}
@@ -102,18 +123,40 @@ def main() -> None:
             import_vpace([Path(args.data) / f for f in PUBLISHED_FILES], "local/vpace-examples", examples)
     env_kwargs = {"control_hz": 5}
     t0 = time.perf_counter()
-    train(VPACEArgs.for_variant(
-        "vpace", examples=[str(examples)], env="panda-play", main_task="reach", aux_tasks=[aux],
-        output_dir=str(run), examples_per_task=200, env_kwargs=env_kwargs, seed=args.seed,
-        torch_threads=args.threads, eval_episodes=eval_episodes, resume=run.exists(),
-        **(quick | dict(total_steps=total_steps, eval_every=eval_every))))
+    train(
+        VPACEArgs.for_variant(
+            "vpace",
+            examples=[str(examples)],
+            env="panda-play",
+            main_task="reach",
+            aux_tasks=[aux],
+            output_dir=str(run),
+            examples_per_task=200,
+            env_kwargs=env_kwargs,
+            seed=args.seed,
+            torch_threads=args.threads,
+            eval_episodes=eval_episodes,
+            resume=run.exists(),
+            **(quick | dict(total_steps=total_steps, eval_every=eval_every)),
+        )
+    )
     train_s = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     best = run / "checkpoints" / "best.pt"  # absent when no curve point was taken (--total-steps < --eval-every)
-    held_out = {name: evaluate(load_policy(path), "panda-play", "reach", final_episodes, seed=FINAL_SEED,
-                               policy_name=str(path), env_kwargs=env_kwargs).summary()
-                for name, path in (("best", best), ("last", run)) if path.exists()}
+    held_out = {
+        name: evaluate(
+            load_policy(path),
+            "panda-play",
+            "reach",
+            final_episodes,
+            seed=FINAL_SEED,
+            policy_name=str(path),
+            env_kwargs=env_kwargs,
+        ).summary()
+        for name, path in (("best", best), ("last", run))
+        if path.exists()
+    }
     eval_s = time.perf_counter() - t0
     env = make("panda-play", "reach", **env_kwargs)
     expert = run_episodes(ExpertPolicy(env), env, final_episodes, seed=FINAL_SEED)
@@ -126,21 +169,41 @@ def main() -> None:
         print(f"step {step:>7}: main-task success {rate:.0%} ({eval_episodes} episodes)")
     print(f"train {train_s:.0f}s for {total_steps} env steps, final evaluations {eval_s:.0f}s")
     for name, s in held_out.items():
-        print(f"VPACE reach, {name} checkpoint: success {s['successes']}/{s['episodes']} = {s['success_rate']:.0%}, "
-              f"95% CI [{s['ci95'][0]:.0%}, {s['ci95'][1]:.0%}]")
+        print(
+            f"VPACE reach, {name} checkpoint: success {s['successes']}/{s['episodes']} = {s['success_rate']:.0%}, "
+            f"95% CI [{s['ci95'][0]:.0%}, {s['ci95'][1]:.0%}]"
+        )
     print(f"expert on the same seeds {expert_successes}/{len(expert)}; best curve point at step {best_step}")
     s = held_out.get("best", held_out["last"])
-    print(json.dumps({
-        "bench": "vpace_reach", "metric": "success_rate", "value": s["success_rate"], "goal": 0.9,
-        "higher_is_better": True, "ci95": s["ci95"], "best_step": best_step,
-        "last_success_rate": held_out["last"]["success_rate"], "last_ci95": held_out["last"]["ci95"],
-        "expert_success_rate": expert_successes / len(expert),
-        "expert_ci95": list(wilson_interval(expert_successes, len(expert))), "curve": curve,
-        "env_steps": total_steps, "examples": args.examples, "aux_task": aux, "examples_per_task": 200,
-        "final_episodes": final_episodes,
-        "final_seeds": [FINAL_SEED, FINAL_SEED + final_episodes - 1], "seed": args.seed,
-        "train_s": round(train_s, 1), "eval_s": round(eval_s, 1), "threads": args.threads, "quick": args.quick,
-    }))
+    print(
+        json.dumps(
+            {
+                "bench": "vpace_reach",
+                "metric": "success_rate",
+                "value": s["success_rate"],
+                "goal": 0.9,
+                "higher_is_better": True,
+                "ci95": s["ci95"],
+                "best_step": best_step,
+                "last_success_rate": held_out["last"]["success_rate"],
+                "last_ci95": held_out["last"]["ci95"],
+                "expert_success_rate": expert_successes / len(expert),
+                "expert_ci95": list(wilson_interval(expert_successes, len(expert))),
+                "curve": curve,
+                "env_steps": total_steps,
+                "examples": args.examples,
+                "aux_task": aux,
+                "examples_per_task": 200,
+                "final_episodes": final_episodes,
+                "final_seeds": [FINAL_SEED, FINAL_SEED + final_episodes - 1],
+                "seed": args.seed,
+                "train_s": round(train_s, 1),
+                "eval_s": round(eval_s, 1),
+                "threads": args.threads,
+                "quick": args.quick,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

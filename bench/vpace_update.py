@@ -33,8 +33,13 @@ def time_updates(num_tasks: int, updates: int, warmup: int, reward_model: str, d
     replay = ReplayBuffer(10_000, OBS_DIM, ACT_DIM)
     for _ in range(10_000):
         replay.add(rng.standard_normal(OBS_DIM), rng.uniform(-1, 1, ACT_DIM), rng.standard_normal(OBS_DIM), False)
-    batches = [(replay.sample(rng, args.batch_size), rng.standard_normal((num_tasks, args.example_batch_size, OBS_DIM),
-                                                                          np.float32)) for _ in range(8)]
+    batches = [
+        (
+            replay.sample(rng, args.batch_size),
+            rng.standard_normal((num_tasks, args.example_batch_size, OBS_DIM), np.float32),
+        )
+        for _ in range(8)
+    ]
     for i in range(warmup):
         agent.update(batches[i % 8][0], batches[i % 8][1], None)
     if device.type == "cuda":
@@ -56,8 +61,11 @@ def main() -> None:
     parser.add_argument("--device", default="auto")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
-                          ("cpu" if args.device == "auto" else args.device))
+    device = torch.device(
+        "cuda"
+        if args.device == "auto" and torch.cuda.is_available()
+        else ("cpu" if args.device == "auto" else args.device)
+    )
     updates, warmup = (40, 5) if args.quick else (args.updates, 20)
     # Interleave the two configurations so machine load drifts affect both alike; keep each one's best.
     one, five = [], []
@@ -66,12 +74,24 @@ def main() -> None:
         five.append(time_updates(5, updates, warmup, args.reward_model, device))
     t1, t5 = min(one), min(five)
     print(f"1 intention: {t1 * 1e3:.2f} ms/update   5 intentions: {t5 * 1e3:.2f} ms/update")
-    print(json.dumps({
-        "bench": "vpace_update", "metric": "update_time_ratio_5_vs_1", "value": round(t5 / t1, 3), "goal": 2.5,
-        "higher_is_better": False, "ms_per_update_1": round(t1 * 1e3, 3), "ms_per_update_5": round(t5 * 1e3, 3),
-        "naive_linear_ratio": 5.0, "reward_model": args.reward_model, "device": str(device),
-        "threads": args.threads, "updates": updates,
-    }))
+    print(
+        json.dumps(
+            {
+                "bench": "vpace_update",
+                "metric": "update_time_ratio_5_vs_1",
+                "value": round(t5 / t1, 3),
+                "goal": 2.5,
+                "higher_is_better": False,
+                "ms_per_update_1": round(t1 * 1e3, 3),
+                "ms_per_update_5": round(t5 * 1e3, 3),
+                "naive_linear_ratio": 5.0,
+                "reward_model": args.reward_model,
+                "device": str(device),
+                "threads": args.threads,
+                "updates": updates,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

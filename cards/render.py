@@ -10,8 +10,7 @@ from typing import Any
 
 # Method citations by stage / trainer name (the thesis the methods come from).
 THESIS = (
-    "Trevor Ablett. *Mitigating distribution shift in robotic imitation learning* "
-    "(PhD thesis, University of Toronto)."
+    "Trevor Ablett. *Mitigating distribution shift in robotic imitation learning* (PhD thesis, University of Toronto)."
 )
 CITATIONS = {
     "multiview": "Ablett et al., *Seeing all the angles: learning multiview manipulation policies for contact-rich tasks from demonstrations*, IROS 2021.",
@@ -60,13 +59,20 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
         for k, v in stats.items()
         if isinstance(v, dict) and "mean" in v and k not in ("index", "episode_index", "frame_index", "task_index")
     )
-    sources = "\n".join(
-        "- " + ", ".join(f"{k}: `{v}`" for k, v in src.items() if v not in (None, "")) for src in provenance.get("sources", [])
-    ) or "- (none)"
-    stages = "\n".join(
-        f"{i + 1}. `{s['name']}` v{s['version']}: `{json.dumps(s['params'], sort_keys=True)}`"
-        for i, s in enumerate(provenance.get("stages", []))
-    ) or "(none: the sources were converted unchanged)"
+    sources = (
+        "\n".join(
+            "- " + ", ".join(f"{k}: `{v}`" for k, v in src.items() if v not in (None, ""))
+            for src in provenance.get("sources", [])
+        )
+        or "- (none)"
+    )
+    stages = (
+        "\n".join(
+            f"{i + 1}. `{s['name']}` v{s['version']}: `{json.dumps(s['params'], sort_keys=True)}`"
+            for i, s in enumerate(provenance.get("stages", []))
+        )
+        or "(none: the sources were converted unchanged)"
+    )
     tasks_path = root / "meta" / "tasks.parquet"
     task_list = ""
     if tasks_path.exists():
@@ -97,9 +103,13 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
 
 def render_model_card(card: dict[str, Any]) -> str:
     """Card for a trained policy: keys `trainer`, `datasets`, `args`, `metrics`, `env`, `versions`."""
-    datasets = "\n".join(
-        "- " + ", ".join(f"{k}: `{v}`" for k, v in d.items() if v not in (None, "")) for d in card.get("datasets", [])
-    ) or "- (none)"
+    datasets = (
+        "\n".join(
+            "- " + ", ".join(f"{k}: `{v}`" for k, v in d.items() if v not in (None, ""))
+            for d in card.get("datasets", [])
+        )
+        or "- (none)"
+    )
     args = "\n".join(f"| `{k}` | `{v}` |" for k, v in sorted(card.get("args", {}).items()))
     metrics = "\n".join(
         f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in card.get("metrics", {}).items()

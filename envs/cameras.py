@@ -74,8 +74,14 @@ def camera_intrinsics(model: mujoco.MjModel, camera: str, width: int, height: in
     """Pinhole intrinsics (pixels) of a MuJoCo camera rendered at width x height (square pixels)."""
     fovy = np.deg2rad(model.cam(camera).fovy[0])
     f = 0.5 * height / np.tan(fovy / 2)
-    return {"fx": float(f), "fy": float(f), "cx": (width - 1) / 2, "cy": (height - 1) / 2,
-            "width": width, "height": height}
+    return {
+        "fx": float(f),
+        "fy": float(f),
+        "cx": (width - 1) / 2,
+        "cy": (height - 1) / 2,
+        "width": width,
+        "height": height,
+    }
 
 
 def camera_extrinsics(model: mujoco.MjModel, data: mujoco.MjData, camera: str) -> dict[str, list[float]]:

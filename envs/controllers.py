@@ -22,9 +22,20 @@ class FixedOrientationIK:
     `rotation`, plus a null-space pull towards a home posture (keeps the elbow up and away from
     joint limits). `step` evaluates kinematics on a scratch `MjData`, never the simulated one."""
 
-    def __init__(self, model: mujoco.MjModel, site: int, qpos: slice, dofs: slice, rotation: np.ndarray,
-                 home: np.ndarray, low: np.ndarray, high: np.ndarray, damping: float = 1e-4,
-                 posture_gain: float = 0.05, max_dq: float = 0.2) -> None:
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        site: int,
+        qpos: slice,
+        dofs: slice,
+        rotation: np.ndarray,
+        home: np.ndarray,
+        low: np.ndarray,
+        high: np.ndarray,
+        damping: float = 1e-4,
+        posture_gain: float = 0.05,
+        max_dq: float = 0.2,
+    ) -> None:
         self.model, self.site, self.qpos, self.dofs = model, site, qpos, dofs
         self.home, self.low, self.high = home, low, high
         self.posture_gain, self.max_dq = posture_gain, max_dq

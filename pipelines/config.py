@@ -1,17 +1,17 @@
 """Pipeline config files (TOML, YAML or JSON): sources, ordered stages, destination, seed.
 
-    [[sources]]
-    path = "raw/lift"            # or repo_id = "org/name" (+ revision)
+[[sources]]
+path = "raw/lift"            # or repo_id = "org/name" (+ revision)
 
-    [[stages]]
-    name = "trim"
-    params = { head = 2 }
+[[stages]]
+name = "trim"
+params = { head = 2 }
 
-    [destination]
-    root = "out/lift"            # relative paths are relative to this file
-    repo_id = "local/lift"
+[destination]
+root = "out/lift"            # relative paths are relative to this file
+repo_id = "local/lift"
 
-    seed = 0                     # top-level keys must come before the first table in TOML
+seed = 0                     # top-level keys must come before the first table in TOML
 """
 
 from __future__ import annotations

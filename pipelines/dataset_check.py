@@ -27,10 +27,15 @@ def summarize(root: str | Path) -> dict[str, Any]:
         "episodes": reader.num_episodes,
         "frames": int(reader.info.get("total_frames", 0)),
         "tasks": reader.tasks,
-        "features": {k: {"dtype": ft["dtype"], "shape": list(ft["shape"]), "names": ft.get("names")}
-                     for k, ft in reader.features.items()},
-        "stats": {k: {s: v[s] for s in ("mean", "std", "min", "max") if s in v}
-                  for k, v in stats.items() if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")},
+        "features": {
+            k: {"dtype": ft["dtype"], "shape": list(ft["shape"]), "names": ft.get("names")}
+            for k, ft in reader.features.items()
+        },
+        "stats": {
+            k: {s: v[s] for s in ("mean", "std", "min", "max") if s in v}
+            for k, v in stats.items()
+            if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")
+        },
         "provenance": json.loads(prov_path.read_text()) if prov_path.exists() else None,
     }
 
@@ -53,7 +58,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"  {key:<{width}}  {ft['dtype']:<8} {str(tuple(ft['shape'])):<14} {extra}")
     prov = summary["provenance"]
     if prov:
-        lines.append(f"provenance: shiftkit {prov['versions'].get('shiftkit')}, lerobot {prov['versions'].get('lerobot')}, seed {prov.get('seed')}")
+        lines.append(
+            f"provenance: shiftkit {prov['versions'].get('shiftkit')}, lerobot {prov['versions'].get('lerobot')}, seed {prov.get('seed')}"
+        )
         for src in prov.get("sources", []):
             lines.append("  source: " + ", ".join(f"{k}={v}" for k, v in src.items() if v not in (None, "")))
         for stage in prov.get("stages", []):
@@ -87,18 +94,24 @@ def validate_dataset(root: str | Path) -> dict[str, int]:
         i = ep.meta["source_episode_index"]
         row = reader.episodes.iloc[i]
         if int(row["dataset_from_index"]) != next_index:
-            raise DatasetError(f"{root}: episode {i} starts at index {int(row['dataset_from_index'])}, expected {next_index}")
+            raise DatasetError(
+                f"{root}: episode {i} starts at index {int(row['dataset_from_index'])}, expected {next_index}"
+            )
         check_episode(ep, reader.features, reader.fps, f"{root} episode {i}")
         next_index = int(row["dataset_to_index"])
         frames += len(ep)
     if frames != int(reader.info.get("total_frames", -1)):
         raise DatasetError(f"{root}: {frames} frames in the data, info.json says {reader.info.get('total_frames')}")
     if reader.num_episodes != int(reader.info.get("total_episodes", -1)):
-        raise DatasetError(f"{root}: {reader.num_episodes} episodes, info.json says {reader.info.get('total_episodes')}")
+        raise DatasetError(
+            f"{root}: {reader.num_episodes} episodes, info.json says {reader.info.get('total_episodes')}"
+        )
     try:
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         LeRobotDataset(f"local/{root.name}", root=root)
     except Exception as exc:
-        raise DatasetError(f"{root}: lerobot cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise DatasetError(
+            f"{root}: lerobot cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
     return {"episodes": reader.num_episodes, "frames": frames}

@@ -62,7 +62,9 @@ class Shard:
 
     def describe(self) -> str:
         eps = self.episodes
-        return f"shard {self.index} (source {eps[0][0]} episode {eps[0][1]} .. source {eps[-1][0]} episode {eps[-1][1]})"
+        return (
+            f"shard {self.index} (source {eps[0][0]} episode {eps[0][1]} .. source {eps[-1][0]} episode {eps[-1][1]})"
+        )
 
 
 def plan_shards(units: list[WorkUnit], max_episodes: int) -> list[Shard]:
@@ -127,8 +129,9 @@ class ShardStep(PipelineStep):
     name = "shiftkit shards"
     type = "🤖 - SHIFTKIT"
 
-    def __init__(self, config: Any, shards: list[Shard], attempts: int, stage_classes: list[type[Stage]],
-                 write: bool) -> None:
+    def __init__(
+        self, config: Any, shards: list[Shard], attempts: int, stage_classes: list[type[Stage]], write: bool
+    ) -> None:
         super().__init__()
         self.config = config
         self.shards = shards
@@ -161,11 +164,14 @@ class ShardStep(PipelineStep):
                     break
                 except Exception as exc:
                     plan = None
-                    where = next((f"source {s} episode {i}" for s, i in shard.episodes if not parts.done(s, i)),
-                                 f"writing {shard.describe()}")
+                    where = next(
+                        (f"source {s} episode {i}" for s, i in shard.episodes if not parts.done(s, i)),
+                        f"writing {shard.describe()}",
+                    )
                     reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
-                    _LOG.warning("%s, attempt %d/%d failed at %s: %s", shard.describe(), attempt, self.attempts,
-                                 where, reason)
+                    _LOG.warning(
+                        "%s, attempt %d/%d failed at %s: %s", shard.describe(), attempt, self.attempts, where, reason
+                    )
                     self.stat_update("failed_attempts")
                     if attempt == self.attempts:
                         store.record_failure(shard.index, where, reason, attempt)
@@ -178,7 +184,9 @@ class ShardStep(PipelineStep):
 def _write_shard(plan: Any, shard: Shard, parts: PartStore, store: ShardStore) -> None:
     from shiftkit.pipelines.lerobot_io import DatasetWriter
 
-    writer = DatasetWriter(plan.repo_id, store.dataset(shard.index), plan.fps, plan.features, robot_type=plan.robot_type)
+    writer = DatasetWriter(
+        plan.repo_id, store.dataset(shard.index), plan.fps, plan.features, robot_type=plan.robot_type
+    )
     with writer:
         for e, (s, i) in enumerate(shard.episodes):
             for j, (episode, stats) in enumerate(parts.read(s, i)):
@@ -212,8 +220,10 @@ class DatatroveExecutor:
         store = ShardStore(parts.dir.parent)
         if selecting_stages(plan.stages):
             if self.schedules:
-                raise ConfigError(f"executor {self.name!r} cannot run stages with a dataset-level select; "
-                                  "use local, datatrove-local or ray")
+                raise ConfigError(
+                    f"executor {self.name!r} cannot run stages with a dataset-level select; "
+                    "use local, datatrove-local or ray"
+                )
             if not self._pass(plan, shards, parts, store, bar, write=False):
                 return False
             shards = _with_selection(plan, shards, parts)
@@ -244,8 +254,9 @@ class DatatroveExecutor:
     def _execute(self, step: ShardStep, tasks: int, logdir: Path) -> None:
         raise NotImplementedError
 
-    def _schedule(self, plan: Any, step: ShardStep, tasks: int, logdir: Path, store: ShardStore,
-                  todo: list[Shard]) -> bool:
+    def _schedule(
+        self, plan: Any, step: ShardStep, tasks: int, logdir: Path, store: ShardStore, todo: list[Shard]
+    ) -> bool:
         raise NotImplementedError
 
     def assemble(self, plan: Any, parts: PartStore, bar: Any) -> Path:
@@ -279,20 +290,31 @@ def _with_selection(plan: Any, shards: list[Shard], parts: PartStore) -> list[Sh
     return [dataclasses.replace(s, keep=tuple(tuple(flags.get(e, ())) for e in s.episodes)) for s in shards]
 
 
-def _check_shards(plan: Any, todo: list[Shard], parts: PartStore, store: ShardStore, write: bool,
-                  logdir: Path, error: Exception | None) -> None:
+def _check_shards(
+    plan: Any,
+    todo: list[Shard],
+    parts: PartStore,
+    store: ShardStore,
+    write: bool,
+    logdir: Path,
+    error: Exception | None,
+) -> None:
     """One-line error naming the failed episodes and why; the destination stays untouched."""
     failures = [(s, store.failure(s.index)) for s in todo]
     failures = [(s, f) for s, f in failures if f is not None]
     if failures:
         what = "; ".join(f"{f['where']}: {f['reason']}" for _, f in failures)
-        raise DatasetError(f"{len(failures)} of {len(todo)} shards failed {failures[0][1]['attempts']} times, "
-                           f"nothing written to {plan.destination}: {what}")
+        raise DatasetError(
+            f"{len(failures)} of {len(todo)} shards failed {failures[0][1]['attempts']} times, "
+            f"nothing written to {plan.destination}: {what}"
+        )
     missing = [s for s in todo if not (store.done(s.index) if write else all(parts.done(a, i) for a, i in s.episodes))]
     if missing:
         why = f"{type(error).__name__}: {error}".splitlines()[0] if error else "the executor stopped"
-        raise DatasetError(f"{len(missing)} of {len(todo)} shards did not finish ({missing[0].describe()}, ...): "
-                           f"{why}; logs in {logdir}")
+        raise DatasetError(
+            f"{len(missing)} of {len(todo)} shards did not finish ({missing[0].describe()}, ...): "
+            f"{why}; logs in {logdir}"
+        )
 
 
 class _PartsProgress:
@@ -347,7 +369,9 @@ class DatatroveLocalExecutor(DatatroveExecutor):
         # forkserver (datatrove's default): workers fork from a clean server, not from a process
         # that may hold threads (torch, EGL).
         with _datatrove_logs_to(logdir):
-            LocalPipelineExecutor([step], tasks=tasks, workers=tasks, logging_dir=str(logdir), skip_completed=False).run()
+            LocalPipelineExecutor(
+                [step], tasks=tasks, workers=tasks, logging_dir=str(logdir), skip_completed=False
+            ).run()
 
 
 class RayExecutor(DatatroveExecutor):
@@ -355,7 +379,9 @@ class RayExecutor(DatatroveExecutor):
     # What Ray workers need from the driver's environment (offline hub, caches, headless MuJoCo).
     FORWARDED_ENV = ("HF_HUB_OFFLINE", "HF_LEROBOT_HOME", "HF_HOME", "HF_DATASETS_CACHE", "MUJOCO_GL")
 
-    def __init__(self, workers: int = 1, address: str | None = None, mem_per_cpu_gb: float = 1.0, **options: Any) -> None:
+    def __init__(
+        self, workers: int = 1, address: str | None = None, mem_per_cpu_gb: float = 1.0, **options: Any
+    ) -> None:
         super().__init__(workers, **options)
         self.address = address
         self.mem_per_cpu_gb = mem_per_cpu_gb
@@ -371,14 +397,25 @@ class RayExecutor(DatatroveExecutor):
         started = not ray.is_initialized()
         if started:  # join the cluster at `address`, or start a local instance
             env = {k: os.environ[k] for k in self.FORWARDED_ENV if k in os.environ}
-            ray.init(address=self.address, include_dashboard=False, logging_level=logging.WARNING,
-                     runtime_env={"env_vars": env})
+            ray.init(
+                address=self.address,
+                include_dashboard=False,
+                logging_level=logging.WARNING,
+                runtime_env={"env_vars": env},
+            )
         try:
             # datatrove resubmits tasks whose Ray worker died (up to 3 times); errors raised by
             # the step are retried per shard inside it.
             with _datatrove_logs_to(logdir):
-                RayPipelineExecutor([step], tasks=tasks, workers=tasks, logging_dir=str(logdir), skip_completed=False,
-                                    cpus_per_task=1, mem_per_cpu_gb=self.mem_per_cpu_gb).run()
+                RayPipelineExecutor(
+                    [step],
+                    tasks=tasks,
+                    workers=tasks,
+                    logging_dir=str(logdir),
+                    skip_completed=False,
+                    cpus_per_task=1,
+                    mem_per_cpu_gb=self.mem_per_cpu_gb,
+                ).run()
         finally:
             if started:
                 ray.shutdown()
@@ -391,8 +428,14 @@ class SlurmExecutor(DatatroveExecutor):
     name = "slurm"
     schedules = True
 
-    def __init__(self, workers: int = 1, partition: str | None = None, time: str = "04:00:00",
-                 mem_per_cpu_gb: int = 2, **options: Any) -> None:
+    def __init__(
+        self,
+        workers: int = 1,
+        partition: str | None = None,
+        time: str = "04:00:00",
+        mem_per_cpu_gb: int = 2,
+        **options: Any,
+    ) -> None:
         super().__init__(workers, **options)
         if not partition:
             raise ConfigError("executor 'slurm' needs --partition")
@@ -401,21 +444,32 @@ class SlurmExecutor(DatatroveExecutor):
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "partition": self.partition}
 
-    def _schedule(self, plan: Any, step: ShardStep, tasks: int, logdir: Path, store: ShardStore,
-                  todo: list[Shard]) -> bool:
+    def _schedule(
+        self, plan: Any, step: ShardStep, tasks: int, logdir: Path, store: ShardStore, todo: list[Shard]
+    ) -> bool:
         script = logdir / "launch_script.slurm"
         if script.is_file():
             failures = [f for f in (store.failure(s.index) for s in todo) if f is not None]
             if failures:
                 what = "; ".join(f"{f['where']}: {f['reason']}" for f in failures)
-                raise DatasetError(f"{len(failures)} shards of the SLURM job failed, nothing written to "
-                                   f"{plan.destination}: {what} (fix it, then `sbatch {script}` again)")
-            _LOG.warning("SLURM job %s: %d shards still to do; when it has finished, run this command again "
-                         "to assemble the dataset", script, len(todo))
+                raise DatasetError(
+                    f"{len(failures)} shards of the SLURM job failed, nothing written to "
+                    f"{plan.destination}: {what} (fix it, then `sbatch {script}` again)"
+                )
+            _LOG.warning(
+                "SLURM job %s: %d shards still to do; when it has finished, run this command again "
+                "to assemble the dataset",
+                script,
+                len(todo),
+            )
             return False
         write_slurm_job(self, plan, step, tasks, logdir)
-        _LOG.warning("SLURM job written; submit it with:\n  sbatch %s\nthen run this command again to assemble "
-                     "the dataset (see %s)", script, logdir / "README.md")
+        _LOG.warning(
+            "SLURM job written; submit it with:\n  sbatch %s\nthen run this command again to assemble "
+            "the dataset (see %s)",
+            script,
+            logdir / "README.md",
+        )
         return False
 
 
@@ -427,9 +481,17 @@ def write_slurm_job(executor: SlurmExecutor, plan: Any, step: ShardStep, tasks: 
     ShardStore(logdir.parents[1]).clean()
     activate = Path(sys.prefix) / "bin" / "activate"
     slurm = SlurmPipelineExecutor(
-        [step], tasks=tasks, time=executor.time, partition=executor.partition, cpus_per_task=1,
-        mem_per_cpu_gb=executor.mem_per_cpu_gb, job_name=f"shiftkit-{plan.destination.name}", qos=None,
-        venv_path=str(activate) if activate.is_file() else None, logging_dir=str(logdir), skip_completed=False,
+        [step],
+        tasks=tasks,
+        time=executor.time,
+        partition=executor.partition,
+        cpus_per_task=1,
+        mem_per_cpu_gb=executor.mem_per_cpu_gb,
+        job_name=f"shiftkit-{plan.destination.name}",
+        qos=None,
+        venv_path=str(activate) if activate.is_file() else None,
+        logging_dir=str(logdir),
+        skip_completed=False,
     )
     ranks = slurm.get_incomplete_ranks()
     with slurm.logging_dir.open("executor.pik", "wb") as f:
@@ -442,9 +504,17 @@ def write_slurm_job(executor: SlurmExecutor, plan: Any, step: ShardStep, tasks: 
     command = f"{'export ' + env + '; ' if env else ''}srun -l -n 1 launch_pickled_pipeline {logdir / 'executor.pik'}"
     script = logdir / "launch_script.slurm"
     script.write_text(slurm.get_launch_file_contents(slurm.get_sbatch_args(len(ranks)), command))
-    (logdir / "README.md").write_text(SLURM_README.format(
-        script=script, tasks=len(ranks), shards=len(step.shards), dest=plan.destination, logs=logdir / "logs",
-        slurm_logs=slurm.slurm_logs_folder, work=logdir.parents[1]))
+    (logdir / "README.md").write_text(
+        SLURM_README.format(
+            script=script,
+            tasks=len(ranks),
+            shards=len(step.shards),
+            dest=plan.destination,
+            logs=logdir / "logs",
+            slurm_logs=slurm.slurm_logs_folder,
+            work=logdir.parents[1],
+        )
+    )
     return script
 
 
@@ -532,8 +602,9 @@ def fix_position_stats(root: Path) -> tuple[int, int]:
         df = pd.read_parquet(path)
         new: dict[str, list[Any]] = {}
         for lo, hi in zip(df["dataset_from_index"], df["dataset_to_index"], strict=True):
-            stats = compute_episode_stats({k: columns[k][lo:hi] for k in POSITION_KEYS},
-                                          {k: features[k] for k in POSITION_KEYS})
+            stats = compute_episode_stats(
+                {k: columns[k][lo:hi] for k in POSITION_KEYS}, {k: features[k] for k in POSITION_KEYS}
+            )
             episode_stats.append(stats)
             for key, values in stats.items():
                 for name, value in values.items():

@@ -63,6 +63,7 @@ def record(raw_dir: Path, episodes: int, seed: int) -> str:
     """Write the demo's raw episodes; returns the TOML list of features the pipeline drops."""
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
-    collect(CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=seed, out=str(raw_dir),
-                          cameras=("front",)))
+    collect(
+        CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=seed, out=str(raw_dir), cameras=("front",))
+    )
     return '["sim.qpos", "sim.qvel"]'

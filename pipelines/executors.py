@@ -53,7 +53,9 @@ class LocalExecutor:
             return True
         # spawn, not fork: stages may hold threads (torch, EGL) that do not survive a fork.
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config,)) as pool:
+        with ProcessPoolExecutor(
+            self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config,)
+        ) as pool:
             futures = [pool.submit(runner.process_unit, unit) for unit in units]
             try:
                 for future in as_completed(futures):

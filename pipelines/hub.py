@@ -125,9 +125,18 @@ def push_dataset(
 
     with _hub_errors(repo_id, branch):
         api = _api()
-        result = _push_folder(api, root, repo_id, "dataset", branch, card, private,
-                              skipped=_NEVER_PUSHED + _DATASET_SKIPPED, owned=_DATASET_OWNED,
-                              message=f"Upload LeRobot {CODEBASE_VERSION} dataset with shiftkit")
+        result = _push_folder(
+            api,
+            root,
+            repo_id,
+            "dataset",
+            branch,
+            card,
+            private,
+            skipped=_NEVER_PUSHED + _DATASET_SKIPPED,
+            owned=_DATASET_OWNED,
+            message=f"Upload LeRobot {CODEBASE_VERSION} dataset with shiftkit",
+        )
         if branch == DEFAULT_BRANCH or not get_repo_versions(repo_id):
             with contextlib.suppress(RevisionNotFoundError):
                 api.delete_tag(repo_id, tag=CODEBASE_VERSION, repo_type="dataset")
@@ -150,8 +159,18 @@ def push_checkpoint(
     _check_card(card, own_card)
     branch = revision or DEFAULT_BRANCH
     with _hub_errors(repo_id, branch):
-        return _push_folder(_api(), folder, repo_id, "model", branch, card, private,
-                            skipped=_NEVER_PUSHED, owned=("",), message="Upload policy checkpoint with shiftkit")
+        return _push_folder(
+            _api(),
+            folder,
+            repo_id,
+            "model",
+            branch,
+            card,
+            private,
+            skipped=_NEVER_PUSHED,
+            owned=("",),
+            message="Upload policy checkpoint with shiftkit",
+        )
 
 
 def pull_dataset(
@@ -195,8 +214,19 @@ def _api():
     return HfApi()  # endpoint and token from the environment / stored login, like lerobot's
 
 
-def _push_folder(api, folder: Path, repo_id: str, repo_type: str, branch: str, card: str, private: bool,
-                 *, skipped: tuple[str, ...], owned: tuple[str, ...], message: str) -> PushResult:
+def _push_folder(
+    api,
+    folder: Path,
+    repo_id: str,
+    repo_type: str,
+    branch: str,
+    card: str,
+    private: bool,
+    *,
+    skipped: tuple[str, ...],
+    owned: tuple[str, ...],
+    message: str,
+) -> PushResult:
     """One commit on `branch` that adds every file of `folder` (but `skipped` top-level entries), the
     card as README.md, and deletes remote files under the `owned` prefixes that are no longer local."""
     from huggingface_hub import CommitOperationAdd, CommitOperationDelete
@@ -209,16 +239,22 @@ def _push_folder(api, folder: Path, repo_id: str, repo_type: str, branch: str, c
         for p in sorted(folder.rglob("*"))
         if p.is_file() and p.relative_to(folder).parts[0] not in skipped
     }
-    operations: list = [CommitOperationAdd(path_in_repo=rel, path_or_fileobj=str(p))
-                        for rel, p in files.items() if rel != "README.md"]
+    operations: list = [
+        CommitOperationAdd(path_in_repo=rel, path_or_fileobj=str(p)) for rel, p in files.items() if rel != "README.md"
+    ]
     operations.append(CommitOperationAdd(path_in_repo="README.md", path_or_fileobj=card.encode("utf-8")))
     remote = api.list_repo_files(repo_id, repo_type=repo_type, revision=branch)
-    operations += [CommitOperationDelete(path_in_repo=rel) for rel in remote
-                   if rel not in files and rel not in ("README.md", ".gitattributes") and rel.startswith(owned)]
-    info = api.create_commit(repo_id, operations=operations, commit_message=message,
-                             repo_type=repo_type, revision=branch)
-    return PushResult(repo_id=repo_id, repo_type=repo_type, branch=branch, commit=info.oid,
-                      url=info.commit_url, tag=None)
+    operations += [
+        CommitOperationDelete(path_in_repo=rel)
+        for rel in remote
+        if rel not in files and rel not in ("README.md", ".gitattributes") and rel.startswith(owned)
+    ]
+    info = api.create_commit(
+        repo_id, operations=operations, commit_message=message, repo_type=repo_type, revision=branch
+    )
+    return PushResult(
+        repo_id=repo_id, repo_type=repo_type, branch=branch, commit=info.oid, url=info.commit_url, tag=None
+    )
 
 
 def _check_card(card: str, path: Path) -> None:
@@ -357,8 +393,10 @@ def _hub_errors(repo_id: str, revision: str | None) -> Iterator[None]:
         status = exc.response.status_code if exc.response is not None else None
         server = _one_line(exc.server_message or "")
         if status == 401:  # the hub also answers 401 for private repositories it hides
-            message = (f"not authorized for {repo_id} at {endpoint} (401): missing or invalid token, or no such "
-                       "repository (set HF_TOKEN or log in with `hf auth login`)")
+            message = (
+                f"not authorized for {repo_id} at {endpoint} (401): missing or invalid token, or no such "
+                "repository (set HF_TOKEN or log in with `hf auth login`)"
+            )
         elif status == 403:
             message = f"access to {repo_id} at {endpoint} forbidden (403): {server or 'the token lacks the permission'}"
         elif isinstance(exc, RepositoryNotFoundError):

@@ -28,7 +28,7 @@ import numpy as np
 
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import CAMERA_DTYPES, Features, check_episode, check_features, user_features
+from shiftkit.pipelines.features import Features, check_episode, check_features, user_features
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
@@ -67,7 +67,9 @@ def _episode_columns(episode: Episode, features: Features) -> dict[str, Any]:
     for key, ft in features.items():
         arr = episode.frames[key]
         columns[key] = arr.reshape(n) if tuple(ft["shape"]) == (1,) and ft["dtype"] != "image" else arr
-    columns["timestamp"] = episode.frames["timestamp"].astype(np.float64)  # stored as float32; stats in float64 as lerobot
+    columns["timestamp"] = episode.frames["timestamp"].astype(
+        np.float64
+    )  # stored as float32; stats in float64 as lerobot
     columns["frame_index"] = np.arange(n, dtype=np.int64)
     return columns
 
@@ -185,7 +187,9 @@ class DatasetWriter:
         # Same file rotation rule as lerobot's writer: start a new data file when this episode
         # would push the current one past data_files_size_in_mb.
         if self._writer is not None:
-            path = self.tmp / self._meta.data_path.format(chunk_index=self._chunk_file[0], file_index=self._chunk_file[1])
+            path = self.tmp / self._meta.data_path.format(
+                chunk_index=self._chunk_file[0], file_index=self._chunk_file[1]
+            )
             size = get_file_size_in_mb(path)
             per_frame = size / (start - self._file_start) if start > self._file_start else 0.0
             if size + per_frame * n >= self._meta.data_files_size_in_mb:
@@ -194,7 +198,9 @@ class DatasetWriter:
                 self._chunk_file = update_chunk_file_indices(*self._chunk_file, self._meta.chunks_size)
                 self._file_start = start
         if self._writer is None:
-            path = self.tmp / self._meta.data_path.format(chunk_index=self._chunk_file[0], file_index=self._chunk_file[1])
+            path = self.tmp / self._meta.data_path.format(
+                chunk_index=self._chunk_file[0], file_index=self._chunk_file[1]
+            )
             path.parent.mkdir(parents=True, exist_ok=True)
             self._writer = pq.ParquetWriter(path, schema=table.schema, compression="snappy", use_dictionary=True)
         self._writer.write_table(table)
@@ -202,17 +208,19 @@ class DatasetWriter:
         # What LeRobotDatasetMetadata.save_episode does, minus rewriting info.json and
         # stats.json after every episode: the writer writes them once, in close().
         info = self._meta.info
-        self._meta._save_episode_metadata({
-            "episode_index": self.num_episodes,
-            "tasks": episode_tasks,
-            "length": n,
-            "data/chunk_index": self._chunk_file[0],
-            "data/file_index": self._chunk_file[1],
-            "dataset_from_index": start,
-            "dataset_to_index": start + n,
-            META_COLUMN: dumps(episode.meta),
-            **flatten_dict({"stats": stats}),
-        })
+        self._meta._save_episode_metadata(
+            {
+                "episode_index": self.num_episodes,
+                "tasks": episode_tasks,
+                "length": n,
+                "data/chunk_index": self._chunk_file[0],
+                "data/file_index": self._chunk_file[1],
+                "dataset_from_index": start,
+                "dataset_to_index": start + n,
+                META_COLUMN: dumps(episode.meta),
+                **flatten_dict({"stats": stats}),
+            }
+        )
         info["total_episodes"] += 1
         info["total_frames"] += n
         info["total_tasks"] = len(self._meta.tasks)
@@ -504,8 +512,9 @@ def resolve_dataset(ref: str, root: str | Path | None = None, revision: str | No
     return ResolvedDataset(ref, path, revision, fingerprint(path))
 
 
-def write_raw_as_lerobot(raw_dir: str | Path, repo_id: str, root: str | Path, workers: int = 1,
-                         progress: bool = False) -> Path:
+def write_raw_as_lerobot(
+    raw_dir: str | Path, repo_id: str, root: str | Path, workers: int = 1, progress: bool = False
+) -> Path:
     """Convert a raw-episode directory into a LeRobot dataset at `root` (a pipeline with no stages)."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.runner import run_pipeline

@@ -42,7 +42,9 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     for i, src in enumerate(sources[1:], start=1):
         if src.features != first.features or src.fps != first.fps:
             diff = sorted(set(src.features) ^ set(first.features)) or "dtypes/shapes/names"
-            raise DatasetError(f"sources[{i}] does not match sources[0] (fps {src.fps} vs {first.fps}; features: {diff})")
+            raise DatasetError(
+                f"sources[{i}] does not match sources[0] (fps {src.fps} vs {first.fps}; features: {diff})"
+            )
     features, fps = first.features, first.fps
     stages = []
     for i, spec in enumerate(config.stages):

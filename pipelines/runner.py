@@ -25,7 +25,6 @@ import numpy as np
 
 from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import check_episode
 from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.stage import select_outputs
@@ -197,8 +196,9 @@ def run_pipeline(
         from shiftkit.pipelines import hub
 
         # After the atomic rename: a failed push leaves the local dataset for `shiftkit push`.
-        result = hub.push_dataset(path, plan.repo_id, revision=config.destination.revision,
-                                  private=config.destination.private)
+        result = hub.push_dataset(
+            path, plan.repo_id, revision=config.destination.revision, private=config.destination.private
+        )
         logging.getLogger("shiftkit").warning("pushed %s to %s", path, result.url)
     return path
 
@@ -214,8 +214,12 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
                 bar.update(1)
 
     # Dataset-level selection (e.g. N examples per task) sees the metas of all outputs first.
-    keep = select_outputs(plan.stages, lambda: [m for s, source in enumerate(plan.sources)
-                                                for i in range(source.num_episodes) for m in parts.metas(s, i)])
+    keep = select_outputs(
+        plan.stages,
+        lambda: [
+            m for s, source in enumerate(plan.sources) for i in range(source.num_episodes) for m in parts.metas(s, i)
+        ],
+    )
     writer = DatasetWriter(plan.repo_id, plan.destination, plan.fps, plan.features, robot_type=plan.robot_type)
     with writer:
         for k, (episode, stats) in enumerate(outputs()):
@@ -250,4 +254,3 @@ class _progress:
 
     def __exit__(self, *exc: Any) -> None:
         self._bar.close()
-

@@ -45,7 +45,7 @@ class Stage(ABC):
         self.config = config
         self.context = context
 
-    def setup(self) -> None:
+    def setup(self) -> None:  # noqa: B027 (an optional hook: most stages need no setup)
         """Load simulators/models once per worker before the first episode."""
 
     def transform_fps(self, fps: int) -> int:
@@ -122,8 +122,9 @@ def registered_stages() -> dict[str, type[Stage]]:
     return dict(sorted(_REGISTRY.items()))
 
 
-def build_stage(name: str, params: dict[str, Any] | None, context: StageContext, where: str,
-                version: int | None = None) -> Stage:
+def build_stage(
+    name: str, params: dict[str, Any] | None, context: StageContext, where: str, version: int | None = None
+) -> Stage:
     """Instantiate a registered stage from config values, with one-line errors."""
     stages = registered_stages()
     if name not in stages:
@@ -148,7 +149,10 @@ def describe_stages() -> str:
         lines.append(f"{name} (v{cls.version}): {doc[0] if doc else ''}")
         docs = field_docs(cls.Config)
         for f in dataclasses.fields(cls.Config):
-            default = f.default if f.default is not dataclasses.MISSING else (
-                f.default_factory() if f.default_factory is not dataclasses.MISSING else "(required)")
+            default = (
+                f.default
+                if f.default is not dataclasses.MISSING
+                else (f.default_factory() if f.default_factory is not dataclasses.MISSING else "(required)")
+            )
             lines.append(f"    {f.name} = {default!r}  {docs.get(f.name, '')}")
     return "\n".join(lines)

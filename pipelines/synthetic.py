@@ -55,9 +55,15 @@ def write_synthetic_raw(
             if camera is not None:
                 images["front"] = np.stack([_draw(s[:3], goal, camera) for s in arrays["state"]])
             task = tasks[e % len(tasks)]
-            writer.add_episode(arrays, images=images, meta={
-                "task": task, "outcome": "success" if success[-1] else "failure", "seed": seed * 100003 + e,
-            })
+            writer.add_episode(
+                arrays,
+                images=images,
+                meta={
+                    "task": task,
+                    "outcome": "success" if success[-1] else "failure",
+                    "seed": seed * 100003 + e,
+                },
+            )
     return Path(out_dir)
 
 

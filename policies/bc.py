@@ -102,9 +102,16 @@ class BCArgs:
             datasets=list(self.datasets),
             hidden=list(self.hidden),
         )
-        positive = {"batch_size": out.batch_size, "ensemble_size": out.ensemble_size, "max_epochs": out.max_epochs,
-                    "patience": out.patience, "checkpoint_every": out.checkpoint_every, "log_every": out.log_every,
-                    "num_keypoints": out.num_keypoints, "lr": out.lr}
+        positive = {
+            "batch_size": out.batch_size,
+            "ensemble_size": out.ensemble_size,
+            "max_epochs": out.max_epochs,
+            "patience": out.patience,
+            "checkpoint_every": out.checkpoint_every,
+            "log_every": out.log_every,
+            "num_keypoints": out.num_keypoints,
+            "lr": out.lr,
+        }
         for name, value in positive.items():
             if not value > 0:
                 raise ConfigError(f"{name} must be positive, got {value}")
@@ -151,7 +158,8 @@ def is_image_feature(ft: dict) -> bool:
     """Whether a LeRobot feature is a camera image (RGB or e.g. a depth map)."""
     names = ft.get("names")
     return ft["dtype"] in ("image", "video") or (
-        len(ft["shape"]) == 3 and isinstance(names, list) and names[:2] == ["height", "width"])
+        len(ft["shape"]) == 3 and isinstance(names, list) and names[:2] == ["height", "width"]
+    )
 
 
 def _channel_stats(mean: np.ndarray, std: np.ndarray, channels: int) -> tuple[np.ndarray, np.ndarray]:
@@ -225,7 +233,7 @@ class BCNet(nn.Module):
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         parts = [obs[k].flatten(1) for k in self.numeric_keys]
-        parts += [enc(obs[k]) for enc, k in zip(self.encoders, self.image_keys)]
+        parts += [enc(obs[k]) for enc, k in zip(self.encoders, self.image_keys, strict=True)]
         return self.head(torch.cat(parts, dim=-1))
 
 
@@ -304,7 +312,7 @@ def update_members(
     returns each member's MSE (normalised units), None for inactive members."""
     obs, target = policy.normalizer(batch), policy.normalizer.action(batch["action"])
     losses: list[float | None] = []
-    for m, (net, opt) in enumerate(zip(policy.members, optimizers)):
+    for m, (net, opt) in enumerate(zip(policy.members, optimizers, strict=True)):
         if not active[m]:
             losses.append(None)
             continue
@@ -380,15 +388,17 @@ def train(args: BCArgs) -> dict:
     total_steps = args.steps if args.regime == "fixed" else min(args.steps or math.inf, args.max_epochs * per_epoch)
     M, B = args.ensemble_size, min(args.batch_size, len(train_rows))
 
-    run.write_config({
-        "trainer": "bc",
-        "args": dataclasses.asdict(args),
-        "datasets": dataset_records([r for r, _ in opened]),
-        "seed": args.seed,
-        "versions": versions(),
-        "inputs": inputs,
-        "frames": {"train": len(train_rows), "val": len(val_rows), "episodes": len(table.episodes)},
-    })
+    run.write_config(
+        {
+            "trainer": "bc",
+            "args": dataclasses.asdict(args),
+            "datasets": dataset_records([r for r, _ in opened]),
+            "seed": args.seed,
+            "versions": versions(),
+            "inputs": inputs,
+            "frames": {"train": len(train_rows), "val": len(val_rows), "episodes": len(table.episodes)},
+        }
+    )
 
     # --- training state (everything a resumed run needs) ---
     step = 0
@@ -400,7 +410,7 @@ def train(args: BCArgs) -> dict:
     state = run.load_latest() if args.resume else None
     if state is not None:
         policy.load_state_dict(state["model"])
-        for opt, s in zip(optimizers, state["optimizers"]):
+        for opt, s in zip(optimizers, state["optimizers"], strict=True):
             opt.load_state_dict(s)
         step, active, best_val, bad_epochs = state["step"], state["active"], state["best_val"], state["bad_epochs"]
         best_weights, loss_sum, loss_count = state["best_weights"], state["loss_sum"], state["loss_count"]
@@ -409,12 +419,24 @@ def train(args: BCArgs) -> dict:
             return state["metrics"]
 
     def checkpoint(metrics: dict | None = None) -> None:
-        run.save_checkpoint(step, {
-            "trainer": "bc", "final": metrics is not None, "metrics": metrics, "policy_spec": dataclasses.asdict(spec),
-            "model": policy.state_dict(), "optimizers": [o.state_dict() for o in optimizers],
-            "active": active, "best_val": best_val, "bad_epochs": bad_epochs, "best_weights": best_weights,
-            "loss_sum": loss_sum, "loss_count": loss_count, "torch_rng": torch.get_rng_state(),
-        })
+        run.save_checkpoint(
+            step,
+            {
+                "trainer": "bc",
+                "final": metrics is not None,
+                "metrics": metrics,
+                "policy_spec": dataclasses.asdict(spec),
+                "model": policy.state_dict(),
+                "optimizers": [o.state_dict() for o in optimizers],
+                "active": active,
+                "best_val": best_val,
+                "bad_epochs": bad_epochs,
+                "best_weights": best_weights,
+                "loss_sum": loss_sum,
+                "loss_count": loss_count,
+                "torch_rng": torch.get_rng_state(),
+            },
+        )
 
     val_batches = [
         {k: torch.from_numpy(v).to(device) for k, v in table.gather(val_rows[i : i + 1024]).items()}
@@ -458,10 +480,17 @@ def train(args: BCArgs) -> dict:
 
             if step % args.log_every == 0:
                 trained = loss_count > 0
-                member_loss = [s / c if c else None for s, c in zip(loss_sum.tolist(), loss_count.tolist())]
-                run.log(step, "train", loss=(loss_sum[trained] / loss_count[trained]).mean().item(),
-                        member_loss=member_loss, lr=lr,
-                        steps_per_s=(step - start_step) / (time.perf_counter() - started))
+                member_loss = [
+                    s / c if c else None for s, c in zip(loss_sum.tolist(), loss_count.tolist(), strict=True)
+                ]
+                run.log(
+                    step,
+                    "train",
+                    loss=(loss_sum[trained] / loss_count[trained]).mean().item(),
+                    member_loss=member_loss,
+                    lr=lr,
+                    steps_per_s=(step - start_step) / (time.perf_counter() - started),
+                )
                 loss_sum, loss_count = torch.zeros(M), torch.zeros(M)
             if step % per_epoch == 0 and val_batches:
                 losses = val_losses()
@@ -475,8 +504,14 @@ def train(args: BCArgs) -> dict:
                         bad_epochs[m] += 1
                         if args.regime == "early-stop" and bad_epochs[m] >= args.patience:
                             active[m] = False
-                run.log(step, "val", epoch=step // per_epoch, loss=float(np.mean(losses)), member_loss=losses,
-                        active=sum(active))
+                run.log(
+                    step,
+                    "val",
+                    epoch=step // per_epoch,
+                    loss=float(np.mean(losses)),
+                    member_loss=losses,
+                    active=sum(active),
+                )
             if step >= total_steps or not any(active):
                 break
             if step % args.checkpoint_every == 0:

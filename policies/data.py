@@ -28,6 +28,7 @@ import torch
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.lerobot_io import ResolvedDataset, resolve_dataset
 
+
 def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[ResolvedDataset, object]]:
     """Resolve dataset IDs (or local paths) and open them with lerobot's reader."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -139,11 +140,11 @@ class FrameTable:
         self._offsets = offsets
         self.num_frames = int(offsets[-1])
         self.episodes: list[tuple[int, int]] = []
-        for ds, offset in zip(datasets, offsets[:-1]):
+        for ds, offset in zip(datasets, offsets[:-1], strict=True):
             ep = ds.hf_dataset.with_format("numpy", columns=["episode_index"])["episode_index"]
             cuts = np.flatnonzero(np.diff(ep)) + 1
             starts, ends = np.r_[0, cuts], np.r_[cuts, len(ep)]
-            self.episodes += [(int(offset + s), int(offset + e)) for s, e in zip(starts, ends)]
+            self.episodes += [(int(offset + s), int(offset + e)) for s, e in zip(starts, ends, strict=True)]
         for key in keys:
             dtype = first[key]["dtype"]
             if dtype == "image":

@@ -48,8 +48,11 @@ def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float,
 
 def camera_size(features: dict[str, dict]) -> tuple[int, int] | None:
     """(height, width) the env must render the policy's cameras at, or None without cameras."""
-    sizes = {tuple(ft["shape"][:2]) for k, ft in features.items()
-             if k.startswith(("observation.images.", "observation.depth."))}
+    sizes = {
+        tuple(ft["shape"][:2])
+        for k, ft in features.items()
+        if k.startswith(("observation.images.", "observation.depth."))
+    }
     if len(sizes) > 1:
         raise ConfigError(f"policy cameras have different sizes {sorted(sizes)}; one env renders one size")
     return sizes.pop() if sizes else None
@@ -118,9 +121,17 @@ class EvalReport:
 
     def summary(self) -> dict[str, Any]:
         lo, hi = wilson_interval(self.successes, len(self.episodes))
-        return {"env": self.env, "task": self.task, "policy": self.policy, "seed": self.seed,
-                "episodes": len(self.episodes), "successes": self.successes,
-                "success_rate": self.success_rate, "ci95": [lo, hi], "ci_method": "wilson"}
+        return {
+            "env": self.env,
+            "task": self.task,
+            "policy": self.policy,
+            "seed": self.seed,
+            "episodes": len(self.episodes),
+            "successes": self.successes,
+            "success_rate": self.success_rate,
+            "ci95": [lo, hi],
+            "ci_method": "wilson",
+        }
 
     def to_json(self) -> str:
         return json.dumps({**self.summary(), "results": [asdict(e) for e in self.episodes]}, indent=2) + "\n"

@@ -39,8 +39,9 @@ def _column_order(dataset, keys: list[str], observation_names: list[str] | None,
     names = [n for k in keys for n in (dataset.features[k].get("names") or [])]
     if sorted(names) != sorted(observation_names):
         missing = sorted(set(observation_names) - set(names))[:3]
-        raise DatasetError(f"example dataset {ref!r}: state dimensions do not match the env observation "
-                           f"(e.g. missing {missing})")
+        raise DatasetError(
+            f"example dataset {ref!r}: state dimensions do not match the env observation (e.g. missing {missing})"
+        )
     index = {n: i for i, n in enumerate(names)}
     return np.asarray([index[n] for n in observation_names])
 
@@ -92,8 +93,13 @@ def load_dataset_examples(
 class ExampleBuffer:
     """Example sets of all tasks of a run, sampled as one (num_tasks, batch, ·) block."""
 
-    def __init__(self, examples: dict[str, TaskExamples], tasks: list[str], aug_factor: float = 0.1,
-                 max_per_task: int | None = None):
+    def __init__(
+        self,
+        examples: dict[str, TaskExamples],
+        tasks: list[str],
+        aug_factor: float = 0.1,
+        max_per_task: int | None = None,
+    ):
         self.tasks = tasks
         self.aug_factor = aug_factor
         self.obs = [examples[t].obs[:max_per_task] for t in tasks]

@@ -30,7 +30,7 @@ def mlp(
     """Fully connected layers `in_dim -> hidden... -> out_dim` with `act` between them (none at the end)."""
     layers: list[nn.Module] = []
     dims = (in_dim, *hidden)
-    for a, b in zip(dims[:-1], dims[1:]):
+    for a, b in zip(dims[:-1], dims[1:], strict=True):
         layers += [nn.Linear(a, b), act()]
     layers.append(nn.Linear(dims[-1], out_dim))
     return nn.Sequential(*layers)

@@ -38,7 +38,9 @@ class DACReward(nn.Module):
 
     learned = True
 
-    def __init__(self, num_tasks: int, in_dim: int, hidden: tuple[int, ...] = (256, 256), gradient_penalty: float = 10.0):
+    def __init__(
+        self, num_tasks: int, in_dim: int, hidden: tuple[int, ...] = (256, 256), gradient_penalty: float = 10.0
+    ):
         super().__init__()
         self.net = batched_mlp(num_tasks, in_dim, 1, hidden, act=nn.Tanh)
         self.gradient_penalty = gradient_penalty
@@ -56,11 +58,9 @@ class DACReward(nn.Module):
     def loss(self, buffer_x: torch.Tensor, example_x: torch.Tensor) -> torch.Tensor:
         """Cross-entropy + gradient penalty per task (T,); each task's term touches only its own net."""
         buffer_logit, example_logit = self.logit(buffer_x), self.logit(example_x)
-        bce = F.binary_cross_entropy_with_logits(
-            buffer_logit, torch.zeros_like(buffer_logit), reduction="none"
-        ).mean(-1) + F.binary_cross_entropy_with_logits(
-            example_logit, torch.ones_like(example_logit), reduction="none"
-        ).mean(-1)
+        bce = F.binary_cross_entropy_with_logits(buffer_logit, torch.zeros_like(buffer_logit), reduction="none").mean(
+            -1
+        ) + F.binary_cross_entropy_with_logits(example_logit, torch.ones_like(example_logit), reduction="none").mean(-1)
         n = min(buffer_x.shape[1], example_x.shape[1])
         mix = torch.rand(buffer_x.shape[0], n, 1, device=buffer_x.device)
         interp = (mix * example_x[:, :n] + (1 - mix) * buffer_x[:, :n]).requires_grad_(True)

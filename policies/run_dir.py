@@ -94,8 +94,9 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
 
 def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | None]]:
     """The `datasets` entry of config.json: what a run trained on, pinned by content fingerprint."""
-    return [{"id": r.repo_id, "root": str(r.root), "revision": r.revision, "fingerprint": r.fingerprint}
-            for r in resolved]
+    return [
+        {"id": r.repo_id, "root": str(r.root), "revision": r.revision, "fingerprint": r.fingerprint} for r in resolved
+    ]
 
 
 def _atomic_write(path: Path, write) -> None:
@@ -240,8 +241,10 @@ class RunDir:
         for path in sorted((self.path / EVAL).glob("*.json")):
             ev = json.loads(path.read_text())
             checkpoint = checkpoint_name(ev.get("policy", ""))
-            name = (f"{ev['env']}/{ev['task']} ({f'{checkpoint}, ' if checkpoint else ''}{ev['episodes']} episodes "
-                    f"from seed {ev['seed']})")
+            name = (
+                f"{ev['env']}/{ev['task']} ({f'{checkpoint}, ' if checkpoint else ''}{ev['episodes']} episodes "
+                f"from seed {ev['seed']})"
+            )
             lo, hi = ev["ci95"]
             metrics[f"success {name}"] = f"{ev['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%})"
             envs.append(f"{ev['env']} / {ev['task']}")

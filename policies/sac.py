@@ -53,7 +53,12 @@ class Intentions(nn.Module):
     """SAC-X intentions: per task a tanh-squashed Gaussian policy, twin Q with target, learned alpha."""
 
     def __init__(
-        self, num_tasks: int, obs_dim: int, act_dim: int, hidden: Sequence[int] = (256, 256), initial_alpha: float = 1e-2
+        self,
+        num_tasks: int,
+        obs_dim: int,
+        act_dim: int,
+        hidden: Sequence[int] = (256, 256),
+        initial_alpha: float = 1e-2,
     ):
         super().__init__()
         self.num_tasks, self.obs_dim, self.act_dim = num_tasks, obs_dim, act_dim

@@ -21,7 +21,18 @@ StateAction = tuple[int, int]
 Episode = list[StateAction]
 
 ACTIONS: tuple[StateAction, ...] = (
-    (1, 2), (1, 5), (2, 3), (2, 6), (3, 4), (3, 6), (4, 5), (4, 6), (5, 1), (5, 5), (6, 1), (6, 6),
+    (1, 2),
+    (1, 5),
+    (2, 3),
+    (2, 6),
+    (3, 4),
+    (3, 6),
+    (4, 5),
+    (4, 6),
+    (5, 1),
+    (5, 5),
+    (6, 1),
+    (6, 6),
 )
 HORIZON = 5
 TRUE_REWARD: dict[StateAction, float] = {(5, 5): 1.0, (1, 5): -5.0}
@@ -67,9 +78,7 @@ def fit_q(
     """
     q = dict.fromkeys(ACTIONS, 0.0) | (q or {})
     transitions = [
-        (sa, episode[t + 1] if t + 1 < len(episode) else None)
-        for episode in episodes
-        for t, sa in enumerate(episode)
+        (sa, episode[t + 1] if t + 1 < len(episode) else None) for episode in episodes for t, sa in enumerate(episode)
     ]
     seen = {sa for sa, _ in transitions}
     for _ in range(max_sweeps):

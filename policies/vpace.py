@@ -23,9 +23,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -173,8 +174,10 @@ class VPACEArgs:
         if self.scheduler not in ("wrs", "learned"):
             raise ConfigError(f"unknown scheduler {self.scheduler!r}; choose wrs or learned")
         if self.scheduler == "learned" and not (self.multitask and self.reward_model == "dac"):
-            raise ConfigError("the learned scheduler needs several tasks and a learned reward (dac): it scores "
-                              "plans by the main task's reward, which SQIL/RCE do not provide")
+            raise ConfigError(
+                "the learned scheduler needs several tasks and a learned reward (dac): it scores "
+                "plans by the main task's reward, which SQIL/RCE do not provide"
+            )
         if self.multitask and self.main_task in self.aux_tasks:
             raise ConfigError(f"main task {self.main_task!r} is also listed as an auxiliary task")
         for name in ("total_steps", "batch_size", "example_batch_size", "n_step", "num_periods", "eval_episodes"):
@@ -248,7 +251,9 @@ class Agent:
         self.target_entropy = -float(act_dim)
         self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
         self.actor_opt = torch.optim.AdamW(self.intentions.actor.parameters(), args.lr, weight_decay=args.weight_decay)
-        self.critic_opt = torch.optim.AdamW(self.intentions.critic.parameters(), args.lr, weight_decay=args.weight_decay)
+        self.critic_opt = torch.optim.AdamW(
+            self.intentions.critic.parameters(), args.lr, weight_decay=args.weight_decay
+        )
         self.alpha_opt = torch.optim.Adam([self.intentions.log_alpha], args.lr)
         if args.reward_model == "dac":
             in_dim = obs_dim + (act_dim if args.full_trajectories else 0)
@@ -323,7 +328,9 @@ class Agent:
                 target = buffer_reward + bootstrap_discount * (next_q - alpha * next_logp)
             if use_examples:
                 ex_reward = self.reward.example_reward(ex_obs)
-                ex_target = a.reward_scale * ex_reward + a.gamma * self.intentions.q(ex_obs, ex_act, target=True).min(0).values
+                ex_target = (
+                    a.reward_scale * ex_reward + a.gamma * self.intentions.q(ex_obs, ex_act, target=True).min(0).values
+                )
 
         q = self.intentions.q(obs, act)  # (2, T, B)
         q_ex = self.intentions.q(ex_obs, ex_act)  # (2, T, B*)
@@ -437,8 +444,12 @@ def train(
     env, eval_env = env_factory(args.main_task), env_factory(args.main_task)
     if examples is None:
         names = getattr(env.unwrapped, "observation_names", None)
-        examples, sources = load_dataset_examples(args.examples, tasks, with_actions=args.full_trajectories,
-                                                  observation_names=list(names) if names is not None else None)
+        examples, sources = load_dataset_examples(
+            args.examples,
+            tasks,
+            with_actions=args.full_trajectories,
+            observation_names=list(names) if names is not None else None,
+        )
     missing = [t for t in tasks if t not in examples]
     if missing:
         raise ConfigError(f"no examples given for task(s) {missing}")
@@ -448,8 +459,11 @@ def train(
     obs_dim = flat_obs(env.observation_space.sample()).shape[0]
     if obs_dim != example_buffer.obs_dim:
         raise ConfigError(f"examples have {example_buffer.obs_dim}-dim states but {args.env!r} observes {obs_dim}")
-    horizon = args.episode_steps or (env.spec.max_episode_steps if env.spec else None) or getattr(
-        env.unwrapped, "max_episode_steps", None)  # shiftkit envs built by make() carry their own limit
+    horizon = (
+        args.episode_steps
+        or (env.spec.max_episode_steps if env.spec else None)
+        or getattr(env.unwrapped, "max_episode_steps", None)
+    )  # shiftkit envs built by make() carry their own limit
     if not horizon:
         raise ConfigError(f"environment {args.env!r} has no time limit; set --episode-steps")
     period = math.ceil(horizon / args.num_periods)
@@ -461,11 +475,13 @@ def train(
     act_dim = int(np.prod(env.action_space.shape))
     replay = ReplayBuffer(args.total_steps, obs_dim, act_dim)
     if args.scheduler == "learned":
-        scheduler = QTableScheduler(tasks, args.num_periods, args.gamma, handcraft_rate=args.handcraft_rate,
-                                    handcrafted=args.handcrafted)
+        scheduler = QTableScheduler(
+            tasks, args.num_periods, args.gamma, handcraft_rate=args.handcraft_rate, handcrafted=args.handcrafted
+        )
     else:
-        scheduler = WeightedRandomScheduler(tasks, args.num_periods, args.main_rate, args.handcraft_rate,
-                                            args.handcrafted)
+        scheduler = WeightedRandomScheduler(
+            tasks, args.num_periods, args.main_rate, args.handcraft_rate, args.handcrafted
+        )
     step, episode, last_eval, best_eval = 0, 0, {}, {}
     state = run.load_latest() if args.resume else None
     if state is not None:
@@ -476,23 +492,34 @@ def train(
         torch.set_rng_state(state["torch_rng"])
         step, episode, last_eval = state["step"], state["episode"], state["last_eval"]
         best_eval = state.get("best_eval", {})
-    run.write_config({
-        "trainer": "lfgp" if args.full_trajectories else "vpace",
-        "env": args.env,
-        "args": dataclasses.asdict(args),
-        "datasets": dataset_records(sources),
-        "seed": args.seed,
-        "versions": versions(),
-        "examples_per_task": example_buffer.sizes(),
-    }, ignore_on_resume=("resume", "total_steps"))  # a finished run may be continued for longer
+    run.write_config(
+        {
+            "trainer": "lfgp" if args.full_trajectories else "vpace",
+            "env": args.env,
+            "args": dataclasses.asdict(args),
+            "datasets": dataset_records(sources),
+            "seed": args.seed,
+            "versions": versions(),
+            "examples_per_task": example_buffer.sizes(),
+        },
+        ignore_on_resume=("resume", "total_steps"),
+    )  # a finished run may be continued for longer
 
     def checkpoint() -> None:
-        run.save_checkpoint(step, {
-            "agent": agent.state_dict(), "replay": replay.state_dict(), "scheduler": scheduler.state_dict(),
-            "numpy_rng": rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(), "step": step, "episode": episode, "last_eval": last_eval,
-            "best_eval": best_eval,
-        })
+        run.save_checkpoint(
+            step,
+            {
+                "agent": agent.state_dict(),
+                "replay": replay.state_dict(),
+                "scheduler": scheduler.state_dict(),
+                "numpy_rng": rng.bit_generator.state,
+                "torch_rng": torch.get_rng_state(),
+                "step": step,
+                "episode": episode,
+                "last_eval": last_eval,
+                "best_eval": best_eval,
+            },
+        )
 
     next_checkpoint = (step // args.checkpoint_every + 1) * args.checkpoint_every
     stats: dict[str, torch.Tensor] = {}
@@ -519,7 +546,9 @@ def train(
             if step % args.log_every == 0 and stats:
                 run.log(step, "train", episode=episode, **metrics_row(stats, tasks))
             if args.eval_every and step % args.eval_every == 0:
-                last_eval = evaluate(agent, eval_env, args.eval_episodes, horizon, EVAL_SEED_OFFSET + args.seed * 1_000_000)
+                last_eval = evaluate(
+                    agent, eval_env, args.eval_episodes, horizon, EVAL_SEED_OFFSET + args.seed * 1_000_000
+                )
                 run.log(step, "eval", **last_eval)
                 if improves(last_eval, best_eval):
                     best_eval = {**last_eval, "step": step}
@@ -534,8 +563,13 @@ def train(
             checkpoint()
             next_checkpoint = (step // args.checkpoint_every + 1) * args.checkpoint_every
 
-    run.write_model_card({"step": step, **{f"eval/{k}": v for k, v in last_eval.items()},
-                          **{f"best_eval/{k}": v for k, v in best_eval.items()}})
+    run.write_model_card(
+        {
+            "step": step,
+            **{f"eval/{k}": v for k, v in last_eval.items()},
+            **{f"best_eval/{k}": v for k, v in best_eval.items()},
+        }
+    )
     env.close()
     eval_env.close()
     return last_eval

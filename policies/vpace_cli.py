@@ -12,8 +12,19 @@ import json
 import typing
 
 # Fields with a hand-made flag (lists, dicts, renamed or preset-only ones); the rest are generated.
-_SPECIAL = {"examples", "aux_tasks", "handcrafted", "hidden", "env_kwargs", "multitask", "full_trajectories",
-            "variant", "output_dir", "torch_threads", "resume"}
+_SPECIAL = {
+    "examples",
+    "aux_tasks",
+    "handcrafted",
+    "hidden",
+    "env_kwargs",
+    "multitask",
+    "full_trajectories",
+    "variant",
+    "output_dir",
+    "torch_threads",
+    "resume",
+}
 
 
 def _csv(text: str) -> list[str]:
@@ -44,31 +55,64 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     docs = field_docs(VPACEArgs)
     hints = typing.get_type_hints(VPACEArgs)
     p = parser
-    p.add_argument("--examples", type=_csv, required=True,
-                   help="example dataset ID(s) or local folder(s), comma-separated; frames' `task` names the task")
+    p.add_argument(
+        "--examples",
+        type=_csv,
+        required=True,
+        help="example dataset ID(s) or local folder(s), comma-separated; frames' `task` names the task",
+    )
     p.add_argument("--env", default=None, help=f"{docs['env']} (default: panda-play)")
     p.add_argument("--main-task", required=True, help=docs["main_task"])
     p.add_argument("--aux-tasks", type=_csv, default=None, help=docs["aux_tasks"] + " Comma-separated.")
     p.add_argument("--output", required=True, help=docs["output_dir"])
-    p.add_argument("--variant", choices=list(VARIANTS), default=None,
-                   help="vpace | ace | vp-sqil | sqil | dac | rce | lfgp (default: the subcommand's name)")
-    p.add_argument("--single-task", dest="multitask", action="store_false", default=None,
-                   help="main intention only (no scheduler), overriding the variant")
-    p.add_argument("--handcrafted", action="append", default=None, metavar="T1,T2,...",
-                   help=docs["handcrafted"] + " Repeatable, e.g. --handcrafted panda or "
-                        "--handcrafted reach,lift,main,open,reach,lift,main,open")
-    p.add_argument("--hidden", type=lambda s: tuple(int(x) for x in _csv(s)), default=None,
-                   help="hidden widths, comma-separated (default: 256,256)")
-    p.add_argument("--env-kwarg", dest="env_kwargs", action="append", type=_key_value, default=None,
-                   metavar="KEY=VALUE", help="environment constructor argument (JSON value); repeatable")
+    p.add_argument(
+        "--variant",
+        choices=list(VARIANTS),
+        default=None,
+        help="vpace | ace | vp-sqil | sqil | dac | rce | lfgp (default: the subcommand's name)",
+    )
+    p.add_argument(
+        "--single-task",
+        dest="multitask",
+        action="store_false",
+        default=None,
+        help="main intention only (no scheduler), overriding the variant",
+    )
+    p.add_argument(
+        "--handcrafted",
+        action="append",
+        default=None,
+        metavar="T1,T2,...",
+        help=docs["handcrafted"] + " Repeatable, e.g. --handcrafted panda or "
+        "--handcrafted reach,lift,main,open,reach,lift,main,open",
+    )
+    p.add_argument(
+        "--hidden",
+        type=lambda s: tuple(int(x) for x in _csv(s)),
+        default=None,
+        help="hidden widths, comma-separated (default: 256,256)",
+    )
+    p.add_argument(
+        "--env-kwarg",
+        dest="env_kwargs",
+        action="append",
+        type=_key_value,
+        default=None,
+        metavar="KEY=VALUE",
+        help="environment constructor argument (JSON value); repeatable",
+    )
     p.add_argument("--threads", dest="torch_threads", type=int, default=None, help=docs["torch_threads"])
     p.add_argument("--resume", action="store_true", help=docs["resume"])
     for f in dataclasses.fields(VPACEArgs):
         if f.name in _SPECIAL or f.name in ("env", "main_task"):
             continue
         default = f.default if f.default is not dataclasses.MISSING else None
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=_scalar_type(hints[f.name]), default=None,
-                       help=f"{docs.get(f.name, '')} (default: {default})")
+        p.add_argument(
+            f"--{f.name.replace('_', '-')}",
+            type=_scalar_type(hints[f.name]),
+            default=None,
+            help=f"{docs.get(f.name, '')} (default: {default})",
+        )
 
 
 def build_args(args: argparse.Namespace):
@@ -97,8 +141,12 @@ def run(args: argparse.Namespace) -> int:
 
 def add_plot_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of the success-curve plot command."""
-    parser.add_argument("groups", nargs="+", metavar="LABEL=RUN[,RUN...]",
-                        help="a method's label and its run folders (one per seed; several tasks allowed)")
+    parser.add_argument(
+        "groups",
+        nargs="+",
+        metavar="LABEL=RUN[,RUN...]",
+        help="a method's label and its run folders (one per seed; several tasks allowed)",
+    )
     parser.add_argument("--out", required=True, help="PNG file to write")
     parser.add_argument("--title", default="", help="plot title")
     parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (default: 2000)")
@@ -119,7 +167,9 @@ def run_plot(args: argparse.Namespace) -> int:
         curves.append(aggregate(label, [Path(r) for r in _csv(runs)], args.reps, args.seed))
     out = plot_curves(curves, Path(args.out), args.title)
     for c in curves:
-        print(f"{c.label}: final IQM {c.iqm[-1]:.3f} [{c.low[-1]:.3f}, {c.high[-1]:.3f}] at step {c.steps[-1]} "
-              f"over {c.runs} runs")
+        print(
+            f"{c.label}: final IQM {c.iqm[-1]:.3f} [{c.low[-1]:.3f}, {c.high[-1]:.3f}] at step {c.steps[-1]} "
+            f"over {c.runs} runs"
+        )
     print(f"wrote {out}")
     return 0

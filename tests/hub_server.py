@@ -26,7 +26,7 @@ import json
 import os
 import re
 import threading
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import parse_qs, unquote, urlsplit
@@ -46,7 +46,7 @@ INITIAL_GITATTRIBUTES = (
 
 def _now() -> str:
     """A timestamp in the Hub's format (huggingface_hub parses exactly this one)."""
-    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
 def git_blob_oid(data: bytes) -> str:
@@ -99,8 +99,13 @@ class RepoStore:
             (repo / "commits").mkdir(parents=True)
             (repo / "blobs").mkdir()
             self._save_meta(repo_type, repo_id, {"private": private, "created": _now(), "branches": {}, "tags": {}})
-            oid = self._write_commit(repo_type, repo_id, None, "initial commit", {
-                ".gitattributes": self._write_blob(repo_type, repo_id, INITIAL_GITATTRIBUTES.encode())})
+            oid = self._write_commit(
+                repo_type,
+                repo_id,
+                None,
+                "initial commit",
+                {".gitattributes": self._write_blob(repo_type, repo_id, INITIAL_GITATTRIBUTES.encode())},
+            )
             meta = self.meta(repo_type, repo_id)
             meta["branches"][DEFAULT_BRANCH] = oid
             self._save_meta(repo_type, repo_id, meta)
@@ -116,10 +121,10 @@ class RepoStore:
     def blob(self, repo_type: str, repo_id: str, oid: str) -> bytes:
         return (self._dir(repo_type, repo_id) / "blobs" / oid).read_bytes()
 
-    def _write_commit(self, repo_type: str, repo_id: str, parent: str | None, message: str,
-                      tree: dict[str, str]) -> str:
-        body = {"parent": parent, "message": message, "tree": dict(sorted(tree.items())),
-                "date": _now()}
+    def _write_commit(
+        self, repo_type: str, repo_id: str, parent: str | None, message: str, tree: dict[str, str]
+    ) -> str:
+        body = {"parent": parent, "message": message, "tree": dict(sorted(tree.items())), "date": _now()}
         text = json.dumps(body, sort_keys=True)
         oid = hashlib.sha1(text.encode()).hexdigest()
         (self._dir(repo_type, repo_id) / "commits" / f"{oid}.json").write_text(text)
@@ -139,8 +144,10 @@ class RepoStore:
         for kind in ("branches", "tags"):
             if name in meta[kind]:
                 return meta[kind][name]
-        if re.fullmatch(r"[0-9a-f]{40}", revision) and \
-                (self._dir(repo_type, repo_id) / "commits" / f"{revision}.json").is_file():
+        if (
+            re.fullmatch(r"[0-9a-f]{40}", revision)
+            and (self._dir(repo_type, repo_id) / "commits" / f"{revision}.json").is_file()
+        ):
             return revision
         raise HubError(404, f"Invalid rev id: {revision}", "RevisionNotFound")
 
@@ -149,9 +156,17 @@ class RepoStore:
         return oid, self.commit(repo_type, repo_id, oid)["tree"]
 
     # -- writes -------------------------------------------------------------------------------
-    def apply_commit(self, repo_type: str, repo_id: str, branch: str, message: str,
-                     parent: str | None, adds: dict[str, bytes], deletes: list[str],
-                     deleted_folders: list[str]) -> str:
+    def apply_commit(
+        self,
+        repo_type: str,
+        repo_id: str,
+        branch: str,
+        message: str,
+        parent: str | None,
+        adds: dict[str, bytes],
+        deletes: list[str],
+        deleted_folders: list[str],
+    ) -> str:
         with self.lock:
             meta = self.meta(repo_type, repo_id)
             if branch not in meta["branches"]:
@@ -245,8 +260,13 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
             length = int(self.headers.get("Content-Length") or 0)
             return self.rfile.read(length) if length else b""
 
-        def _send(self, status: int, body: bytes = b"", headers: dict[str, str] | None = None,
-                  content_type: str = "application/json") -> None:
+        def _send(
+            self,
+            status: int,
+            body: bytes = b"",
+            headers: dict[str, str] | None = None,
+            content_type: str = "application/json",
+        ) -> None:
             self.send_response(status)
             self.send_header("Content-Type", content_type)
             self.send_header("Content-Length", str(len(body)))
@@ -305,8 +325,12 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
                 if match and self.command in ("HEAD", "GET"):
                     prefix, org, name, rev, path = match.groups()
                     repo_type = prefix[:-1] if prefix else "model"
-                    return self._resolve(repo_type, f"{unquote(org)}/{unquote(name)}", unquote(rev),
-                                         "/".join(unquote(p) for p in path.split("/")))
+                    return self._resolve(
+                        repo_type,
+                        f"{unquote(org)}/{unquote(name)}",
+                        unquote(rev),
+                        "/".join(unquote(p) for p in path.split("/")),
+                    )
                 raise HubError(404, f"Route not found: {self.command} {url.path}")
             except HubError as err:
                 self._error(err)
@@ -370,8 +394,9 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
                 if action == "commit":
                     return self._commit(repo_type, repo_id, arg, body, parse_qs(urlsplit(self.path).query))
                 if action == "branch":
-                    store.create_ref(repo_type, repo_id, "branches", arg,
-                                     payload.get("startingPoint") or DEFAULT_BRANCH)
+                    store.create_ref(
+                        repo_type, repo_id, "branches", arg, payload.get("startingPoint") or DEFAULT_BRANCH
+                    )
                     return self._json(200, {})
                 if action == "tag":
                     store.create_ref(repo_type, repo_id, "tags", payload["tag"], arg)
@@ -386,22 +411,38 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
             oid, tree = store.tree(repo_type, repo_id, revision)
             meta = store.meta(repo_type, repo_id)
             commit = store.commit(repo_type, repo_id, oid)
-            self._json(200, {
-                "_id": hashlib.sha1(f"{repo_type}/{repo_id}".encode()).hexdigest()[:24],
-                "id": repo_id, "author": repo_id.split("/")[0], "sha": oid, "private": meta["private"],
-                "gated": False, "disabled": False, "downloads": 0, "likes": 0, "tags": [],
-                "createdAt": meta["created"], "lastModified": commit["date"],
-                "siblings": [{"rfilename": path} for path in tree], "xetEnabled": False,
-            })
+            self._json(
+                200,
+                {
+                    "_id": hashlib.sha1(f"{repo_type}/{repo_id}".encode()).hexdigest()[:24],
+                    "id": repo_id,
+                    "author": repo_id.split("/")[0],
+                    "sha": oid,
+                    "private": meta["private"],
+                    "gated": False,
+                    "disabled": False,
+                    "downloads": 0,
+                    "likes": 0,
+                    "tags": [],
+                    "createdAt": meta["created"],
+                    "lastModified": commit["date"],
+                    "siblings": [{"rfilename": path} for path in tree],
+                    "xetEnabled": False,
+                },
+            )
 
         def _refs(self, repo_type: str, repo_id: str) -> None:
             meta = store.meta(repo_type, repo_id)
-            self._json(200, {
-                "branches": [{"name": n, "ref": f"refs/heads/{n}", "targetCommit": o}
-                             for n, o in meta["branches"].items()],
-                "tags": [{"name": n, "ref": f"refs/tags/{n}", "targetCommit": o} for n, o in meta["tags"].items()],
-                "converts": [],
-            })
+            self._json(
+                200,
+                {
+                    "branches": [
+                        {"name": n, "ref": f"refs/heads/{n}", "targetCommit": o} for n, o in meta["branches"].items()
+                    ],
+                    "tags": [{"name": n, "ref": f"refs/tags/{n}", "targetCommit": o} for n, o in meta["tags"].items()],
+                    "converts": [],
+                },
+            )
 
         def _tree(self, repo_type: str, repo_id: str, revision: str, sub: str, recursive: bool) -> None:
             _, tree = store.tree(repo_type, repo_id, revision)
@@ -412,7 +453,7 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
             for path, oid in tree.items():
                 if not path.startswith(prefix):
                     continue
-                parts = path[len(prefix):].split("/")
+                parts = path[len(prefix) :].split("/")
                 depth = len(parts) if recursive else 1
                 for i in range(1, min(depth, len(parts) - 1) + 1):  # the folders on the way
                     folder = prefix + "/".join(parts[:i])
@@ -425,10 +466,15 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
         def _preupload(self, repo_type: str, repo_id: str, revision: str, payload: dict) -> None:
             _, tree = store.tree(repo_type, repo_id, revision)
             # Every file goes inline in the commit ("regular"): no LFS or xet transfer to emulate.
-            self._json(200, {"files": [
-                {"path": f["path"], "uploadMode": "regular", "shouldIgnore": False, "oid": tree.get(f["path"])}
-                for f in payload.get("files", [])
-            ]})
+            self._json(
+                200,
+                {
+                    "files": [
+                        {"path": f["path"], "uploadMode": "regular", "shouldIgnore": False, "oid": tree.get(f["path"])}
+                        for f in payload.get("files", [])
+                    ]
+                },
+            )
 
         def _commit(self, repo_type: str, repo_id: str, revision: str, body: bytes, query: dict) -> None:
             if query.get("create_pr"):
@@ -453,14 +499,24 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
                 elif key == "deletedFolder":
                     folders.append(value["path"])
                 else:
-                    raise HubError(400, f"Unsupported commit operation {key!r} (this test hub stores regular files only)")
+                    raise HubError(
+                        400, f"Unsupported commit operation {key!r} (this test hub stores regular files only)"
+                    )
             if not header.get("summary"):
                 raise HubError(400, "Commit summary is required")
-            oid = store.apply_commit(repo_type, repo_id, revision, header["summary"], header.get("parentCommit"),
-                                     adds, deletes, folders)
+            oid = store.apply_commit(
+                repo_type, repo_id, revision, header["summary"], header.get("parentCommit"), adds, deletes, folders
+            )
             prefix = "" if repo_type == "model" else f"{repo_type}s/"
-            self._json(200, {"success": True, "commitOid": oid, "pullRequestUrl": None,
-                             "commitUrl": f"{hub.endpoint}/{prefix}{repo_id}/commit/{oid}"})
+            self._json(
+                200,
+                {
+                    "success": True,
+                    "commitOid": oid,
+                    "pullRequestUrl": None,
+                    "commitUrl": f"{hub.endpoint}/{prefix}{repo_id}/commit/{oid}",
+                },
+            )
 
         def _resolve(self, repo_type: str, repo_id: str, revision: str, path: str) -> None:
             self._require_read(repo_type, repo_id)
@@ -468,8 +524,8 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
             if path not in tree:
                 raise HubError(404, f"Entry not found: {path}", "EntryNotFound")
             data = store.blob(repo_type, repo_id, tree[path])
-            self._send(200, data, {"X-Repo-Commit": oid, "ETag": f'"{tree[path]}"'},
-                       content_type="application/octet-stream")
+            self._send(
+                200, data, {"X-Repo-Commit": oid, "ETag": f'"{tree[path]}"'}, content_type="application/octet-stream"
+            )
 
     return Handler
-

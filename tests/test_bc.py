@@ -19,8 +19,15 @@ from shiftkit.policies.bc import BCArgs, BCPolicy, PolicySpec, load_policy, trai
 from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
 
 
-def make_dataset(root: Path, episodes: int = 8, length: int = 25, image: str | None = None,
-                 learnable: bool = True, depth: bool = False, seed: int = 0) -> Path:
+def make_dataset(
+    root: Path,
+    episodes: int = 8,
+    length: int = 25,
+    image: str | None = None,
+    learnable: bool = True,
+    depth: bool = False,
+    seed: int = 0,
+) -> Path:
     """A tiny LeRobot dataset written by lerobot's own writer. State-only: action = linear function
     of the state. `image="image"|"video"`: a bright square whose position is the action (`depth`:
     plus a float depth map of it)."""
@@ -33,10 +40,16 @@ def make_dataset(root: Path, episodes: int = 8, length: int = 25, image: str | N
     }
     if image:
         features["observation.images.front"] = {
-            "dtype": image, "shape": (48, 64, 3), "names": ["height", "width", "channels"]}
+            "dtype": image,
+            "shape": (48, 64, 3),
+            "names": ["height", "width", "channels"],
+        }
     if depth:
         features["observation.depth.front"] = {
-            "dtype": "float32", "shape": (48, 64, 1), "names": ["height", "width", "channels"]}
+            "dtype": "float32",
+            "shape": (48, 64, 1),
+            "names": ["height", "width", "channels"],
+        }
     ds = LeRobotDataset.create("test/bc", fps=10, root=root, features=features, use_videos=image == "video")
     for _ in range(episodes):
         for _ in range(length):
@@ -64,8 +77,18 @@ def state_ds(tmp_path_factory) -> Path:
 
 
 def small_args(ds: Path, out: Path, **kw) -> BCArgs:
-    base = dict(datasets=[str(ds)], output_dir=str(out), regime="fixed", steps=200, ensemble_size=2,
-                hidden=[32, 32], batch_size=32, log_every=20, checkpoint_every=50, device="cpu")
+    base = dict(
+        datasets=[str(ds)],
+        output_dir=str(out),
+        regime="fixed",
+        steps=200,
+        ensemble_size=2,
+        hidden=[32, 32],
+        batch_size=32,
+        log_every=20,
+        checkpoint_every=50,
+        device="cpu",
+    )
     return BCArgs(**{**base, **kw})
 
 
@@ -148,9 +171,15 @@ def _spec(ensemble: int) -> PolicySpec:
     return PolicySpec(
         features={"observation.state": {"dtype": "float32", "shape": [4], "names": ["a", "b", "c", "d"]}},
         action={"dtype": "float32", "shape": [2], "names": ["x", "y"]},
-        stats={"observation.state": {"mean": [0.0] * 4, "std": [1.0] * 4},
-               "action": {"mean": [1.0, -1.0], "std": [2.0, 0.5]}},
-        encoder="cnn", num_keypoints=8, hidden=[16], ensemble_size=ensemble)
+        stats={
+            "observation.state": {"mean": [0.0] * 4, "std": [1.0] * 4},
+            "action": {"mean": [1.0, -1.0], "std": [2.0, 0.5]},
+        },
+        encoder="cnn",
+        num_keypoints=8,
+        hidden=[16],
+        ensemble_size=ensemble,
+    )
 
 
 def test_ensemble_mean_and_spread():
@@ -166,8 +195,9 @@ def test_ensemble_mean_and_spread():
         m.load_state_dict(policy.members[0].state_dict())
     assert torch.allclose(policy.spread(batch), torch.zeros(5))
     assert BCPolicy(_spec(3), seed=1).state_dict().keys() == policy.state_dict().keys()
-    torch.testing.assert_close(BCPolicy(_spec(3), seed=1).members[2].head[0].weight,
-                               BCPolicy(_spec(3), seed=1).members[2].head[0].weight)
+    torch.testing.assert_close(
+        BCPolicy(_spec(3), seed=1).members[2].head[0].weight, BCPolicy(_spec(3), seed=1).members[2].head[0].weight
+    )
 
 
 # ------------------------------------------------------------------------------ training
@@ -198,8 +228,19 @@ def test_fixed_regime_learns_and_writes_run(state_ds, tmp_path):
 def test_early_stopping_stops_members_and_keeps_best(tmp_path):
     ds = make_dataset(tmp_path / "noise", episodes=6, length=20, learnable=False)
     out = tmp_path / "run"
-    metrics = train(small_args(ds, out, regime="early-stop", steps=None, max_epochs=100, patience=3,
-                               hidden=[64, 64], batch_size=16, log_every=1000))
+    metrics = train(
+        small_args(
+            ds,
+            out,
+            regime="early-stop",
+            steps=None,
+            max_epochs=100,
+            patience=3,
+            hidden=[64, 64],
+            batch_size=16,
+            log_every=1000,
+        )
+    )
     val = metric_lines(out, "val")
     assert val[-1]["active"] == 0 and len(val) < 100  # every member stopped before max_epochs
     best = [min(m["member_loss"][i] for m in val) for i in range(2)]
@@ -210,8 +251,20 @@ def test_early_stopping_stops_members_and_keeps_best(tmp_path):
 def test_image_policy_trains_end_to_end(tmp_path):
     ds = make_dataset(tmp_path / "img", episodes=4, length=16, image="image", depth=True)
     out = tmp_path / "run"
-    train(small_args(ds, out, steps=60, ensemble_size=1, batch_size=16, num_keypoints=8, hidden=[64, 64],
-                     lr=1e-3, log_every=10, checkpoint_every=60))
+    train(
+        small_args(
+            ds,
+            out,
+            steps=60,
+            ensemble_size=1,
+            batch_size=16,
+            num_keypoints=8,
+            hidden=[64, 64],
+            lr=1e-3,
+            log_every=10,
+            checkpoint_every=60,
+        )
+    )
     loss = [m["loss"] for m in metric_lines(out, "train")]
     assert loss[-1] < 0.6 * loss[0], loss
     policy = load_policy(out)
@@ -220,8 +273,11 @@ def test_image_policy_trains_end_to_end(tmp_path):
     depth_mean = policy.normalizer._ms("observation.depth.front")[0]
     assert depth_mean.shape == (1, 1, 1, 1) and 0.5 < depth_mean.item() < 1.5
     img = np.zeros((48, 64, 3), np.uint8)
-    batch = {"observation.images.front": torch.from_numpy(img)[None], "observation.state": torch.zeros(1, 4),
-             "observation.depth.front": torch.ones(1, 48, 64, 1)}
+    batch = {
+        "observation.images.front": torch.from_numpy(img)[None],
+        "observation.state": torch.zeros(1, 4),
+        "observation.depth.front": torch.ones(1, 48, 64, 1),
+    }
     obs = policy.normalizer(batch)
     kp = policy.members[0].encoders[0].keypoints(obs["observation.images.front"])
     assert kp.shape == (1, 8, 2) and kp.abs().max() <= 1.0
@@ -230,11 +286,36 @@ def test_image_policy_trains_end_to_end(tmp_path):
 
 def test_resume_after_kill_equals_uninterrupted_run(state_ds, tmp_path):
     killed, clean = tmp_path / "killed", tmp_path / "clean"
-    cli = [sys.executable, "-m", "shiftkit.pipelines.cli", "train", "bc", "--dataset", str(state_ds),
-           "--output", str(killed), "--regime", "fixed", "--steps", "3000", "--ensemble", "2", "--hidden", "32,32",
-           "--batch-size", "32", "--log-every", "20", "--checkpoint-every", "100", "--device", "cpu"]
-    proc = subprocess.Popen(cli, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    cli = [
+        sys.executable,
+        "-m",
+        "shiftkit.pipelines.cli",
+        "train",
+        "bc",
+        "--dataset",
+        str(state_ds),
+        "--output",
+        str(killed),
+        "--regime",
+        "fixed",
+        "--steps",
+        "3000",
+        "--ensemble",
+        "2",
+        "--hidden",
+        "32,32",
+        "--batch-size",
+        "32",
+        "--log-every",
+        "20",
+        "--checkpoint-every",
+        "100",
+        "--device",
+        "cpu",
+    ]
+    proc = subprocess.Popen(
+        cli, env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
     last = killed / "checkpoints" / "last.txt"
     deadline = time.time() + 120
     while not last.exists() and proc.poll() is None and time.time() < deadline:

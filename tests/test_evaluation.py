@@ -41,8 +41,10 @@ class RecordingExpert(ExpertPolicy):
         super().__init__(env)
         self.features = {
             key: {"shape": [len(idx)], "names": [OBSERVATION_NAMES[i] for i in idx]}
-            for key, idx in (("observation.state", STATE_INDICES),
-                             ("observation.environment_state", ENVIRONMENT_STATE_INDICES))
+            for key, idx in (
+                ("observation.state", STATE_INDICES),
+                ("observation.environment_state", ENVIRONMENT_STATE_INDICES),
+            )
         }
         self.seen: list[dict] = []
 
@@ -80,9 +82,31 @@ def test_eval_cli_runs_a_trained_bc_policy(tmp_path, capsys):
 
     collect(CollectConfig(task="lift", episodes=3, seed=0, lerobot="local/lift3", root=str(tmp_path / "lift3")))
     run = tmp_path / "run"
-    assert main(["train", "bc", "--dataset", str(tmp_path / "lift3"), "--output", str(run), "--regime", "fixed",
-                 "--steps", "40", "--ensemble", "2", "--hidden", "32,32", "--checkpoint-every", "40",
-                 "--threads", "1"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "bc",
+                "--dataset",
+                str(tmp_path / "lift3"),
+                "--output",
+                str(run),
+                "--regime",
+                "fixed",
+                "--steps",
+                "40",
+                "--ensemble",
+                "2",
+                "--hidden",
+                "32,32",
+                "--checkpoint-every",
+                "40",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert main(["eval", "--policy", str(run), "--task", "lift", "--episodes", "1", "--seed", "500"]) == 0
     printed = capsys.readouterr().out
     assert "success rate" in printed and "95% CI" in printed

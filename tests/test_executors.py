@@ -71,7 +71,11 @@ def assert_same_content(a: Path, b: Path) -> None:
     assert pq.read_table(a / "meta/tasks.parquet").to_pylist() == pq.read_table(b / "meta/tasks.parquet").to_pylist()
     ia, ib = (json.loads((r / "meta/info.json").read_text()) for r in (a, b))
     assert ia["features"] == ib["features"]
-    assert (ia["total_episodes"], ia["total_frames"], ia["total_tasks"]) == (ib["total_episodes"], ib["total_frames"], ib["total_tasks"])
+    assert (ia["total_episodes"], ia["total_frames"], ia["total_tasks"]) == (
+        ib["total_episodes"],
+        ib["total_frames"],
+        ib["total_tasks"],
+    )
     sa, sb = (json.loads((r / "meta/stats.json").read_text()) for r in (a, b))
     assert list(sa) == list(sb)  # feature order, not hash order
     for key in sa:
@@ -96,10 +100,20 @@ def local_ray():
 
 def test_ray_and_datatrove_local_match_the_local_executor(tmp_path, raw, local_ray):
     local = run_pipeline(config_for(tmp_path, raw, "local"), progress=False)
-    ray_out = run_pipeline(config_for(tmp_path, raw, "ray"), workers=2, executor="ray",
-                           executor_options={"shard_episodes": 2}, progress=False)
-    dt = run_pipeline(config_for(tmp_path, raw, "dt"), workers=1, executor="datatrove-local",
-                      executor_options={"shard_episodes": 4}, progress=False)
+    ray_out = run_pipeline(
+        config_for(tmp_path, raw, "ray"),
+        workers=2,
+        executor="ray",
+        executor_options={"shard_episodes": 2},
+        progress=False,
+    )
+    dt = run_pipeline(
+        config_for(tmp_path, raw, "dt"),
+        workers=1,
+        executor="datatrove-local",
+        executor_options={"shard_episodes": 4},
+        progress=False,
+    )
     for other in (ray_out, dt):
         assert_same_content(local, other)
         assert not work_dir_for(other).exists()
@@ -167,8 +181,12 @@ def test_a_failed_shard_is_retried(tmp_path, raw):
     markers = tmp_path / "markers"
     markers.mkdir()
     extra = f'[[stages]]\nname = "test-flaky"\nparams = {{ marker_dir = "{markers}", episodes = [1, 4] }}'
-    out = run_pipeline(config_for(tmp_path, raw, "flaky", extra), executor="datatrove-local",
-                       executor_options={"shard_episodes": 2}, progress=False)
+    out = run_pipeline(
+        config_for(tmp_path, raw, "flaky", extra),
+        executor="datatrove-local",
+        executor_options={"shard_episodes": 2},
+        progress=False,
+    )
     assert sorted(p.name for p in markers.iterdir()) == ["failed-1", "failed-4"]  # each failed once
     local = run_pipeline(config_for(tmp_path, raw, "plain", extra), progress=False)  # markers exist: no failure
     assert_same_content(local, out)
@@ -200,7 +218,9 @@ def test_bad_executor_options_are_config_errors(tmp_path, raw):
     with pytest.raises(ConfigError, match="--partition"):
         run_pipeline(config_for(tmp_path, raw, "x"), executor="slurm", progress=False)
     with pytest.raises(ConfigError, match="does not take these options: address"):
-        run_pipeline(config_for(tmp_path, raw, "x"), executor="local", executor_options={"address": "a:1"}, progress=False)
+        run_pipeline(
+            config_for(tmp_path, raw, "x"), executor="local", executor_options={"address": "a:1"}, progress=False
+        )
     with pytest.raises(ConfigError, match="unknown executor"):
         run_pipeline(config_for(tmp_path, raw, "x"), executor="dask", progress=False)
 
@@ -228,8 +248,12 @@ class KeepEveryOther(Stage):
 
 def test_dataset_level_selection_spans_shards(tmp_path, raw):
     extra = '[[stages]]\nname = "test-keep-every-other"'
-    out = run_pipeline(config_for(tmp_path, raw, "sel", extra), executor="datatrove-local",
-                       executor_options={"shard_episodes": 2}, progress=False)
+    out = run_pipeline(
+        config_for(tmp_path, raw, "sel", extra),
+        executor="datatrove-local",
+        executor_options={"shard_episodes": 2},
+        progress=False,
+    )
     local = run_pipeline(config_for(tmp_path, raw, "sel-local", extra), progress=False)
     assert json.loads((out / "meta/info.json").read_text())["total_episodes"] == 3
     assert_same_content(local, out)

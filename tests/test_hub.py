@@ -46,8 +46,13 @@ def dataset(tmp_path_factory) -> Path:
     rng = np.random.default_rng(0)
     for _ in range(2):
         for _ in range(8):
-            ds.add_frame({"observation.state": rng.normal(size=3).astype(np.float32),
-                          "action": rng.uniform(-1, 1, size=2).astype(np.float32), "task": "reach"})
+            ds.add_frame(
+                {
+                    "observation.state": rng.normal(size=3).astype(np.float32),
+                    "action": rng.uniform(-1, 1, size=2).astype(np.float32),
+                    "task": "reach",
+                }
+            )
         ds.save_episode()
     ds.finalize()
     return root
@@ -57,9 +62,14 @@ def _env(hub_endpoint: str, home: Path) -> dict[str, str]:
     """The environment of a client process: this hub, a private HF home and LeRobot cache, online."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGING"))}
     env.update(
-        HF_ENDPOINT=hub_endpoint, HF_HUB_OFFLINE="0", HF_HOME=str(home / "hf-home"),
-        HF_LEROBOT_HOME=str(home / "lerobot"), HF_DATASETS_CACHE=str(home / "datasets-cache"),
-        HF_HUB_DISABLE_PROGRESS_BARS="1", HF_HUB_DISABLE_TELEMETRY="1", MUJOCO_GL="egl",
+        HF_ENDPOINT=hub_endpoint,
+        HF_HUB_OFFLINE="0",
+        HF_HOME=str(home / "hf-home"),
+        HF_LEROBOT_HOME=str(home / "lerobot"),
+        HF_DATASETS_CACHE=str(home / "datasets-cache"),
+        HF_HUB_DISABLE_PROGRESS_BARS="1",
+        HF_HUB_DISABLE_TELEMETRY="1",
+        MUJOCO_GL="egl",
     )
     return env
 
@@ -90,8 +100,13 @@ _BATCH = textwrap.dedent("""
 def start_batch(cases: list[tuple[list[str] | str, str | None]], endpoint: str, home: Path) -> subprocess.Popen:
     """Start running each (ARGV or Python code, HF_TOKEN) case in a client process."""
     payload = json.dumps([{"run": run, "token": token} for run, token in cases])
-    return subprocess.Popen([sys.executable, "-c", _BATCH, payload], env=_env(endpoint, home),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-c", _BATCH, payload],
+        env=_env(endpoint, home),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def batch_results(proc: subprocess.Popen) -> list[dict]:
@@ -137,15 +152,19 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=2, length=6)
     (tmp_path / "p.toml").write_text(f'[[sources]]\npath = "{raw}"\n[destination]\nroot = "{tmp_path / "piped"}"\n')
-    results = shiftkit_batch([
-        (["run", str(tmp_path / "p.toml"), "--no-progress", "--push", "shiftkit-test/piped"], WRITE),
-        (["push", str(dataset), "--repo-id", REPO], WRITE),
-        (["pull", REPO], None),
-        (["push", str(extra), "--repo-id", REPO, "--revision", "exp"], WRITE),
-        (["push", str(variant), "--repo-id", REPO, "--revision", "exp"], WRITE),
-        (["pull", REPO, "--revision", "exp", "--root", str(tmp_path / "exp")], None),
-        (["pull", REPO, "--force"], None),
-    ], hub.endpoint, home)
+    results = shiftkit_batch(
+        [
+            (["run", str(tmp_path / "p.toml"), "--no-progress", "--push", "shiftkit-test/piped"], WRITE),
+            (["push", str(dataset), "--repo-id", REPO], WRITE),
+            (["pull", REPO], None),
+            (["push", str(extra), "--repo-id", REPO, "--revision", "exp"], WRITE),
+            (["push", str(variant), "--repo-id", REPO, "--revision", "exp"], WRITE),
+            (["pull", REPO, "--revision", "exp", "--root", str(tmp_path / "exp")], None),
+            (["pull", REPO, "--force"], None),
+        ],
+        hub.endpoint,
+        home,
+    )
     assert_ok(results)
     # `shiftkit run --push` pushed the finished pipeline output, card and version tag included.
     piped = hub.store.meta("dataset", "shiftkit-test/piped")
@@ -184,24 +203,34 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
     assert file_hashes(root) == remote  # re-pulled with --force: still the v3.0 tag on main
 
 
-@pytest.mark.skipif(importlib.util.find_spec("shiftkit.policies.bc") is None,
-                    reason="BC trainer (shiftkit.policies.bc) not written yet; train-by-ID needs it")
+@pytest.mark.skipif(
+    importlib.util.find_spec("shiftkit.policies.bc") is None,
+    reason="BC trainer (shiftkit.policies.bc) not written yet; train-by-ID needs it",
+)
 def test_pulled_dataset_trains_by_id_and_checkpoint_round_trips(hub, dataset, tmp_path):
     home, run, model = tmp_path / "home", tmp_path / "run", "shiftkit-test/bc-tiny"
     bare = tmp_path / "bare"  # a checkpoint folder without a model card
     bare.mkdir()
     (bare / "weights.bin").write_bytes(b"\x00" * 64)
     seed = [] if hub.store.exists("dataset", REPO) else [(["push", str(dataset), "--repo-id", REPO], WRITE)]
-    train = ("from shiftkit.policies.bc import BCArgs, train\n"
-             f"train(BCArgs(datasets=[{REPO!r}], output_dir={str(run)!r}, regime='fixed', steps=3, "
-             "ensemble_size=1, hidden=[16], checkpoint_every=3, log_every=1))")
-    assert_ok(shiftkit_batch([
-        *seed,
-        (train, None),  # an empty local cache: the ID resolves through the hub
-        (["push", str(run), "--checkpoint", "--repo-id", model], WRITE),
-        (["pull", model, "--checkpoint", "--root", str(tmp_path / "pulled-run")], None),
-        (["push", str(bare), "--checkpoint", "--repo-id", "shiftkit-test/bare"], WRITE),
-    ], hub.endpoint, home))
+    train = (
+        "from shiftkit.policies.bc import BCArgs, train\n"
+        f"train(BCArgs(datasets=[{REPO!r}], output_dir={str(run)!r}, regime='fixed', steps=3, "
+        "ensemble_size=1, hidden=[16], checkpoint_every=3, log_every=1))"
+    )
+    assert_ok(
+        shiftkit_batch(
+            [
+                *seed,
+                (train, None),  # an empty local cache: the ID resolves through the hub
+                (["push", str(run), "--checkpoint", "--repo-id", model], WRITE),
+                (["pull", model, "--checkpoint", "--root", str(tmp_path / "pulled-run")], None),
+                (["push", str(bare), "--checkpoint", "--repo-id", "shiftkit-test/bare"], WRITE),
+            ],
+            hub.endpoint,
+            home,
+        )
+    )
     config = json.loads((run / "config.json").read_text())
     assert config["datasets"][0]["id"] == REPO
     assert config["datasets"][0]["root"] == str(home / "lerobot" / REPO)
@@ -225,8 +254,11 @@ def test_pulled_dataset_trains_by_id_and_checkpoint_round_trips(hub, dataset, tm
 def _seed_untagged_and_private(hub, dataset: Path) -> None:
     """Repositories set up directly in the server's store (admin side, not through the client)."""
     files = {p.relative_to(dataset).as_posix(): p.read_bytes() for p in files_under(dataset)}
-    for repo_id, private, tag in (("shiftkit-test/untagged", False, None), ("shiftkit-test/secret", True, "v3.0"),
-                                  ("shiftkit-test/old", False, "v2.1")):
+    for repo_id, private, tag in (
+        ("shiftkit-test/untagged", False, None),
+        ("shiftkit-test/secret", True, "v3.0"),
+        ("shiftkit-test/old", False, "v2.1"),
+    ):
         if not hub.store.exists("dataset", repo_id):
             hub.store.create("dataset", repo_id, private=private)
             hub.store.apply_commit("dataset", repo_id, "main", "seed", None, files, [], [])
@@ -267,14 +299,29 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
         s.bind(("127.0.0.1", 0))
         closed = f"http://127.0.0.1:{s.getsockname()[1]}"
     home, home_closed = tmp_path / "home", tmp_path / "home-closed"
-    unreachable = start_batch([(["push", str(dataset), "--repo-id", REPO], WRITE), (["pull", REPO], None)],
-                              closed, home_closed)
+    unreachable = start_batch(
+        [(["push", str(dataset), "--repo-id", REPO], WRITE), (["pull", REPO], None)], closed, home_closed
+    )
     results = shiftkit_batch(cases, hub.endpoint, home)
-    _assert_one_line_errors(results, [
-        "(401)", "(401)", "forbidden (403)", "invalid repo id", "invalid card metadata", "no such dataset folder",
-        "invalid repo id", "no codebase version tag", "revision 'no-such-branch' not found",
-        "shiftkit-test/does-not-exist", "(401)", "(401)", "versions v2.1, none compatible", "already exists",
-    ])
+    _assert_one_line_errors(
+        results,
+        [
+            "(401)",
+            "(401)",
+            "forbidden (403)",
+            "invalid repo id",
+            "invalid card metadata",
+            "no such dataset folder",
+            "invalid repo id",
+            "no codebase version tag",
+            "revision 'no-such-branch' not found",
+            "shiftkit-test/does-not-exist",
+            "(401)",
+            "(401)",
+            "versions v2.1, none compatible",
+            "already exists",
+        ],
+    )
     _assert_one_line_errors(batch_results(unreachable), ["cannot reach the hub", "cannot reach the hub"])
     assert not hub.store.exists("dataset", "shiftkit-test/noauth")
     assert files_under(home / "lerobot") == files_under(home_closed / "lerobot") == []

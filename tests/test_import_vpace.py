@@ -14,8 +14,8 @@ import pytest
 
 from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
-from shiftkit.pipelines.sources.vpace import import_vpace, read_vpace_buffer, task_from_filename
 from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
+from shiftkit.pipelines.sources.vpace import import_vpace, read_vpace_buffer, task_from_filename
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vpace"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"published VPACE data not found at {DATA}")
@@ -45,8 +45,16 @@ def _full_observation(ep):
 
 def _write_buffer(path, obs, next_obs, actions, rewards, pointer, count):
     size = len(obs)
-    data = {"observations": obs, "next_observations": next_obs, "actions": actions, "rewards": rewards,
-            "dones": np.zeros((size, 1), bool), "memory_size": size, "pointer": pointer, "count": count}
+    data = {
+        "observations": obs,
+        "next_observations": next_obs,
+        "actions": actions,
+        "rewards": rewards,
+        "dones": np.zeros((size, 1), bool),
+        "memory_size": size,
+        "pointer": pointer,
+        "count": count,
+    }
     with gzip.open(path, "wb") as f:
         pickle.dump(data, f)
     return path
@@ -64,8 +72,12 @@ def test_published_example_sets(tmp_path):
     assert (reach.task, reach.kind(), len(reach.observations), reach.obs_dim) == ("reach", "examples", 1200, 59)
     files = [DATA / "examples_1200_3_lift.gz", tmp_path / "10_reach.gz"]
     raw_reach = _raw(DATA / "examples_1200_4_reach.gz")
-    _write_buffer(files[1], *(raw_reach[k][:10] for k in ("observations", "next_observations", "actions", "rewards")),
-                  pointer=0, count=10)
+    _write_buffer(
+        files[1],
+        *(raw_reach[k][:10] for k in ("observations", "next_observations", "actions", "rewards")),
+        pointer=0,
+        count=10,
+    )
     summary = import_vpace(files, "vpace/examples", tmp_path / "ex")
     assert (summary.kind, summary.episodes, summary.frames, summary.fps) == ("examples", 1210, 1210, 20)
 
@@ -74,7 +86,9 @@ def test_published_example_sets(tmp_path):
     counts = np.bincount(np.asarray(ds.hf_dataset["task_index"]).reshape(-1))
     assert {t: int(counts[i]) for t, i in ds.meta.tasks["task_index"].items()} == {"lift": 1200, "reach": 10}
     assert ds.features["observation.state"]["names"] == [OBSERVATION_NAMES[i] for i in STATE_INDICES]
-    assert ds.features["observation.environment_state"]["names"] == [OBSERVATION_NAMES[i] for i in ENVIRONMENT_STATE_INDICES]
+    assert ds.features["observation.environment_state"]["names"] == [
+        OBSERVATION_NAMES[i] for i in ENVIRONMENT_STATE_INDICES
+    ]
     assert "action" not in ds.features, "actions of independent success states are not meaningful"
 
     table = ds.hf_dataset.with_format("numpy")
@@ -125,7 +139,9 @@ def test_published_trajectories_split_into_episodes(tmp_path):
         for e, ep in enumerate(eps):
             n = len(ep)
             # continuity inside an episode, a jump between episodes
-            np.testing.assert_array_equal(raw["next_observations"][offset : offset + n - 1, :53], _full_observation(ep)[1:])
+            np.testing.assert_array_equal(
+                raw["next_observations"][offset : offset + n - 1, :53], _full_observation(ep)[1:]
+            )
             if offset + n < len(obs):
                 assert np.any(raw["next_observations"][offset + n - 1] != raw["observations"][offset + n])
             # the sparse reward marks each episode's last transition
@@ -148,14 +164,17 @@ def test_circular_buffer_order_and_reward_columns(tmp_path):
     actions = rng.uniform(-1, 1, (9, 4)).astype(np.float32)
     rewards = np.stack([np.arange(9), -np.arange(9)], axis=1).astype(np.float32)  # columns differ
     # insertion k goes to slot k % 7: insertions 0 and 1 were overwritten by 7 and 8, the oldest is at slot 2
-    stored = {k: np.zeros((7, *a.shape[1:]), np.float32) for k, a in
-              (("obs", obs), ("nxt", nxt), ("act", actions), ("rew", rewards))}
+    stored = {
+        k: np.zeros((7, *a.shape[1:]), np.float32)
+        for k, a in (("obs", obs), ("nxt", nxt), ("act", actions), ("rew", rewards))
+    }
     for k in range(2, 9):
         slot = k % 7
         stored["obs"][slot], stored["nxt"][slot] = obs[k], nxt[k]
         stored["act"][slot], stored["rew"][slot] = actions[k], rewards[k]
-    path = _write_buffer(tmp_path / "7_task-x.gz", stored["obs"], stored["nxt"], stored["act"], stored["rew"],
-                         pointer=9 % 7, count=9)
+    path = _write_buffer(
+        tmp_path / "7_task-x.gz", stored["obs"], stored["nxt"], stored["act"], stored["rew"], pointer=9 % 7, count=9
+    )
 
     buf = read_vpace_buffer(path)
     assert buf.task == "task-x" and buf.overwritten_rows == 2
@@ -179,20 +198,36 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
         read_vpace_buffer(evil)
     with pytest.raises(DatasetError, match="cannot tell the task"):
         task_from_filename("buffer.gz")
-    bad_width = _write_buffer(tmp_path / "2_lift.gz", *(np.zeros((3, 10), np.float32),) * 2,
-                              np.zeros((3, 4), np.float32), np.zeros((3, 1), np.float32), 0, 3)
+    bad_width = _write_buffer(
+        tmp_path / "2_lift.gz",
+        *(np.zeros((3, 10), np.float32),) * 2,
+        np.zeros((3, 4), np.float32),
+        np.zeros((3, 1), np.float32),
+        0,
+        3,
+    )
     with pytest.raises(DatasetError, match=r"neither \(N, 60\) nor \(N, 54\)"):
         read_vpace_buffer(bad_width)
-    empty = _write_buffer(tmp_path / "3_lift.gz", *(np.zeros((0, 60), np.float32),) * 2,
-                          np.zeros((0, 4), np.float32), np.zeros((0, 1), np.float32), 0, 0)
+    empty = _write_buffer(
+        tmp_path / "3_lift.gz",
+        *(np.zeros((0, 60), np.float32),) * 2,
+        np.zeros((0, 4), np.float32),
+        np.zeros((0, 1), np.float32),
+        0,
+        0,
+    )
     with pytest.raises(DatasetError, match="empty buffer"):
         read_vpace_buffer(empty)
     with pytest.raises(ShiftkitError, match="invalid repo id"):
         import_vpace([bad_width], "not a repo id", tmp_path / "never")
     assert not (tmp_path / "never").exists()
 
-    assert main(["import", "vpace", str(tmp_path / "missing_3_lift.gz"), "--repo-id", "a/b", "--root",
-                 str(tmp_path / "o")]) == 2
+    assert (
+        main(
+            ["import", "vpace", str(tmp_path / "missing_3_lift.gz"), "--repo-id", "a/b", "--root", str(tmp_path / "o")]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no such file" in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()

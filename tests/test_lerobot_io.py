@@ -25,14 +25,19 @@ def make_episodes(n_eps: int = 3, seed: int = 0) -> list[Episode]:
     eps = []
     for e in range(n_eps):
         n = 5 + e
-        eps.append(Episode({
-            "observation.state": rng.normal(size=(n, 3)).astype(np.float32),
-            "action": rng.normal(size=(n, 2)).astype(np.float32),
-            "next.success": (np.arange(n) == n - 1).reshape(n, 1),
-            "observation.images.cam": rng.integers(0, 255, size=(n, 6, 8, 3), dtype=np.uint8),
-            "timestamp": np.arange(n) / 10,
-            "task": np.array(["pick" if e % 2 == 0 else "place"] * n),
-        }, {"outcome": "success"}))
+        eps.append(
+            Episode(
+                {
+                    "observation.state": rng.normal(size=(n, 3)).astype(np.float32),
+                    "action": rng.normal(size=(n, 2)).astype(np.float32),
+                    "next.success": (np.arange(n) == n - 1).reshape(n, 1),
+                    "observation.images.cam": rng.integers(0, 255, size=(n, 6, 8, 3), dtype=np.uint8),
+                    "timestamp": np.arange(n) / 10,
+                    "task": np.array(["pick" if e % 2 == 0 else "place"] * n),
+                },
+                {"outcome": "success"},
+            )
+        )
     return eps
 
 
@@ -95,10 +100,12 @@ def test_lerobot_loads_and_reader_round_trips(tmp_path):
 def test_failed_write_leaves_nothing(tmp_path):
     bad = make_episodes(1)[0]
     bad.frames["action"][2, 1] = np.nan
-    with pytest.raises(DatasetError, match="'action' has NaN"):
-        with DatasetWriter("test/x", tmp_path / "ds", 10, FEATURES) as w:
-            w.add_episode(make_episodes(1)[0])
-            w.add_episode(bad)
+    with (
+        pytest.raises(DatasetError, match="'action' has NaN"),
+        DatasetWriter("test/x", tmp_path / "ds", 10, FEATURES) as w,
+    ):
+        w.add_episode(make_episodes(1)[0])
+        w.add_episode(bad)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -108,9 +115,11 @@ def test_destination_exists_and_schema_mismatch(tmp_path):
         DatasetWriter("test/x", tmp_path / "ds", 10, FEATURES)
     ep = make_episodes(1)[0]
     ep.frames["observation.state"] = ep.frames["observation.state"][:, :2]
-    with pytest.raises(DatasetError, match="per-frame shape"):
-        with DatasetWriter("test/x", tmp_path / "ds2", 10, FEATURES) as w:
-            w.add_episode(ep)
+    with (
+        pytest.raises(DatasetError, match="per-frame shape"),
+        DatasetWriter("test/x", tmp_path / "ds2", 10, FEATURES) as w,
+    ):
+        w.add_episode(ep)
     assert not (tmp_path / "ds2").exists()
 
 

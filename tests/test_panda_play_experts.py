@@ -61,9 +61,9 @@ def test_play_episode_labels_contiguous_segments():
     assert tasks == list(PLAY_SEQUENCES["stack"])
     assert all(s["success"] for s in r.segments)
     assert r.segments[0]["start"] == 0 and r.segments[-1]["end"] == len(r.actions)
-    assert all(a["end"] == b["start"] for a, b in zip(r.segments, r.segments[1:]))
+    assert all(a["end"] == b["start"] for a, b in zip(r.segments, r.segments[1:], strict=False))
     for s in r.segments:
-        assert r.success[s["end"] - 1] and not r.success[s["start"]:s["end"] - 1].all()
+        assert r.success[s["end"] - 1] and not r.success[s["start"] : s["end"] - 1].all()
     env.close()
 
 
@@ -71,8 +71,27 @@ def test_collect_raw_then_lerobot(tmp_path, capsys):
     from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     out = tmp_path / "raw"
-    assert cli(["collect", "--env", "panda-play", "--task", "reach", "--episodes", "2", "--seed", "4",
-                "--out", str(out), "--cameras", "front", "--depth"]) == 0
+    assert (
+        cli(
+            [
+                "collect",
+                "--env",
+                "panda-play",
+                "--task",
+                "reach",
+                "--episodes",
+                "2",
+                "--seed",
+                "4",
+                "--out",
+                str(out),
+                "--cameras",
+                "front",
+                "--depth",
+            ]
+        )
+        == 0
+    )
     raw = open_raw_dataset(out)
     index = json.loads((out / "dataset.json").read_text())
     assert raw.num_episodes == 2 and index["fps"] == 20 and len(index["names"]["state"]) == 18
@@ -89,12 +108,30 @@ def test_collect_raw_then_lerobot(tmp_path, capsys):
     again = tmp_path / "raw2"
     cli(["collect", "--task", "reach", "--episodes", "1", "--seed", "4", "--out", str(again)])
     for name in ("action", "state", "environment_state", "sim_qpos", "success"):
-        assert (again / "episode_000000" / "arrays" / f"{name}.npy").read_bytes() == \
-            (out / "episode_000000" / "arrays" / f"{name}.npy").read_bytes()
+        assert (again / "episode_000000" / "arrays" / f"{name}.npy").read_bytes() == (
+            out / "episode_000000" / "arrays" / f"{name}.npy"
+        ).read_bytes()
 
     root = tmp_path / "lerobot"
-    assert cli(["collect", "--task", "lift", "--episodes", "1", "--play", "--sequence", "reach,lift",
-                "--lerobot", "local/panda_play_test", "--root", str(root)]) == 0
+    assert (
+        cli(
+            [
+                "collect",
+                "--task",
+                "lift",
+                "--episodes",
+                "1",
+                "--play",
+                "--sequence",
+                "reach,lift",
+                "--lerobot",
+                "local/panda_play_test",
+                "--root",
+                str(root),
+            ]
+        )
+        == 0
+    )
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset("local/panda_play_test", root=root)

@@ -36,8 +36,9 @@ def write_config(tmp_path, raw, dest, text=PIPELINE, name="p.toml"):
 
 
 def shiftkit(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "shiftkit.pipelines.cli", *map(str, args)],
-                          capture_output=True, text=True, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "shiftkit.pipelines.cli", *map(str, args)], capture_output=True, text=True, **kw
+    )
 
 
 def test_help_lists_commands():
@@ -87,8 +88,11 @@ def test_sigkill_then_resume(tmp_path):
     dest = tmp_path / "out"
     config = write_config(tmp_path, raw, dest)
     work = tmp_path / ".out.shiftkit-work" / "parts"
-    proc = subprocess.Popen([sys.executable, "-m", "shiftkit.pipelines.cli", "run", str(config), "--no-progress"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "shiftkit.pipelines.cli", "run", str(config), "--no-progress"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
         if work.exists() and len([p for p in work.iterdir() if ".tmp-" not in p.name]) >= 5:
@@ -142,7 +146,10 @@ def _mismatched_lengths(tmp_path, raw):
         (lambda t, r: write_config(t, t / "missing", t / "out"), "source path not found"),
         (lambda t, r: write_config(t, r, t / "out", PIPELINE.replace('"trim"', '"trimm"')), "unknown stage 'trimm'"),
         (lambda t, r: write_config(t, r, t / "out", PIPELINE.replace("head = 1", "haed = 1")), "unknown key 'haed'"),
-        (lambda t, r: write_config(t, r, t / "out", PIPELINE.replace("head = 1", 'head = "one"')), "head: expected int"),
+        (
+            lambda t, r: write_config(t, r, t / "out", PIPELINE.replace("head = 1", 'head = "one"')),
+            "head: expected int",
+        ),
         (lambda t, r: (t / "out").mkdir() or write_config(t, r, t / "out"), "destination already exists"),
         (lambda t, r: write_config(t, r, t / "out", PIPELINE + "bogus = 1\n"), "unknown key 'bogus'"),
         (lambda t, r: t / "nope.toml", "pipeline config not found"),
@@ -150,8 +157,18 @@ def _mismatched_lengths(tmp_path, raw):
         (_nan_action, "'action' contains NaN"),
         (_mismatched_lengths, "'state' has 10 frames, 'timestamp' has 12"),
     ],
-    ids=["missing-source", "unknown-stage", "unknown-key", "wrong-type", "destination-exists", "unknown-top-key",
-         "missing-config", "corrupt-parquet", "nan-action", "mismatched-lengths"],
+    ids=[
+        "missing-source",
+        "unknown-stage",
+        "unknown-key",
+        "wrong-type",
+        "destination-exists",
+        "unknown-top-key",
+        "missing-config",
+        "corrupt-parquet",
+        "nan-action",
+        "mismatched-lengths",
+    ],
 )
 def test_bad_input_one_line_error(tmp_path, synthetic_raw, capsys, make_config, message):
     config = make_config(tmp_path, synthetic_raw)
@@ -169,7 +186,9 @@ def test_bad_input_one_line_error(tmp_path, synthetic_raw, capsys, make_config, 
 def test_cli_error_is_one_line_in_a_real_process(tmp_path):
     out = shiftkit("run", tmp_path / "missing.toml")
     assert out.returncode == 2
-    assert out.stderr.strip().splitlines() == [f"shiftkit run: error: pipeline config not found: {tmp_path / 'missing.toml'}"]
+    assert out.stderr.strip().splitlines() == [
+        f"shiftkit run: error: pipeline config not found: {tmp_path / 'missing.toml'}"
+    ]
 
 
 @pytest.mark.slow
@@ -180,12 +199,30 @@ def test_lerobot_train_act_on_pipeline_output(tmp_path, synthetic_raw):
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     exe = Path(sys.executable).with_name("lerobot-train")
     out = subprocess.run(
-        [str(exe), "--policy.type=act", "--dataset.repo_id=test/pipe", f"--dataset.root={tmp_path / 'ds'}",
-         "--steps=2", "--batch_size=2", "--num_workers=0", "--policy.device=cpu", "--policy.push_to_hub=false",
-         "--wandb.enable=false", "--save_checkpoint=false", "--eval_freq=0", "--log_freq=1",
-         "--policy.chunk_size=4", "--policy.n_action_steps=4", "--policy.dim_model=64",
-         "--policy.dim_feedforward=128", f"--output_dir={tmp_path / 'train'}"],
-        capture_output=True, text=True, env=env, timeout=600,
+        [
+            str(exe),
+            "--policy.type=act",
+            "--dataset.repo_id=test/pipe",
+            f"--dataset.root={tmp_path / 'ds'}",
+            "--steps=2",
+            "--batch_size=2",
+            "--num_workers=0",
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--wandb.enable=false",
+            "--save_checkpoint=false",
+            "--eval_freq=0",
+            "--log_freq=1",
+            "--policy.chunk_size=4",
+            "--policy.n_action_steps=4",
+            "--policy.dim_model=64",
+            "--policy.dim_feedforward=128",
+            f"--output_dir={tmp_path / 'train'}",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "step:2" in out.stdout + out.stderr

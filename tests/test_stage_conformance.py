@@ -56,10 +56,14 @@ def test_stage_conformance(name, synthetic_raw_images, tmp_path):
     run_pipeline(config, progress=False)
 
     info = json.loads((dest / "meta" / "info.json").read_text())
-    written = {k: {"dtype": v["dtype"], "shape": tuple(v["shape"]), "names": v["names"]}
-               for k, v in info["features"].items()
-               if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")}
-    predicted = {k: {"dtype": v["dtype"], "shape": tuple(v["shape"]), "names": v.get("names")} for k, v in plan.features.items()}
+    written = {
+        k: {"dtype": v["dtype"], "shape": tuple(v["shape"]), "names": v["names"]}
+        for k, v in info["features"].items()
+        if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")
+    }
+    predicted = {
+        k: {"dtype": v["dtype"], "shape": tuple(v["shape"]), "names": v.get("names")} for k, v in plan.features.items()
+    }
     assert written == predicted
     assert info["fps"] == plan.fps
 

@@ -12,9 +12,9 @@ from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSp
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.planner import plan_pipeline
-from shiftkit.pipelines.sources.raw import open_raw_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
+from shiftkit.pipelines.sources.raw import open_raw_dataset
 from tests.helpers import tree_hashes
 
 
@@ -79,8 +79,9 @@ def test_n_per_task_is_a_seeded_sample_independent_of_workers(synthetic_raw, tmp
     assert len(candidates) > 8, "fixture must have more candidates than the sample size"
 
     run_pipeline(_config(synthetic_raw, tmp_path / "w1", seed=3, n_per_task=5, states="success"), progress=False)
-    run_pipeline(_config(synthetic_raw, tmp_path / "w2", seed=3, n_per_task=5, states="success"), workers=2,
-                 progress=False)
+    run_pipeline(
+        _config(synthetic_raw, tmp_path / "w2", seed=3, n_per_task=5, states="success"), workers=2, progress=False
+    )
     # provenance differs only in what it should record (worker count, destination)
     data = {k: v for k, v in tree_hashes(tmp_path / "w1").items() if k != "meta/shiftkit_provenance.json"}
     assert data == {k: v for k, v in tree_hashes(tmp_path / "w2").items() if k != "meta/shiftkit_provenance.json"}
@@ -136,7 +137,9 @@ def test_play_segments_give_one_example_set_per_task(play_raw, tmp_path):
     env = make("panda-play", "lift", control_hz=5)
     for task in ("reach", "grasp", "lift"):
         for episode, frame in got[task]:
-            env.physics.set_state(sources[episode].frames["sim.qpos"][frame], sources[episode].frames["sim.qvel"][frame])
+            env.physics.set_state(
+                sources[episode].frames["sim.qpos"][frame], sources[episode].frames["sim.qvel"][frame]
+            )
             assert TASKS[task].predicate(env.facts()), f"{task} example (episode {episode}, frame {frame})"
     env.close()
 
@@ -150,8 +153,10 @@ def test_play_segments_give_one_example_set_per_task(play_raw, tmp_path):
 
 
 def test_bad_input_and_config_are_one_line_errors(synthetic_raw, tmp_path):
-    no_success = [StageSpec(name="drop", params={"features": ["next.success"]}),
-                  StageSpec(name="success_examples", params={})]
+    no_success = [
+        StageSpec(name="drop", params={"features": ["next.success"]}),
+        StageSpec(name="success_examples", params={}),
+    ]
     with pytest.raises(ConfigError, match="needs a per-frame bool 'next.success'"):
         plan_pipeline(_config(synthetic_raw, tmp_path / "a", stages=no_success))
     with pytest.raises(ConfigError, match="n_per_task must be >= 1") as info:

@@ -50,10 +50,25 @@ def point_examples(with_actions: bool = False) -> dict[str, TaskExamples]:
 
 def tiny_args(tmp_path, name="run", **kw) -> VPACEArgs:
     base = dict(
-        main_task="reach-goal", aux_tasks=["go-right"], output_dir=str(tmp_path / name), total_steps=300,
-        buffer_warmup=100, random_steps=100, batch_size=16, example_batch_size=16, hidden=(16, 16),
-        episode_steps=50, num_periods=2, eval_every=150, eval_episodes=2, checkpoint_every=100, log_every=50,
-        env="point-mass", device="cpu", handcrafted=["main,go-right"], torch_threads=1,
+        main_task="reach-goal",
+        aux_tasks=["go-right"],
+        output_dir=str(tmp_path / name),
+        total_steps=300,
+        buffer_warmup=100,
+        random_steps=100,
+        batch_size=16,
+        example_batch_size=16,
+        hidden=(16, 16),
+        episode_steps=50,
+        num_periods=2,
+        eval_every=150,
+        eval_episodes=2,
+        checkpoint_every=100,
+        log_every=50,
+        env="point-mass",
+        device="cpu",
+        handcrafted=["main,go-right"],
+        torch_threads=1,
     )
     variant = kw.pop("variant", "vpace")
     return VPACEArgs.for_variant(variant, **(base | kw))
@@ -102,8 +117,11 @@ def test_best_checkpoint_holds_the_intentions_of_the_best_evaluation(tmp_path):
     from shiftkit.policies.vpace import load_policy
 
     run(tiny_args(tmp_path, "long", total_steps=400, eval_every=50, eval_episodes=3, seed=3))
-    evals = [x for x in map(json.loads, (tmp_path / "long" / "metrics.jsonl").read_text().splitlines())
-             if x["split"] == "eval"]
+    evals = [
+        x
+        for x in map(json.loads, (tmp_path / "long" / "metrics.jsonl").read_text().splitlines())
+        if x["split"] == "eval"
+    ]
     best = max(evals, key=lambda x: (x["success_rate"], x["env_return"], -x["step"]))
     assert best["step"] < 400  # the last evaluation is not the best one here, so best.pt differs from last
     saved = torch.load(tmp_path / "long" / "checkpoints" / "best.pt", weights_only=False)
@@ -165,7 +183,10 @@ def test_config_errors(tmp_path):
         run(tiny_args(tmp_path, "u", scheduler="round-robin"))
     with pytest.raises(ConfigError, match="unknown env"):
         make_env("no-such-env", "reach", {})
-    bad = {"reach-goal": TaskExamples(np.zeros((5, 3), np.float32)), "go-right": TaskExamples(np.zeros((5, 3), np.float32))}
+    bad = {
+        "reach-goal": TaskExamples(np.zeros((5, 3), np.float32)),
+        "go-right": TaskExamples(np.zeros((5, 3), np.float32)),
+    }
     with pytest.raises(ConfigError, match="3-dim"):
         train(tiny_args(tmp_path, "d"), env_factory=lambda task: PointMass(), examples=bad)
     assert not any((tmp_path / r).exists() for r in ("h", "q", "m", "u", "d"))  # failed starts leave no run folder
@@ -218,7 +239,7 @@ def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
         for p in agent.intentions.critic.parameters():
             p.grad = torch.zeros_like(p)
         agent.critic_opt.step()
-    for p, p0 in zip(agent.intentions.critic.parameters(), before):
+    for p, p0 in zip(agent.intentions.critic.parameters(), before, strict=True):
         assert p.norm() / p0.norm() > 0.98
 
 
@@ -285,8 +306,15 @@ def test_handcrafted_presets_expand_to_the_thesis_sequences():
 
 def test_learned_scheduler_prefers_the_plan_with_the_higher_main_return():
     # Two periods of 3 steps; main-task reward 1 per step only when task 1 runs in the first period.
-    s = QTableScheduler(["main", "aux"], num_periods=2, gamma=0.9, temperature=1.0, temperature_min=0.05,
-                        temperature_decay=0.99, handcraft_rate=0.0)
+    s = QTableScheduler(
+        ["main", "aux"],
+        num_periods=2,
+        gamma=0.9,
+        temperature=1.0,
+        temperature_min=0.05,
+        temperature_decay=0.99,
+        handcraft_rate=0.0,
+    )
     rng = np.random.default_rng(0)
     for _ in range(300):
         plan = s.plan_episode(rng)
@@ -325,11 +353,14 @@ def test_examples_from_lerobot_dataset(tmp_path, monkeypatch):
     ds = LeRobotDataset.create("test/examples", fps=5, features=features, root=root, use_videos=False)
     for ep, task in enumerate(["reach-goal", "go-right", "reach-goal"]):
         for i in range(3):
-            ds.add_frame({
-                "observation.state": np.array([ep, i], np.float32),
-                "observation.environment_state": np.array([7], np.float32),
-                "action": np.ones(2, np.float32), "task": task,
-            })
+            ds.add_frame(
+                {
+                    "observation.state": np.array([ep, i], np.float32),
+                    "observation.environment_state": np.array([7], np.float32),
+                    "action": np.ones(2, np.float32),
+                    "task": task,
+                }
+            )
         ds.save_episode()
     ds.finalize()
 
@@ -359,14 +390,56 @@ def test_cli_train_and_plot(tmp_path, monkeypatch):
         ds.save_episode()
     ds.finalize()
 
-    common = ["--examples", str(root), "--env", "ShiftkitTestPointMass-v0", "--main-task", "reach-goal",
-              "--total-steps", "150", "--buffer-warmup", "50", "--random-steps", "50", "--batch-size", "8",
-              "--example-batch-size", "8", "--hidden", "8,8", "--num-periods", "2", "--eval-every", "75",
-              "--eval-episodes", "1", "--threads", "1", "--device", "cpu"]
+    common = [
+        "--examples",
+        str(root),
+        "--env",
+        "ShiftkitTestPointMass-v0",
+        "--main-task",
+        "reach-goal",
+        "--total-steps",
+        "150",
+        "--buffer-warmup",
+        "50",
+        "--random-steps",
+        "50",
+        "--batch-size",
+        "8",
+        "--example-batch-size",
+        "8",
+        "--hidden",
+        "8,8",
+        "--num-periods",
+        "2",
+        "--eval-every",
+        "75",
+        "--eval-episodes",
+        "1",
+        "--threads",
+        "1",
+        "--device",
+        "cpu",
+    ]
     for seed in ("0", "1"):
         out = tmp_path / f"vpace{seed}"
-        assert main(["train", "vpace", *common, "--aux-tasks", "go-right", "--handcrafted", "main,go-right",
-                     "--output", str(out), "--seed", seed]) == 0
+        assert (
+            main(
+                [
+                    "train",
+                    "vpace",
+                    *common,
+                    "--aux-tasks",
+                    "go-right",
+                    "--handcrafted",
+                    "main,go-right",
+                    "--output",
+                    str(out),
+                    "--seed",
+                    seed,
+                ]
+            )
+            == 0
+        )
     config = json.loads((tmp_path / "vpace0" / "config.json").read_text())
     assert config["args"]["aux_tasks"] == ["go-right"] and config["args"]["value_penalty"] == 10.0
     assert config["args"]["total_steps"] == 150 and config["datasets"][0]["fingerprint"]
@@ -374,8 +447,12 @@ def test_cli_train_and_plot(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "sqil" / "config.json").read_text())["args"]["multitask"] is False
 
     # User mistakes: one line, exit 2.
-    assert main(["train", "vpace", *common, "--variant", "rce", "--value-penalty", "10",
-                 "--output", str(tmp_path / "bad")]) == 2
+    assert (
+        main(
+            ["train", "vpace", *common, "--variant", "rce", "--value-penalty", "10", "--output", str(tmp_path / "bad")]
+        )
+        == 2
+    )
     assert main(["train", "vpace", *common, "--aux-tasks", "lift", "--output", str(tmp_path / "bad2")]) == 2
 
     import argparse
@@ -411,14 +488,77 @@ def test_panda_run_from_imported_examples_evaluates_with_shiftkit_eval(tmp_path,
     """Published examples -> `shiftkit import vpace` -> `train vpace` on Panda reach -> `shiftkit eval`."""
     from shiftkit.pipelines.cli import main
 
-    assert main(["import", "vpace", str(PUBLISHED / "examples_1200_4_reach.gz"), "--repo-id", "test/reach-ex",
-                 "--root", str(tmp_path / "ex")]) == 0
+    assert (
+        main(
+            [
+                "import",
+                "vpace",
+                str(PUBLISHED / "examples_1200_4_reach.gz"),
+                "--repo-id",
+                "test/reach-ex",
+                "--root",
+                str(tmp_path / "ex"),
+            ]
+        )
+        == 0
+    )
     run = tmp_path / "run"
-    assert main(["train", "vpace", "--examples", str(tmp_path / "ex"), "--env", "panda-play", "--main-task", "reach",
-                 "--variant", "sqil", "--total-steps", "60", "--buffer-warmup", "30", "--random-steps", "30",
-                 "--batch-size", "8", "--example-batch-size", "8", "--hidden", "16,16", "--eval-every", "0",
-                 "--threads", "1", "--device", "cpu", "--output", str(run)]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "vpace",
+                "--examples",
+                str(tmp_path / "ex"),
+                "--env",
+                "panda-play",
+                "--main-task",
+                "reach",
+                "--variant",
+                "sqil",
+                "--total-steps",
+                "60",
+                "--buffer-warmup",
+                "30",
+                "--random-steps",
+                "30",
+                "--batch-size",
+                "8",
+                "--example-batch-size",
+                "8",
+                "--hidden",
+                "16,16",
+                "--eval-every",
+                "0",
+                "--threads",
+                "1",
+                "--device",
+                "cpu",
+                "--output",
+                str(run),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["eval", "--policy", str(run), "--env", "panda-play", "--task", "reach", "--episodes", "1",
-                 "--seed", "5", "--out", str(tmp_path / "eval.json")]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--policy",
+                str(run),
+                "--env",
+                "panda-play",
+                "--task",
+                "reach",
+                "--episodes",
+                "1",
+                "--seed",
+                "5",
+                "--out",
+                str(tmp_path / "eval.json"),
+            ]
+        )
+        == 0
+    )
     assert "success" in capsys.readouterr().out

@@ -65,8 +65,12 @@ def test_published_success_examples_hold_in_our_scene(env, name, predicate):
 
 
 def test_reset_states_match_published_episode_starts(env):
-    starts = np.concatenate([_episode_starts(_load(f)) for f in
-                             ("full_trajectories_3_lift.gz", "full_trajectories_4_reach.gz", "full_trajectories_2_stack.gz")])
+    starts = np.concatenate(
+        [
+            _episode_starts(_load(f))
+            for f in ("full_trajectories_3_lift.gz", "full_trajectories_4_reach.gz", "full_trajectories_2_stack.gz")
+        ]
+    )
     ours = np.array([env.reset(seed=s)[0] for s in range(30)])
     for dims in ([14, 21],):  # resting block centre height
         assert abs(np.median(ours[:, dims]) - np.median(starts[:, dims])) < 1e-3

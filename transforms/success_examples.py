@@ -96,7 +96,9 @@ class SuccessExamples(Stage):
         keep = [False] * len(metas)
         for task, candidates in by_task.items():
             if len(candidates) < n:
-                log.warning("success_examples: task %r has only %d candidate(s) for %d examples", task, len(candidates), n)
+                log.warning(
+                    "success_examples: task %r has only %d candidate(s) for %d examples", task, len(candidates), n
+                )
             for _, k in sorted(candidates)[:n]:  # ties (practically impossible) fall back to output order
                 keep[k] = True
         return keep

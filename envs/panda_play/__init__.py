@@ -16,21 +16,23 @@ from shiftkit.envs.panda_play.tasks import TASKS
 from shiftkit.envs.panda_play.vpace_compat import vpace_action_to_shiftkit
 from shiftkit.envs.registry import EnvFamily, register_family
 
-FAMILY = register_family(EnvFamily(
-    name="panda-play",
-    tasks={name: task.gym_name for name, task in TASKS.items()},
-    gym_prefix="PandaPlay",
-    entry_point="shiftkit.envs.panda_play.env:PandaPlayEnv",
-    robot="franka_panda",
-    sim_model_id=SIM_MODEL_ID,
-    cameras=tuple(CAMERAS),
-    observation_names=OBSERVATION_NAMES,
-    state_indices=STATE_INDICES,
-    environment_state_indices=ENVIRONMENT_STATE_INDICES,
-    action_names=ACTION_NAMES,
-    observation_layout="reference 59-dim = state[:12] + environment_state + state[12:]",
-    rollout=rollout,
-    play_rollout=play_rollout,
-    play_sequences=PLAY_SEQUENCES,
-    action_conventions={"vpace": vpace_action_to_shiftkit},
-))
+FAMILY = register_family(
+    EnvFamily(
+        name="panda-play",
+        tasks={name: task.gym_name for name, task in TASKS.items()},
+        gym_prefix="PandaPlay",
+        entry_point="shiftkit.envs.panda_play.env:PandaPlayEnv",
+        robot="franka_panda",
+        sim_model_id=SIM_MODEL_ID,
+        cameras=tuple(CAMERAS),
+        observation_names=OBSERVATION_NAMES,
+        state_indices=STATE_INDICES,
+        environment_state_indices=ENVIRONMENT_STATE_INDICES,
+        action_names=ACTION_NAMES,
+        observation_layout="reference 59-dim = state[:12] + environment_state + state[12:]",
+        rollout=rollout,
+        play_rollout=play_rollout,
+        play_sequences=PLAY_SEQUENCES,
+        action_conventions={"vpace": vpace_action_to_shiftkit},
+    )
+)

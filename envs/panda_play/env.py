@@ -16,9 +16,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from shiftkit.envs.cameras import CameraRenderer
 from shiftkit.envs.panda_play.physics import ACTION_NAMES, CAMERAS, OBS_DIM, OBSERVATION_NAMES, PandaPlayPhysics
 from shiftkit.envs.panda_play.tasks import TASKS, HoldTimer, SceneFacts, get_task
-from shiftkit.envs.cameras import CameraRenderer
 
 
 class PandaPlayEnv(gym.Env):
@@ -132,4 +132,3 @@ class PandaPlayEnv(gym.Env):
         """Restore a recorded simulator state; returns the observation at that state."""
         self.physics.set_state(np.asarray(qpos), np.asarray(qvel))
         return self.physics.observation()
-

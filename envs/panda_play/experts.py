@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.envs.panda_play.env import PandaPlayEnv
 from shiftkit.envs.panda_play.physics import (
     BLOCK_HALF,
     BLOCK_REST_Z,
@@ -24,7 +25,6 @@ from shiftkit.envs.panda_play.physics import (
     WORKSPACE_LOW,
     ZONE_XY,
 )
-from shiftkit.envs.panda_play.env import PandaPlayEnv
 from shiftkit.envs.panda_play.tasks import INSERT_THRESHOLD, TASKS
 
 CARRY_Z = 0.23
@@ -72,7 +72,9 @@ class PandaPlayExpert:
 
     def holding(self, i: int) -> bool:
         c = self.p.contacts()
-        left, right = (c.blue_left_finger, c.blue_right_finger) if i == 0 else (c.green_left_finger, c.green_right_finger)
+        left, right = (
+            (c.blue_left_finger, c.blue_right_finger) if i == 0 else (c.green_left_finger, c.green_right_finger)
+        )
         return left and right and self.p.gripper_closed
 
     def _toward(self, target: np.ndarray, speed: float = 1.0) -> np.ndarray:
@@ -175,7 +177,6 @@ class PandaPlayExpert:
         a = self._grasp(0)
         return a if a is not None else self._act(np.zeros(3), True)
 
-
     def _task_lift(self) -> np.ndarray:
         a = self._grasp(0)
         if a is not None:
@@ -261,9 +262,13 @@ class PandaPlayExpert:
 
     def _clear_then(self, target_xy: np.ndarray) -> np.ndarray | None:
         """Relocate green first when it sits within 8 cm of `target_xy` (where blue goes)."""
-        if self.phase == "start" and not self.released and not self.holding(0):
-            if np.linalg.norm(self.p.block_pos(1)[:2] - target_xy) > 0.08:
-                self.released = True
+        if (
+            self.phase == "start"
+            and not self.released
+            and not self.holding(0)
+            and np.linalg.norm(self.p.block_pos(1)[:2] - target_xy) > 0.08
+        ):
+            self.released = True
         if not self.released:
             return self._relocate_green(np.array([target_xy, self.p.block_pos(0)[:2]]))
         return None
@@ -307,8 +312,11 @@ class PandaPlayExpert:
             return a
         a = self._place(0, INSERT_TARGETS[0, :2], INSERT_TARGETS[0, 2] + 0.0015, precise=True)
         block = self.p.block_pos(0)
-        if (self.phase == "retreat" and self.p.tcp_pos()[2] > block[2] + 0.06
-                and np.linalg.norm(block - INSERT_TARGETS[0]) > INSERT_THRESHOLD):
+        if (
+            self.phase == "retreat"
+            and self.p.tcp_pos()[2] > block[2] + 0.06
+            and np.linalg.norm(block - INSERT_TARGETS[0]) > INSERT_THRESHOLD
+        ):
             self.phase = "start"  # it did not go in: grasp again
         return a
 

@@ -69,21 +69,65 @@ TCP_ROTATION = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 HOME_QPOS = np.array([1.5908, -0.0527, -0.0199, -2.3267, -0.001, 0.7041, 0.0013])
 
 OBSERVATION_NAMES: tuple[str, ...] = (
-    "ee_pos_x", "ee_pos_y", "ee_pos_z",
-    "ee_vel_x", "ee_vel_y", "ee_vel_z",
-    "finger_left", "finger_right",
-    "finger_left_t-2", "finger_right_t-2",
-    "finger_left_t-1", "finger_right_t-1",
-    "blue_pos_x", "blue_pos_y", "blue_pos_z", "blue_quat_x", "blue_quat_y", "blue_quat_z", "blue_quat_w",
-    "green_pos_x", "green_pos_y", "green_pos_z", "green_quat_x", "green_quat_y", "green_quat_z", "green_quat_w",
-    "blue_linvel_x", "blue_linvel_y", "blue_linvel_z", "blue_angvel_x", "blue_angvel_y", "blue_angvel_z",
-    "green_linvel_x", "green_linvel_y", "green_linvel_z", "green_angvel_x", "green_angvel_y", "green_angvel_z",
-    "blue_minus_ee_x", "blue_minus_ee_y", "blue_minus_ee_z",
-    "green_minus_ee_x", "green_minus_ee_y", "green_minus_ee_z",
-    "green_minus_blue_x", "green_minus_blue_y", "green_minus_blue_z",
-    "blue_target_minus_blue_x", "blue_target_minus_blue_y", "blue_target_minus_blue_z",
-    "green_target_minus_green_x", "green_target_minus_green_y", "green_target_minus_green_z",
-    "wrist_force_x", "wrist_force_y", "wrist_force_z", "wrist_torque_x", "wrist_torque_y", "wrist_torque_z",
+    "ee_pos_x",
+    "ee_pos_y",
+    "ee_pos_z",
+    "ee_vel_x",
+    "ee_vel_y",
+    "ee_vel_z",
+    "finger_left",
+    "finger_right",
+    "finger_left_t-2",
+    "finger_right_t-2",
+    "finger_left_t-1",
+    "finger_right_t-1",
+    "blue_pos_x",
+    "blue_pos_y",
+    "blue_pos_z",
+    "blue_quat_x",
+    "blue_quat_y",
+    "blue_quat_z",
+    "blue_quat_w",
+    "green_pos_x",
+    "green_pos_y",
+    "green_pos_z",
+    "green_quat_x",
+    "green_quat_y",
+    "green_quat_z",
+    "green_quat_w",
+    "blue_linvel_x",
+    "blue_linvel_y",
+    "blue_linvel_z",
+    "blue_angvel_x",
+    "blue_angvel_y",
+    "blue_angvel_z",
+    "green_linvel_x",
+    "green_linvel_y",
+    "green_linvel_z",
+    "green_angvel_x",
+    "green_angvel_y",
+    "green_angvel_z",
+    "blue_minus_ee_x",
+    "blue_minus_ee_y",
+    "blue_minus_ee_z",
+    "green_minus_ee_x",
+    "green_minus_ee_y",
+    "green_minus_ee_z",
+    "green_minus_blue_x",
+    "green_minus_blue_y",
+    "green_minus_blue_z",
+    "blue_target_minus_blue_x",
+    "blue_target_minus_blue_y",
+    "blue_target_minus_blue_z",
+    "green_target_minus_green_x",
+    "green_target_minus_green_y",
+    "green_target_minus_green_z",
+    "wrist_force_x",
+    "wrist_force_y",
+    "wrist_force_z",
+    "wrist_torque_x",
+    "wrist_torque_y",
+    "wrist_torque_z",
 )
 OBS_DIM = len(OBSERVATION_NAMES)
 # dataset split: robot proprioception vs privileged object state (full = state[:12] + env + state[12:])
@@ -179,8 +223,13 @@ def build_spec() -> mujoco.MjSpec:
     tray.pos = [TRAY_CENTER[0], TRAY_CENTER[1], 0.0]
     grey = (0.55, 0.55, 0.58, 1.0)
     base_top = TRAY_FLOOR_Z - SLOT_DEPTH
-    _add_box(tray, "tray_pedestal", (TRAY_HALF + SLOPE_WIDTH, TRAY_HALF + SLOPE_WIDTH, base_top / 2),
-             (0, 0, base_top / 2), (0.4, 0.3, 0.25, 1.0))
+    _add_box(
+        tray,
+        "tray_pedestal",
+        (TRAY_HALF + SLOPE_WIDTH, TRAY_HALF + SLOPE_WIDTH, base_top / 2),
+        (0, 0, base_top / 2),
+        (0.4, 0.3, 0.25, 1.0),
+    )
     # the top 1 cm layer of the floor, cut around the two slots
     h = SLOT_DEPTH / 2
     z = base_top + h
@@ -211,8 +260,14 @@ def build_spec() -> mujoco.MjSpec:
     # bring zones: thin visual squares on the floor (no collision)
     for i, rgba in enumerate(((0, 0, 1, 0.25), (0, 1, 0, 0.25))):
         dx = ZONE_XY[i, 0] - TRAY_CENTER[0]
-        _add_box(tray, f"zone_{'blue' if i == 0 else 'green'}", (ZONE_HALF, ZONE_HALF, 0.0005),
-                 (dx, 0, TRAY_FLOOR_Z + 0.0006), rgba, collide=False)
+        _add_box(
+            tray,
+            f"zone_{'blue' if i == 0 else 'green'}",
+            (ZONE_HALF, ZONE_HALF, 0.0005),
+            (dx, 0, TRAY_FLOOR_Z + 0.0006),
+            rgba,
+            collide=False,
+        )
 
     for name, rgba in (("blue", (0, 0, 1, 1)), ("green", (0, 1, 0, 1))):
         block = world.add_body()
@@ -334,8 +389,9 @@ class PandaPlayPhysics:
                 pair_bits[a, b] |= 1 << bit
                 pair_bits[b, a] |= 1 << bit
         self._contact_bits = pair_bits[parts[:, None], parts[None, :]]
-        self._controller = FixedOrientationIK(m, self.tcp_site, self.arm_qpos, self.arm_dofs, TCP_ROTATION,
-                                              HOME_QPOS, self.arm_low, self.arm_high)
+        self._controller = FixedOrientationIK(
+            m, self.tcp_site, self.arm_qpos, self.arm_dofs, TCP_ROTATION, HOME_QPOS, self.arm_low, self.arm_high
+        )
         self._vel6 = np.zeros(6)
         self.desired_tcp = np.zeros(3)
         self.q_target = HOME_QPOS.copy()
@@ -390,8 +446,7 @@ class PandaPlayPhysics:
             if green_on_blue or np.linalg.norm(green_xy - blue_xy) >= BLOCK_MIN_SEPARATION:
                 break
         yaws = rng.uniform(0.0, 2 * np.pi, 2)
-        tcp = np.array([
-            *(TRAY_CENTER + rng.uniform(-EE_SPAWN_HALF, EE_SPAWN_HALF, 2)), rng.uniform(*EE_SPAWN_Z)])
+        tcp = np.array([*(TRAY_CENTER + rng.uniform(-EE_SPAWN_HALF, EE_SPAWN_HALF, 2)), rng.uniform(*EE_SPAWN_Z)])
         if green_on_blue:
             green_xy = blue_xy
             yaws[1] = yaws[0]
@@ -402,8 +457,8 @@ class PandaPlayPhysics:
             green_z = BLOCK_REST_Z
         for i, (xy, z) in enumerate(((blue_xy, BLOCK_REST_Z), (green_xy, green_z))):
             a = self.block_qpos[i]
-            d.qpos[a:a + 3] = (*xy, z + 1e-4)
-            d.qpos[a + 3:a + 7] = block_reset_quat(yaws[i])
+            d.qpos[a : a + 3] = (*xy, z + 1e-4)
+            d.qpos[a + 3 : a + 7] = block_reset_quat(yaws[i])
         d.qpos[self.arm_qpos] = HOME_QPOS
         d.qpos[self.finger_qpos] = FINGER_OPEN
         self.q_target = HOME_QPOS.copy()
@@ -441,9 +496,9 @@ class PandaPlayPhysics:
         for i in range(2):
             a = self.block_qpos[i]
             o = 12 + 7 * i
-            d.qpos[a:a + 3] = obs[o:o + 3]
-            x, y, z, w = obs[o + 3:o + 7]
-            d.qpos[a + 3:a + 7] = np.array([w, x, y, z]) / np.linalg.norm([w, x, y, z])
+            d.qpos[a : a + 3] = obs[o : o + 3]
+            x, y, z, w = obs[o + 3 : o + 7]
+            d.qpos[a + 3 : a + 7] = np.array([w, x, y, z]) / np.linalg.norm([w, x, y, z])
         d.qpos[self.finger_qpos] = np.asarray(obs[6:8]) * FINGER_OPEN
         self.q_target = HOME_QPOS.copy()
         for _ in range(40):
@@ -521,7 +576,7 @@ class PandaPlayPhysics:
         if not idx.size:
             return np.zeros(6)
         local = np.zeros((idx.size, 6))
-        for row, i in zip(local, idx.tolist()):
+        for row, i in zip(local, idx.tolist(), strict=True):
             mujoco.mj_contactForce(self.model, d, i, row)
         # contact frame rows are (normal, tangents): world force of geom1 on geom2 = frame^T f
         force = (local[:, None, :3] @ contact.frame[idx].reshape(-1, 3, 3))[:, 0]
@@ -543,11 +598,26 @@ class PandaPlayPhysics:
         rot = d.xmat[self.block_body].reshape(2, 3, 3)
         angvel = (rot @ d.qvel[self._block_angvel_idx].reshape(2, 3, 1)).reshape(2, 3)
         fingers = self.finger_history
-        obs = np.concatenate([
-            tcp, self._vel6[3:], fingers[2], fingers[0], fingers[1],
-            pos[0], quat[0], pos[1], quat[1],
-            linvel[0], angvel[0], linvel[1], angvel[1],
-            pos[0] - tcp, pos[1] - tcp, pos[1] - pos[0], (BRING_TARGETS - pos).ravel(),
-            np.tanh(self.wrist_wrench() * _INV_WRENCH_SCALE),
-        ])
+        obs = np.concatenate(
+            [
+                tcp,
+                self._vel6[3:],
+                fingers[2],
+                fingers[0],
+                fingers[1],
+                pos[0],
+                quat[0],
+                pos[1],
+                quat[1],
+                linvel[0],
+                angvel[0],
+                linvel[1],
+                angvel[1],
+                pos[0] - tcp,
+                pos[1] - tcp,
+                pos[1] - pos[0],
+                (BRING_TARGETS - pos).ravel(),
+                np.tanh(self.wrist_wrench() * _INV_WRENCH_SCALE),
+            ]
+        )
         return obs.astype(np.float32)

@@ -72,8 +72,10 @@ def lift(f: SceneFacts) -> bool:
 
 def move_object(f: SceneFacts) -> bool:
     """Blue block moving faster than 5 cm/s with acceleration below 5 m/s^2."""
-    return bool(np.linalg.norm(f.block_velocity[0]) > MOVE_MIN_SPEED
-                and np.linalg.norm(f.block_acceleration[0]) < MOVE_MAX_ACCEL)
+    return bool(
+        np.linalg.norm(f.block_velocity[0]) > MOVE_MIN_SPEED
+        and np.linalg.norm(f.block_acceleration[0]) < MOVE_MAX_ACCEL
+    )
 
 
 def stack(f: SceneFacts) -> bool:
@@ -91,8 +93,9 @@ def bring(f: SceneFacts) -> bool:
 def insert(f: SceneFacts) -> bool:
     """Blue within 2.5 mm of the inserted pose in its slot, on the tray, not touched by the gripper."""
     c = f.contacts
-    return (bool(np.linalg.norm(f.blocks[0] - INSERT_TARGETS[0]) < INSERT_THRESHOLD)
-            and c.blue_tray and not c.blue_gripper)
+    return (
+        bool(np.linalg.norm(f.blocks[0] - INSERT_TARGETS[0]) < INSERT_THRESHOLD) and c.blue_tray and not c.blue_gripper
+    )
 
 
 @dataclass(frozen=True)

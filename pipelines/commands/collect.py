@@ -32,11 +32,23 @@ def run(args: argparse.Namespace) -> int:
 
     split = lambda s: tuple(x.strip() for x in (s or "").split(",") if x.strip())  # noqa: E731
     config = CollectConfig(
-        env=args.env, task=args.task, episodes=args.episodes, seed=args.seed, out=args.out,
-        lerobot=args.lerobot, root=args.root, play=args.play, control_hz=args.control_hz,
-        cameras=split(args.cameras), depth=args.depth, width=args.width, height=args.height,
-        render_quality=args.render_quality, extra_steps=args.extra_steps,
-        only_successful=args.only_successful, sequence=split(args.sequence),
+        env=args.env,
+        task=args.task,
+        episodes=args.episodes,
+        seed=args.seed,
+        out=args.out,
+        lerobot=args.lerobot,
+        root=args.root,
+        play=args.play,
+        control_hz=args.control_hz,
+        cameras=split(args.cameras),
+        depth=args.depth,
+        width=args.width,
+        height=args.height,
+        render_quality=args.render_quality,
+        extra_steps=args.extra_steps,
+        only_successful=args.only_successful,
+        sequence=split(args.sequence),
     )
     path, counts = collect(config)
     print(f"wrote {counts['episodes']} episodes ({counts['successes']} successful) to {path}")

@@ -35,13 +35,22 @@ def run(args: argparse.Namespace) -> int:
     policy = load_policy(args.policy, device=args.device)
     env_kwargs = {"control_hz": args.control_hz} if args.control_hz else {}
     report = evaluate(
-        policy, args.env, args.task, args.episodes, args.seed, video_dir=args.videos,
-        policy_name=str(args.policy), env_kwargs=env_kwargs,
-        on_episode=lambda r: print(f"episode {r.episode} (seed {r.seed}): "
-                                   f"{'success' if r.success else 'failure'} after {r.steps} steps"),
+        policy,
+        args.env,
+        args.task,
+        args.episodes,
+        args.seed,
+        video_dir=args.videos,
+        policy_name=str(args.policy),
+        env_kwargs=env_kwargs,
+        on_episode=lambda r: print(
+            f"episode {r.episode} (seed {r.seed}): {'success' if r.success else 'failure'} after {r.steps} steps"
+        ),
     )
     out = record_evaluation(report, args.policy, args.out)
     s = report.summary()
-    print(f"success rate {s['success_rate']:.1%} ({s['successes']}/{s['episodes']}), "
-          f"95% CI [{s['ci95'][0]:.1%}, {s['ci95'][1]:.1%}] (Wilson); results in {out}")
+    print(
+        f"success rate {s['success_rate']:.1%} ({s['successes']}/{s['episodes']}), "
+        f"95% CI [{s['ci95'][0]:.1%}, {s['ci95'][1]:.1%}] (Wilson); results in {out}"
+    )
     return 0

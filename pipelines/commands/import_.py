@@ -27,5 +27,7 @@ def run(args: argparse.Namespace) -> int:
     summary = importer.run(args)
     for line in importer.report(summary):
         print(line)
-    print(f"wrote {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps ({summary.kind}) to {summary.root}")
+    print(
+        f"wrote {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps ({summary.kind}) to {summary.root}"
+    )
     return 0

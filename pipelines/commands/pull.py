@@ -9,12 +9,19 @@ HELP = "Pull a LeRobot dataset (or, with --checkpoint, a policy checkpoint) from
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("repo_id", metavar="ORG/NAME", help="hub repository to pull")
-    parser.add_argument("--revision", metavar="REV", default=None,
-                        help="version tag, branch or commit (default: the codebase version lerobot reads, "
-                             "v3.0; main for checkpoints)")
-    parser.add_argument("--root", metavar="DIR", default=None,
-                        help="folder to write to (default: $HF_LEROBOT_HOME/ORG/NAME, "
-                             "$HF_LEROBOT_HOME/checkpoints/ORG/NAME for checkpoints)")
+    parser.add_argument(
+        "--revision",
+        metavar="REV",
+        default=None,
+        help="version tag, branch or commit (default: the codebase version lerobot reads, v3.0; main for checkpoints)",
+    )
+    parser.add_argument(
+        "--root",
+        metavar="DIR",
+        default=None,
+        help="folder to write to (default: $HF_LEROBOT_HOME/ORG/NAME, "
+        "$HF_LEROBOT_HOME/checkpoints/ORG/NAME for checkpoints)",
+    )
     parser.add_argument("--force", action="store_true", help="replace an existing folder at the destination")
     parser.add_argument("--checkpoint", action="store_true", help="pull a policy checkpoint (model repository)")
 

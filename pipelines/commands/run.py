@@ -11,8 +11,11 @@ HELP = "run a pipeline config; re-running after an interruption resumes it"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", help="pipeline config (.toml, .yaml or .json)")
     parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--executor", default="local",
-                        help="local (default, process pool), datatrove-local, ray or slurm (see docs/executors.md)")
+    parser.add_argument(
+        "--executor",
+        default="local",
+        help="local (default, process pool), datatrove-local, ray or slurm (see docs/executors.md)",
+    )
     parser.add_argument("--address", help="ray: address of the cluster to join (default: start a local Ray instance)")
     parser.add_argument("--partition", help="slurm: partition of the generated job array (required for slurm)")
     parser.add_argument("--time", help="slurm: time limit per array task (default 04:00:00)")
@@ -32,12 +35,16 @@ def run(args: argparse.Namespace) -> int:
 
         validate_repo_id(args.push)  # fail before any work, not after it
         config.destination = dataclasses.replace(
-            config.destination, repo_id=args.push, push=True, revision=args.push_revision,
+            config.destination,
+            repo_id=args.push,
+            push=True,
+            revision=args.push_revision,
             private=args.private or config.destination.private,
         )
     options = {k: v for k in ("address", "partition", "time") if (v := getattr(args, k)) is not None}
-    path = run_pipeline(config, workers=args.workers, executor=args.executor, executor_options=options,
-                        progress=not args.no_progress)
+    path = run_pipeline(
+        config, workers=args.workers, executor=args.executor, executor_options=options, progress=not args.no_progress
+    )
     if path is None:  # handed to a scheduler; the executor said what to submit
         print(f"{config.destination.root} not written yet: run this command again when the job has finished")
         return 0

@@ -19,9 +19,13 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dataset", required=True, help="dataset ID(s) or local folder(s), comma-separated")
     p.add_argument("--root", help="local folder of the dataset (one dataset)")
     p.add_argument("--output", required=True, help="run folder (config, checkpoints, metrics, model card)")
-    p.add_argument("--regime", choices=("early-stop", "fixed"), default="early-stop",
-                   help="early-stop: 20%% hold-out, patience 30, max 200 epochs, Adam 1e-3; "
-                        "fixed: --steps (20000) with weight decay 0.1, lr 3e-4 halved midway")
+    p.add_argument(
+        "--regime",
+        choices=("early-stop", "fixed"),
+        default="early-stop",
+        help="early-stop: 20%% hold-out, patience 30, max 200 epochs, Adam 1e-3; "
+        "fixed: --steps (20000) with weight decay 0.1, lr 3e-4 halved midway",
+    )
     p.add_argument("--steps", type=int, help="gradient steps (fixed regime; an upper bound for early-stop)")
     p.add_argument("--max-epochs", type=int, default=200, help="early-stop: most epochs (default: 200)")
     p.add_argument("--patience", type=int, default=30, help="early-stop: epochs without improvement (default: 30)")
@@ -34,8 +38,12 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--encoder", choices=("cnn", "resnet18"), default="cnn", help="image encoder (default: cnn)")
     p.add_argument("--encoder-weights", help="local ResNet-18 state-dict file (nothing is downloaded)")
     p.add_argument("--keypoints", type=int, default=32, help="spatial soft-argmax keypoints per camera")
-    p.add_argument("--hidden", type=lambda s: [int(x) for x in _csv(s)], default=[512, 512],
-                   help="fully connected widths, comma-separated (default: 512,512)")
+    p.add_argument(
+        "--hidden",
+        type=lambda s: [int(x) for x in _csv(s)],
+        default=[512, 512],
+        help="fully connected widths, comma-separated (default: 512,512)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of split, shuffles and init (default: 0)")
     p.add_argument("--checkpoint-every", type=int, default=1000, help="steps between checkpoints (default: 1000)")
     p.add_argument("--log-every", type=int, default=100, help="steps between metric lines (default: 100)")
@@ -47,35 +55,63 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
 def _run_bc(args: argparse.Namespace) -> int:
     from shiftkit.policies.bc import BCArgs, train
 
-    metrics = train(BCArgs(
-        datasets=_csv(args.dataset), output_dir=args.output, root=args.root, regime=args.regime, steps=args.steps,
-        max_epochs=args.max_epochs, patience=args.patience, batch_size=args.batch_size, lr=args.lr,
-        weight_decay=args.weight_decay, val_fraction=args.val_fraction, ensemble_size=args.ensemble,
-        inputs=args.inputs, encoder=args.encoder, encoder_weights=args.encoder_weights,
-        num_keypoints=args.keypoints, hidden=args.hidden, seed=args.seed, checkpoint_every=args.checkpoint_every,
-        log_every=args.log_every, device=args.device, threads=args.threads, resume=args.resume,
-    ))
-    shown = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                      for k, v in metrics.items() if not isinstance(v, list))
+    metrics = train(
+        BCArgs(
+            datasets=_csv(args.dataset),
+            output_dir=args.output,
+            root=args.root,
+            regime=args.regime,
+            steps=args.steps,
+            max_epochs=args.max_epochs,
+            patience=args.patience,
+            batch_size=args.batch_size,
+            lr=args.lr,
+            weight_decay=args.weight_decay,
+            val_fraction=args.val_fraction,
+            ensemble_size=args.ensemble,
+            inputs=args.inputs,
+            encoder=args.encoder,
+            encoder_weights=args.encoder_weights,
+            num_keypoints=args.keypoints,
+            hidden=args.hidden,
+            seed=args.seed,
+            checkpoint_every=args.checkpoint_every,
+            log_every=args.log_every,
+            device=args.device,
+            threads=args.threads,
+            resume=args.resume,
+        )
+    )
+    shown = ", ".join(
+        f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in metrics.items() if not isinstance(v, list)
+    )
     print(f"trained BC policy in {args.output}: {shown}")
     return 0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="trainer", metavar="TRAINER", required=True)
-    bc = sub.add_parser("bc", help="behavioural cloning (MSE, ensembles, CNN + spatial soft-argmax)",
-                        description="Behavioural cloning (SPEC 6.1): MSE action regression by an ensemble.")
+    bc = sub.add_parser(
+        "bc",
+        help="behavioural cloning (MSE, ensembles, CNN + spatial soft-argmax)",
+        description="Behavioural cloning (SPEC 6.1): MSE action regression by an ensemble.",
+    )
     _add_bc_arguments(bc)
     bc.set_defaults(_train_run=_run_bc)
     if importlib.util.find_spec(VPACE_CLI) is not None:
         vpace_cli = importlib.import_module(VPACE_CLI)
-        for name, help_text in (("vpace", "VPACE / ACE / SQIL / DAC / RCE from success examples"),
-                                ("lfgp", "Learning from Guided Play (expert trajectories, per-task DAC)")):
+        for name, help_text in (
+            ("vpace", "VPACE / ACE / SQIL / DAC / RCE from success examples"),
+            ("lfgp", "Learning from Guided Play (expert trajectories, per-task DAC)"),
+        ):
             p = sub.add_parser(name, help=help_text, description=help_text)
             vpace_cli.add_arguments(p)
             p.set_defaults(_train_run=vpace_cli.run, trainer=name)
-        plot = sub.add_parser("plot", help="success curves across seeds: IQM with stratified bootstrap 95%% CIs (PNG)",
-                              description="Plot evaluation success curves of runs: LABEL=RUN[,RUN...] per method.")
+        plot = sub.add_parser(
+            "plot",
+            help="success curves across seeds: IQM with stratified bootstrap 95%% CIs (PNG)",
+            description="Plot evaluation success curves of runs: LABEL=RUN[,RUN...] per method.",
+        )
         vpace_cli.add_plot_arguments(plot)
         plot.set_defaults(_train_run=vpace_cli.run_plot)
 

@@ -133,14 +133,21 @@ def write_imported(
     with DatasetWriter(repo_id, root, fps, features, robot_type=robot_type) as writer:
         for episode in episodes:
             writer.add_episode(episode)
-        writer.close(provenance={
-            "provenance_version": PROVENANCE_VERSION,
-            "tool": "shiftkit",
-            "versions": versions(),
-            "sources": sources,
-            "stages": [],
-            "importer": importer,
-            "seed": None,
-            "output": {"repo_id": repo_id, "fps": fps, "episodes": writer.num_episodes, "frames": writer.num_frames},
-        })
+        writer.close(
+            provenance={
+                "provenance_version": PROVENANCE_VERSION,
+                "tool": "shiftkit",
+                "versions": versions(),
+                "sources": sources,
+                "stages": [],
+                "importer": importer,
+                "seed": None,
+                "output": {
+                    "repo_id": repo_id,
+                    "fps": fps,
+                    "episodes": writer.num_episodes,
+                    "frames": writer.num_frames,
+                },
+            }
+        )
     return writer.num_episodes, writer.num_frames

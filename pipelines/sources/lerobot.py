@@ -26,5 +26,11 @@ class LeRobotSource:
         return self._reader.iter_episodes(indices)
 
     def describe(self) -> dict[str, Any]:
-        return {"kind": "lerobot", "repo_id": self.repo_id, "path": str(self.root), "revision": self.revision,
-                "fingerprint": self.fingerprint, "num_episodes": self.num_episodes}
+        return {
+            "kind": "lerobot",
+            "repo_id": self.repo_id,
+            "path": str(self.root),
+            "revision": self.revision,
+            "fingerprint": self.fingerprint,
+            "num_episodes": self.num_episodes,
+        }

@@ -152,7 +152,9 @@ class RawDatasetWriter:
             _check_name(cam, "camera")
             frames = np.asarray(frames)
             if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) != length:
-                raise DatasetError(f"{where}: images[{cam!r}] must be ({length}, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
+                raise DatasetError(
+                    f"{where}: images[{cam!r}] must be ({length}, H, W, 3) uint8, got {frames.shape} {frames.dtype}"
+                )
             cam_dir = ep_dir / "images" / cam
             cam_dir.mkdir(parents=True)
             for t, frame in enumerate(frames):
@@ -191,7 +193,9 @@ def _validate_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
         raise DatasetError(f"{where}: episode has no frames")
     for name, arr in arrays.items():
         if arr.ndim == 0 or len(arr) != length:
-            raise DatasetError(f"{where}: array {name!r} has {len(arr) if arr.ndim else 0} frames, 'timestamp' has {length}")
+            raise DatasetError(
+                f"{where}: array {name!r} has {len(arr) if arr.ndim else 0} frames, 'timestamp' has {length}"
+            )
         if str(arr.dtype) not in ALLOWED_DTYPES:
             raise DatasetError(f"{where}: array {name!r} has unsupported dtype {arr.dtype}")
         if arr.ndim > 2:
@@ -235,8 +239,10 @@ class RawDataset:
             arr = np.load(path, mmap_mode="r", allow_pickle=False)
             key = FEATURE_OF_ARRAY.get(name, name)
             dim = arr.shape[1] if arr.ndim == 2 else 1
-            dims = names.get(name) or DEFAULT_NAMES.get(name) or (
-                [name] if arr.ndim == 1 else [f"{name}_{i}" for i in range(dim)]
+            dims = (
+                names.get(name)
+                or DEFAULT_NAMES.get(name)
+                or ([name] if arr.ndim == 1 else [f"{name}_{i}" for i in range(dim)])
             )
             if len(dims) != dim:
                 raise DatasetError(f"{self.root}/dataset.json: names[{name!r}] has {len(dims)} entries for {dim} dims")
@@ -330,7 +336,9 @@ def open_raw_dataset(root: str | Path) -> RawDataset:
     if index.get("format") != FORMAT:
         raise DatasetError(f"{index_path}: format is {index.get('format')!r}, expected {FORMAT!r}")
     if index.get("version") != VERSION:
-        raise DatasetError(f"{index_path}: raw format version {index.get('version')!r} is not supported (this is v{VERSION})")
+        raise DatasetError(
+            f"{index_path}: raw format version {index.get('version')!r} is not supported (this is v{VERSION})"
+        )
     if not isinstance(index.get("fps"), int) or index["fps"] <= 0:
         raise DatasetError(f"{index_path}: 'fps' must be a positive integer")
     episodes = index.get("episodes")
@@ -362,5 +370,10 @@ class RawSource:
         return self._raw.iter_episodes(indices)
 
     def describe(self) -> dict[str, Any]:
-        return {"kind": "raw", "path": str(self.root), "num_episodes": self.num_episodes,
-                "env": self._raw.index.get("env", ""), "format_version": self._raw.index.get("version")}
+        return {
+            "kind": "raw",
+            "path": str(self.root),
+            "num_episodes": self.num_episodes,
+            "env": self._raw.index.get("env", ""),
+            "format_version": self._raw.index.get("version"),
+        }

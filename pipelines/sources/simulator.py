@@ -100,8 +100,14 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
 
     family = env_family(config.env)
     state_idx, env_idx = family.state_indices, family.environment_state_indices
-    env = make(config.env, config.task, control_hz=config.control_hz, width=config.width,
-               height=config.height, render_quality=config.render_quality)
+    env = make(
+        config.env,
+        config.task,
+        control_hz=config.control_hz,
+        width=config.width,
+        height=config.height,
+        render_quality=config.render_quality,
+    )
     names = {
         "state": [family.observation_names[i] for i in state_idx],
         "environment_state": [family.observation_names[i] for i in env_idx],
@@ -114,8 +120,9 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
     }
     counts = {"episodes": 0, "successes": 0, "skipped": 0}
     sequence = tuple(config.sequence) or family.play_sequences.get(config.task, ())
-    with RawDatasetWriter(out_dir, fps=config.control_hz, robot=family.robot, env=config.env,
-                          names=names, info=info) as writer:
+    with RawDatasetWriter(
+        out_dir, fps=config.control_hz, robot=family.robot, env=config.env, names=names, info=info
+    ) as writer:
         for i in range(config.episodes):
             seed = config.seed + i
             if config.play:
@@ -123,7 +130,9 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
                 ok = all(s["success"] for s in r.segments)
                 task = f"play: {', '.join(sequence)}"
             else:
-                r = family.rollout(env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps)
+                r = family.rollout(
+                    env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps
+                )
                 ok = r.succeeded
                 task = config.task
             log.info("episode %d (seed %d): %s, %d frames", i, seed, "success" if ok else "failure", len(r.actions))
@@ -143,8 +152,14 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
                 },
                 images=r.images or None,
                 depth=r.depth or None,
-                meta={"task": task, "outcome": "success" if ok else "failure", "seed": seed,
-                      "sim_model": family.sim_model_id, "segments": r.segments, "control_hz": config.control_hz},
+                meta={
+                    "task": task,
+                    "outcome": "success" if ok else "failure",
+                    "seed": seed,
+                    "sim_model": family.sim_model_id,
+                    "segments": r.segments,
+                    "control_hz": config.control_hz,
+                },
             )
             counts["episodes"] += 1
             counts["successes"] += int(ok)

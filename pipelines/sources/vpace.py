@@ -22,7 +22,7 @@ import hashlib
 import io
 import pickle
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -64,7 +64,7 @@ class VpaceBuffer:
         return int(self.observations.shape[1])
 
     def kind(self) -> str:
-        """"trajectories" if any row continues into the next one, else "examples"."""
+        """ "trajectories" if any row continues into the next one, else "examples"."""
         continues = np.all(self.next_observations[:-1] == self.observations[1:], axis=1)
         return "trajectories" if continues.any() else "examples"
 
@@ -80,10 +80,14 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
     """Unpickles numpy arrays, scalars and RandomState only: a buffer file cannot run code."""
 
     _ALLOWED = {
-        ("numpy", "ndarray"), ("numpy", "dtype"),
-        ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-        ("numpy.random._pickle", "__randomstate_ctor"), ("numpy.random._pickle", "__bit_generator_ctor"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy.random._pickle", "__randomstate_ctor"),
+        ("numpy.random._pickle", "__bit_generator_ctor"),
     }
 
     def find_class(self, module: str, name: str) -> Any:
@@ -101,7 +105,9 @@ def task_from_filename(path: str | Path) -> str:
     stem = Path(path).name.removesuffix(".gz")
     m = _TASK_IN_NAME.search(stem)
     if m is None:
-        raise DatasetError(f"{path}: cannot tell the task from the file name (expected ..._<index>_<task>.gz); give --task")
+        raise DatasetError(
+            f"{path}: cannot tell the task from the file name (expected ..._<index>_<task>.gz); give --task"
+        )
     return m.group(1)
 
 
@@ -125,7 +131,9 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     size, pointer, count = int(data["memory_size"]), int(data["pointer"]), int(data["count"])
     if min(count, size) == 0:
         raise DatasetError(f"{path}: empty buffer (no rows)")
-    arrays = {k: np.asarray(data[k], dtype=np.float32) for k in ("observations", "next_observations", "actions", "rewards")}
+    arrays = {
+        k: np.asarray(data[k], dtype=np.float32) for k in ("observations", "next_observations", "actions", "rewards")
+    }
     if any(len(a) != size for a in arrays.values()):
         raise DatasetError(f"{path}: array lengths {[len(a) for a in arrays.values()]} differ from memory_size {size}")
     # Circular buffer: once it has wrapped, the oldest row is at `pointer`.
@@ -252,24 +260,54 @@ def import_vpace(
                     # The wrapped buffer dropped the oldest rows: the first episode may lack its start.
                     source["start_overwritten"] = bool(e == 0 and b.overwritten_rows > 0)
                 yield Episode(frames, {"task": b.task, "source": source})
-            per_file.append({"file": b.path.name, "task": b.task, "rows": len(b.observations),
-                             "episodes": len(bounds), "lengths": [end - start for start, end in bounds]})
+            per_file.append(
+                {
+                    "file": b.path.name,
+                    "task": b.task,
+                    "rows": len(b.observations),
+                    "episodes": len(bounds),
+                    "lengths": [end - start for start, end in bounds],
+                }
+            )
 
     num_episodes, num_frames = write_imported(
-        repo_id, root, fps, features, episodes(), robot_type=_panda_play().robot,
-        sources=[{"kind": "vpace", "path": str(b.path.resolve()), "sha256": b.sha256, "task": b.task,
-                  "rows": len(b.observations), "overwritten_rows": b.overwritten_rows} for b in buffers],
-        importer={"name": "vpace", "kind": kind_used, "fps": fps, "observation_dims": dims[0],
-                  "dropped": "absorbing-state flag (last observation column)",
-                  "gripper": "negated: published > 0 closes, shiftkit > 0 opens"},
+        repo_id,
+        root,
+        fps,
+        features,
+        episodes(),
+        robot_type=_panda_play().robot,
+        sources=[
+            {
+                "kind": "vpace",
+                "path": str(b.path.resolve()),
+                "sha256": b.sha256,
+                "task": b.task,
+                "rows": len(b.observations),
+                "overwritten_rows": b.overwritten_rows,
+            }
+            for b in buffers
+        ],
+        importer={
+            "name": "vpace",
+            "kind": kind_used,
+            "fps": fps,
+            "observation_dims": dims[0],
+            "dropped": "absorbing-state flag (last observation column)",
+            "gripper": "negated: published > 0 closes, shiftkit > 0 opens",
+        },
     )
     return ImportSummary(Path(root), kind_used, fps, num_episodes, num_frames, per_file)
 
 
 def _add_arguments(parser) -> None:
     parser.add_argument("files", nargs="+", metavar="FILE", help="buffer files (all go into one dataset)")
-    parser.add_argument("--kind", default="auto", choices=("auto", "examples", "trajectories"),
-                        help="success-example sets or expert trajectories (default: detected)")
+    parser.add_argument(
+        "--kind",
+        default="auto",
+        choices=("auto", "examples", "trajectories"),
+        help="success-example sets or expert trajectories (default: detected)",
+    )
     parser.add_argument("--task", help="task name for every file (default: from the file name, 3_lift -> lift)")
     parser.add_argument("--fps", type=int, help="frame rate (default: 20 for 60-column files, 5 for 54)")
 
@@ -277,8 +315,11 @@ def _add_arguments(parser) -> None:
 def _report(summary: ImportSummary) -> list[str]:
     lines = []
     for f in summary.per_file:
-        detail = f"{f['rows']} examples" if summary.kind == "examples" else (
-            f"{f['rows']} transitions in {f['episodes']} episodes (lengths {f['lengths']})")
+        detail = (
+            f"{f['rows']} examples"
+            if summary.kind == "examples"
+            else (f"{f['rows']} transitions in {f['episodes']} episodes (lengths {f['lengths']})")
+        )
         lines.append(f"{f['file']}: task {f['task']!r}, {detail}")
     return lines
 
