@@ -47,6 +47,10 @@ class EnvFamily:
     """One line saying how the observation splits (recorded in raw datasets)."""
     rollout: Callable[..., Any]
     """`rollout(env, seed, cameras=(), depth=False, extra_steps=0)`: one scripted-expert episode."""
+    control_rates: tuple[int, ...] = (20,)
+    """Supported control frequencies in Hz (the first is the default)."""
+    experts: dict[str, Callable[..., Any]] = field(default_factory=dict)
+    """Other ways to record an episode than `rollout`, by name (e.g. "kinesthetic"); same signature."""
     play_rollout: Callable[..., Any] | None = None
     """`play_rollout(env, seed, sequence, cameras=(), depth=False)`: one play episode, if supported."""
     play_sequences: dict[str, tuple[str, ...]] = field(default_factory=dict)

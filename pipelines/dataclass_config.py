@@ -126,3 +126,18 @@ def _check(value: Any, tp: Any, where: str) -> Any:
     elif isinstance(tp, type) and isinstance(value, tp):
         return value
     raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
+
+
+def key_value(text: str) -> tuple[str, object]:
+    """`KEY=VALUE` from the command line (an argparse `type`): VALUE as JSON if it parses, else the
+    string (`view=multiview`, `control_hz=5`, `noise=[0.1, 0.2]`)."""
+    import argparse
+    import json
+
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    try:
+        return key, json.loads(value)
+    except json.JSONDecodeError:
+        return key, value

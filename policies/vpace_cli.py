@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import typing
+
+from shiftkit.pipelines.dataclass_config import key_value
 
 # Fields with a hand-made flag (lists, dicts, renamed or preset-only ones); the rest are generated.
 _SPECIAL = {
@@ -29,16 +30,6 @@ _SPECIAL = {
 
 def _csv(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
-
-
-def _key_value(text: str) -> tuple[str, object]:
-    key, sep, value = text.partition("=")
-    if not sep or not key:
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
-    try:
-        return key, json.loads(value)
-    except json.JSONDecodeError:
-        return key, value
 
 
 def _scalar_type(tp: object) -> type:
@@ -96,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--env-kwarg",
         dest="env_kwargs",
         action="append",
-        type=_key_value,
+        type=key_value,
         default=None,
         metavar="KEY=VALUE",
         help="environment constructor argument (JSON value); repeatable",

@@ -31,6 +31,7 @@ FAMILY = register_family(
         action_names=ACTION_NAMES,
         observation_layout="reference 59-dim = state[:12] + environment_state + state[12:]",
         rollout=rollout,
+        control_rates=(20, 5),
         play_rollout=play_rollout,
         play_sequences=PLAY_SEQUENCES,
         action_conventions={"vpace": vpace_action_to_shiftkit},

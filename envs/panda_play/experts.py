@@ -10,7 +10,6 @@ labelled as a segment.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,6 +25,7 @@ from shiftkit.envs.panda_play.physics import (
     ZONE_XY,
 )
 from shiftkit.envs.panda_play.tasks import INSERT_THRESHOLD, TASKS
+from shiftkit.envs.rollout import Rollout
 
 CARRY_Z = 0.23
 ABOVE = 0.05
@@ -342,24 +342,6 @@ def _free_spot(avoid: np.ndarray) -> np.ndarray:
     """The FREE_SPOTS entry farthest from the `avoid` points (xy rows)."""
     clearance = np.min(np.linalg.norm(FREE_SPOTS[:, None] - avoid[None], axis=2), axis=1)
     return FREE_SPOTS[np.argmax(clearance)]
-
-
-@dataclass
-class Rollout:
-    """One recorded episode: arrays indexed by frame (observation before the action)."""
-
-    observations: np.ndarray
-    actions: np.ndarray
-    success: np.ndarray
-    qpos: np.ndarray
-    qvel: np.ndarray
-    segments: list[dict[str, Any]] = field(default_factory=list)
-    images: dict[str, np.ndarray] = field(default_factory=dict)
-    depth: dict[str, np.ndarray] = field(default_factory=dict)
-
-    @property
-    def succeeded(self) -> bool:
-        return bool(self.success.any())
 
 
 class _Recorder:

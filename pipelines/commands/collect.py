@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from shiftkit.pipelines.dataclass_config import key_value
+
 HELP = "record scripted-expert episodes from a simulated env (raw episodes or a LeRobot dataset)"
 
 
@@ -17,7 +19,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", help="LeRobot dataset root (with --lerobot)")
     parser.add_argument("--play", action="store_true", help="record play episodes with task-segment labels")
     parser.add_argument("--sequence", help="comma-separated play sequence (default: the task's)")
-    parser.add_argument("--control-hz", type=int, default=20, choices=(5, 20), help="control rate (default: 20)")
+    parser.add_argument("--control-hz", type=int, help="control rate in Hz (default: the env's, panda-play 20)")
+    parser.add_argument(
+        "--env-kwarg",
+        action="append",
+        default=[],
+        type=key_value,
+        metavar="KEY=VALUE",
+        help="env constructor argument (JSON value), repeatable, e.g. view=multiview",
+    )
+    parser.add_argument(
+        "--expert", default="scripted", help="how episodes are recorded: scripted (default) or an env's other recorder"
+    )
     parser.add_argument("--cameras", default="", help="comma-separated cameras to render, e.g. front")
     parser.add_argument("--depth", action="store_true", help="also record depth images")
     parser.add_argument("--width", type=int, default=64, help="image width (default: 64)")
@@ -49,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
         extra_steps=args.extra_steps,
         only_successful=args.only_successful,
         sequence=split(args.sequence),
+        env_kwargs=dict(args.env_kwarg),
+        expert=args.expert,
     )
     path, counts = collect(config)
     print(f"wrote {counts['episodes']} episodes ({counts['successes']} successful) to {path}")

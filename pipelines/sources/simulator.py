@@ -16,6 +16,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,8 +45,13 @@ class CollectConfig:
     """LeRobot dataset root directory (with `lerobot`)."""
     play: bool = False
     """Record play episodes: one reset, then the task's play sequence with segment labels."""
-    control_hz: int = 20
-    """Control frequency (5 or 20)."""
+    control_hz: int | None = None
+    """Control frequency; default: the env's first supported rate (panda-play: 20, or 5)."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Extra keyword arguments for the env constructor (e.g. `view="multiview"`)."""
+    expert: str = "scripted"
+    """How episodes are recorded: "scripted" (the task's expert) or a family's other recorder
+    (e.g. "kinesthetic")."""
     cameras: tuple[str, ...] = ()
     """Cameras rendered every frame (e.g. "front"); empty = state only."""
     depth: bool = False
@@ -73,8 +79,16 @@ class CollectConfig:
         family = env_family(self.env)
         if self.episodes < 1:
             raise ConfigError(f"--episodes must be >= 1, got {self.episodes}")
-        if self.control_hz not in (5, 20):
-            raise ConfigError(f"--control-hz must be 5 or 20, got {self.control_hz}")
+        if self.control_hz is None:
+            self.control_hz = family.control_rates[0]
+        if self.control_hz not in family.control_rates:
+            rates = " or ".join(map(str, family.control_rates))
+            raise ConfigError(f"--control-hz must be {rates} for {self.env}, got {self.control_hz}")
+        if self.expert != "scripted" and self.expert not in family.experts:
+            known = ", ".join(["scripted", *family.experts])
+            raise ConfigError(f"unknown expert {self.expert!r} for {self.env}; known: {known}")
+        if self.play and self.expert != "scripted":
+            raise ConfigError("--play records scripted experts only")
         if (self.out is None) == (self.lerobot is None):
             raise ConfigError("give exactly one of --out DIR (raw episodes) or --lerobot REPO_ID --root DIR")
         if self.lerobot is not None and self.root is None:
@@ -100,9 +114,11 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
 
     family = env_family(config.env)
     state_idx, env_idx = family.state_indices, family.environment_state_indices
+    record = family.rollout if config.expert == "scripted" else family.experts[config.expert]
     env = make(
         config.env,
         config.task,
+        **config.env_kwargs,
         control_hz=config.control_hz,
         width=config.width,
         height=config.height,
@@ -130,9 +146,7 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
                 ok = all(s["success"] for s in r.segments)
                 task = f"play: {', '.join(sequence)}"
             else:
-                r = family.rollout(
-                    env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps
-                )
+                r = record(env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps)
                 ok = r.succeeded
                 task = config.task
             log.info("episode %d (seed %d): %s, %d frames", i, seed, "success" if ok else "failure", len(r.actions))
@@ -149,6 +163,7 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
                     "success": r.success,
                     "sim_qpos": r.qpos,
                     "sim_qvel": r.qvel,
+                    **r.arrays,
                 },
                 images=r.images or None,
                 depth=r.depth or None,
@@ -159,6 +174,7 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
                     "sim_model": family.sim_model_id,
                     "segments": r.segments,
                     "control_hz": config.control_hz,
+                    **r.meta,
                 },
             )
             counts["episodes"] += 1
