@@ -63,23 +63,43 @@ def _png(frame: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _write_v21(root):
+VIDEO_KEY = "observation.images.front"
+VIDEO = {"dtype": "video", "shape": (64, 64, 3), "names": ["height", "width", "channel"]}
+
+
+def _video_frames(e: int, n: int) -> np.ndarray:
+    """Flat frames (lossy AV1 keeps flat colours within a few levels)."""
+    return np.stack([np.full((64, 64, 3), (40 * t + 60 * e, 100, 200 - 30 * t), np.uint8) for t in range(n)])
+
+
+def _write_v21(root, video=False):
     """meta/{info.json, episodes.jsonl, tasks.jsonl, episodes_stats.jsonl} + data/chunk-000/episode_*.parquet,
-    the data written as lerobot v2.1 did (a `datasets.Dataset` with lerobot's HF features, to_parquet)."""
+    the data written as lerobot v2.1 did (a `datasets.Dataset` with lerobot's HF features, to_parquet);
+    with `video`, the camera is an AV1 video per episode (videos/chunk-000/<key>/episode_*.mp4) encoded
+    with lerobot's own encoder."""
     from datasets import Dataset
     from lerobot.datasets.utils import get_hf_features_from_features
+    from lerobot.datasets.video_utils import encode_video_frames
 
+    features = {**FEATURES, "observation.images.front": VIDEO} if video else FEATURES
     (root / "meta").mkdir(parents=True)
     (root / "data" / "chunk-000").mkdir(parents=True)
-    hf_features = get_hf_features_from_features(FEATURES)
+    hf_features = get_hf_features_from_features(features)
     start = 0
     episodes, stats = [], []
     for e, (task, n) in enumerate(EPISODES):
         data = _episode(e, n, start)
         columns = {k: list(v) if v.ndim > 1 else v for k, v in data.items()}
-        columns["observation.images.front"] = [
-            {"bytes": _png(f), "path": None} for f in data["observation.images.front"]
-        ]
+        if video:
+            data["observation.images.front"] = _video_frames(e, n)
+            del columns["observation.images.front"]
+            frames_dir = root.parent / f"frames_{e}"
+            frames_dir.mkdir()
+            for t, frame in enumerate(data["observation.images.front"]):
+                Image.fromarray(frame).save(frames_dir / f"frame-{t:06d}.png")
+            encode_video_frames(frames_dir, root / "videos" / "chunk-000" / VIDEO_KEY / f"episode_{e:06d}.mp4", FPS)
+        else:
+            columns[VIDEO_KEY] = [{"bytes": _png(f), "path": None} for f in data[VIDEO_KEY]]
         Dataset.from_dict(columns, features=hf_features).to_parquet(
             root / "data" / "chunk-000" / f"episode_{e:06d}.parquet"
         )
@@ -92,14 +112,14 @@ def _write_v21(root):
         "total_episodes": len(EPISODES),
         "total_frames": start,
         "total_tasks": len(EPISODES),
-        "total_videos": 0,
+        "total_videos": len(EPISODES) if video else 0,
         "total_chunks": 1,
         "chunks_size": 1000,
         "fps": FPS,
         "splits": {"train": f"0:{len(EPISODES)}"},
         "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
-        "video_path": None,
-        "features": {k: {**v, "shape": list(v["shape"])} for k, v in FEATURES.items()},
+        "video_path": "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4" if video else None,
+        "features": {k: {**v, "shape": list(v["shape"])} for k, v in features.items()},
     }
     (root / "meta" / "info.json").write_text(json.dumps(info, indent=4))
     jsonl = {
@@ -153,6 +173,26 @@ def test_v21_dataset_converts_into_a_new_directory(tmp_path, capsys):
     assert main(args) == 2  # the destination now exists
     assert "destination already exists" in capsys.readouterr().err
     assert _tree(src) == before
+
+
+def test_v21_video_dataset_converts(tmp_path):
+    """Most Hub datasets keep cameras as videos: the converter concatenates them per camera."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    src = _write_v21(tmp_path / "src" / "vid", video=True)
+    before = _tree(src)
+    summary = import_lerobot_v21(src, "me/vid", tmp_path / "out")
+    assert (summary.episodes, summary.frames) == (2, 7)
+    assert _tree(src) == before
+    assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").glob("videos/**/*.mp4")) == [
+        "videos/observation.images.front/chunk-000/file-000.mp4"
+    ]
+    ds = LeRobotDataset("me/vid", root=tmp_path / "out", video_backend="pyav")
+    assert ds.meta.features["observation.images.front"]["dtype"] == "video"
+    for index, episode, frame in ((0, 0, 0), (2, 0, 2), (6, 1, 3)):  # episode 0 frames 0 and 2, episode 1 frame 3
+        decoded = ds[index][VIDEO_KEY].numpy().transpose(1, 2, 0) * 255
+        expected = _video_frames(episode, frame + 1)[frame]
+        assert np.abs(decoded - expected).mean() < 4, index  # neighbouring frames differ by ~23
 
 
 @pytest.mark.parametrize(
