@@ -31,7 +31,15 @@ def _demo_arrays(name: str, n: int) -> dict[str, np.ndarray]:
     }
 
 
-def _write(path, demos=LENGTHS, env_args=None, total=None, edit=None):
+K = [[100.0, 0.0, 3.5], [0.0, 101.0, 2.5], [0.0, 0.0, 1.0]]
+POSE = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, -1.0, 0.1], [0.0, 1.0, 0.0, 1.2], [0.0, 0.0, 0.0, 1.0]]
+CAMERA_INFO = {
+    "agentview": {"intrinsics": K, "extrinsics": POSE},
+    "robot0_eye_in_hand": {"intrinsics": K, "extrinsics": POSE},
+}
+
+
+def _write(path, demos=LENGTHS, env_args=None, total=None, edit=None, ep_meta=None):
     """A robomimic dataset file: data/{demo_N/{obs,next_obs,actions,rewards,dones,states}}, mask/."""
     env_args = env_args or {"env_name": "Lift", "env_type": 1, "env_kwargs": {"control_freq": 20, "robots": ["Panda"]}}
     with h5py.File(path, "w") as f:
@@ -45,6 +53,9 @@ def _write(path, demos=LENGTHS, env_args=None, total=None, edit=None):
             g = data.create_group(name)
             g.attrs["num_samples"] = n
             g.attrs["model_file"] = f"<mujoco model='{name}'/>"
+            g.attrs["camera_info"] = json.dumps(CAMERA_INFO)  # as dataset_states_to_obs.py writes it
+            if ep_meta:
+                g.attrs["ep_meta"] = json.dumps(ep_meta(name))
             for key, arr in arrays.items():
                 g.create_dataset(key, data=arr)
                 if key.startswith("obs/"):
@@ -97,6 +108,13 @@ def test_robomimic_file_imports(tmp_path):
         assert ep.frames["next.reward"].reshape(-1).tolist() == raw["rewards"].tolist()
         model = f"<mujoco model='{name}'/>".encode()
         assert ep.meta["sim"]["model_file_sha256"] == hashlib.sha256(model).hexdigest()
+        # shiftkit's camera metadata: intrinsics in pixels at the stored size, the pose in the world frame
+        assert ep.meta["cameras"] == {
+            "agentview": {
+                "intrinsics": {"fx": 100.0, "fy": 101.0, "cx": 3.5, "cy": 2.5, "width": 8, "height": 6},
+                "extrinsics": {"frame": "world", "position": [0.5, 0.1, 1.2], "rotation": [r[:3] for r in POSE[:3]]},
+            }
+        }
 
     provenance = json.loads((tmp_path / "out" / "meta" / "shiftkit_provenance.json").read_text())
     assert provenance["sources"][0]["sha256"] == digest
@@ -121,6 +139,14 @@ def test_filter_key_fps_and_task(tmp_path, capsys):
     assert episodes[0].frames["observation.state"].shape == (5, 3)
     assert set(episodes[1].frames["task"]) == {"lift the cube"}
     np.testing.assert_allclose(episodes[1].frames["timestamp"], np.arange(4) / 10)
+
+
+def test_language_instruction_per_demo(tmp_path):
+    """robocasa-style files keep a language instruction per demo in the ep_meta attribute."""
+    src = _write(tmp_path / "lang.hdf5", ep_meta=lambda name: {"lang": f"open drawer {name[5:]}", "layout_id": 3})
+    import_robomimic(src, "rm/lang", tmp_path / "o", filter_key="valid")
+    (ep,) = open_lerobot_dataset(tmp_path / "o").iter_episodes()
+    assert set(ep.frames["task"]) == {"open drawer 1"}
 
 
 def _nan_action(name, arrays):

@@ -12,7 +12,9 @@ What maps where (docs/importers.md has the table):
   dimension (`robot0_eef_pos_0`, ...). `next_obs/*` repeats `obs/*` one step later and is not kept.
 * `states` (flattened MuJoCo state, robosuite: [time, qpos, qvel]) -> `sim.state`, float64, for
   re-rendering; each episode's meta names the sha256 of its `model_file` attribute (the MJCF).
-* `data` attribute `env_args` (JSON): `env_name` becomes the task text (`--task` overrides) and
+* per-demo attributes: `ep_meta` (JSON) `lang`, a language instruction, becomes that episode's task;
+  `camera_info` (JSON: K and camera pose per camera) becomes the episode's camera metadata.
+* `data` attribute `env_args` (JSON): `env_name` is the task text otherwise (`--task` overrides) and
   `env_kwargs.control_freq` the fps (`--fps` overrides; required when absent); `env_kwargs.robots`
   the robot type. `total` must equal the number of samples in the file.
 """
@@ -56,17 +58,53 @@ def _open(path: Path):
         raise DatasetError(f"{path}: not an HDF5 file ({exc})") from None
 
 
-def _env_args(path: Path, data) -> dict[str, Any]:
-    raw = data.attrs.get("env_args")
+def _json_attr(path: Path, group, where: str, attr: str) -> dict[str, Any]:
+    """A JSON-object attribute (`env_args`, `ep_meta`, `camera_info`); {} when absent."""
+    raw = group.attrs.get(attr)
     if raw is None:
         return {}
     try:
-        args = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        value = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
     except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path}: data attribute env_args is not JSON ({exc.msg})") from None
-    if not isinstance(args, dict):
-        raise DatasetError(f"{path}: data attribute env_args is not a JSON object")
-    return args
+        raise DatasetError(f"{path}: {where} attribute {attr} is not JSON ({exc.msg})") from None
+    if not isinstance(value, dict):
+        raise DatasetError(f"{path}: {where} attribute {attr} is not a JSON object")
+    return value
+
+
+def _cameras(path: Path, demo, name: str, features: Features) -> dict[str, Any]:
+    """robomimic's per-demo `camera_info` (K 3x3, camera pose 4x4) in shiftkit's camera metadata form.
+    Eye-in-hand poses are relative to the end effector there, a frame the contract has no name for:
+    those cameras keep their intrinsics only."""
+    cameras = {}
+    for camera, values in _json_attr(path, demo, f"data/{name}", "camera_info").items():
+        key = f"observation.images.{camera}"
+        if key not in features or not isinstance(values, dict) or "intrinsics" not in values:
+            continue
+        try:
+            k = np.asarray(values["intrinsics"], dtype=np.float64).reshape(3, 3)
+            height, width = features[key]["shape"][:2]
+            entry: dict[str, Any] = {
+                "intrinsics": {
+                    "fx": float(k[0, 0]),
+                    "fy": float(k[1, 1]),
+                    "cx": float(k[0, 2]),
+                    "cy": float(k[1, 2]),
+                    "width": int(width),
+                    "height": int(height),
+                }
+            }
+            if "extrinsics" in values and "eye_in_hand" not in camera:
+                pose = np.asarray(values["extrinsics"], dtype=np.float64).reshape(4, 4)
+                entry["extrinsics"] = {
+                    "frame": "world",
+                    "position": pose[:3, 3].tolist(),
+                    "rotation": pose[:3, :3].tolist(),
+                }
+        except (TypeError, ValueError):
+            raise DatasetError(f"{path}: data/{name} camera_info of {camera!r} is not a 3x3 K and 4x4 pose") from None
+        cameras[camera] = entry
+    return cameras
 
 
 def _demo_names(path: Path, f, filter_key: str | None) -> list[str]:
@@ -137,8 +175,19 @@ def _schema(path: Path, demo, demo_name: str, obs_keys: list[str] | None) -> tup
 
 
 def _read_demo(
-    path: Path, demo, name: str, features: Features, groups: dict[str, list[str]], fps: int, task: str
+    path: Path,
+    demo,
+    name: str,
+    features: Features,
+    groups: dict[str, list[str]],
+    fps: int,
+    task: str | None,
+    default_task: str | None,
 ) -> Episode:
+    # --task, else the demo's language instruction (robocasa-style ep_meta "lang"), else env_name
+    task = task or _json_attr(path, demo, f"data/{name}", "ep_meta").get("lang") or default_task
+    if not task:
+        raise DatasetError(f"{path}: data/{name}: no env_args env_name or ep_meta lang names the task; give --task")
     n = int(demo["actions"].shape[0])
     if n == 0:
         raise DatasetError(f"{path}: data/{name} has no samples")
@@ -180,6 +229,9 @@ def _read_demo(
     if model is not None:
         text = model.encode() if isinstance(model, str) else bytes(model)
         meta["sim"] = {"model_file_sha256": hashlib.sha256(text).hexdigest()}
+    cameras = _cameras(path, demo, name, features)
+    if cameras:
+        meta["cameras"] = cameras
     return Episode(frames, meta)
 
 
@@ -204,7 +256,7 @@ def import_robomimic(
         if "data" not in f or not hasattr(f["data"], "keys"):
             raise DatasetError(f"{path}: no 'data' group (not a robomimic dataset)")
         data = f["data"]
-        env_args = _env_args(path, data)
+        env_args = _json_attr(path, data, "data", "env_args")
         env_kwargs = env_args.get("env_kwargs") or {}
         all_demos = _demo_names(path, f, None)
         if "total" in data.attrs:
@@ -221,9 +273,6 @@ def import_robomimic(
                     f"{path}: env_args has no integer env_kwargs.control_freq ({control_freq}); give --fps"
                 )
             fps = int(control_freq)
-        task = task or env_args.get("env_name")
-        if not task:
-            raise DatasetError(f"{path}: env_args names no env_name; give --task")
         robots = env_kwargs.get("robots")
         robot_type = "+".join(robots) if isinstance(robots, list) else (str(robots) if robots else None)
         features, groups = _schema(path, data[demos[0]], demos[0], obs_keys)
@@ -231,7 +280,7 @@ def import_robomimic(
 
         def episodes():
             for name in demos:
-                episode = _read_demo(path, data[name], name, features, groups, fps, task)
+                episode = _read_demo(path, data[name], name, features, groups, fps, task, env_args.get("env_name"))
                 lengths.append(len(episode))
                 yield episode
 
@@ -261,7 +310,9 @@ def _add_arguments(parser) -> None:
     parser.add_argument("file", metavar="FILE", help="robomimic HDF5 file (data/demo_N groups)")
     parser.add_argument("--filter-key", help="import only the demos listed in mask/<KEY> (e.g. train, valid)")
     parser.add_argument("--fps", type=int, help="frame rate (default: env_args env_kwargs.control_freq)")
-    parser.add_argument("--task", help="task text of every episode (default: env_args env_name)")
+    parser.add_argument(
+        "--task", help="task text of every episode (default: the demo's ep_meta lang, else env_args env_name)"
+    )
     parser.add_argument(
         "--obs-keys", help="comma-separated obs keys to keep (default: all); images become cameras, the rest state"
     )
