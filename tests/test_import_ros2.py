@@ -13,6 +13,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from shiftkit.pipelines.cli import main
+from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.sources.ros2 import import_ros2
 
@@ -222,3 +223,66 @@ def test_bad_bags_are_one_line_errors(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and message in err and "Traceback" not in err, err
     assert junk.read_bytes() == b"not an mcap file" and not (tmp_path / "o").exists()
+
+
+def _write_mcap_ros2(path, latency_ns):
+    """An MCAP file from the other maintained writer (mcap-ros2-support: ros2msg schemas, its own CDR
+    encoder); the camera is received `latency_ns` after its header stamp."""
+    from mcap_ros2.writer import Writer as McapWriter
+
+    with path.open("wb") as f:
+        writer = McapWriter(f)
+        schemas = {
+            typ: writer.register_msgdef(typ, TS.generate_msgdef(typ, ros_version=2)[0])
+            for typ in ("sensor_msgs/msg/JointState", "sensor_msgs/msg/Image")
+        }
+        events = [(t, "/joint_states") for t in range(T0, T0 + 10**9 + 1, 20_000_000)]
+        events += [(t, "/camera/image_raw") for t in range(T0 + 30_000_000, T0 + 10**9 + 1, 100_000_000)]
+        for stamp, topic in sorted(events, key=lambda e: e[0] + (latency_ns if e[1] == "/camera/image_raw" else 0)):
+            header = {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "base"}
+            if topic == "/joint_states":
+                q = (np.array([1.0, 2.0, 3.0]) + (stamp - T0) / 1e9).tolist()
+                typ, msg, received = (
+                    "sensor_msgs/msg/JointState",
+                    {"header": header, "name": JOINTS, "position": q},
+                    stamp,
+                )
+            else:
+                img = _image(stamp)
+                typ, received = "sensor_msgs/msg/Image", stamp + latency_ns
+                msg = {"header": header, "height": 4, "width": 5, "encoding": "rgb8", "is_bigendian": 0, "step": 15}
+                msg["data"] = img.data.tobytes()
+            writer.write_message(topic, schemas[typ], msg, log_time=received, publish_time=received)
+        writer.finish()
+    return path
+
+
+def test_header_stamps_align_sensor_time(tmp_path):
+    mcap_file = _write_mcap_ros2(tmp_path / "cam_latency.mcap", latency_ns=45_000_000)
+    base = (
+        'fps = 10\ntask = "x"\n[features."observation.state"]\ntopic = "/joint_states"\nfield = "position"\n'
+        '[features."observation.images.front"]\ntopic = "/camera/image_raw"\n'
+    )
+    results = {}
+    for time in ("receive", "header"):
+        mapping = tmp_path / f"{time}.toml"
+        mapping.write_text(f'time = "{time}"\n' + base)
+        import_ros2([mcap_file], mapping, "r/t", tmp_path / time)
+        (results[time],) = open_lerobot_dataset(tmp_path / time).iter_episodes()
+    # receive time: the camera arrives 45 ms late, so frames start at 75 ms and pair image k with joints
+    # read 45 ms after it was taken; header time: frames start at the image stamp (30 ms), joints from then.
+    assert results["receive"].meta["source"]["start_ns"] == T0 + 75_000_000
+    assert results["header"].meta["source"]["start_ns"] == T0 + 30_000_000
+    for ep, start in ((results["receive"], 0.075), (results["header"], 0.03)):
+        t = start + np.arange(len(ep)) / 10
+        np.testing.assert_allclose(ep.frames["observation.state"][:, 0], 1 + np.floor(t * 50 + 1e-9) / 50, atol=1e-6)
+    header = results["header"].frames["observation.images.front"][:, 0, 0, 0]
+    np.testing.assert_array_equal(header, np.arange(len(header)))  # image k at frame k (its stamp)
+
+    mapping = tmp_path / "bad.toml"
+    mapping.write_text(
+        'time = "header"\nfps = 10\ntask = "x"\n[features.action]\ntopic = "/cmd_vel"\nfield = "linear.x"\n'
+    )
+    bag = _write_bag(tmp_path / "rec", duration_ns=200_000_000)
+    with pytest.raises(DatasetError, match=r"/cmd_vel \(geometry_msgs/msg/Twist\) has no header.stamp"):
+        import_ros2([bag], mapping, "r/t", tmp_path / "bad")

@@ -18,7 +18,7 @@ A mapping file (TOML, YAML or JSON) says which topic fields become which feature
 
 Time alignment: frames are sampled every 1/fps s from the moment every mapped topic has published
 (the latest first message) to the moment the first topic stops (the earliest last message), on the
-bag's receive timestamps. `hold-last` takes each topic's latest message at or before the frame time
+bag's receive timestamps (or the messages' header stamps with `time = "header"`). `hold-last` takes each topic's latest message at or before the frame time
 (what a controller running at that instant had seen); `nearest` the message closest in time
 (ties: the earlier). One bag is one episode, or, with `split_topic`, every message on that topic
 starts a new episode (frames before the first one are dropped).
@@ -73,6 +73,8 @@ class Ros2Mapping:
     """Every message on this topic starts a new episode (default: one bag, one episode)."""
     robot_type: str | None = None
     """Robot type recorded in the dataset's info."""
+    time: Literal["receive", "header"] = "receive"
+    """Message times: the bag's receive timestamps, or each message's `header.stamp` (sensor time)."""
     sources: dict[str, list[TopicField]] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -190,11 +192,14 @@ def _read_bag(path: Path, mapping: Ros2Mapping) -> tuple[dict[str, _Topic], list
                 raise DatasetError(f"{path}: no topic {missing[0]!r} in the bag (topics: {sorted(known)})")
             connections = [c for c in reader.connections if c.topic in wanted]
             for connection, timestamp, raw in reader.messages(connections=connections):
+                msg = reader.deserialize(raw, connection.msgtype)
+                if mapping.time == "header":
+                    timestamp = _header_time(msg, timestamp, connection, path, required=connection.topic in topics)
                 if connection.topic == mapping.split_topic:
                     markers.append(timestamp)
                 if connection.topic in topics:
                     topics[connection.topic].times.append(timestamp)
-                    topics[connection.topic].messages.append(reader.deserialize(raw, connection.msgtype))
+                    topics[connection.topic].messages.append(msg)
     except (AnyReaderError, FileNotFoundError, OSError) as exc:
         raise DatasetError(f"{path}: cannot read the bag ({' '.join(str(exc).split())})") from None
     except Exception as exc:
@@ -207,7 +212,23 @@ def _read_bag(path: Path, mapping: Ros2Mapping) -> tuple[dict[str, _Topic], list
     for topic, data in topics.items():
         if not data.times:
             raise DatasetError(f"{path}: topic {topic!r} has no messages")
-    return topics, markers, known
+        if mapping.time == "header":  # sensor stamps need not arrive in order
+            order = sorted(range(len(data.times)), key=data.times.__getitem__)
+            data.times = [data.times[i] for i in order]
+            data.messages = [data.messages[i] for i in order]
+    return topics, sorted(markers), known
+
+
+def _header_time(msg: Any, receive_ns: int, connection: Any, path: Path, required: bool) -> int:
+    """`header.stamp` in ns; a split marker without a header keeps its receive time."""
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    if stamp is None:
+        if required:
+            raise DatasetError(
+                f'{path}: {connection.topic} ({connection.msgtype}) has no header.stamp; use time = "receive"'
+            )
+        return receive_ns
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _schema(path: Path, mapping: Ros2Mapping, topics: dict[str, _Topic], types: dict[str, str]) -> Features:
@@ -362,6 +383,7 @@ def import_ros2(
             "fps": fps,
             "align": mapping.align,
             "split_topic": mapping.split_topic,
+            "time": mapping.time,
             "features": {k: [vars(p) for p in v] for k, v in mapping.sources.items()},
         },
     )
