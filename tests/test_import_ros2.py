@@ -15,7 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
-from shiftkit.pipelines.sources.ros2 import import_ros2
+from shiftkit.pipelines.sources.ros2 import _fetch, _plan, _scan, import_ros2, load_mapping
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T0 = 1_700_000_000 * 10**9  # bag clock (ns)
@@ -138,6 +138,12 @@ def test_bag_imports_with_hold_last_alignment(tmp_path, capsys):
         ep.frames["observation.images.front"][:, 0, 0], [[k, 100 + k, 200] for k in range(10)]
     )
     assert ep.meta["source"] == {"bag": "rec1", "start_ns": T0 + 30_000_000, "segment": 0}
+
+    # Only the messages a frame takes are deserialised and kept (51 joint states at 50 Hz -> 10 frames).
+    m = load_mapping(mapping)
+    index = _scan(bag, m)
+    fetched = _fetch(bag, m, _plan(bag, m, index, 10))
+    assert len(index.times["/joint_states"]) == 51 and len(fetched["/joint_states"]) == 10
 
 
 def test_mcap_nearest_alignment_and_split_topic(tmp_path):

@@ -27,6 +27,8 @@ starts a new episode (frames before the first one are dropped).
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -169,54 +171,70 @@ def _sample(times: np.ndarray, frame_times: np.ndarray, align: str) -> np.ndarra
     return np.where(times[nxt] - frame_times < frame_times - times[last], nxt, last)
 
 
-@dataclass
-class _Topic:
-    """One topic's messages in a bag: receive times (ns) and decoded values per mapped field."""
+@contextmanager
+def _reading(path: Path) -> Iterator[None]:
+    """Turns the readers' errors on a missing or corrupt bag into one-line DatasetErrors."""
+    from rosbags.highlevel import AnyReaderError
 
-    times: list[int] = field(default_factory=list)
-    messages: list[Any] = field(default_factory=list)
-
-
-def _read_bag(path: Path, mapping: Ros2Mapping) -> tuple[dict[str, _Topic], list[int], dict[str, str]]:
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
-
-    wanted = mapping.topics() + ([mapping.split_topic] if mapping.split_topic else [])
-    topics: dict[str, _Topic] = {t: _Topic() for t in mapping.topics()}
-    markers: list[int] = []
     try:
-        with AnyReader([path], default_typestore=get_typestore(Stores.LATEST)) as reader:
-            known = {c.topic: c.msgtype for c in reader.connections}
-            missing = [t for t in wanted if t not in known]
-            if missing:
-                raise DatasetError(f"{path}: no topic {missing[0]!r} in the bag (topics: {sorted(known)})")
-            connections = [c for c in reader.connections if c.topic in wanted]
-            for connection, timestamp, raw in reader.messages(connections=connections):
-                msg = reader.deserialize(raw, connection.msgtype)
-                if mapping.time == "header":
-                    timestamp = _header_time(msg, timestamp, connection, path, required=connection.topic in topics)
-                if connection.topic == mapping.split_topic:
-                    markers.append(timestamp)
-                if connection.topic in topics:
-                    topics[connection.topic].times.append(timestamp)
-                    topics[connection.topic].messages.append(msg)
+        yield
+    except DatasetError:
+        raise
     except (AnyReaderError, FileNotFoundError, OSError) as exc:
         raise DatasetError(f"{path}: cannot read the bag ({' '.join(str(exc).split())})") from None
-    except Exception as exc:
-        if isinstance(exc, DatasetError):
-            raise
-        # rosbags raises its own error classes for corrupt storage files (ReaderError, sqlite3, mcap)
+    except Exception as exc:  # rosbags' storage readers raise their own classes (ReaderError, sqlite3, mcap)
         raise DatasetError(
             f"{path}: cannot read the bag ({type(exc).__name__}: {' '.join(str(exc).split())})"
         ) from None
-    for topic, data in topics.items():
-        if not data.times:
+
+
+@contextmanager
+def _messages(path: Path, topics: list[str]) -> Iterator[tuple[Any, Iterator[tuple[Any, int, bytes]]]]:
+    """The reader and the (connection, receive time ns, raw bytes) of `topics`, in the bag's order."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    with _reading(path), AnyReader([path], default_typestore=get_typestore(Stores.LATEST)) as reader:
+        known = {c.topic: c.msgtype for c in reader.connections}
+        missing = [t for t in topics if t not in known]
+        if missing:
+            raise DatasetError(f"{path}: no topic {missing[0]!r} in the bag (topics: {sorted(known)})")
+        yield reader, reader.messages(connections=[c for c in reader.connections if c.topic in topics])
+
+
+@dataclass
+class _BagIndex:
+    """Pass 1 over a bag: per mapped topic its message times, sorted, and each one's index in bag order."""
+
+    times: dict[str, np.ndarray]
+    order: dict[str, np.ndarray]
+    markers: list[int]
+    types: dict[str, str]
+
+
+def _scan(path: Path, mapping: Ros2Mapping) -> _BagIndex:
+    """Message times only (messages are deserialised just for their header stamps with time = "header")."""
+    wanted = mapping.topics() + ([mapping.split_topic] if mapping.split_topic else [])
+    times: dict[str, list[int]] = {t: [] for t in mapping.topics()}
+    markers: list[int] = []
+    types: dict[str, str] = {}
+    with _messages(path, wanted) as (reader, stream):
+        for connection, timestamp, raw in stream:
+            types[connection.topic] = connection.msgtype
+            if mapping.time == "header":
+                msg = reader.deserialize(raw, connection.msgtype)
+                timestamp = _header_time(msg, timestamp, connection, path, required=connection.topic in times)
+            if connection.topic == mapping.split_topic:
+                markers.append(timestamp)
+            if connection.topic in times:
+                times[connection.topic].append(timestamp)
+    for topic, ts in times.items():
+        if not ts:
             raise DatasetError(f"{path}: topic {topic!r} has no messages")
-        if mapping.time == "header":  # sensor stamps need not arrive in order
-            order = sorted(range(len(data.times)), key=data.times.__getitem__)
-            data.times = [data.times[i] for i in order]
-            data.messages = [data.messages[i] for i in order]
-    return topics, sorted(markers), known
+    order = {t: np.argsort(np.asarray(ts, dtype=np.int64), kind="stable") for t, ts in times.items()}
+    return _BagIndex(
+        {t: np.asarray(ts, dtype=np.int64)[order[t]] for t, ts in times.items()}, order, sorted(markers), types
+    )
 
 
 def _header_time(msg: Any, receive_ns: int, connection: Any, path: Path, required: bool) -> int:
@@ -231,7 +249,62 @@ def _header_time(msg: Any, receive_ns: int, connection: Any, path: Path, require
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def _schema(path: Path, mapping: Ros2Mapping, topics: dict[str, _Topic], types: dict[str, str]) -> Features:
+@dataclass
+class _Plan:
+    """One episode of a bag: its frame window and the message (bag-order index) each topic gives each frame."""
+
+    segment: int
+    start: int
+    picks: dict[str, np.ndarray]
+
+
+def _plan(path: Path, mapping: Ros2Mapping, index: _BagIndex, fps: int) -> list[_Plan]:
+    if mapping.split_topic is not None and not index.markers:
+        raise DatasetError(f"{path}: split topic {mapping.split_topic!r} has no messages")
+    ends = [2**63 - 1]
+    bounds = (
+        list(zip(index.markers, [*index.markers[1:], *ends], strict=True)) if mapping.split_topic else [(-1, *ends)]
+    )
+    plans = []
+    for segment, (seg_start, seg_end) in enumerate(bounds):
+        inside = {t: np.flatnonzero((ts >= seg_start) & (ts < seg_end)) for t, ts in index.times.items()}
+        if any(len(i) == 0 for i in inside.values()):
+            continue  # a topic is silent in this segment: no frame can be built
+        start = max(int(index.times[t][i[0]]) for t, i in inside.items())
+        end = min(int(index.times[t][i[-1]]) for t, i in inside.items())
+        if end < start:
+            continue
+        n = (end - start) * fps // 1_000_000_000 + 1
+        frame_times = start + (np.arange(n, dtype=np.int64) * 1_000_000_000) // fps
+        picks = {
+            t: index.order[t][i[_sample(index.times[t][i], frame_times, mapping.align)]] for t, i in inside.items()
+        }
+        plans.append(_Plan(segment, start, picks))
+    if not plans:
+        raise DatasetError(f"{path}: the mapped topics never publish together; no frame can be built")
+    return plans
+
+
+def _fetch(path: Path, mapping: Ros2Mapping, plans: list[_Plan]) -> dict[str, dict[int, Any]]:
+    """Pass 2: deserialise only the messages some frame takes (a 30 Hz camera sampled at 10 fps keeps a
+    third of its images), so memory holds one bag's output frames, not the bag."""
+    wanted = mapping.topics() + ([mapping.split_topic] if mapping.split_topic else [])  # same stream as pass 1
+    needed = {t: {int(k) for plan in plans for k in plan.picks[t]} for t in mapping.topics()}
+    fetched: dict[str, dict[int, Any]] = {t: {} for t in needed}
+    seen = dict.fromkeys(needed, 0)
+    with _messages(path, wanted) as (reader, stream):
+        for connection, _, raw in stream:
+            topic = connection.topic
+            if topic not in needed:
+                continue
+            if seen[topic] in needed[topic]:
+                fetched[topic][seen[topic]] = reader.deserialize(raw, connection.msgtype)
+            seen[topic] += 1
+    return fetched
+
+
+def _schema(path: Path, mapping: Ros2Mapping, types: dict[str, str], first: dict[str, Any]) -> Features:
+    """Features from the first message each topic contributes."""
     features: Features = {}
     for key, parts in mapping.sources.items():
         if key.startswith("observation.images."):
@@ -240,87 +313,65 @@ def _schema(path: Path, mapping: Ros2Mapping, topics: dict[str, _Topic], types: 
                 raise DatasetError(
                     f"{path}: camera feature {key!r} maps {topic!r} of type {types[topic]}, not an image"
                 )
-            img = _image(topics[topic].messages[0], f"{path} {topic}")
-            features[key] = image_feature(img.shape)
+            features[key] = image_feature(_image(first[topic], f"{path} {topic}").shape)
             continue
         names: list[str] = []
         for part in parts:
             where = f"{path} {part.topic} ({types[part.topic]})"
             if part.field is None:
                 raise DatasetError(f"mapping: feature {key!r} needs a 'field' for topic {part.topic!r}")
-            first = topics[part.topic].messages[0]
-            width = len(_vector(first, part, where))
+            width = len(_vector(first[part.topic], part, where))
             if part.names is not None and len(part.names) != width:
                 raise DatasetError(
                     f"mapping: {key!r} gives {len(part.names)} names for {width} values of {part.field!r}"
                 )
-            names += part.names or _default_names(first, part, width)
+            names += part.names or _default_names(first[part.topic], part, width)
         if len(set(names)) != len(names):
             raise DatasetError(f"mapping: feature {key!r} has repeated dimension names {names}; give 'names'")
         features[key] = vector_feature("float32", names)
     return features
 
 
-def _episodes_of_bag(
+def _episode(
     path: Path,
     mapping: Ros2Mapping,
-    topics: dict[str, _Topic],
-    markers: list[int],
+    plan: _Plan,
+    messages: dict[str, dict[int, Any]],
     features: Features,
     fps: int,
     task: str,
-) -> list[Episode]:
-    bounds = (
-        [(-1, 2**63 - 1)] if mapping.split_topic is None else list(zip(markers, [*markers[1:], 2**63 - 1], strict=True))
-    )
-    if mapping.split_topic is not None and not markers:
-        raise DatasetError(f"{path}: split topic {mapping.split_topic!r} has no messages")
-    times = {t: np.asarray(d.times, dtype=np.int64) for t, d in topics.items()}
-    episodes = []
-    for segment, (seg_start, seg_end) in enumerate(bounds):
-        inside = {t: np.flatnonzero((ts >= seg_start) & (ts < seg_end)) for t, ts in times.items()}
-        if any(len(i) == 0 for i in inside.values()):
-            continue  # a topic is silent in this segment: no frame can be built
-        start = max(int(times[t][i[0]]) for t, i in inside.items())
-        end = min(int(times[t][i[-1]]) for t, i in inside.items())
-        if end < start:
+) -> Episode:
+    frames: dict[str, np.ndarray] = {}
+    for key, parts in mapping.sources.items():
+        if key.startswith("observation.images."):
+            topic = parts[0].topic
+            imgs = [_image(messages[topic][int(k)], f"{path} {topic}") for k in plan.picks[topic]]
+            if any(img.shape != tuple(features[key]["shape"]) for img in imgs):
+                raise DatasetError(f"{path}: images on {topic!r} differ in size from the first bag's")
+            frames[key] = np.stack(imgs)
             continue
-        n = (end - start) * fps // 1_000_000_000 + 1
-        frame_times = start + (np.arange(n, dtype=np.int64) * 1_000_000_000) // fps
-        picks = {t: i[_sample(times[t][i], frame_times, mapping.align)] for t, i in inside.items()}
-        frames: dict[str, np.ndarray] = {}
-        for key, parts in mapping.sources.items():
-            if key.startswith("observation.images."):
-                topic = parts[0].topic
-                imgs = [_image(topics[topic].messages[k], f"{path} {topic}") for k in picks[topic]]
-                if any(img.shape != tuple(features[key]["shape"]) for img in imgs):
-                    raise DatasetError(f"{path}: images on {topic!r} change size within the recording")
-                frames[key] = np.stack(imgs)
-                continue
-            columns = []
-            for part in parts:
-                where = f"{path} {part.topic}"
-                columns.append(
-                    np.stack([_vector(topics[part.topic].messages[k], part, where) for k in picks[part.topic]])
-                )
-            try:
-                value = np.concatenate(columns, axis=1)
-            except ValueError:
-                raise DatasetError(f"{path}: {key!r} changes width between messages") from None
-            if value.shape[1] != features[key]["shape"][0]:
-                raise DatasetError(
-                    f"{path}: {key!r} has {value.shape[1]} values, the first bag had {features[key]['shape'][0]}"
-                )
-            if not np.isfinite(value).all():
-                raise DatasetError(f"{path}: {key!r} has NaN/inf values")
-            frames[key] = value.astype(np.float32)
-        frames["timestamp"] = np.arange(n, dtype=np.float64) / fps
-        frames["task"] = np.array([task] * n)
-        source = {"bag": path.name, "start_ns": start, "segment": segment}
-        episodes.append(Episode(frames, {"task": task, "source": source}))
-    if not episodes:
-        raise DatasetError(f"{path}: the mapped topics never publish together; no frame can be built")
-    return episodes
+        columns = []
+        for part in parts:
+            msgs = messages[part.topic]
+            columns.append(
+                np.stack([_vector(msgs[int(k)], part, f"{path} {part.topic}") for k in plan.picks[part.topic]])
+            )
+        try:
+            value = np.concatenate(columns, axis=1)
+        except ValueError:
+            raise DatasetError(f"{path}: {key!r} changes width between messages") from None
+        if value.shape[1] != features[key]["shape"][0]:
+            raise DatasetError(
+                f"{path}: {key!r} has {value.shape[1]} values, the first bag had {features[key]['shape'][0]}"
+            )
+        if not np.isfinite(value).all():
+            raise DatasetError(f"{path}: {key!r} has NaN/inf values")
+        frames[key] = value.astype(np.float32)
+    n = len(next(iter(plan.picks.values())))
+    frames["timestamp"] = np.arange(n, dtype=np.float64) / fps
+    frames["task"] = np.array([task] * n)
+    source = {"bag": path.name, "start_ns": plan.start, "segment": plan.segment}
+    return Episode(frames, {"task": task, "source": source})
 
 
 def _fingerprint(path: Path) -> str:
@@ -359,14 +410,21 @@ def import_ros2(
     if not task:
         raise ConfigError(f"{mapping_path}: give the task (in the mapping file or --task)")
     paths = [Path(b) for b in bags]
-    first = _read_bag(paths[0], mapping)
-    features = _schema(paths[0], mapping, first[0], first[2])
+    # the first bag fixes the schema (widths, image sizes) before anything is written
+    index = _scan(paths[0], mapping)
+    plans = _plan(paths[0], mapping, index, fps)
+    messages = _fetch(paths[0], mapping, plans)
+    first = {t: messages[t][int(plans[0].picks[t][0])] for t in mapping.topics()}
+    features = _schema(paths[0], mapping, index.types, first)
     per_file: list[dict[str, Any]] = []
 
     def episodes():
+        nonlocal plans, messages
         for i, path in enumerate(paths):
-            topics, markers, _ = first if i == 0 else _read_bag(path, mapping)
-            eps = _episodes_of_bag(path, mapping, topics, markers, features, fps, task)
+            if i > 0:
+                plans = _plan(path, mapping, _scan(path, mapping), fps)
+                messages = _fetch(path, mapping, plans)
+            eps = [_episode(path, mapping, plan, messages, features, fps, task) for plan in plans]
             per_file.append({"file": path.name, "episodes": len(eps), "lengths": [len(e) for e in eps]})
             yield from eps
 
