@@ -446,3 +446,15 @@ def test_revised_recording_imports_without_task(tmp_path, capsys):
     provenance = json.loads((tmp_path / "m" / "meta" / "shiftkit_provenance.json").read_text())
     assert provenance["sources"][0]["file_name"] == {"task": "move-object", "scene": None, "variant": "new"}
     assert hashlib.sha256(path.read_bytes()).hexdigest() == digest
+
+    # Files of the reference's other environments have their names mapped; their layout is refused by name.
+    sawyer = _write_buffer(
+        tmp_path / "sawyer_lift_random_reach.gz",
+        *(np.zeros((2, 8), np.float32),) * 2,
+        np.zeros((2, 4)),
+        np.zeros((2, 1)),
+        0,
+        2,
+    )
+    with pytest.raises(DatasetError, match=r"\(2, 8\) is neither .* \(sawyer_lift data: shiftkit has no environment"):
+        read_vpace_buffer(sawyer)

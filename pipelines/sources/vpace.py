@@ -209,7 +209,9 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     obs, next_obs = arrays["observations"], arrays["next_observations"]
     width = obs.shape[1] if obs.ndim == 2 else None
     if width is None or width - 1 not in ERA_FPS or next_obs.shape != obs.shape:
-        raise DatasetError(f"{path}: observation shape {obs.shape} is neither (N, 60) nor (N, 54)")
+        other = _ENV_NAME.search(path.name.removesuffix(".gz"))
+        why = f" ({other.group(1)} data: shiftkit has no environment with its layout)" if other else ""
+        raise DatasetError(f"{path}: observation shape {obs.shape} is neither (N, 60) nor (N, 54){why}")
     if np.any(obs[:, -1] != 0) or np.any(next_obs[:, -1] != 0):
         raise DatasetError(f"{path}: rows with the absorbing-state flag set are not supported")
     actions = arrays["actions"]
