@@ -142,11 +142,22 @@ def test_filter_key_fps_and_task(tmp_path, capsys):
 
 
 def test_language_instruction_per_demo(tmp_path):
-    """robocasa-style files keep a language instruction per demo in the ep_meta attribute."""
-    src = _write(tmp_path / "lang.hdf5", ep_meta=lambda name: {"lang": f"open drawer {name[5:]}", "layout_id": 3})
+    """robocasa-style files keep a language instruction per demo in the ep_meta attribute; 1-DoF actions are (T,)."""
+
+    def one_dim_actions(name, arrays):  # a 1-DoF robot stores actions as (T,)
+        arrays["actions"] = arrays["actions"][:, 0]
+
+    src = _write(
+        tmp_path / "lang.hdf5",
+        ep_meta=lambda name: {"lang": f"open drawer {name[5:]}", "layout_id": 3},
+        edit=one_dim_actions,
+    )
     import_robomimic(src, "rm/lang", tmp_path / "o", filter_key="valid")
     (ep,) = open_lerobot_dataset(tmp_path / "o").iter_episodes()
     assert set(ep.frames["task"]) == {"open drawer 1"}
+    np.testing.assert_array_equal(
+        ep.frames["action"][:, 0], _demo_arrays("demo_1", 3)["actions"][:, 0].astype(np.float32)
+    )
 
 
 def _nan_action(name, arrays):

@@ -125,6 +125,11 @@ def _demo_names(path: Path, f, filter_key: str | None) -> list[str]:
     return sorted(chosen, key=lambda k: int(k[5:]))
 
 
+def _width(ds) -> int:
+    """Values per sample of a (T,) or (T, d) dataset."""
+    return 1 if ds.ndim == 1 else int(np.prod(ds.shape[1:]))
+
+
 def _is_image(ds) -> bool:
     return ds.dtype == np.uint8 and ds.ndim == 4 and ds.shape[-1] == 3
 
@@ -150,9 +155,8 @@ def _schema(path: Path, demo, demo_name: str, obs_keys: list[str] | None) -> tup
             groups[f"observation.images.{camera}"] = [key]
         elif ds.ndim in (1, 2) and ds.dtype.kind in "fiub":
             target = "observation.environment_state" if key == ENVIRONMENT_STATE_KEY else "observation.state"
-            width = 1 if ds.ndim == 1 else int(ds.shape[1])
             groups[target].append(key)
-            names[target] += [key] if ds.ndim == 1 else [f"{key}_{i}" for i in range(width)]
+            names[target] += [key] if ds.ndim == 1 else [f"{key}_{i}" for i in range(_width(ds))]
         else:
             raise DatasetError(
                 f"{path}: data/{demo_name}/obs/{key} has shape {ds.shape} ({ds.dtype}): neither low-dim (T, d) nor "
@@ -163,14 +167,13 @@ def _schema(path: Path, demo, demo_name: str, obs_keys: list[str] | None) -> tup
             features[target] = vector_feature("float32", names[target])
         else:
             del groups[target]
-    actions = demo["actions"]
-    features["action"] = vector_feature("float32", [f"action_{i}" for i in range(int(actions.shape[-1]))])
+    features["action"] = vector_feature("float32", [f"action_{i}" for i in range(_width(demo["actions"]))])
     if "rewards" in demo:
         features["next.reward"] = vector_feature("float32", ["reward"])
     if "dones" in demo:
         features["next.done"] = vector_feature("bool", ["done"])
     if "states" in demo:
-        features["sim.state"] = vector_feature("float64", [f"state_{i}" for i in range(int(demo["states"].shape[-1]))])
+        features["sim.state"] = vector_feature("float64", [f"state_{i}" for i in range(_width(demo["states"]))])
     return features, groups
 
 
