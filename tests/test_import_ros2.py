@@ -16,6 +16,7 @@ from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.sources.ros2 import _fetch, _plan, _scan, import_ros2, load_mapping
+from shiftkit.pipelines.sources.ros2 import _image as _image_of
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T0 = 1_700_000_000 * 10**9  # bag clock (ns)
@@ -183,6 +184,7 @@ def test_mcap_nearest_alignment_and_split_topic(tmp_path):
         ('fps = 10\ntask = "x"\n[features.action]\ntopic = "/joint_states"\nfield = "name"\n', "is not numeric"),
         ('fps = 10\ntask = "x"\n[features."observation.images.a"]\ntopic = "/cmd_vel"\n', "not an image"),
         ('fps = 10\ntask = "x"\nfeature = 1\n', "unknown key 'feature'"),
+        ('fps = 10\ntask = "x"\nfeatures = {}\n', "map at least one feature"),
         ('task = "x"\n[features.action]\ntopic = "/cmd_vel"\nfield = "linear.x"\n', "give a positive fps"),
         (
             'fps = 10\ntask = "x"\nalign = "linear"\n[features.action]\ntopic = "/cmd_vel"\nfield = "linear.x"\n',
@@ -292,3 +294,28 @@ def test_header_stamps_align_sensor_time(tmp_path):
     bag = _write_bag(tmp_path / "rec", duration_ns=200_000_000)
     with pytest.raises(DatasetError, match=r"/cmd_vel \(geometry_msgs/msg/Twist\) has no header.stamp"):
         import_ros2([bag], mapping, "r/t", tmp_path / "bad")
+
+
+def test_image_encodings():
+    """Row padding (step > width * channels), mono8 and CompressedImage (PNG) all come out as RGB (H, W, 3)."""
+    import cv2
+
+    rgb = np.arange(4 * 5 * 3, dtype=np.uint8).reshape(4, 5, 3)
+    padded = np.zeros((4, 16), np.uint8)
+    padded[:, :15] = rgb[..., ::-1].reshape(4, 15)  # bgr8 rows padded to 16 bytes
+    image = TS.types["sensor_msgs/msg/Image"]
+    msg = image(
+        header=_header(T0), height=4, width=5, encoding="bgr8", is_bigendian=0, step=16, data=padded.reshape(-1)
+    )
+    np.testing.assert_array_equal(_image_of(msg, "t"), rgb)
+    mono = rgb[..., 0].copy()
+    msg = image(header=_header(T0), height=4, width=5, encoding="mono8", is_bigendian=0, step=5, data=mono.reshape(-1))
+    np.testing.assert_array_equal(_image_of(msg, "t"), np.repeat(mono[..., None], 3, axis=2))
+    png = np.frombuffer(cv2.imencode(".png", rgb[..., ::-1])[1].tobytes(), np.uint8)
+    compressed = TS.types["sensor_msgs/msg/CompressedImage"](header=_header(T0), format="png", data=png)
+    np.testing.assert_array_equal(_image_of(compressed, "t"), rgb)
+    msg = image(
+        header=_header(T0), height=4, width=5, encoding="16UC1", is_bigendian=0, step=10, data=padded.reshape(-1)
+    )
+    with pytest.raises(DatasetError, match="encoding '16UC1' is not supported"):
+        _image_of(msg, "t")

@@ -81,6 +81,8 @@ class Ros2Mapping:
 
     def __post_init__(self) -> None:
         self.sources = {k: v if isinstance(v, list) else [v] for k, v in self.features.items()}
+        if not self.sources:
+            raise ValueError("map at least one feature")
         if self.fps is not None and self.fps < 1:
             raise ValueError(f"fps must be a positive integer, got {self.fps}")
         for key, parts in self.sources.items():
