@@ -160,6 +160,21 @@ def test_language_instruction_per_demo(tmp_path):
     )
 
 
+def test_states_only_file(tmp_path):
+    """robosuite's converted demo.hdf5 has no observations yet: actions + simulator states import."""
+
+    def states_only(name, arrays):
+        for key in [k for k in arrays if k.startswith("obs/") or k in ("rewards", "dones")]:
+            del arrays[key]
+
+    src = _write(tmp_path / "demo.hdf5", edit=states_only)
+    summary = import_robomimic(src, "rm/raw", tmp_path / "o")
+    assert (summary.episodes, summary.frames) == (3, 12)
+    ep = next(open_lerobot_dataset(tmp_path / "o").iter_episodes())
+    assert sorted(k for k in ep.frames if k not in ("timestamp", "task")) == ["action", "sim.state"]
+    np.testing.assert_array_equal(ep.frames["sim.state"], _demo_arrays("demo_0", 5)["states"])
+
+
 def _nan_action(name, arrays):
     if name == "demo_1":
         arrays["actions"][2, 0] = np.nan

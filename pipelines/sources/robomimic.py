@@ -3,7 +3,8 @@ MimicGen and Isaac Lab's recorders) as LeRobot datasets.
 
 What maps where (docs/importers.md has the table):
 
-* `data/demo_N` -> one episode each, in N order; `mask/<filter key>` (`--filter-key train`)
+* `data/demo_N` -> one episode each, in N order (files without `obs`, as robosuite's converted
+  `demo.hdf5`, give episodes of actions and simulator states); `mask/<filter key>` (`--filter-key train`)
   selects the demos of a split.
 * `actions` -> `action`; `rewards` -> `next.reward`; `dones` -> `next.done`.
 * `obs/<key>`: RGB images (uint8 (T, H, W, 3), robomimic names them `<camera>_image`) ->
@@ -136,10 +137,10 @@ def _is_image(ds) -> bool:
 
 def _schema(path: Path, demo, demo_name: str, obs_keys: list[str] | None) -> tuple[Features, dict[str, list[str]]]:
     """Features of the dataset from its first demo, and which obs keys feed which feature."""
-    for key in ("actions", "obs"):
-        if key not in demo:
-            raise DatasetError(f"{path}: data/{demo_name} has no {key!r}")
-    obs = demo["obs"]
+    if "actions" not in demo:
+        raise DatasetError(f"{path}: data/{demo_name} has no 'actions'")
+    # robosuite's converted demo.hdf5 has states and actions only (observations are extracted later)
+    obs = demo.get("obs", {})
     keys = sorted(obs) if obs_keys is None else obs_keys
     unknown = [k for k in keys if k not in obs]
     if unknown:
