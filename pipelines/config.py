@@ -83,26 +83,26 @@ def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConf
     return config
 
 
-def load_pipeline_config(path: str | Path) -> PipelineConfig:
+def read_config_file(path: str | Path, what: str = "pipeline config") -> Any:
+    """The plain data in a .toml, .yaml/.yml or .json file; a ConfigError names a missing or malformed one."""
     path = Path(path)
     try:
         text = path.read_text()
     except FileNotFoundError:
-        raise ConfigError(f"pipeline config not found: {path}") from None
+        raise ConfigError(f"{what} not found: {path}") from None
     except IsADirectoryError:
-        raise ConfigError(f"pipeline config is a directory: {path}") from None
+        raise ConfigError(f"{what} is a directory: {path}") from None
     suffix = path.suffix.lower()
     try:
         if suffix == ".toml":
-            data = tomllib.loads(text)
-        elif suffix in (".yaml", ".yml"):
+            return tomllib.loads(text)
+        if suffix in (".yaml", ".yml"):
             import yaml
 
-            data = yaml.safe_load(text)
-        elif suffix == ".json":
-            data = json.loads(text)
-        else:
-            raise ConfigError(f"{path}: unknown config format {suffix!r} (use .toml, .yaml or .json)")
+            return yaml.safe_load(text)
+        if suffix == ".json":
+            return json.loads(text)
+        raise ConfigError(f"{path}: unknown config format {suffix!r} (use .toml, .yaml or .json)")
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML ({exc})") from None
     except json.JSONDecodeError as exc:
@@ -111,4 +111,8 @@ def load_pipeline_config(path: str | Path) -> PipelineConfig:
         if isinstance(exc, ConfigError):
             raise
         raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
-    return parse_pipeline_config(data, path.parent.resolve(), str(path))
+
+
+def load_pipeline_config(path: str | Path) -> PipelineConfig:
+    path = Path(path)
+    return parse_pipeline_config(read_config_file(path), path.parent.resolve(), str(path))

@@ -15,7 +15,13 @@ import pytest
 from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
 from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
-from shiftkit.pipelines.sources.vpace import import_vpace, read_vpace_buffer, task_from_filename
+from shiftkit.pipelines.sources.vpace import (
+    ReferenceName,
+    import_vpace,
+    parse_reference_name,
+    read_vpace_buffer,
+    task_from_filename,
+)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vpace"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"published VPACE data not found at {DATA}")
@@ -244,3 +250,211 @@ def test_cli_import(tmp_path, capsys):
     mixed = [str(DATA / "examples_1200_4_reach.gz"), str(DATA / "full_trajectories_4_reach.gz")]
     assert main(["import", "vpace", *mixed, "--repo-id", "a/b", "--root", str(tmp_path / "m")]) == 2
     assert "mix observation widths" in capsys.readouterr().err
+
+
+# Every .gz under utiasSTARS/vpace `expert_data/` (commit f806e40), by the task it holds (the reference's
+# env_default_configs.py names them `<index>_[<scene>-]<task>[_<revision>]` for Panda play and
+# `<env>[_[random_]<aux>[_<variant>]]` for the other environments).
+REFERENCE_FILE_TASKS = {
+    "open": (
+        "1200_per_task/0_bring-open.gz",
+        "1200_per_task/0_insert-open.gz",
+        "1200_per_task/0_stack-open.gz",
+        "full_trajectories/200_per_task/0_bring-open.gz",
+        "full_trajectories/200_per_task/0_insert-open.gz",
+        "full_trajectories/200_per_task/0_stack-open.gz",
+        "full_trajectories/200_per_task/0_unstack-stack-open.gz",
+    ),
+    "close": (
+        "1200_per_task/1_close.gz",
+        "full_trajectories/200_per_task/1_close.gz",
+        "full_trajectories/200_per_task/1_unstack-stack-close.gz",
+    ),
+    "bring": (
+        "1200_per_task/2_bring.gz",
+        "full_trajectories/200_per_task/2_bring.gz",
+    ),
+    "insert": (
+        "1200_per_task/2_insert.gz",
+        "full_trajectories/200_per_task/0_insert.gz",
+        "full_trajectories/200_per_task/2_insert.gz",
+    ),
+    "stack": (
+        "1200_per_task/2_stack.gz",
+        "full_trajectories/200_per_task/2_stack.gz",
+    ),
+    "lift": (
+        "1200_per_task/3_lift.gz",
+        "full_trajectories/200_per_task/3_lift.gz",
+        "full_trajectories/200_per_task/3_unstack-stack-lift.gz",
+    ),
+    "unstack": ("1200_per_task/3_unstack.gz",),
+    "reach": (
+        "1200_per_task/4_reach.gz",
+        "1200_per_task/PandaReach_reach.gz",
+        "1200_per_task/SimPandaReach_reach.gz",
+        "1200_per_task/hand_dapg/door-human-v0_reach.gz",
+        "1200_per_task/hand_dapg/door-human-v0_reach_mulperep.gz",
+        "1200_per_task/hand_dapg/door-human-v0_reach_oneperep.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_reach.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_reach_mulperep.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_reach_mulperep_withvel.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_reach_oneperep.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_reach_oneperep_withvel.gz",
+        "1200_per_task/hand_dapg/relocate-human-v0-najp_reach.gz",
+        "1200_per_task/hand_dapg/relocate-human-v0_reach.gz",
+        "1200_per_task/hand_dapg/with_vel/relocate-human-v0-najp_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_bin_picking_random_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_bin_picking_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_box_close_random_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_box_close_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_drawer_close_random_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_drawer_close_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_drawer_open_random_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_drawer_open_random_reach_p02z.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_drawer_open_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_lift_random_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_lift_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_push_random_reach.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_push_random_reach_p025.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_push_random_reach_p1.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_push_random_reach_p6.gz",
+        "1200_per_task/sawyer/no_grip_pos/sawyer_push_reach.gz",
+        "1200_per_task/sawyer/sawyer_bin_picking_random_reach.gz",
+        "1200_per_task/sawyer/sawyer_box_close_random_reach.gz",
+        "1200_per_task/sawyer/sawyer_drawer_close_random_reach.gz",
+        "1200_per_task/sawyer/sawyer_drawer_open_random_reach.gz",
+        "1200_per_task/sawyer/sawyer_drawer_open_random_reach_with_grasp.gz",
+        "1200_per_task/sawyer/sawyer_lift_random_reach.gz",
+        "1200_per_task/sawyer/sawyer_push_random_reach.gz",
+        "1200_per_task/sawyer/with_vel/sawyer_bin_picking_random_reach.gz",
+        "1200_per_task/sawyer/with_vel/sawyer_lift_random_reach.gz",
+        "50_per_task/PandaDoorAngle_reach.gz",
+        "50_per_task/PandaDoorNoJamAngle_reach.gz",
+        "50_per_task/PandaDoor_reach.gz",
+        "50_per_task/PandaDrawerLine_reach.gz",
+        "50_per_task/PandaDrawer_reach.gz",
+        "full_trajectories/200_per_task/4_reach.gz",
+        "full_trajectories/200_per_task/4_unstack-stack-reach.gz",
+    ),
+    "move-object": (
+        "1200_per_task/5_move.gz",
+        "1200_per_task/5_move_new.gz",
+        "full_trajectories/200_per_task/5_move.gz",
+        "full_trajectories/200_per_task/5_move_fix.gz",
+        "full_trajectories/200_per_task/5_unstack-stack-move.gz",
+    ),
+    "PandaReach": ("1200_per_task/PandaReach.gz",),
+    "SimPandaReach": ("1200_per_task/SimPandaReach.gz",),
+    "door-human-v0": ("1200_per_task/hand_dapg/door-human-v0.gz",),
+    "grasp": (
+        "1200_per_task/hand_dapg/door-human-v0_grasp.gz",
+        "1200_per_task/hand_dapg/door-human-v0_grasp_straighthandle.gz",
+        "1200_per_task/hand_dapg/door-human-v0_grasp_turnedhandle.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_grasp.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_grasp_oneperep_withvel.gz",
+        "1200_per_task/hand_dapg/hammer-human-v0_grasp_withvel.gz",
+        "1200_per_task/hand_dapg/relocate-human-v0-najp_grasp.gz",
+        "1200_per_task/hand_dapg/relocate-human-v0_grasp.gz",
+        "1200_per_task/hand_dapg/with_vel/relocate-human-v0-najp_grasp.gz",
+        "1200_per_task/sawyer/sawyer_bin_picking_random_grasp.gz",
+        "1200_per_task/sawyer/sawyer_box_close_random_grasp.gz",
+        "1200_per_task/sawyer/sawyer_drawer_close_random_grasp.gz",
+        "1200_per_task/sawyer/sawyer_drawer_open_random_grasp.gz",
+        "1200_per_task/sawyer/sawyer_lift_random_grasp.gz",
+        "1200_per_task/sawyer/sawyer_push_random_grasp.gz",
+        "50_per_task/PandaDoorAngle_grasp.gz",
+        "50_per_task/PandaDoorNoJamAngle_grasp.gz",
+        "50_per_task/PandaDoor_grasp.gz",
+        "50_per_task/PandaDrawerLine_grasp.gz",
+        "50_per_task/PandaDrawer_grasp.gz",
+    ),
+    "hammer-human-v0": ("1200_per_task/hand_dapg/hammer-human-v0.gz",),
+    "relocate-human-v0-najp": (
+        "1200_per_task/hand_dapg/relocate-human-v0-najp.gz",
+        "1200_per_task/hand_dapg/with_vel/relocate-human-v0-najp.gz",
+    ),
+    "relocate-human-v0": ("1200_per_task/hand_dapg/relocate-human-v0.gz",),
+    "sawyer_air_reach": ("1200_per_task/sawyer/no_grip_pos/sawyer_air_reach.gz",),
+    "sawyer_bin_picking": (
+        "1200_per_task/sawyer/no_grip_pos/sawyer_bin_picking.gz",
+        "1200_per_task/sawyer/sawyer_bin_picking.gz",
+        "1200_per_task/sawyer/sawyer_bin_picking_ORIG.gz",
+        "1200_per_task/sawyer/with_vel/sawyer_bin_picking.gz",
+    ),
+    "sawyer_box_close": (
+        "1200_per_task/sawyer/no_grip_pos/sawyer_box_close.gz",
+        "1200_per_task/sawyer/sawyer_box_close.gz",
+    ),
+    "sawyer_drawer_close": (
+        "1200_per_task/sawyer/no_grip_pos/sawyer_drawer_close.gz",
+        "1200_per_task/sawyer/sawyer_drawer_close.gz",
+    ),
+    "sawyer_drawer_open": (
+        "1200_per_task/sawyer/no_grip_pos/sawyer_drawer_open.gz",
+        "1200_per_task/sawyer/sawyer_drawer_open.gz",
+    ),
+    "sawyer_lift": (
+        "1200_per_task/sawyer/no_grip_pos/sawyer_lift.gz",
+        "1200_per_task/sawyer/sawyer_lift.gz",
+        "1200_per_task/sawyer/sawyer_lift_no_xyrandom.gz",
+        "1200_per_task/sawyer/with_vel/sawyer_lift.gz",
+    ),
+    "sawyer_push": (
+        "1200_per_task/sawyer/no_grip_pos/sawyer_push.gz",
+        "1200_per_task/sawyer/sawyer_push.gz",
+    ),
+    "sawyer_reach": ("1200_per_task/sawyer/no_grip_pos/sawyer_reach.gz",),
+    "PandaDoor": ("50_per_task/PandaDoor.gz",),
+    "PandaDoorAngle": ("50_per_task/PandaDoorAngle.gz",),
+    "PandaDoorNoJamAngle": ("50_per_task/PandaDoorNoJamAngle.gz",),
+    "PandaDrawer": ("50_per_task/PandaDrawer.gz",),
+    "PandaDrawerLine": ("50_per_task/PandaDrawerLine.gz",),
+    "unstack-stack": ("full_trajectories/200_per_task/2_unstack-stack.gz",),
+}
+
+
+def test_every_reference_file_name_names_its_task():
+    names = [(name, task) for task, files in REFERENCE_FILE_TASKS.items() for name in files]
+    assert len(names) == 123
+    for name, task in names:
+        assert task_from_filename(name) == task, name
+        assert task_from_filename(f"examples_1200_{Path(name).name}") == task, name  # local copies keep a prefix
+    assert parse_reference_name("0_stack-open.gz") == ReferenceName("open", "stack", None)
+    assert parse_reference_name("5_move_new.gz") == ReferenceName("move-object", None, "new")
+    assert parse_reference_name("sawyer_drawer_open_random_reach_p02z.gz") == ReferenceName(
+        "reach", "sawyer_drawer_open", "p02z"
+    )
+    assert parse_reference_name("relocate-human-v0-najp_grasp.gz") == ReferenceName("grasp", "relocate-human-v0-najp")
+    assert parse_reference_name("SimPandaReach.gz") == ReferenceName("SimPandaReach", "SimPandaReach")
+
+
+def test_revised_recording_imports_without_task(tmp_path, capsys):
+    """`1200_per_task/5_move_new.gz` (VPACE-era, 54 columns) imports as move-object examples."""
+    rng = np.random.default_rng(1)
+    obs = rng.normal(size=(3, 54)).astype(np.float32)
+    obs[:, -1] = 0
+    folder = tmp_path / "1200_per_task"
+    folder.mkdir()
+    path = _write_buffer(folder / "5_move_new.gz", obs, obs, np.zeros((3, 4), np.float32), np.ones((3, 5)), 0, 3)
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    assert main(["import", "vpace", str(path), "--repo-id", "vpace/move", "--root", str(tmp_path / "m")]) == 0
+    assert "5_move_new.gz: task 'move-object', 3 examples" in capsys.readouterr().out
+    episodes = list(open_lerobot_dataset(tmp_path / "m").iter_episodes())
+    assert [ep.meta["task"] for ep in episodes] == ["move-object"] * 3
+    np.testing.assert_array_equal(np.concatenate([_full_observation(ep) for ep in episodes]), obs[:, :53])
+    provenance = json.loads((tmp_path / "m" / "meta" / "shiftkit_provenance.json").read_text())
+    assert provenance["sources"][0]["file_name"] == {"task": "move-object", "scene": None, "variant": "new"}
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == digest
+
+    # Files of the reference's other environments have their names mapped; their layout is refused by name.
+    sawyer = _write_buffer(
+        tmp_path / "sawyer_lift_random_reach.gz",
+        *(np.zeros((2, 8), np.float32),) * 2,
+        np.zeros((2, 4)),
+        np.zeros((2, 1)),
+        0,
+        2,
+    )
+    with pytest.raises(DatasetError, match=r"\(2, 8\) is neither .* \(sawyer_lift data: shiftkit has no environment"):
+        read_vpace_buffer(sawyer)

@@ -22,7 +22,7 @@ import hashlib
 import io
 import pickle
 import re
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -39,7 +39,40 @@ Kind = Literal["auto", "examples", "trajectories"]
 # tasks (59 dims, with force-torque) ran at 20 Hz, the VPACE-era ones (53 dims) at 5 Hz (thesis B.2).
 ERA_FPS = {59: 20, 53: 5}
 _REQUIRED_KEYS = ("observations", "next_observations", "actions", "rewards", "memory_size", "pointer", "count")
-_TASK_IN_NAME = re.compile(r"(?:^|_)\d+_([A-Za-z][A-Za-z0-9-]*)$")
+# File names in the reference's `expert_data/` (utiasSTARS/vpace env_default_configs.py):
+# * Panda play: `<intention index>_[<scene>-]<task>[_<revision>].gz`, e.g. `0_stack-open` (the open
+#   task in the stack scene), `5_move_new` (a later recording of move); any prefix before the index
+#   is ignored (`examples_1200_3_lift`).
+# * every other environment: `<env>.gz` holds its main task, `<env>_[random_]<aux>[_<variant>].gz`
+#   an auxiliary task (reach or grasp), e.g. `sawyer_lift_random_reach`, `door-human-v0_reach_mulperep`.
+_NUMBERED_NAME = re.compile(r"^(?:.*_)?(\d+)_([A-Za-z][A-Za-z0-9-]*)(?:_([A-Za-z][A-Za-z0-9-]*))?$")
+_PANDA_PLAY_SCENES = ("unstack-stack", "stack", "bring", "insert")  # main tasks whose scene a file name may name
+_PANDA_PLAY_ALIASES = {"move": "move-object"}  # reference task name -> this env's
+_REFERENCE_ENVS = (
+    "sawyer_air_reach",
+    "sawyer_bin_picking",
+    "sawyer_box_close",
+    "sawyer_drawer_close",
+    "sawyer_drawer_open",
+    "sawyer_lift",
+    "sawyer_push",
+    "sawyer_reach",
+    "door-human-v0",
+    "hammer-human-v0",
+    "relocate-human-v0",
+    "relocate-human-v0-najp",
+    "PandaReach",
+    "SimPandaReach",
+    "PandaDoor",
+    "PandaDoorAngle",
+    "PandaDoorNoJamAngle",
+    "PandaDrawer",
+    "PandaDrawerLine",
+)
+_ENV_NAME = re.compile(
+    r"(?:^|_)(" + "|".join(re.escape(e) for e in sorted(_REFERENCE_ENVS, key=len, reverse=True)) + r")(?:_(.+))?$"
+)
+_AUX_TASKS = ("reach", "grasp")
 
 
 @dataclass
@@ -58,6 +91,8 @@ class VpaceBuffer:
     """(N, num_tasks) float32 as stored (the generating env's task order)."""
     overwritten_rows: int
     """Oldest rows the circular buffer dropped (count - memory_size when it wrapped)."""
+    reference_name: ReferenceName | None = None
+    """What the file name says (None when the task was given instead)."""
 
     @property
     def obs_dim(self) -> int:
@@ -100,15 +135,47 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"refusing to load {module}.{name} (only numpy arrays are expected)")
 
 
-def task_from_filename(path: str | Path) -> str:
-    """`3_lift.gz` / `examples_1200_3_lift.gz` -> "lift" (the reference names files <index>_<task>)."""
+@dataclass(frozen=True)
+class ReferenceName:
+    """What a reference file name says about its contents."""
+
+    task: str
+    """The task whose states/transitions the file holds (Panda play files: this env's task name)."""
+    scene: str | None = None
+    """Panda play: the main task whose scene the file was recorded in (`0_stack-open` -> stack);
+    other environments: the reference's environment name."""
+    variant: str | None = None
+    """The rest of the name: a re-recording (`new`, `fix`) or sampling variant (`mulperep`, `p02z`)."""
+
+
+def parse_reference_name(path: str | Path) -> ReferenceName:
+    """Map a file name of the reference's `expert_data/` folders to the task it holds:
+    `5_move_new.gz` -> move-object, `0_stack-open.gz` -> open (stack scene), `sawyer_lift.gz` ->
+    sawyer_lift (the environment's main task), `sawyer_lift_random_reach.gz` -> reach."""
     stem = Path(path).name.removesuffix(".gz")
-    m = _TASK_IN_NAME.search(stem)
+    m = _ENV_NAME.search(stem)
+    if m is not None:
+        env, rest = m.group(1), m.group(2).split("_") if m.group(2) else []
+        if rest[:1] == ["random"] and rest[1:2] and rest[1] in _AUX_TASKS:
+            rest = rest[1:]
+        if rest and rest[0] in _AUX_TASKS:
+            return ReferenceName(rest[0], env, "_".join(rest[1:]) or None)
+        return ReferenceName(env, env, "_".join(rest) or None)
+    m = _NUMBERED_NAME.match(stem)
     if m is None:
         raise DatasetError(
-            f"{path}: cannot tell the task from the file name (expected ..._<index>_<task>.gz); give --task"
+            f"{path}: cannot tell the task from the file name (expected <index>_<task>.gz or <env>[_<aux>].gz "
+            "as in the reference's expert_data/); give --task"
         )
-    return m.group(1)
+    name, variant = m.group(2), m.group(3)
+    scene = next((s for s in _PANDA_PLAY_SCENES if name.startswith(f"{s}-")), None)
+    task = name.removeprefix(f"{scene}-") if scene else name
+    return ReferenceName(_PANDA_PLAY_ALIASES.get(task, task), scene, variant)
+
+
+def task_from_filename(path: str | Path) -> str:
+    """The task a reference file holds, from its name (see `parse_reference_name`)."""
+    return parse_reference_name(path).task
 
 
 def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
@@ -142,7 +209,9 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     obs, next_obs = arrays["observations"], arrays["next_observations"]
     width = obs.shape[1] if obs.ndim == 2 else None
     if width is None or width - 1 not in ERA_FPS or next_obs.shape != obs.shape:
-        raise DatasetError(f"{path}: observation shape {obs.shape} is neither (N, 60) nor (N, 54)")
+        other = _ENV_NAME.search(path.name.removesuffix(".gz"))
+        why = f" ({other.group(1)} data: shiftkit has no environment with its layout)" if other else ""
+        raise DatasetError(f"{path}: observation shape {obs.shape} is neither (N, 60) nor (N, 54){why}")
     if np.any(obs[:, -1] != 0) or np.any(next_obs[:, -1] != 0):
         raise DatasetError(f"{path}: rows with the absorbing-state flag set are not supported")
     actions = arrays["actions"]
@@ -152,15 +221,17 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     for key, a in (("observations", obs), ("actions", actions), ("rewards", rewards)):
         if not np.isfinite(a).all():
             raise DatasetError(f"{path}: {key} contain NaN/inf")
+    reference_name = None if task else parse_reference_name(path)
     return VpaceBuffer(
         path=path,
         sha256=hashlib.sha256(raw_bytes).hexdigest(),
-        task=task or task_from_filename(path),
+        task=task or reference_name.task,
         observations=obs[:, :-1],
         next_observations=next_obs[:, :-1],
         actions=vpace_action_to_shiftkit(actions),
         rewards=rewards,
         overwritten_rows=max(count - size, 0),
+        reference_name=reference_name,
     )
 
 
@@ -285,6 +356,7 @@ def import_vpace(
                 "task": b.task,
                 "rows": len(b.observations),
                 "overwritten_rows": b.overwritten_rows,
+                **({"file_name": asdict(b.reference_name)} if b.reference_name else {}),
             }
             for b in buffers
         ],

@@ -1,0 +1,110 @@
+"""Import a LeRobot v2.1 dataset (per-episode parquet files, `meta/*.jsonl`) as a v3.0 dataset through
+lerobot's own converter (`lerobot.datasets.v30.convert_dataset_v21_to_v30`), into a new directory.
+
+lerobot's `convert_dataset` works in place: it renames the source to `<name>_old` and moves the
+result to the source's name. Its steps (`convert_info`, `convert_tasks`, `convert_data`,
+`convert_videos`, `convert_episodes_metadata`) only read the old root and write the new one, so
+they run here with the source as the old root and a temporary sibling of the destination as the
+new one: the source is never renamed or written, and the destination appears only when the
+converted dataset loads. Frames, videos, statistics and tasks are exactly what the converter
+writes; shiftkit adds its provenance file and dataset card.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.jsonutil import read_json_file
+from shiftkit.pipelines.sources import Importer, ImportSummary
+
+LEGACY_FILES = ("meta/info.json", "meta/episodes.jsonl", "meta/tasks.jsonl", "meta/episodes_stats.jsonl")
+
+
+def _check_source(source: Path) -> dict:
+    if not (source / "meta" / "info.json").is_file():
+        raise DatasetError(f"{source}: not a LeRobot dataset (meta/info.json missing)")
+    info = read_json_file(source / "meta" / "info.json", "not a LeRobot dataset")
+    version = info.get("codebase_version")
+    if version != "v2.1":
+        hint = " (already v3.0: use it as a source directly)" if version == "v3.0" else ""
+        raise DatasetError(f"{source}: codebase_version {version!r}, this importer converts v2.1{hint}")
+    missing = [f for f in LEGACY_FILES if not (source / f).is_file()]
+    if missing:
+        raise DatasetError(f"{source}: missing {missing} (a v2.1 dataset has them)")
+    if not any((source / "data").glob("*/*.parquet")):
+        raise DatasetError(f"{source}: no data/chunk-*/episode_*.parquet files")
+    return info
+
+
+def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> ImportSummary:
+    """Convert the v2.1 dataset at `source` into a new v3.0 dataset at `root` (the source is only read)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.datasets.utils import DEFAULT_DATA_FILE_SIZE_IN_MB, DEFAULT_VIDEO_FILE_SIZE_IN_MB
+    from lerobot.datasets.v30 import convert_dataset_v21_to_v30 as converter
+
+    from shiftkit.pipelines.hub import validate_repo_id
+    from shiftkit.pipelines.lerobot_io import fingerprint, write_provenance
+    from shiftkit.pipelines.provenance import PROVENANCE_VERSION, versions
+
+    validate_repo_id(repo_id)
+    source, dest = Path(source).resolve(), Path(root).resolve()
+    if not source.is_dir():
+        raise DatasetError(f"{source}: no such dataset directory")
+    _check_source(source)
+    if dest.exists():
+        raise DatasetError(f"destination already exists: {dest}")
+    if dest.is_relative_to(source):
+        raise DatasetError(f"destination {dest} lies inside the source dataset; choose a directory outside it")
+    source_fingerprint = fingerprint(source)
+    tmp = dest.parent / f".{dest.name}.partial-{uuid.uuid4().hex[:8]}"
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        converter.convert_info(source, tmp, DEFAULT_DATA_FILE_SIZE_IN_MB, DEFAULT_VIDEO_FILE_SIZE_IN_MB)
+        converter.convert_tasks(source, tmp)
+        episodes = converter.convert_data(source, tmp, DEFAULT_DATA_FILE_SIZE_IN_MB)
+        videos = converter.convert_videos(source, tmp, DEFAULT_VIDEO_FILE_SIZE_IN_MB)
+        converter.convert_episodes_metadata(source, tmp, episodes, videos)
+        meta = LeRobotDatasetMetadata(repo_id, root=tmp)  # loads: info, tasks, episodes, stats
+        num_episodes, num_frames, fps = meta.total_episodes, meta.total_frames, meta.fps
+        write_provenance(
+            tmp,
+            {
+                "provenance_version": PROVENANCE_VERSION,
+                "tool": "shiftkit",
+                "versions": versions(),
+                "sources": [{"kind": "lerobot-v2.1", "path": str(source), "fingerprint": source_fingerprint}],
+                "stages": [],
+                "importer": {"name": "lerobot-v2.1", "converter": converter.__name__},
+                "seed": None,
+                "output": {"repo_id": repo_id, "fps": fps, "episodes": num_episodes, "frames": num_frames},
+            },
+        )
+        os.rename(tmp, dest)
+    except DatasetError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    except Exception as exc:  # the converter raises ValueError/KeyError/ArrowInvalid/... on malformed input
+        shutil.rmtree(tmp, ignore_errors=True)
+        detail = " ".join(str(exc).split())[:300]
+        raise DatasetError(
+            f"{source}: lerobot's v2.1 -> v3.0 converter failed ({type(exc).__name__}: {detail})"
+        ) from None
+    per_file = [{"file": source.name, "episodes": num_episodes}]
+    return ImportSummary(dest, "converted", fps, num_episodes, num_frames, per_file)
+
+
+def _add_arguments(parser) -> None:
+    parser.add_argument("source", metavar="DIR", help="a local LeRobot v2.1 dataset directory (only read)")
+
+
+IMPORTER = Importer(
+    name="lerobot-v2.1",
+    help="LeRobot v2.1 datasets, converted to v3.0 by lerobot's own converter into a new directory",
+    add_arguments=_add_arguments,
+    run=lambda args: import_lerobot_v21(args.source, args.repo_id, args.root),
+    report=lambda summary: [f"{f['file']}: {f['episodes']} episodes converted" for f in summary.per_file],
+)
