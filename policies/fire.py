@@ -29,6 +29,7 @@ import json
 import math
 import os
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -218,7 +219,8 @@ class Agent:
         """One policy step (the oracle's look-ahead uses this too)."""
         features = self.observe(env, obs)
         action, doubt = self.decide(features)
-        return action, {"d": self.d_score(features, action), "doubt": doubt}
+        frame = {**{k: features[k] for k in self.keys}, "action": action}
+        return action, {"d": self.d_score(features, action), "doubt": doubt, "frame": frame}
 
 
 def recordable_features(features: dict[str, dict], observation_names: list[str]) -> dict[str, dict]:
@@ -242,6 +244,8 @@ class EpisodeResult:
     success: bool
     trace: EpisodeTrace
     """Signals of the policy's uninterrupted trajectory (executed part + look-ahead)."""
+    trajectory: dict[str, np.ndarray]
+    """That trajectory's policy inputs and actions (for re-scoring by a retrained D)."""
     policy_failed: bool
     """Whether that uninterrupted trajectory fails (the label of the ROC curves)."""
     feedback: list[str]
@@ -273,7 +277,7 @@ def run_episode(
         if expert is None:
             action, doubt = agent.decide(feats)
             d = agent.d_score(feats, action)
-            executed.append({"d": d, "doubt": doubt})
+            executed.append({"d": d, "doubt": doubt, "frame": {**{k: feats[k] for k in agent.keys}, "action": action}})
             if cooldown > 0:
                 cooldown -= 1
             elif predictor.predict(t, d if d_ready else None, doubt):
@@ -320,7 +324,8 @@ def run_episode(
         d=np.array([s["d"] if d_ready else np.nan for s in signals]), doubt=np.array([s["doubt"] for s in signals])
     )
     frames = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
-    return EpisodeResult(frames, success, trace, policy_failed, feedback, intervened_at, predictions)
+    trajectory = {k: np.stack([s["frame"][k] for s in signals]) for k in signals[0]["frame"]}
+    return EpisodeResult(frames, success, trace, trajectory, policy_failed, feedback, intervened_at, predictions)
 
 
 def online_update(
@@ -495,6 +500,9 @@ def run(args: FireArgs) -> dict:
         doubt_threshold = args.doubt_threshold
     predictor = make_predictor(args.predictor, doubt_threshold, beta=args.beta, gamma=args.gamma)
     roc_gda = GDARule(args.gamma)  # GDA statistics for the ROC scores, whichever predictor runs
+    gda_rules = [roc_gda, *(r for r in (predictor, getattr(predictor, "a", None)) if isinstance(r, GDARule))]
+    # the policy trajectories behind the GDA statistics, re-scored whenever D changes (window per outcome)
+    history: dict[bool, deque] = {True: deque(maxlen=roc_gda.window), False: deque(maxlen=roc_gda.window)}
     margin = args.expert_margin if args.expert_margin is not None else math.ceil(1.5 * max(demo_lengths))
     oracle = SimulatedOracle(args.env, agent, check_step=max(0, env.max_episode_steps - margin))
     rng = np.random.default_rng([args.seed, 0xF12E])
@@ -520,6 +528,8 @@ def run(args: FireArgs) -> dict:
         roc_gda.load_state_dict(state["roc_gda"])
         expert_set.load_state_dict(state["expert_set"])
         policy_set.load_state_dict(state["policy_set"])
+        for failed, trajectories in state["history"].items():
+            history[failed].extend(trajectories)
         rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         counters = state["counters"]
@@ -543,6 +553,7 @@ def run(args: FireArgs) -> dict:
                 "roc_gda": roc_gda.state_dict(),
                 "expert_set": expert_set.state_dict(),
                 "policy_set": policy_set.state_dict(),
+                "history": {failed: list(h) for failed, h in history.items()},
                 "rng": rng.bit_generator.state,
                 "torch_rng": torch.get_rng_state(),
                 "counters": counters,
@@ -578,9 +589,15 @@ def run(args: FireArgs) -> dict:
             "doubt": float(np.max(ep.trace.doubt)) if len(ep.trace.doubt) else 0.0,
         }
         # --- learning (Algorithm 2, lines 35-40)
-        d_metrics = disc.update(expert_set, policy_set, n, rng) if disc.ready(len(policy_set)) else {}
         predictor.update(ep.trace, ep.policy_failed)
         roc_gda.update(ep.trace, ep.policy_failed)
+        history[ep.policy_failed].append(ep.trajectory)
+        d_metrics = {}
+        if disc.ready(len(policy_set)):
+            d_metrics = disc.update(expert_set, policy_set, n, rng)
+            rescored = {failed: [disc.score(x) for x in h] for failed, h in history.items()}
+            for rule in gda_rules:
+                rule.refit(rescored[True], rescored[False])
         bc_loss = online_update(policy, optimizers, expert_set, n, args, rng, device)
         retrained = {}
         if counters["since_retrain"] >= args.retrain_every:
