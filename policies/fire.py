@@ -151,6 +151,8 @@ class FireArgs:
     """CPU threads for torch."""
     resume: bool = False
     """Continue the run in output_dir after its last finished episode."""
+    progress: bool = False
+    """Show a progress bar over the expert budget."""
 
     def resolved(self) -> FireArgs:
         """A checked copy; raises ConfigError on bad values."""
@@ -450,7 +452,8 @@ def run(args: FireArgs) -> dict:
             "env": f"{args.env} / {args.task}",
             "seed": args.seed,
             "versions": versions(),
-        }
+        },
+        ignore_on_resume=("resume", "progress"),
     )
     state = run_dir.load_latest() if args.resume else None
     if state is not None and state["final"]:
@@ -516,7 +519,8 @@ def run(args: FireArgs) -> dict:
             "args": {"fire_run": str(run_dir.path), **dataclasses.asdict(args)},
             "datasets": dataset_records([resolved]),
             "versions": versions(),
-        }
+        },
+        ignore_on_resume=("resume", "progress"),
     )
 
     if state is not None:
@@ -562,6 +566,14 @@ def run(args: FireArgs) -> dict:
         )
 
     # --- Algorithm 2: episodes until the expert's budget is spent
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=args.budget_expert_samples,
+        initial=min(counters["corrections"], args.budget_expert_samples),
+        unit="correction",
+        disable=not args.progress,
+    )
     while counters["corrections"] < args.budget_expert_samples and (
         args.max_episodes is None or counters["episode"] < args.max_episodes
     ):
@@ -579,6 +591,7 @@ def run(args: FireArgs) -> dict:
             expert_set.add({k: v[-1:] for k, v in keep.items()})
             added += 1
         counters["corrections"] += int(by_expert.sum())
+        bar.update(min(int(by_expert.sum()), args.budget_expert_samples - bar.n))
         counters["since_retrain"] += added
         counters["env_steps"] += n
 
@@ -662,6 +675,7 @@ def run(args: FireArgs) -> dict:
             )
         checkpoint()
 
+    bar.close()
     # --- the aggregated dataset: demonstrations, then every executed episode
     summary = _summary(run_dir, counters, len(expert_set))
     if not dataset_root.exists():
