@@ -28,6 +28,8 @@ COMMANDS: dict[str, str] = {
     "pull": "pull",
     "train": "train",
     "eval": "eval",
+    "fire": "fire",
+    "plot": "plot",
 }
 
 

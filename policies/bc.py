@@ -237,6 +237,13 @@ class BCNet(nn.Module):
         return self.head(torch.cat(parts, dim=-1))
 
 
+def ensemble_doubt(outs: torch.Tensor) -> torch.Tensor:
+    """`||diag Cov||_2` over the members of `(M, B, A)` actions -> `(B,)`; 0 for a single member."""
+    if outs.shape[0] < 2:
+        return torch.zeros(outs.shape[1], device=outs.device)
+    return outs.var(dim=0).norm(dim=-1)
+
+
 class BCPolicy(nn.Module):
     """A BC ensemble with its normalisation; outputs actions in the dataset's units."""
 
@@ -269,10 +276,7 @@ class BCPolicy(nn.Module):
     def spread(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Ensemble doubt `(B,)`: the 2-norm of the members' per-dimension action variance
         (`||diag Cov||_2`, Menda et al. 2019; thesis 5.4); 0 for a single member."""
-        outs = self.member_outputs(batch)
-        if outs.shape[0] < 2:
-            return torch.zeros(outs.shape[1], device=outs.device)
-        return outs.var(dim=0).norm(dim=-1)
+        return ensemble_doubt(self.member_outputs(batch))
 
     @torch.no_grad()
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:

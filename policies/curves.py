@@ -75,7 +75,13 @@ def aggregate(label: str, run_dirs: list[Path], reps: int = 2000, seed: int = 0)
     return Curve(label, np.array(steps), iqm(scores, axis=0), low, high, len(runs))
 
 
-def plot_curves(curves: list[Curve], out: Path, title: str = "") -> Path:
+def plot_curves(
+    curves: list[Curve],
+    out: Path,
+    title: str = "",
+    xlabel: str = "environment steps",
+    ylabel: str = "success rate (IQM, 95% CI)",
+) -> Path:
     """Draw IQM lines with shaded CIs into a PNG."""
     import matplotlib
 
@@ -86,8 +92,8 @@ def plot_curves(curves: list[Curve], out: Path, title: str = "") -> Path:
     for c in curves:
         (line,) = ax.plot(c.steps, c.iqm, label=f"{c.label} ({c.runs} runs)")
         ax.fill_between(c.steps, c.low, c.high, color=line.get_color(), alpha=0.25, linewidth=0)
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel("success rate (IQM, 95% CI)")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="best")

@@ -1,0 +1,99 @@
+"""`shiftkit fire`: interactive imitation with failure prediction and a simulated expert (FIRE, thesis ch. 5)."""
+
+from __future__ import annotations
+
+import argparse
+
+from shiftkit.pipelines.dataclass_config import key_value
+
+HELP = "FIRE: run a BC policy with failure prediction and simulated expert interventions; aggregate the data"
+
+
+def _ints(text: str) -> list[int]:
+    return [int(x) for x in text.split(",") if x.strip()]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dataset", required=True, help="dataset ID or local folder of the initial demonstrations")
+    p.add_argument("--root", help="local folder of the dataset")
+    p.add_argument("--env", required=True, help="registered environment with a scripted expert, e.g. panda-play")
+    p.add_argument("--task", required=True, help="task of the environment, e.g. stack")
+    p.add_argument(
+        "--predictor", choices=("beta", "gda", "doubt", "gda+doubt"), default="gda", help="failure predictor"
+    )
+    p.add_argument(
+        "--budget-expert-samples", type=int, default=2000, help="stop once the expert corrected this many steps"
+    )
+    p.add_argument("--max-episodes", type=int, help="stop after this many episodes at the latest")
+    p.add_argument("--output", required=True, help="run folder (config, metrics, checkpoints, policy, episodes)")
+    p.add_argument("--repo-id", help="repo ID of the aggregated dataset (default: local/<output folder name>)")
+    p.add_argument("--dataset-root", help="folder of the aggregated dataset (default: $HF_LEROBOT_HOME/<repo-id>)")
+    p.add_argument("--env-kwarg", action="append", default=[], type=key_value, metavar="KEY=VALUE", help="env argument")
+    p.add_argument("--seed", type=int, default=0, help="seed of BC, D, sampling (default: 0)")
+    p.add_argument("--env-seed", type=int, default=10000, help="episode i resets with ENV_SEED+i (default: 10000)")
+    p.add_argument("--bc-regime", choices=("early-stop", "fixed"), default="early-stop", help="initial BC regime")
+    p.add_argument("--bc-steps", type=int, help="initial BC steps (fixed regime; a bound for early-stop)")
+    p.add_argument("--ensemble", type=int, default=5, help="BC ensemble members (default: 5)")
+    p.add_argument("--hidden", type=_ints, default=[256, 256], help="BC widths, comma-separated (default: 256,256)")
+    p.add_argument("--batch-size", type=int, default=64, help="BC batch per member (default: 64)")
+    p.add_argument("--retrain-every", type=int, default=500, help="d: full BC retraining every d expert samples")
+    p.add_argument("--d-start", type=int, default=10000, help="policy samples before D trains (default: 10000)")
+    p.add_argument("--d-hidden", type=_ints, default=[256, 256], help="D widths, comma-separated (default: 256,256)")
+    p.add_argument("--beta", type=int, default=20, help="initial beta of the beta rule (default: 20)")
+    p.add_argument("--gamma", type=float, default=0.5, help="initial GDA posterior threshold (default: 0.5)")
+    p.add_argument("--doubt-threshold", type=float, help="initial doubt threshold (default: max over the demos)")
+    p.add_argument("--expert-margin", type=int, help="steps the expert needs (default: 1.5x longest demo)")
+    p.add_argument("--eval-every", type=int, default=0, help="evaluate the policy every N episodes (default: never)")
+    p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (default: 10)")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda (default: auto)")
+    p.add_argument("--threads", type=int, help="CPU threads for torch")
+    p.add_argument("--resume", action="store_true", help="continue the run in --output after its last episode")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from shiftkit.policies.fire import FireArgs
+    from shiftkit.policies.fire import run as run_fire
+
+    summary = run_fire(
+        FireArgs(
+            dataset=args.dataset,
+            root=args.root,
+            env=args.env,
+            task=args.task,
+            output_dir=args.output,
+            predictor=args.predictor,
+            budget_expert_samples=args.budget_expert_samples,
+            max_episodes=args.max_episodes,
+            repo_id=args.repo_id,
+            dataset_root=args.dataset_root,
+            env_kwargs=dict(args.env_kwarg),
+            seed=args.seed,
+            env_seed=args.env_seed,
+            bc_regime=args.bc_regime,
+            bc_steps=args.bc_steps,
+            ensemble_size=args.ensemble,
+            hidden=args.hidden,
+            batch_size=args.batch_size,
+            retrain_every=args.retrain_every,
+            d_start=args.d_start,
+            d_hidden=args.d_hidden,
+            beta=args.beta,
+            gamma=args.gamma,
+            doubt_threshold=args.doubt_threshold,
+            expert_margin=args.expert_margin,
+            eval_every=args.eval_every,
+            eval_episodes=args.eval_episodes,
+            device=args.device,
+            threads=args.threads,
+            resume=args.resume,
+            progress=not args.no_progress,
+        )
+    )
+    print(
+        f"FIRE: {summary['episodes']} episodes ({summary['successes']} successful, the policy alone "
+        f"{summary['policy_successes']}), {summary['corrections']} expert corrections "
+        f"(predictions: {summary['true_positives']} agreed, {summary['false_positives']} refused; "
+        f"{summary['false_negatives']} unpredicted failures); dataset {summary['dataset']}"
+    )
+    return 0

@@ -1,0 +1,120 @@
+"""`shiftkit plot roc|fire RUN...`: figures of FIRE runs (PNG)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "plot FIRE runs: ROC curves of the failure predictors (roc) or success vs expert samples and time (fire)"
+
+PREDICTOR_LABELS = {"beta": "beta rule", "gda": "GDA", "doubt": "ensemble doubt", "gda+doubt": "GDA or doubt"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="figure", metavar="FIGURE", required=True)
+    roc = sub.add_parser(
+        "roc",
+        help="ROC of every failure predictor over the runs' episodes (AUC in the legend)",
+        description="ROC curves of beta rule, GDA, ensemble doubt and GDA-or-doubt, pooled over the runs' "
+        "episodes after D started; label: whether the policy's uninterrupted run failed.",
+    )
+    roc.add_argument("runs", nargs="+", metavar="RUN", help="FIRE run folders")
+    roc.add_argument("--out", required=True, help="PNG file to write")
+    roc.add_argument("--title", default="", help="plot title")
+    roc.set_defaults(_plot=_run_roc)
+    fire = sub.add_parser(
+        "fire",
+        help="policy success vs expert samples and vs execution time",
+        description="Success of each run's policy (moving window of episodes, Wilson 95%% CI) against the "
+        "expert samples and against the total execution time; writes OUT-expert.png and OUT-time.png.",
+    )
+    fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help="FIRE run folders")
+    fire.add_argument("--out", required=True, help="PNG path; -expert and -time are added before .png")
+    fire.add_argument("--window", type=int, default=10, help="episodes per success estimate (default: 10)")
+    fire.add_argument("--title", default="", help="plot title")
+    fire.set_defaults(_plot=_run_fire)
+
+
+def _run_roc(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.policies.failure_predictors import roc_curve
+    from shiftkit.policies.fire import read_episode_lines, roc_scores
+
+    pooled: dict[str, list] = {}
+    labels = []
+    for run in args.runs:
+        scores, failed = roc_scores(read_episode_lines(run))
+        for name, values in scores.items():
+            pooled.setdefault(name, []).append(values)
+        labels.append(failed)
+    failed = np.concatenate(labels)
+    if failed.all() or not failed.any():
+        raise ConfigError(
+            f"ROC needs episodes after D started with both outcomes; got {int(failed.sum())} failed of {len(failed)}"
+        )
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=120)
+    ax.plot([0, 1], [0, 1], color="grey", linestyle="--", linewidth=1)
+    for name, parts in pooled.items():
+        fpr, tpr, auc = roc_curve(np.concatenate(parts), failed)
+        ax.plot(fpr, tpr, label=f"{PREDICTOR_LABELS[name]} (AUC {auc:.2f})")
+        print(f"{name}: AUC {auc:.3f}")
+    ax.set_xlabel("false positive rate")
+    ax.set_ylabel("true positive rate")
+    ax.set_title(args.title or f"failure prediction ({len(failed)} episodes, {int(failed.sum())} failed)")
+    ax.legend(loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    print(f"wrote {out}")
+    return 0
+
+
+def _run_fire(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.policies.curves import Curve, plot_curves
+    from shiftkit.policies.fire import read_episode_lines, success_curve
+
+    if args.window < 1:
+        raise ConfigError(f"--window must be >= 1, got {args.window}")
+    runs = []
+    for item in args.runs:
+        label, sep, path = item.partition("=")
+        runs.append((label, path) if sep else (Path(item).name, item))
+    lines = {label: read_episode_lines(path) for label, path in runs}
+    out = Path(args.out)
+    written = []
+    for suffix, key, xlabel in (
+        ("expert", "expert_samples", "expert samples (demonstrations + corrections)"),
+        ("time", "execution_time_s", "total execution time (s)"),
+    ):
+        curves = []
+        for label, episode_lines in lines.items():
+            x, rate, low, high = success_curve(episode_lines, key, args.window)
+            curves.append(Curve(label, x, rate, low, high, 1))
+        path = out.with_name(f"{out.stem}-{suffix}{out.suffix or '.png'}")
+        written.append(plot_curves(curves, path, args.title, xlabel, f"policy success ({args.window}-episode window)"))
+    for label, episode_lines in lines.items():
+        last = episode_lines[-1]
+        print(
+            f"{label}: {len(episode_lines)} episodes, {last['expert_samples']} expert samples, "
+            f"{last['execution_time_s']:.0f} s executed; policy success over the last {args.window}: "
+            f"{success_curve(episode_lines, 'expert_samples', args.window)[1][-1]:.0%}"
+        )
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    return args._plot(args)

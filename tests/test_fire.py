@@ -1,0 +1,336 @@
+"""FIRE end to end: the oracle's forks, `shiftkit fire` on a tiny dataset, the aggregated dataset in
+LeRobotDataset / lerobot-train / `shiftkit train bc`, kill + resume, plots and one-line errors.
+
+Environments come from the registry: every family whose scripted expert acts from any state."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shiftkit.envs import families, make
+from shiftkit.pipelines.cli import main
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.policies.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
+
+# a task per family whose tiny BC policy both fails and succeeds (families not listed: their first task)
+TASK = {"panda-play": "lift"}
+
+
+def _expert_envs() -> list[tuple[str, str]]:
+    out = []
+    for name, family in families().items():
+        task = TASK.get(name, next(iter(family.tasks)))
+        env = make(name, task)
+        try:
+            scripted_expert(name, env)
+        except ConfigError:
+            continue
+        finally:
+            env.close()
+        out.append((name, task))
+    return out
+
+
+EXPERT_ENVS = _expert_envs()
+
+
+def _data_arrays(env) -> dict[str, np.ndarray]:
+    data = env.unwrapped.physics.data if hasattr(env.unwrapped, "physics") else env.unwrapped.data
+    names = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart", "xpos", "xquat", "sensordata", "time")
+    return {n: np.array(getattr(data, n), copy=True) for n in names}
+
+
+@pytest.mark.parametrize(("env_name", "task"), EXPERT_ENVS)
+def test_oracle_look_ahead_leaves_the_episode_bit_identical(env_name, task):
+    env, twin = make(env_name, task), make(env_name, task)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (40, env.action_space.shape[0])).astype(np.float32)
+    obs, _ = env.reset(seed=7)
+    twin.reset(seed=7)
+    for a in actions[:5]:
+        obs, *_ = env.step(a)
+        twin.step(a)
+    before = _data_arrays(env)
+    calls = []
+
+    def agent(sim, o):  # a fixed open-loop policy, applied in the fork
+        calls.append(sim)
+        return actions[5 + min(len(calls), 30)], {"d": 0.5, "doubt": 0.0}
+
+    oracle = SimulatedOracle(env_name, agent, check_step=5)
+    failed = oracle.will_fail(env, obs, t=5)
+    assert oracle.forks == 1 and oracle.look_ahead_steps == len(calls) > 1
+    assert all(sim is not env for sim in calls)
+    after = _data_arrays(env)
+    for key in before:
+        np.testing.assert_array_equal(after[key], before[key], err_msg=key)
+    # the original continues exactly as a twin that was never forked
+    for a in actions[5:]:
+        o1, r1, _, _, i1 = env.step(a)
+        o2, r2, _, _, i2 = twin.step(a)
+        np.testing.assert_array_equal(o1, o2)
+        assert (r1, i1["is_success"]) == (r2, i2["is_success"])
+    # a fork is independent both ways
+    sim = fork_env(env)
+    sim.step(actions[0])
+    assert not np.array_equal(sim_state(sim)[0], sim_state(env)[0]) or not np.array_equal(
+        sim_state(sim)[1], sim_state(env)[1]
+    )
+    assert isinstance(failed, bool)
+    env.close()
+    twin.close()
+
+
+@pytest.mark.parametrize(("env_name", "task"), EXPERT_ENVS)
+def test_oracle_answers_from_one_look_ahead_and_the_expert_finishes(env_name, task):
+    env = make(env_name, task)
+    obs, _ = env.reset(seed=3)
+    hold = np.zeros(env.action_space.shape[0], dtype=np.float32)  # never solves the task
+    oracle = SimulatedOracle(env_name, lambda sim, o: (hold, {"d": 0.1, "doubt": 0.0}), check_step=2)
+    assert oracle.will_fail(env, obs, 0) is True
+    obs, *_ = env.step(hold)
+    assert oracle.will_fail(env, obs, 1) is True and oracle.forks == 1  # the same future, no new fork
+    obs, *_ = env.step(hold)
+    assert oracle.stops_unpredicted(env, obs, 2) and not oracle.stops_unpredicted(env, obs, 3)
+    expert = oracle.take_over(env)
+    info = {"is_success": False}
+    truncated = False
+    while not info["is_success"] and not truncated:
+        obs, _, _, truncated, info = env.step(expert.act(obs))
+    assert info["is_success"]
+    env.close()
+
+
+# ------------------------------------------------------------------------------ shiftkit fire
+
+
+def _fire_cli(env_name: str, task: str, demo: Path, out: Path, *extra: str) -> list[str]:
+    return [
+        "fire",
+        "--dataset",
+        str(demo),
+        "--env",
+        env_name,
+        "--task",
+        task,
+        "--output",
+        str(out),
+        "--max-episodes",
+        "3",
+        "--budget-expert-samples",
+        "100000",
+        "--bc-regime",
+        "fixed",
+        "--bc-steps",
+        "150",
+        "--ensemble",
+        "2",
+        "--hidden",
+        "32,32",
+        "--d-hidden",
+        "16,16",
+        "--d-start",
+        "20",
+        "--retrain-every",
+        "30",
+        "--beta",
+        "3",
+        "--device",
+        "cpu",
+        "--threads",
+        "1",
+        *extra,
+    ]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory) -> tuple[str, str, Path]:
+    env_name, task = EXPERT_ENVS[0]
+    rate = min(families()[env_name].control_rates)
+    root = tmp_path_factory.mktemp("fire") / "demo"
+    assert (
+        main(
+            [
+                "collect",
+                "--env",
+                env_name,
+                "--task",
+                task,
+                "--episodes",
+                "3",
+                "--control-hz",
+                str(rate),
+                "--lerobot",
+                "test/fire-demo",
+                "--root",
+                str(root),
+            ]
+        )
+        == 0
+    )
+    return env_name, task, root
+
+
+@pytest.fixture(scope="module")
+def fire_run(demo, tmp_path_factory) -> tuple[Path, Path]:
+    env_name, task, root = demo
+    out = tmp_path_factory.mktemp("fire") / "run"
+    ds_root = out.parent / "aggregated"
+    args = _fire_cli(env_name, task, root, out, "--repo-id", "test/fire-agg", "--dataset-root", str(ds_root))
+    assert main([*args, "--predictor", "gda+doubt"]) == 0
+    return out, ds_root
+
+
+def _episode_lines(run: Path) -> list[dict]:
+    return [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if '"episode"' in x]
+
+
+def test_fire_writes_the_aggregated_dataset(demo, fire_run):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    run, ds_root = fire_run
+    lines = _episode_lines(run)
+    assert len(lines) == 3
+    ds = LeRobotDataset("test/fire-agg", root=ds_root)
+    assert ds.meta.total_episodes == 3 + 3
+    for key, dtype in (("intervention", "bool"), ("source", "int64"), ("discriminator_score", "float32")):
+        assert ds.meta.features[key]["dtype"] == dtype and tuple(ds.meta.features[key]["shape"]) == (1,)
+    assert ds[len(ds) - 1]["intervention"].numel() == 1  # lerobot hands (1,) features out as scalars
+    reader = open_lerobot_dataset(ds_root)
+    episodes = list(reader.iter_episodes())
+    for ep in episodes[:3]:  # the demonstrations
+        assert (ep.frames["source"] == 0).all() and not ep.frames["intervention"].any()
+    for ep, line in zip(episodes[3:], lines, strict=True):
+        source = ep.frames["source"][:, 0]
+        assert ep.meta["outcome"] == ("success" if line["success"] else "failure")
+        assert ep.meta["fire"]["feedback"] == line["feedback"]
+        np.testing.assert_array_equal(ep.frames["intervention"][:, 0], source == 2)
+        assert np.isin(source, (1, 2)).all()
+        assert ep.frames["intervention_request"].sum() == line["predictions"]
+        start = line["intervened_at"]
+        if start is None:
+            assert (source == 1).all()
+        else:  # the expert keeps control from its takeover to the end of the episode
+            assert (source[:start] == 1).all() and (source[start:] == 2).all()
+            assert line["feedback"][-1] in ("tp", "fn")
+        assert line["length"] == len(ep)
+    assert sum(line["episode_expert_samples"] for line in lines) == lines[-1]["corrections"]
+    assert lines[-1]["env_steps"] == sum(len(ep) for ep in episodes[3:])
+    # the current policy is a BC run folder that `shiftkit eval` understands
+    assert (run / "policy" / "config.json").is_file() and (run / "policy" / "checkpoints" / "last.txt").is_file()
+
+
+def test_shiftkit_train_bc_on_the_aggregated_dataset_by_id(fire_run, tmp_path, monkeypatch):
+    run, ds_root = fire_run
+    home = tmp_path / "home"
+    (home / "test").mkdir(parents=True)
+    (home / "test" / "fire-agg").symlink_to(ds_root)
+    monkeypatch.setenv("HF_LEROBOT_HOME", str(home))
+    args = ["train", "bc", "--dataset", "test/fire-agg", "--output", str(tmp_path / "bc"), "--regime", "fixed"]
+    assert main([*args, "--steps", "3", "--ensemble", "1", "--hidden", "8", "--device", "cpu"]) == 0
+    assert (tmp_path / "bc" / "checkpoints" / "last.txt").is_file()
+
+
+@pytest.mark.slow
+def test_lerobot_train_act_on_the_aggregated_dataset(fire_run, tmp_path):
+    _, ds_root = fire_run
+    exe = Path(sys.executable).with_name("lerobot-train")
+    out = subprocess.run(
+        [
+            str(exe),
+            "--policy.type=act",
+            "--dataset.repo_id=test/fire-agg",
+            f"--dataset.root={ds_root}",
+            "--steps=2",
+            "--batch_size=2",
+            "--num_workers=0",
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--policy.pretrained_backbone_weights=null",
+            "--wandb.enable=false",
+            "--save_checkpoint=false",
+            "--eval_freq=0",
+            "--log_freq=1",
+            "--policy.chunk_size=4",
+            "--policy.n_action_steps=4",
+            "--policy.dim_model=64",
+            "--policy.dim_feedforward=128",
+            f"--output_dir={tmp_path / 'train'}",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "step:2" in out.stdout + out.stderr
+
+
+def _comparable(lines: list[dict]) -> list[dict]:
+    timing = ("wall_time_s", "episode_exec_s")
+    return [{k: v for k, v in x.items() if k not in timing} for x in lines]
+
+
+def test_fire_resumes_after_sigkill_as_if_never_stopped(demo, fire_run, tmp_path):
+    env_name, task, root = demo
+    reference, _ = fire_run
+    out = tmp_path / "run"
+    args = _fire_cli(env_name, task, root, out, "--dataset-root", str(tmp_path / "agg"), "--predictor", "gda+doubt")
+    code = "import sys; from shiftkit.pipelines.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen([sys.executable, "-c", code, *args], start_new_session=True)
+    last = out / "checkpoints" / "last.txt"
+    deadline = time.time() + 300
+    while not last.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert last.exists() and not (tmp_path / "agg").exists()
+    assert main([*args, "--resume"]) == 0
+    assert _comparable(_episode_lines(out)) == _comparable(_episode_lines(reference))
+    assert main([*args, "--resume"]) == 0  # a finished run resumes to its summary
+
+
+def test_plots_of_a_fire_run(fire_run, tmp_path, capsys):
+    run, _ = fire_run
+    assert main(["plot", "fire", f"mine={run}", "--out", str(tmp_path / "fire.png"), "--window", "2"]) == 0
+    assert (tmp_path / "fire-expert.png").stat().st_size > 0 and (tmp_path / "fire-time.png").stat().st_size > 0
+    lines = _episode_lines(run)
+    labels = [not x["policy_success"] for x in lines if x["d_ready"]]
+    code = main(["plot", "roc", str(run), "--out", str(tmp_path / "roc.png")])
+    if 0 < sum(labels) < len(labels):
+        assert code == 0 and (tmp_path / "roc.png").stat().st_size > 0
+        assert "gda: AUC" in capsys.readouterr().out
+    else:  # too few episodes for both outcomes: a one-line error, no figure
+        assert code == 2 and not (tmp_path / "roc.png").exists()
+
+
+def test_fire_user_errors_are_one_line(demo, tmp_path, capsys):
+    env_name, task, root = demo
+    cases = [
+        (["--predictor", "gda"], "--env", "no-such-env", "unknown env"),
+        ([], "--task", "no-such-task", "unknown task"),
+        ([], "--dataset", str(tmp_path / "missing"), "dataset not found"),
+        (["--budget-expert-samples", "0"], None, None, "budget_expert_samples must be positive"),
+        (["--repo-id", "noslash"], None, None, "ORG/NAME"),
+    ]
+    for extra, flag, value, message in cases:
+        args = _fire_cli(env_name, task, root, tmp_path / "out", *extra)
+        if flag is not None:
+            args[args.index(flag) + 1] = value
+        capsys.readouterr()
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+        assert not (tmp_path / "out").exists()
+    assert main(["plot", "roc", str(tmp_path), "--out", str(tmp_path / "r.png")]) == 2
