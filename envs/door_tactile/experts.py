@@ -307,7 +307,6 @@ def kinesthetic_rollout(
         arrays={
             "ee_pose": np.array([f["pose"] for f in body]),
             "wrench_raw": np.array([f["wrench"] for f in body]),
-            "contact_wrench": np.array([f["obs"][21:25] for f in body], dtype=np.float64),
         },
         meta={
             "first_contact_step": int(first_contact),
