@@ -112,8 +112,8 @@ def test_marker_estimate_follows_the_contact_wrench(env_open):
         readings.append(est.raw(sensor.render_markers(sensor.marker_positions(c), c)))
     r = np.array(readings)
     assert r[1, 2] > r[0, 2] > 0  # pressure spreads the markers: Fz grows with the normal force
-    assert r[2, 0] > 0.2 and r[2, 0] > 4 * abs(r[2, 1])  # shear along x moves the markers along x
-    assert r[3, 1] < -0.2 and -r[3, 1] > 4 * abs(r[3, 0])
+    assert r[2, 0] > 0.1 and r[2, 0] > 4 * abs(r[2, 1])  # shear along x moves the markers along x
+    assert r[3, 1] < -0.1 and -r[3, 1] > 4 * abs(r[3, 0])
 
 
 def test_scripted_expert_closes_the_door():
