@@ -128,7 +128,9 @@ class STSSensor:
         self.px_per_mm = size / max(mem.size_mm)
         self._renderer: mujoco.Renderer | None = None
         self._rng = np.random.default_rng(0)
+        # see-through: the clear gel and the robot itself are not in the view, only the scene
         self._option = scene_option("fast")
+        self._option.geomgroup[3] = 0
 
     def reset(self, seed: int, mode: str = "tactile") -> None:
         self._rng = np.random.default_rng(seed)

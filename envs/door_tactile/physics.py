@@ -125,6 +125,9 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     spec.option.impratio = 100.0
     spec.visual.global_.offwidth = 640
     spec.visual.global_.offheight = 480
+    # the STS camera sees a handle a few millimetres away: near plane at 0.1% of the model extent
+    spec.visual.map.znear = 0.001
+    spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
 
     for name in ("panda0_leftfinger", "panda0_rightfinger"):
         spec.delete(spec.body(name))
