@@ -164,10 +164,10 @@ def test_position_replay_tracks_poses_but_loses_the_force():
     demo = kinesthetic_rollout(env, seed=1)
     assert demo.succeeded and demo.arrays["wrench_raw"].shape == (len(demo.actions), 4)
     replay = replay_positions(env, 1, demo.arrays["ee_pose"], demo.actions[:, 6], demo.meta["recording_start_step"])
-    assert len(replay.actions) == len(demo.actions) - 1
+    assert len(replay.actions) == len(demo.actions) - 1 + 10  # plus the settling steps
     # the replay follows x_raw (within the impedance controller's lag) ...
     env.set_sim_state(replay.qpos[-1], replay.qvel[-1])
-    assert np.linalg.norm(env.ee_pose()[:3] - demo.arrays["ee_pose"][-2, :3]) < 0.05
+    assert np.linalg.norm(env.ee_pose()[:3] - demo.arrays["ee_pose"][-1, :3]) < 0.01
     # ... but presses far less than the demonstration did (F = K (x_d - x) with x_d = x_raw)
     assert replay.observations[:, 23].max() < 0.5 * demo.observations[:, 23].max()
     env.close()

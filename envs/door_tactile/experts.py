@@ -47,6 +47,7 @@ HUMAN_START_PUSH = 3.5  # N along the swing when opening (the self-closing sprin
 LOST_SUBSTEPS = 100  # 0.2 s off the handle and the teacher re-grasps
 PRESS_DWELL = 300  # 0.6 s of pressing on the handle before the swing starts
 RECORD_THRESHOLD = 0.0005  # m of motion before kinesthetic recording starts
+REPLAY_SETTLE_STEPS = 10  # replay: hold the last pose 1 s
 SWITCH_JITTER = 1.5  # steps (std) of the operator's mode-switch press around first contact
 SWITCH_JITTER_MAX = 4
 
@@ -324,32 +325,36 @@ def replay_positions(
     ee_pose: np.ndarray,
     modes: np.ndarray | None = None,
     warmup_steps: int = 0,
+    settle_steps: int = REPLAY_SETTLE_STEPS,
     cameras: tuple[str, ...] = (),
     depth: bool = False,
 ) -> Rollout:
     """Position replay (no force matching): from `reset(seed=seed)`, the impedance controller's
     target is set to each recorded pose in turn: x_raw[0] for `warmup_steps` steps (the steps the
     demonstration spent before recording started), then x_raw[t + 1] for step t (`ee_pose`: position
-    + quaternion xyzw, base frame). `modes` (T,) gives the STS mode per step (default tactile). The
-    recorded actions are the relative poses of those targets from the pose at each step (clipped to
-    the action range: what a policy trained on the replay would output)."""
+    + quaternion xyzw, base frame), then the last pose for `settle_steps` more steps (the controller
+    lags the targets by a few steps; the outcome is judged once it has caught up). `modes` (T,)
+    gives the STS mode per step (default tactile). The recorded actions are the relative poses of
+    those targets from the pose at each step (clipped to the action range: what a policy trained on
+    the replay would output)."""
     poses = np.asarray(ee_pose, dtype=np.float64)
     rots = np.zeros((len(poses), 9))
     for i, q in enumerate(poses[:, 3:7]):
         mujoco.mju_quat2Mat(rots[i], np.array([q[3], q[0], q[1], q[2]]))
     rots = rots.reshape(-1, 3, 3)
+    targets = [*range(1, len(poses)), *[len(poses) - 1] * settle_steps]
     rec = _Recorder(env, cameras, depth)
     obs, info = env.reset(seed=seed)
     for _ in range(warmup_steps):
         obs, _, _, _, info = env.step_pose(poses[0, :3], rots[0], "visual")
     rec.frame(obs, info)
-    for t in range(1, len(poses)):
+    for i, t in enumerate(targets):
         p = env.physics
-        tactile = modes is None or modes[t - 1] > 0.5
+        tactile = modes is None or modes[min(t, len(modes)) - 1] > 0.5
         rec.actions.append(np.append(relative_action(p.ee_pos(), p.ee_rot(), poses[t, :3], rots[t]), float(tactile)))
         obs, _, _, truncated, info = env.step_pose(poses[t, :3], rots[t], "tactile" if tactile else "visual")
         rec.success.append(info["is_success"])
-        if truncated or t == len(poses) - 1:
+        if truncated or i == len(targets) - 1:
             break
         rec.frame(obs, info)
     return rec.done()
