@@ -27,6 +27,13 @@ EXAMPLE_PARAMS = {
     "drop": {"features": ["observation.environment_state"]},
     "cast": {"dtypes": {"action": "float64"}},
     "success_examples": {"n_per_task": 3, "states": "success"},
+    # the synthetic gripper command flips from open (1) to closed (-1) near the goal: a "contact"
+    "mode_label": {
+        "signal": "observation.state",
+        "signal_dims": ["gripper"],
+        "on_threshold": 1.0,
+        "off_threshold": 0.5,
+    },
 }
 
 # Every stage shiftkit ships (tests may register their own stages; those are not covered here).
