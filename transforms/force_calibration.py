@@ -216,37 +216,45 @@ def fit_calibration(
     breakpoints: tuple[int, ...] = DEFAULT_BREAKPOINTS,
     max_offset: tuple[float, ...] = DEFAULT_MAX_OFFSET,
     provenance: dict[str, Any] | None = None,
+    mask: np.ndarray | None = None,
 ) -> Calibration:
-    """Fit every axis from (n, 4) sensor-frame displacements and (n, 4) readings; records the fit's
-    own residuals under "fit"."""
+    """Fit every axis from (n, 4) sensor-frame displacements and (n, 4) readings; `mask` (n, 4)
+    says which samples inform which axis (default: all). Records the fit's own residuals under "fit"."""
     displacement, wrench = np.asarray(displacement, np.float64), np.asarray(wrench, np.float64)
     if displacement.ndim != 2 or displacement.shape[1] != 4 or wrench.shape != displacement.shape:
         raise ShiftkitError(f"calibration data must be two (n, 4) arrays, got {displacement.shape} and {wrench.shape}")
+    mask = np.ones(displacement.shape, bool) if mask is None else np.asarray(mask, bool)
     axes = {
-        a: fit_axis(displacement[:, k], wrench[:, k], breakpoints[k], max_offset[k], where=f"calibration axis {a}")
+        a: fit_axis(
+            displacement[mask[:, k], k], wrench[mask[:, k], k], breakpoints[k], max_offset[k], f"calibration axis {a}"
+        )
         for k, a in enumerate(WRENCH_AXES)
     }
     calibration = Calibration(sensor_id, axes, provenance=dict(provenance or {}))
-    calibration.residuals["fit"] = residuals(calibration, displacement, wrench)
+    calibration.residuals["fit"] = residuals(calibration, displacement, wrench, mask)
     return calibration
 
 
-def residuals(calibration: Calibration, displacement: np.ndarray, wrench: np.ndarray) -> dict[str, dict[str, Any]]:
-    """Per axis: RMSE of the predicted reading, RMSE of the predicted displacement (the inverse, as
-    force matching uses it) and that RMSE relative to the RMS displacement, over samples whose
-    displacement lies in the calibrated range (the inverse is clipped beyond it)."""
+def residuals(
+    calibration: Calibration, displacement: np.ndarray, wrench: np.ndarray, mask: np.ndarray | None = None
+) -> dict[str, dict[str, Any]]:
+    """Per axis, over the samples `mask` (n, 4) assigns to it whose displacement lies in the
+    calibrated range (the inverse is clipped beyond it): RMSE of the predicted reading, RMSE of the
+    predicted displacement (the inverse, as force matching uses it) and that RMSE relative to the
+    RMS displacement."""
     displacement, wrench = np.asarray(displacement, np.float64), np.asarray(wrench, np.float64)
+    mask = np.ones(displacement.shape, bool) if mask is None else np.asarray(mask, bool)
     predicted_force = calibration.force(displacement)
     predicted_e = calibration.displacement(wrench)
     out = {}
     for k, a in enumerate(WRENCH_AXES):
-        inside = np.abs(displacement[:, k]) <= calibration.axes[a].clip
+        inside = mask[:, k] & (np.abs(displacement[:, k]) <= calibration.axes[a].clip)
         e, pe = displacement[inside, k], predicted_e[inside, k]
         rms_e = float(np.sqrt(np.mean(e**2))) if len(e) else 0.0
         rmse_e = float(np.sqrt(np.mean((pe - e) ** 2))) if len(e) else 0.0
         out[a] = {
             "n": int(len(e)),
-            "rmse_force": float(np.sqrt(np.mean((predicted_force[:, k] - wrench[:, k]) ** 2))),
+            "rmse_force": float(np.sqrt(np.mean((predicted_force[inside, k] - wrench[inside, k]) ** 2))),
             "rmse_displacement": rmse_e,
             "relative_rmse_displacement": rmse_e / rms_e if rms_e > 0 else None,
             "unit": DISPLACEMENT_UNITS[k],
@@ -259,9 +267,11 @@ def plot_calibration(
     displacement: np.ndarray,
     wrench: np.ndarray,
     path: str | Path,
-    held_out: tuple[np.ndarray, np.ndarray] | None = None,
+    held_out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    mask: np.ndarray | None = None,
 ) -> Path:
-    """A PNG with one panel per axis: the pushes' (e, F~) samples and the fitted line."""
+    """A PNG with one panel per axis: the pushes' (e, F~) samples that inform the axis (`mask`;
+    held-out: (displacement, wrench, mask)) and the fitted line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -269,11 +279,13 @@ def plot_calibration(
 
     fig, axs = plt.subplots(1, 4, figsize=(16, 3.6), constrained_layout=True)
     for k, (a, ax) in enumerate(zip(WRENCH_AXES, axs, strict=True)):
-        ax.scatter(displacement[:, k], wrench[:, k], s=3, c="k", alpha=0.5, label="fit pushes")
+        m = np.ones(len(displacement), bool) if mask is None else np.asarray(mask, bool)[:, k]
+        ax.scatter(displacement[m, k], wrench[m, k], s=3, c="k", alpha=0.5, label="fit pushes")
         if held_out is not None:
-            ax.scatter(held_out[0][:, k], held_out[1][:, k], s=3, c="tab:orange", alpha=0.5, label="held-out pushes")
+            hm = np.asarray(held_out[2], bool)[:, k]
+            ax.scatter(held_out[0][hm, k], held_out[1][hm, k], s=3, c="tab:orange", alpha=0.5, label="held-out pushes")
         fit = calibration.axes[a]
-        lo, hi = float(np.min(displacement[:, k])), float(np.max(displacement[:, k]))
+        lo, hi = float(np.min(displacement[m, k])), float(np.max(displacement[m, k]))
         xs = np.linspace(max(lo, -fit.clip), min(hi, fit.clip), 200)
         ax.plot(xs, fit.force(xs), c="tab:blue", lw=2, label="piecewise-linear fit")
         for bp in fit.breakpoints:
@@ -292,3 +304,171 @@ def plot_calibration(
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
+
+
+# ----------------------------------------------------------------------------- autonomous pushes
+PUSH_KINDS = ("normal", "shear_x", "shear_y", "torque")
+
+
+@dataclass
+class PushConfig:
+    """The autonomous calibration procedure (thesis §4.4.1): pushes of the sensor pad against a
+    fixed object through the impedance controller, sampled once settled after every step."""
+
+    step: float = 0.001
+    """Normal step of the commanded pose (m)."""
+    travel: float = 0.035
+    """Normal travel of a push (m)."""
+    start_gap: tuple[float, float] = (0.001, 0.003)
+    """Range of the distance between pad and object at a push's start (m)."""
+    jitter: float = 0.001
+    """Lateral start perturbation (m, uniform +-) that makes pushes differ."""
+    press: tuple[float, float] = (0.004, 0.015)
+    """Range of the commanded depth past first contact at which shear / torque moves start (m)."""
+    shear: float = 0.01
+    """Lateral travel of a shear move (m), in steps of `step`."""
+    rotation: float = 1.0
+    """Rotation of a torque move about the pad normal (rad)."""
+    rotation_step: float = 0.05
+    """Rotation per step of a torque move (rad)."""
+    settle_periods: int = 3
+    """Control periods waited after each step before sampling."""
+    contact_reading: float = 0.5
+    """Rise of the raw normal reading over its start value that counts as contact."""
+
+
+@dataclass
+class Push:
+    kind: str
+    seed: int
+    displacement: np.ndarray
+    """(n, 4) sensor-frame e = x_d - x: ex, ey, ez (m), erz (rad)."""
+    wrench: np.ndarray
+    """(n, 4) raw readings F~."""
+    mask: np.ndarray
+    """(n, 4) which samples inform which axis: every axis during the normal approach (its lateral
+    and rotational errors stay near zero), the moved axis and the normal one during a shear or
+    torque move while the pad still touches (a lost contact says nothing about the gain)."""
+
+
+def sensor_id(sim_model_id: str) -> str:
+    """The id of a simulated scene's STS (calibrations name the sensor they belong to)."""
+    return f"{sim_model_id}:sts"
+
+
+def simulate_push(env: Any, kind: str, seed: int, config: PushConfig) -> Push:
+    """One push of the env's tactile sensor against its calibration object (the door-tactile knob or
+    handle, door shut against its stop). `env` is a door-tactile environment (`physics` with
+    `grasp_pose`, `reset`, `simulate`, the impedance targets; `sensor` with the raw reading)."""
+    from shiftkit.envs.controllers import rotation_vector
+    from shiftkit.envs.door_tactile.env import rotation_from_vector
+
+    if kind not in PUSH_KINDS:
+        raise ConfigError(f"unknown push kind {kind!r}; known: {', '.join(PUSH_KINDS)}")
+    rng = np.random.default_rng([seed, PUSH_KINDS.index(kind)])
+    env.reset(seed=int(rng.integers(2**31)))  # seeds the sensor's noise
+    p, sensor = env.physics, env.sensor
+    contact_pos, rot = p.grasp_pose(0.0)
+    normal, lateral = rot[:, 2], rot[:, :2]
+    start = contact_pos - normal * rng.uniform(*config.start_gap) + lateral @ rng.uniform(-1, 1, 2) * config.jitter
+    p.reset(start, rot, 0.0)
+    samples_e, samples_f, masks = [], [], []
+    rest = 0.0
+
+    def sample(axes: tuple[int, ...] | None = None) -> np.ndarray:
+        p.simulate(p.n_substeps * config.settle_periods)
+        x, r = p.ee_pos(), p.ee_rot()
+        e = np.append(r.T @ (p.target_pos - x), rotation_vector(r.T @ p.target_rot)[2])
+        f = sensor.raw_wrench(sensor.contact_wrench(p.data))
+        mask = np.ones(4, bool)
+        if axes is not None:
+            mask[:] = False
+            mask[list(axes)] = f[NORMAL] - rest > config.contact_reading
+        samples_e.append(e)
+        samples_f.append(f)
+        masks.append(mask)
+        return f
+
+    rest = sample()[NORMAL]
+    steps = int(round(config.travel / config.step))
+    press_after = None
+    for k in range(1, steps + 1):
+        p.target_pos = start + normal * config.step * k
+        reading = sample()[2]
+        if kind == "normal":
+            continue
+        if press_after is None and reading - rest > config.contact_reading:
+            press_after = int(round(rng.uniform(*config.press) / config.step))
+        if press_after is not None:
+            press_after -= 1
+            if press_after <= 0:
+                break
+    if kind in ("shear_x", "shear_y"):
+        direction = lateral[:, 0 if kind == "shear_x" else 1] * rng.choice([-1.0, 1.0])
+        base = p.target_pos.copy()
+        for k in range(1, int(round(config.shear / config.step)) + 1):
+            p.target_pos = base + direction * config.step * k
+            sample((0 if kind == "shear_x" else 1, NORMAL))
+    elif kind == "torque":
+        sign = rng.choice([-1.0, 1.0])
+        base = p.target_rot.copy()
+        for k in range(1, int(round(config.rotation / config.rotation_step)) + 1):
+            p.target_rot = base @ rotation_from_vector(np.array([0.0, 0.0, sign * config.rotation_step * k]))
+            sample((3, NORMAL))
+    return Push(kind, seed, np.array(samples_e), np.array(samples_f), np.array(masks))
+
+
+def calibrate_env(
+    env_name: str,
+    task: str,
+    fit_seeds: list[int],
+    held_out_seeds: list[int],
+    push: PushConfig | None = None,
+    kinds: tuple[str, ...] = PUSH_KINDS,
+    breakpoints: tuple[int, ...] = DEFAULT_BREAKPOINTS,
+    max_offset: tuple[float, ...] = DEFAULT_MAX_OFFSET,
+) -> tuple[Calibration, list[Push], list[Push]]:
+    """Push (every kind, once per seed), fit on the `fit_seeds` pushes and report the residuals on
+    the `held_out_seeds` pushes. Returns the calibration and both push lists."""
+    from shiftkit.envs import env_family, make
+
+    push = push or PushConfig()
+    try:
+        family = env_family(env_name)
+        env = make(env_name, task)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    if not hasattr(env, "sensor") or not hasattr(env.physics, "grasp_pose"):
+        env.close()
+        raise ConfigError(f"env {env_name!r} has no tactile sensor and calibration object to push against")
+    try:
+        fit = [simulate_push(env, k, s, push) for s in fit_seeds for k in kinds]
+        held = [simulate_push(env, k, s, push) for s in held_out_seeds for k in kinds]
+    finally:
+        env.close()
+    stack = lambda pushes, attr: np.concatenate([getattr(q, attr) for q in pushes])  # noqa: E731
+    provenance = {
+        "procedure": "simulated autonomous pushes (shiftkit.transforms.force_calibration.simulate_push)",
+        "env": env_name,
+        "task": task,
+        "sim_model": family.sim_model_id,
+        "push_kinds": list(kinds),
+        "fit_seeds": list(fit_seeds),
+        "held_out_seeds": list(held_out_seeds),
+        "samples": {"fit": int(sum(len(q.wrench) for q in fit)), "held_out": int(sum(len(q.wrench) for q in held))},
+        "push_config": asdict(push),
+    }
+    calibration = fit_calibration(
+        stack(fit, "displacement"),
+        stack(fit, "wrench"),
+        sensor_id(family.sim_model_id),
+        breakpoints=breakpoints,
+        max_offset=max_offset,
+        provenance=provenance,
+        mask=stack(fit, "mask"),
+    )
+    if held:
+        calibration.residuals["held_out"] = residuals(
+            calibration, stack(held, "displacement"), stack(held, "wrench"), stack(held, "mask")
+        )
+    return calibration, fit, held
