@@ -72,7 +72,8 @@ def test_file_round_trip_and_plot(tmp_path):
     loaded = load_calibration(path, sensor_id="sts-A")
     assert loaded.axes == cal.axes and loaded.provenance == {"seeds": [0, 1]}
     assert loaded.displacement(f) == pytest.approx(cal.displacement(f))
-    png = plot_calibration(cal, e, f, tmp_path / "fit.png", held_out=synthetic_pushes(3, n=50))
+    held_e, held_f = synthetic_pushes(3, n=50)
+    png = plot_calibration(cal, e, f, tmp_path / "fit.png", held_out=(held_e, held_f, np.ones(held_e.shape, bool)))
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
