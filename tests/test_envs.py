@@ -17,11 +17,11 @@ PAIRS = [(env, task) for env, tasks in envs.ENV_TASKS.items() for task in tasks]
 
 
 def _run(env, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
-    obs, _ = env.reset(seed=seed)
+    obs, info = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
-    frames, qpos = [obs], []
+    frames, qpos = [obs], [info["qpos"]]
     for _ in range(steps):
-        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 4))
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, env.action_space.shape))
         frames.append(obs)
         qpos.append(info["qpos"])
     return np.array(frames), np.array(qpos)
@@ -38,10 +38,13 @@ def shared_envs():
 @pytest.mark.parametrize("pair", PAIRS, ids=[f"{e}-{t}" for e, t in PAIRS])
 def test_reset_step_spaces_and_info(shared_envs, pair):
     env = shared_envs[pair]
+    family = envs.env_family(pair[0])
     obs, info = env.reset(seed=0)
-    assert env.observation_space.shape == (59,) and env.observation_space.dtype == np.float32
-    assert env.action_space.shape == (4,)
-    assert len(env.observation_names) == 59 and tuple(env.observation_names) == OBSERVATION_NAMES
+    dim = len(family.observation_names)
+    assert env.observation_space.shape == (dim,) and env.observation_space.dtype == np.float32
+    assert env.action_space.shape == (len(family.action_names),)
+    assert tuple(env.observation_names) == family.observation_names
+    assert sorted(np.r_[family.state_indices, family.environment_state_indices].tolist()) == list(range(dim))
     assert env.observation_space.contains(obs)
     for key in ("is_success", "qpos", "qvel"):
         assert key in info
@@ -52,7 +55,7 @@ def test_reset_step_spaces_and_info(shared_envs, pair):
         assert terminated is False and truncated is False
         assert info["qpos"].shape == (env.physics.model.nq,) and info["qvel"].shape == (env.physics.model.nv,)
     with pytest.raises(ValueError):
-        env.step(np.array([np.nan, 0, 0, 0]))
+        env.step(np.full(env.action_space.shape, np.nan))
 
 
 @pytest.mark.parametrize("pair", PAIRS, ids=[f"{e}-{t}" for e, t in PAIRS])
@@ -60,9 +63,9 @@ def test_same_seed_same_arrays(shared_envs, pair):
     env = shared_envs[pair]
     a_obs, a_q = _run(env, seed=7, steps=15)
     b_obs, b_q = _run(env, seed=7, steps=15)
-    c_obs, _ = _run(env, seed=8, steps=2)
+    _, c_q = _run(env, seed=8, steps=2)
     assert np.array_equal(a_obs, b_obs) and np.array_equal(a_q, b_q)
-    assert not np.array_equal(a_obs[0], c_obs[0])
+    assert not np.array_equal(a_q[0], c_q[0])  # the reset state depends on the seed
 
 
 def test_gym_ids_registered_and_kwargs_pass_through():
@@ -74,6 +77,10 @@ def test_gym_ids_registered_and_kwargs_pass_through():
     assert obs.shape == (59,)
     assert env.unwrapped.physics.n_substeps == 100 and env.unwrapped.max_episode_steps == 90
     env.close()
+
+
+def test_panda_play_observation_names():
+    assert envs.env_family("panda-play").observation_names == OBSERVATION_NAMES
 
 
 def test_reset_state_matches_reference_conventions(shared_envs):

@@ -1,0 +1,339 @@
+"""Door + tactile finger experts: a scripted policy (env actions), the simulated kinesthetic teacher
+(freedrive arm pushed by a scripted "human" hand) and plain position replay of a kinesthetic
+episode (thesis §4.3).
+
+All three approach the handle from the hinge side, press the STS pad against it and drag it along
+the door's arc ("press and pull", thesis fig. 4.2b): the door moves by friction at the pad, so
+what matters is the pressing force.
+
+* `rollout` (the family's "scripted" expert) commands impedance targets inside the handle
+  (`PRESS_ACTION`) and along the swing (`DRAG_ACTION`): 550 N/m x depth of pressing and pulling.
+* `kinesthetic_rollout` ("kinesthetic"): the arm in freedrive (zero stiffness, damping only); a hand
+  applies a wrench at the finger: spring-damper towards a scripted pose plus a pressing force
+  `HUMAN_PRESS` along the pad normal, the door angle following a schedule at a human pace.
+  Recording starts once the sensor has moved 0.5 mm and holds x_raw (`ee_pose`), F~_raw
+  (`wrench_raw`), the simulator state and the wrist / STS images; the operator's mode-switch press
+  lands near the true first contact with seeded jitter (`meta`).
+* `replay_positions`: replays an episode's x_raw through the impedance controller (no force
+  matching): the pressing force of the demonstration is lost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from shiftkit.envs.controllers import rotation_vector
+from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, DoorTactileEnv
+from shiftkit.envs.door_tactile.physics import DoorTactilePhysics
+from shiftkit.envs.door_tactile.tasks import CLOSED_ANGLE, OPEN_ANGLE
+from shiftkit.envs.rollout import Rollout
+
+PRE_CONTACT = 0.012  # m before the handle face at the end of the approach
+PRESS_ACTION = 0.9  # scripted press: targets 2.25 cm inside the handle (about 12 N)
+DRAG_ACTION = {"flat": 0.7, "knob": 0.6}  # scripted drag: 1.75 / 1.5 cm along the swing (9.6 / 8.3 N)
+HUMAN_PRESS = {"flat": 12.0, "knob": 15.0}  # N: how hard the teacher presses the pad on the handle
+HUMAN_STIFFNESS, HUMAN_DAMPING = 400.0, 50.0  # N/m, Ns/m: the hand guiding the finger
+HUMAN_ROT_STIFFNESS, HUMAN_ROT_DAMPING = 6.0, 0.5  # Nm/rad, Nms/rad
+HUMAN_MAX_FORCE = 30.0  # N: approach
+HUMAN_MAX_DRAG = 9.0  # N: in the pad plane while pressing (a person feels the finger start to slip)
+HUMAN_PACE = 0.3  # rad/s: how fast the teacher swings the door
+RECORD_THRESHOLD = 0.0005  # m of motion before kinesthetic recording starts
+SWITCH_JITTER = 1.5  # steps (std) of the operator's mode-switch press around first contact
+SWITCH_JITTER_MAX = 4
+
+
+def relative_action(pos: np.ndarray, rot: np.ndarray, target_pos: np.ndarray, target_rot: np.ndarray) -> np.ndarray:
+    """The 6-DOF action (scaled, clipped to [-1, 1]) that moves a sensor at (pos, rot) towards the
+    target pose, in the sensor frame."""
+    trans = rot.T @ (target_pos - pos) / MAX_TRANSLATION
+    turn = rotation_vector(rot.T @ target_rot) / MAX_ROTATION
+    return np.concatenate([trans, turn]).clip(-1.0, 1.0)
+
+
+def _done(env: DoorTactileEnv) -> bool:
+    angle = env.physics.door_angle()
+    return angle >= OPEN_ANGLE + 0.05 if env.task.opening else angle <= CLOSED_ANGLE / 3
+
+
+class _Recorder:
+    """Frames of one episode: observation before each action, images, simulator state."""
+
+    def __init__(self, env: DoorTactileEnv, cameras: tuple[str, ...], depth: bool) -> None:
+        self.env, self.cameras, self.depth_cameras = env, cameras, cameras if depth else ()
+        self.obs, self.actions, self.success, self.qpos, self.qvel = [], [], [], [], []
+        self.images: dict[str, list[np.ndarray]] = {c: [] for c in (*cameras, "sts")}
+        self.depth: dict[str, list[np.ndarray]] = {c: [] for c in self.depth_cameras}
+
+    def frame(self, obs: np.ndarray, info: dict[str, Any], sts: np.ndarray | None = None) -> None:
+        self.obs.append(obs)
+        self.qpos.append(info["qpos"])
+        self.qvel.append(info["qvel"])
+        for cam in self.cameras:
+            self.images[cam].append(self.env.render_rgb(cam))
+        for cam in self.depth_cameras:
+            self.depth[cam].append(self.env.render_depth(cam))
+        self.images["sts"].append(self.env.sts_image() if sts is None else sts)
+
+    def done(self, **extra: Any) -> Rollout:
+        n = len(self.actions)
+        return Rollout(
+            observations=np.array(self.obs[:n], dtype=np.float32),
+            actions=np.array(self.actions, dtype=np.float32),
+            success=np.array(self.success, dtype=bool),
+            qpos=np.array(self.qpos[:n]),
+            qvel=np.array(self.qvel[:n]),
+            images={k: np.array(v[:n], dtype=np.uint8) for k, v in self.images.items()},
+            depth={k: np.array(v[:n], dtype=np.float32) for k, v in self.depth.items()},
+            **extra,
+        )
+
+
+def _run_until_done(rec: _Recorder, step: Callable[[], tuple], extra_steps: int, sts=None) -> None:
+    """Step until success has held for `extra_steps` more steps or the episode is truncated."""
+    left = None
+    while True:
+        obs, _, _, truncated, info = step()
+        rec.success.append(info["is_success"])
+        if info["is_success"] and left is None:
+            left = extra_steps
+        if truncated or (left is not None and left <= 0):
+            break
+        if left is not None:
+            left -= 1
+        rec.frame(obs, info, None if sts is None else sts())
+
+
+# ----------------------------------------------------------------------------- scripted policy
+class ScriptedDoorExpert:
+    """Approach the hinge side of the handle, switch the STS to tactile, press and drag along the arc."""
+
+    def __init__(self, env: DoorTactileEnv) -> None:
+        self.env = env
+        self.phase = "approach"
+
+    def act(self) -> np.ndarray:
+        p = self.env.physics
+        pos, rot = p.ee_pos(), p.ee_rot()
+        angle = p.door_angle()
+        if self.phase == "approach":
+            g_pos, g_rot = p.grasp_pose(angle)
+            goal = g_pos - g_rot[:, 2] * PRE_CONTACT
+            if np.linalg.norm(goal - pos) < 0.004:
+                self.phase = "drag"
+            else:
+                return np.append(relative_action(pos, rot, goal, g_rot), 0.0)
+        if _done(self.env):
+            return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+        g_pos, g_rot = p.grasp_pose(angle)
+        # hold the pad on the handle's middle (sensor y, z errors), press along the pad normal and
+        # drag along the finger axis, which the yaw keeps on the door's swing direction
+        hold = relative_action(pos, rot, g_pos, g_rot)
+        drag = DRAG_ACTION[self.env.task.variant] * (-1.0 if self.env.task.opening else 1.0)
+        return np.array([drag, hold[1], PRESS_ACTION, *hold[3:], 1.0])
+
+
+def rollout(
+    env: DoorTactileEnv, seed: int, cameras: tuple[str, ...] = (), depth: bool = False, extra_steps: int = 0
+) -> Rollout:
+    """One scripted-expert episode from `reset(seed=seed)`; frame t holds the observation before
+    action t, `success[t]` the env's success after it. Images: the requested cameras and "sts"
+    (the active mode's STS image)."""
+    rec = _Recorder(env, cameras, depth)
+    obs, info = env.reset(seed=seed)
+    rec.frame(obs, info)
+    expert = ScriptedDoorExpert(env)
+
+    def step():
+        action = expert.act()
+        rec.actions.append(action)
+        return env.step(action)
+
+    _run_until_done(rec, step, extra_steps)
+    return rec.done()
+
+
+# ----------------------------------------------------------------------------- kinesthetic teacher
+class KinestheticTeacher:
+    """The scripted person's hand on the finger: a wrench at the sensor every physics step."""
+
+    def __init__(self, env: DoorTactileEnv) -> None:
+        self.env = env
+        self.phase = "approach"
+        self.press = HUMAN_PRESS[env.task.variant]
+        self.sign = 1.0 if env.task.opening else -1.0
+        self.schedule = 0.0  # door angle the hand is heading for
+        self.dt = env.physics.model.opt.timestep
+
+    def __call__(self, p: DoorTactilePhysics) -> np.ndarray:
+        d = p.data
+        pos, rot = p.ee_pos(), p.ee_rot()
+        vel = np.zeros(6)
+        mujoco.mj_objectVelocity(p.model, d, mujoco.mjtObj.mjOBJ_SITE, p.ee_site, vel, 0)
+        ang, lin = vel[:3], vel[3:]
+        angle = p.door_angle()
+        press = np.zeros(3)
+        if self.phase == "approach":
+            goal, goal_rot = p.grasp_pose(angle)
+            goal = goal - goal_rot[:, 2] * PRE_CONTACT
+            if np.linalg.norm(goal - pos) < 0.003 and np.linalg.norm(lin) < 0.05:
+                self.phase = "press"
+        elif self.phase == "press":
+            goal, goal_rot = p.grasp_pose(angle)
+            press = goal_rot[:, 2] * self.press
+            if p.handle_contact() and -(rot[:, 2] @ lin) < 0.01:
+                self.phase, self.schedule = "drag", angle
+        elif self.phase == "drag":
+            if _done(self.env):
+                self.phase = "release"
+            self.schedule = float(np.clip(self.schedule + self.sign * HUMAN_PACE * self.dt, angle - 0.2, angle + 0.2))
+            goal, goal_rot = p.grasp_pose(max(0.0, self.schedule))
+            _, goal_rot = p.grasp_pose(angle)
+            press = goal_rot[:, 2] * self.press
+        else:  # release: let go, only damp the hand
+            return np.concatenate([-HUMAN_DAMPING * lin, -HUMAN_ROT_DAMPING * ang])
+        err = goal - pos
+        if self.phase != "approach":  # the press force, not the position spring, sets the normal force
+            n = goal_rot[:, 2]
+            err = err - n * (n @ err)
+        force = HUMAN_STIFFNESS * err - HUMAN_DAMPING * lin
+        if self.phase != "approach":
+            n = goal_rot[:, 2]
+            force = force - n * (n @ force)
+        limit = HUMAN_MAX_FORCE if self.phase == "approach" else HUMAN_MAX_DRAG
+        size = np.linalg.norm(force)
+        if size > limit:
+            force *= limit / size
+        torque = HUMAN_ROT_STIFFNESS * rotation_vector(goal_rot @ rot.T) - HUMAN_ROT_DAMPING * ang
+        return np.concatenate([force + press, torque])
+
+
+def kinesthetic_rollout(
+    env: DoorTactileEnv, seed: int, cameras: tuple[str, ...] = (), depth: bool = False, extra_steps: int = 0
+) -> Rollout:
+    """One simulated kinesthetic demonstration (see the module docstring). Arrays: `ee_pose` (x_raw,
+    position + quaternion xyzw, base frame) and `wrench_raw` (F~_raw); actions are the relative
+    pose changes between recorded frames plus the operator's mode label (1 tactile / 0 visual);
+    meta: `first_contact_step`, `mode_switch_step` (frame indices), `recording_start_step`."""
+    obs, info = env.reset(seed=seed)
+    teacher = KinestheticTeacher(env)
+    rng = np.random.default_rng([seed, 1])  # the operator's timing, apart from the env's streams
+    start = env.physics.ee_pos()
+    waited = 0
+    while np.linalg.norm(env.physics.ee_pos() - start) < RECORD_THRESHOLD:
+        obs, _, _, truncated, info = env.step_freedrive(teacher)
+        waited += 1
+        if truncated:
+            break
+    frames: list[dict[str, Any]] = []
+
+    def capture(obs: np.ndarray, info: dict[str, Any]) -> None:
+        frames.append(
+            {
+                "obs": obs,
+                "info": info,
+                "pose": env.ee_pose(),
+                "rot": env.physics.ee_rot(),
+                "wrench": env.sensor.raw_wrench(obs[21:25]),
+                "contact": info["handle_contact"],
+                "tactile": env.sts_image(),
+                "visual": env.sensor.visual_image(env.physics.data),
+                "images": {c: env.render_rgb(c) for c in cameras},
+                "depth": {c: env.render_depth(c) for c in cameras} if depth else {},
+            }
+        )
+
+    capture(obs, info)
+    success: list[bool] = []
+    left = None
+    while True:
+        obs, _, _, truncated, info = env.step_freedrive(teacher)
+        success.append(info["is_success"])
+        if info["is_success"] and left is None:
+            left = extra_steps
+        capture(obs, info)  # the state after the last action closes the pose sequence
+        if truncated or (left is not None and left <= 0):
+            break
+        if left is not None:
+            left -= 1
+    n = len(success)
+    contact = [i for i, f in enumerate(frames[:n]) if f["contact"]]
+    first_contact = contact[0] if contact else n - 1
+    jitter = int(np.clip(np.round(rng.normal(0.0, SWITCH_JITTER)), -SWITCH_JITTER_MAX, SWITCH_JITTER_MAX))
+    switch = int(np.clip(first_contact + jitter, 0, n - 1))
+    mode = (np.arange(n) >= switch).astype(np.float32)
+    actions = np.zeros((n, 7), dtype=np.float32)
+    for t in range(n):
+        a, b = frames[t], frames[t + 1]
+        actions[t, :6] = relative_action(a["pose"][:3], a["rot"], b["pose"][:3], b["rot"])
+        actions[t, 6] = mode[t]
+    body = frames[:n]
+    return Rollout(
+        observations=np.array([f["obs"] for f in body], dtype=np.float32),
+        actions=actions,
+        success=np.array(success, dtype=bool),
+        qpos=np.array([f["info"]["qpos"] for f in body]),
+        qvel=np.array([f["info"]["qvel"] for f in body]),
+        images={
+            **{c: np.array([f["images"][c] for f in body], dtype=np.uint8) for c in cameras},
+            "sts": np.array([f["tactile"] if m else f["visual"] for f, m in zip(body, mode, strict=True)], np.uint8),
+        },
+        depth={c: np.array([f["depth"][c] for f in body], dtype=np.float32) for c in (cameras if depth else ())},
+        arrays={
+            "ee_pose": np.array([f["pose"] for f in body]),
+            "wrench_raw": np.array([f["wrench"] for f in body]),
+            "contact_wrench": np.array([f["obs"][21:25] for f in body], dtype=np.float64),
+        },
+        meta={
+            "first_contact_step": int(first_contact),
+            "mode_switch_step": switch,
+            "recording_start_step": waited,
+            "kinesthetic": True,
+        },
+    )
+
+
+# ----------------------------------------------------------------------------- plain replay
+def replay_positions(
+    env: DoorTactileEnv,
+    seed: int,
+    ee_pose: np.ndarray,
+    modes: np.ndarray | None = None,
+    warmup_steps: int = 0,
+    cameras: tuple[str, ...] = (),
+    depth: bool = False,
+) -> Rollout:
+    """Position replay (no force matching): from `reset(seed=seed)`, after `warmup_steps` holding
+    steps (the steps the demonstration spent before recording started), command each next recorded
+    pose x_raw[t + 1] (`ee_pose`: position + quaternion xyzw) through the impedance controller.
+    `modes` (T,) gives the STS mode per step (default tactile)."""
+    poses = np.asarray(ee_pose, dtype=np.float64)
+    rots = np.zeros((len(poses), 9))
+    for i, q in enumerate(poses[:, 3:7]):
+        mujoco.mju_quat2Mat(rots[i], np.array([q[3], q[0], q[1], q[2]]))
+    rec = _Recorder(env, cameras, depth)
+    obs, info = env.reset(seed=seed)
+    for _ in range(warmup_steps):
+        p = env.physics
+        obs, _, _, _, info = env.step(
+            np.append(relative_action(p.ee_pos(), p.ee_rot(), poses[0, :3], rots[0].reshape(3, 3)), 0.0)
+        )
+    rec.frame(obs, info)
+    steps = len(poses) - 1
+    for t in range(1, len(poses)):
+        p = env.physics
+        action = np.append(
+            relative_action(p.ee_pos(), p.ee_rot(), poses[t, :3], rots[t].reshape(3, 3)),
+            1.0 if modes is None else float(modes[t - 1] > 0.5),
+        )
+        rec.actions.append(action)
+        obs, _, _, truncated, info = env.step(action)
+        rec.success.append(info["is_success"])
+        if t < steps and not truncated:
+            rec.frame(obs, info)
+        if truncated:
+            break
+    return rec.done()

@@ -1,0 +1,126 @@
+"""Door + tactile finger: reset distribution, impedance control, the simulated STS and its marker
+wrench estimate, the experts (fast: one short episode each)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import shiftkit.envs as envs
+from shiftkit.envs.controllers import rotation_vector
+from shiftkit.envs.door_tactile.env import DoorTactileEnv
+from shiftkit.envs.door_tactile.experts import rollout
+from shiftkit.envs.door_tactile.physics import STIFFNESS
+from shiftkit.envs.door_tactile.tasks import START_HALF, START_OFFSET_ALONG_NORMAL, START_OFFSET_BACK, START_YAW
+from shiftkit.envs.sts import PadContacts
+from shiftkit.envs.tactile_estimation import MarkerWrenchEstimator, detect_markers
+
+
+@pytest.fixture(scope="module")
+def env_open():
+    env = envs.make("door-tactile", "flat-handle-open")
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize("task", ["flat-handle-open", "knob-close"])
+def test_reset_distribution(task):
+    """Sensor start in a 3 cm cube around the nominal pose with yaw within +-0.15 rad; door closed
+    for open tasks, open (above the spring zone) for close tasks; no contact at the start."""
+    env = envs.make("door-tactile", task)
+    offsets, yaws = [], []
+    for seed in range(8):
+        obs, info = env.reset(seed=seed)
+        p = env.physics
+        angle = p.door_angle()
+        if env.task.opening:
+            assert angle == pytest.approx(0.0, abs=1e-9)
+        else:
+            assert 0.85 <= angle <= 0.95
+        pos, rot = p.grasp_pose(angle)
+        nominal = pos + rot[:, 2] * START_OFFSET_ALONG_NORMAL + p.door_outward(angle) * START_OFFSET_BACK
+        offsets.append(p.ee_pos() - nominal)
+        turn = rotation_vector(p.ee_rot() @ rot.T)
+        assert np.abs(turn[:2]).max() < 1e-3  # only a yaw about world z
+        yaws.append(turn[2])
+        assert not info["handle_contact"] and np.allclose(obs[:7], [0, 0, 0, 0, 0, 0, 1])
+        assert obs[18] == 0.0  # the STS starts in visual mode
+    offsets = np.array(offsets)
+    assert np.abs(offsets).max() <= START_HALF + 2e-4 and np.abs(yaws).max() <= START_YAW + 1e-3
+    assert offsets.std(axis=0).min() > 0.003 and np.std(yaws) > 0.03  # really spread, not constant
+    env.close()
+
+
+def test_impedance_holds_pose_and_presses_with_its_stiffness(env_open):
+    env = env_open
+    env.reset(seed=0)
+    p = env.physics
+    start = p.ee_pos()
+    for _ in range(10):
+        env.step(np.zeros(7))
+    assert np.linalg.norm(p.ee_pos() - start) < 0.003  # gravity compensated, no drift
+    # a target 2 cm behind the handle face: the contact force is about stiffness x remaining depth
+    pos, rot = p.grasp_pose()
+    p.reset(pos - rot[:, 2] * 0.002, rot, 0.0)
+    p.target_pos, p.target_rot = pos + rot[:, 2] * 0.02, rot
+    p.simulate(600)
+    fz = env.sensor.contact_wrench(p.data)[2]
+    depth_left = (p.target_pos - p.ee_pos()) @ rot[:, 2]
+    assert fz == pytest.approx(STIFFNESS[0] * depth_left, rel=0.2) and 6.0 < fz < 12.0
+
+
+def test_relative_actions_move_in_the_sensor_frame(env_open):
+    env = env_open
+    env.reset(seed=1)
+    for _ in range(3):
+        obs, *_ = env.step(np.array([1.0, 0, 0, 0, 0, 0, 0]))
+    assert obs[0] > 0.01 and abs(obs[1]) < 0.003 and abs(obs[2]) < 0.003  # along the finger
+    np.testing.assert_allclose(np.linalg.norm(obs[3:7]), 1.0, atol=1e-5)
+    assert obs[7] < obs[0]  # the previous relative pose lags the current one
+
+
+def test_sts_images_modes_and_raw_wrench(env_open):
+    env = env_open
+    env.reset(seed=2)
+    visual = env.sts_image()
+    assert visual.shape == (64, 64, 3) and visual.dtype == np.uint8
+    obs, *_ = env.step(np.array([0, 0, 0, 0, 0, 0, 1.0]))
+    tactile = env.sts_image()
+    assert obs[18] == 1.0 and tactile.shape == (64, 64, 3)
+    assert len(detect_markers(tactile)) == len(env.sensor.reference_mm)
+    assert np.abs(obs[14:18]).max() < 0.2  # no contact: the estimate stays near zero
+    with pytest.raises(ValueError, match="mode"):
+        env.sensor.set_mode("infrared")
+    # F~: fixed nonlinear gain, seeded noise, same seed -> same readings
+    env.sensor.reset(5)
+    a = [env.sensor.raw_wrench([1.0, -2.0, 10.0, 0.01]) for _ in range(3)]
+    env.sensor.reset(5)
+    b = [env.sensor.raw_wrench([1.0, -2.0, 10.0, 0.01]) for _ in range(3)]
+    np.testing.assert_array_equal(a, b)
+    assert a[0][2] != pytest.approx(10.0, rel=0.1) and a[0][1] < 0 < a[0][0]  # unscaled, signs kept
+
+
+def test_marker_estimate_follows_the_contact_wrench(env_open):
+    sensor = env_open.sensor
+    sensor.reset(3)
+    none = PadContacts(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0))
+    est = MarkerWrenchEstimator()
+    est.reset(sensor.render_markers(sensor.marker_positions(none), none))
+    readings = []
+    for fx, fy, fz in ((0, 0, 2), (0, 0, 8), (4, 0, 8), (0, -4, 8)):
+        c = PadContacts(np.array([[0.002, -0.001]]), np.array([[fx, fy, fz]], float), np.zeros(1))
+        readings.append(est.raw(sensor.render_markers(sensor.marker_positions(c), c)))
+    r = np.array(readings)
+    assert r[1, 2] > r[0, 2] > 0  # pressure spreads the markers: Fz grows with the normal force
+    assert r[2, 0] > 0.2 and r[2, 0] > 4 * abs(r[2, 1])  # shear along x moves the markers along x
+    assert r[3, 1] < -0.2 and -r[3, 1] > 4 * abs(r[3, 0])
+
+
+def test_scripted_expert_closes_the_door():
+    env = DoorTactileEnv("flat-handle-close")
+    r = rollout(env, seed=0, cameras=("wrist",))
+    assert r.succeeded and not r.success[0]
+    assert r.images["wrist"].shape == (len(r.actions), 48, 64, 3) and r.images["sts"].shape[1:] == (64, 64, 3)
+    assert r.actions[:, 6].max() == 1.0 and r.actions[0, 6] == 0.0  # switches to tactile for contact
+    assert r.observations[:, 23].max() > 5.0  # pressed on the handle
+    env.close()
