@@ -47,7 +47,8 @@ def test_fit_recovers_piecewise_gains_and_breakpoint():
         assert cal.axes[a].offset == pytest.approx(TRUE[a].offset, abs=0.02), a
     assert len(cal.axes["Fz"].breakpoints) == 1
     assert cal.axes["Fz"].breakpoints[0] == pytest.approx(0.005, abs=0.0007)
-    assert cal.axes["Fz"].clip == pytest.approx(0.025, abs=1e-3)  # the calibrated range, under 2.6 cm
+    assert cal.axes["Fz"].clip == 0.026  # offsets clipped at 2.6 cm (the reference robot's)
+    assert cal.residuals["fit"]["Fz"]["max_abs_displacement"] == pytest.approx(0.025, abs=1e-3)
     # held-out pushes: the inverse (what force matching uses) predicts the displacement
     held_e, held_f = synthetic_pushes(1)
     pred = cal.displacement(held_f)

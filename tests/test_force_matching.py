@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shiftkit.transforms.force_calibration import AxisFit, Calibration
+from shiftkit.transforms.force_calibration import WRENCH_AXES, AxisFit, Calibration
 from shiftkit.transforms.force_matching import (
     force_matched_poses,
     matrix_to_quat_xyzw,
@@ -49,9 +49,9 @@ def test_quaternion_round_trip():
 
 def test_zero_force_is_position_replay():
     poses = random_poses(12)
-    assert np.array_equal(force_matched_poses(poses, np.zeros((12, 4)), linear_calibration(), 5)[:, :3], poses[:, :3])
+    assert np.array_equal(force_matched_poses(poses, np.zeros((12, 4)), linear_calibration(), 5), poses)
     rep = force_matched_poses(poses, np.full((12, 4), 0.3), linear_calibration(offset=0.3), 5)
-    assert rep == pytest.approx(poses, abs=1e-12)
+    assert np.array_equal(rep, poses)
 
 
 def test_offsets_in_the_sensor_frame():
@@ -73,3 +73,124 @@ def test_offsets_are_clipped():
     poses = random_poses(3)
     rep = force_matched_poses(poses, np.tile([0.0, 0.0, 1e6, 0.0], (3, 1)), linear_calibration(), 1)
     assert np.linalg.norm(rep[:, :3] - poses[:, :3], axis=1) == pytest.approx(np.full(3, 0.026))
+
+
+# ----------------------------------------------------------------------------- in the simulator
+SENSOR = "door-tactile-v1:sts"
+
+
+@pytest.fixture(scope="module")
+def kinesthetic(tmp_path_factory):
+    """Two simulated kinesthetic demonstrations (flat handle) with wrist and STS images."""
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    out = tmp_path_factory.mktemp("kin") / "raw"
+    collect(CollectConfig(env="door-tactile", task="flat-handle-open", episodes=2, expert="kinesthetic", out=str(out)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def calibration_file(tmp_path_factory):
+    """A calibration of the simulated sensor from one push of each kind."""
+    from shiftkit.transforms.force_calibration import calibrate_env
+
+    cal, _, _ = calibrate_env("door-tactile", "knob-open", [0], [])
+    return cal.save(tmp_path_factory.mktemp("cal") / "calib.json")
+
+
+def stage(features, **params):
+    from shiftkit.pipelines.stage import StageContext, build_stage
+
+    s = build_stage("force_match", params, StageContext(fps=10), "test")
+    s.transform_features(features)
+    s.setup()
+    return s
+
+
+def episodes(raw):
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
+
+    ds = open_raw_dataset(raw)
+    return ds.features(), list(ds.iter_episodes())
+
+
+def replayed(s, episode):
+    out = list(s.process(episode, np.random.default_rng(0)))
+    return out[0] if out else None
+
+
+def test_position_mode_is_the_family_position_replay(kinesthetic):
+    from shiftkit.envs.door_tactile.experts import replay_positions
+
+    features, (ep, _) = episodes(kinesthetic)
+    s = stage(features, mode="position", hold_steps=0, sts_images=False)
+    out = replayed(s, ep)
+    n = len(ep)
+    assert len(out) == n and out.meta["replay_mode"] == "position"
+    env = s._env("flat-handle-open", (48, 64, 3))
+    ref = replay_positions(
+        env,
+        ep.meta["seed"],
+        ep.frames["observation.ee_pose"],
+        ep.frames["action"][:, -1],
+        ep.meta["recording_start_step"],
+    )
+    # the same physics (to rounding): poses, door and contact state, actions; the sensor's noise
+    # stream differs, since this stage also draws the raw reading of every replayed frame
+    close = dict(rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(out.frames["observation.state"][: n - 1, :14], ref.observations[:, :14], **close)
+    np.testing.assert_allclose(out.frames["observation.environment_state"][: n - 1], ref.observations[:, 19:], **close)
+    np.testing.assert_allclose(out.frames["action"][: n - 1], ref.actions, **close)
+
+
+def test_zero_force_is_exactly_position_replay(kinesthetic, tmp_path):
+    features, (ep, _) = episodes(kinesthetic)
+    Calibration(SENSOR, linear_calibration().axes).save(tmp_path / "zero.json")
+    zero = ep.with_frames(**{"observation.wrench": np.zeros_like(ep.frames["observation.wrench"])})
+    fm = replayed(stage(features, calibration=str(tmp_path / "zero.json"), axes=list(WRENCH_AXES)), zero)
+    pos = replayed(stage(features, mode="position"), zero)
+    assert fm.frames.keys() == pos.frames.keys()
+    for key in fm.frames:
+        assert np.array_equal(fm.frames[key], pos.frames[key]), key
+    assert "observation.images.sts_visual" in fm.frames and "observation.images.sts" not in fm.frames
+
+
+def test_force_matching_restores_the_demonstrated_press(kinesthetic, calibration_file):
+    """Position replay loses the contact force; force-matched replay presses as the person did."""
+    features, eps = episodes(kinesthetic)
+    fm_stage = stage(features, calibration=str(calibration_file), sts_images=False, slowdown=2)
+    pos_stage = stage(features, mode="position", sts_images=False, slowdown=2)
+    for ep in eps:
+        demo = ep.frames["observation.environment_state"][:, 4]  # true normal force on the pad
+        touching = np.flatnonzero(demo > 1.0)
+        fm = replayed(fm_stage, ep).frames["observation.environment_state"][::2, 4][touching]
+        pos = replayed(pos_stage, ep).frames["observation.environment_state"][::2, 4][touching]
+        assert np.median(fm) == pytest.approx(np.median(demo[touching]), rel=0.3)
+        assert np.median(pos) < 0.3 * np.median(demo[touching])
+
+
+def test_drop_failed_and_outcome(kinesthetic):
+    features, (ep, _) = episodes(kinesthetic)
+    kept = replayed(stage(features, mode="position", sts_images=False), ep)
+    assert kept.meta["replay_success"] is False and kept.meta["outcome"] == "failure"
+    assert replayed(stage(features, mode="position", sts_images=False, drop_failed=True), ep) is None
+
+
+def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):
+    from shiftkit.pipelines.errors import ConfigError, DatasetError
+
+    features, (ep, _) = episodes(kinesthetic)
+    linear_calibration().save(tmp_path / "other.json")  # sensor "test"
+    for params, message in [
+        ({"calibration": str(tmp_path / "other.json")}, "is for sensor 'test', not 'door-tactile-v1:sts'"),
+        ({}, 'mode "force_matched" needs a calibration file'),
+        ({"mode": "position", "axes": ["Fq"]}, "unknown wrench axes"),
+        ({"mode": "position", "env": "nope"}, "unknown env 'nope'"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            stage(features, **params)
+    with pytest.raises(ConfigError, match="needs the kinesthetic recording's 'observation.ee_pose'"):
+        stage(episodes(synthetic_raw)[0], mode="position")
+    s = stage(features, mode="position", sts_images=False)
+    with pytest.raises(DatasetError, match="no simulator 'seed'"):
+        replayed(s, type(ep)(ep.frames, {**ep.meta, "seed": None}))

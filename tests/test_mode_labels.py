@@ -44,7 +44,7 @@ def write_tactile_raw(path, episodes: int = 4, length: int = 16, seed: int = 0):
                 },
                 meta={
                     "task": "knob-open" if e % 2 else "flat-handle-open",
-                    "labels": {"mode_switch": [contact + int(rng.integers(-1, 2))]},
+                    "labels": {"mode_switch_step": [contact + int(rng.integers(-1, 2))]},
                     "first_contact_step": contact,
                 },
             )
@@ -84,7 +84,7 @@ def test_labels_action_dim_and_active_image(tmp_path, source):
         if source == "contact":
             assert diff == 0  # the hysteresis threshold sits below the contact step's rise
         else:
-            assert diff == ep.meta["labels"]["mode_switch"][0] - ep.meta["first_contact_step"]
+            assert diff == ep.meta["labels"]["mode_switch_step"][0] - ep.meta["first_contact_step"]
         metas.append(ep.meta)
     table = timing_report(metas, tmp_path / "hist.png")
     assert "| flat-handle-open | 2 |" in table and "| knob-open | 2 |" in table

@@ -4,6 +4,7 @@ from shiftkit.transforms import (  # noqa: F401
     cast,
     drop,
     filter_episodes,
+    force_matching,
     mode_labels,
     rename,
     resample,

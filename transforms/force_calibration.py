@@ -37,6 +37,7 @@ DEFAULT_BREAKPOINTS = (0, 0, 1, 0)
 # largest displacement a force may be mapped to (the reference robot clips at ~2.6 cm)
 DEFAULT_MAX_OFFSET = (0.026, 0.026, 0.026, 1.0)
 BREAKPOINT_CANDIDATES = 200
+LOADED = 0.1  # residuals relative to the displacement count samples above this share of the largest
 
 
 @dataclass
@@ -176,7 +177,8 @@ def _check_fit(fit: AxisFit, where: str) -> None:
 def fit_axis(e: np.ndarray, reading: np.ndarray, breakpoints: int, clip: float, where: str = "fit") -> AxisFit:
     """Least-squares fit of one axis with `breakpoints` (0 or 1) slope changes; a breakpoint is
     chosen among candidates spread over the data's |e| range (the one with the smallest squared error).
-    The returned clip is `clip` or the largest |e| seen, whichever is smaller."""
+    Inverting clips at `clip`: beyond the pushes' range the line is extrapolated up to it (a person
+    drags a handle harder than a calibration shear move that slips)."""
     e, reading = np.asarray(e, np.float64), np.asarray(reading, np.float64)
     if breakpoints not in (0, 1):
         raise ConfigError(f"{where}: breakpoints must be 0 or 1, got {breakpoints}")
@@ -201,7 +203,7 @@ def fit_axis(e: np.ndarray, reading: np.ndarray, breakpoints: int, clip: float, 
             best = (sse, coef, bp)
     _, coef, bp = best
     slopes = [float(coef[1])] if bp is None else [float(coef[1]), float(coef[1] + coef[2])]
-    fit = AxisFit(float(coef[0]), slopes, [] if bp is None else [float(bp)], float(min(clip, a.max())))
+    fit = AxisFit(float(coef[0]), slopes, [] if bp is None else [float(bp)], float(clip))
     try:
         _check_fit(fit, where)
     except ConfigError as exc:
@@ -238,10 +240,10 @@ def fit_calibration(
 def residuals(
     calibration: Calibration, displacement: np.ndarray, wrench: np.ndarray, mask: np.ndarray | None = None
 ) -> dict[str, dict[str, Any]]:
-    """Per axis, over the samples `mask` (n, 4) assigns to it whose displacement lies in the
-    calibrated range (the inverse is clipped beyond it): RMSE of the predicted reading, RMSE of the
-    predicted displacement (the inverse, as force matching uses it) and that RMSE relative to the
-    RMS displacement."""
+    """Per axis, over the samples `mask` (n, 4) assigns to it whose displacement lies within the
+    clip: RMSE of the predicted reading, RMSE of the predicted displacement (the inverse, as force
+    matching uses it), and that RMSE over the loaded samples (|e| above `LOADED` of the largest)
+    relative to their RMS displacement (unloaded samples only measure the reading's noise)."""
     displacement, wrench = np.asarray(displacement, np.float64), np.asarray(wrench, np.float64)
     mask = np.ones(displacement.shape, bool) if mask is None else np.asarray(mask, bool)
     predicted_force = calibration.force(displacement)
@@ -250,13 +252,16 @@ def residuals(
     for k, a in enumerate(WRENCH_AXES):
         inside = mask[:, k] & (np.abs(displacement[:, k]) <= calibration.axes[a].clip)
         e, pe = displacement[inside, k], predicted_e[inside, k]
-        rms_e = float(np.sqrt(np.mean(e**2))) if len(e) else 0.0
-        rmse_e = float(np.sqrt(np.mean((pe - e) ** 2))) if len(e) else 0.0
+        rmse = lambda x: float(np.sqrt(np.mean(x**2))) if len(x) else 0.0  # noqa: E731
+        loaded = np.abs(e) > LOADED * np.abs(e).max() if len(e) else np.zeros(0, bool)
+        rms_loaded = rmse(e[loaded])
         out[a] = {
             "n": int(len(e)),
-            "rmse_force": float(np.sqrt(np.mean((predicted_force[inside, k] - wrench[inside, k]) ** 2))),
-            "rmse_displacement": rmse_e,
-            "relative_rmse_displacement": rmse_e / rms_e if rms_e > 0 else None,
+            "n_loaded": int(loaded.sum()),
+            "max_abs_displacement": float(np.abs(e).max()) if len(e) else 0.0,
+            "rmse_force": rmse(predicted_force[inside, k] - wrench[inside, k]),
+            "rmse_displacement": rmse(pe - e),
+            "relative_rmse_displacement": rmse(pe[loaded] - e[loaded]) / rms_loaded if rms_loaded > 0 else None,
             "unit": DISPLACEMENT_UNITS[k],
         }
     return out

@@ -2,7 +2,8 @@
 §4.3.7, SPEC §5.3) and keep the STS image of the active mode.
 
 The mode comes from the operator's mode-switch presses recorded in the raw episode (each press
-toggles the mode, starting visual) or automatically from a tactile contact signal: the distance of
+toggles the mode, starting visual; `shiftkit collect --expert kinesthetic` records one press as
+`mode_switch_step`) or automatically from a tactile contact signal: the distance of
 a feature's chosen dims from their no-contact baseline (the median of the first frames), with
 hysteresis (tactile once it reaches `on_threshold`, visual again once it falls below
 `off_threshold`). `action` gains a dim named `sts_mode` (or that dim is overwritten when the action
@@ -51,8 +52,9 @@ class ModeLabelConfig:
     """Signal level (in the signal's units) at which the label becomes tactile."""
     off_threshold: float = 0.2
     """Signal level below which a tactile label returns to visual (hysteresis: <= on_threshold)."""
-    press_label: str = "mode_switch"
-    """Key in the episode's `labels` metadata listing the frames of the operator's presses."""
+    press_label: str = "mode_switch_step"
+    """Episode metadata key (in `labels` or at the top level) holding the frame(s) of the operator's
+    mode-switch presses."""
     first_contact_key: str = "first_contact_step"
     """Episode metadata key of the true first-contact step (for the timing report); absent = unknown."""
     visual_image: str | None = None
@@ -117,7 +119,8 @@ class ModeLabel(Stage):
         n = len(episode)
         where = f"mode_label: episode {episode.meta.get('source_episode_index', '?')}"
         if c.source == "operator":
-            mode = operator_modes(episode.meta.get("labels", {}).get(c.press_label), n, where)
+            meta = episode.meta
+            mode = operator_modes((meta.get("labels") or {}).get(c.press_label, meta.get(c.press_label)), n, where)
         else:
             signal = np.asarray(episode.frames[c.signal], dtype=np.float64).reshape(n, -1)[:, self._signal_index]
             mode = contact_modes(signal, c.baseline_frames, c.on_threshold, c.off_threshold)
