@@ -28,6 +28,7 @@ COMMANDS: dict[str, str] = {
     "pull": "pull",
     "train": "train",
     "eval": "eval",
+    "calibrate": "calibrate",
 }
 
 

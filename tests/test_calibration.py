@@ -102,3 +102,20 @@ def test_bad_files_are_one_line_errors(tmp_path):
         load_calibration(tmp_path / "broken.json")
     with pytest.raises(ConfigError, match="not found"):
         load_calibration(tmp_path / "nope.json")
+
+
+def test_calibrate_command_on_the_simulated_sensor(tmp_path, capsys):
+    """`shiftkit calibrate` pushes the door-tactile STS, fits it and writes the file and the plot;
+    the fit recovers the sensor's hidden normal gain on held-out pushes."""
+    from shiftkit.pipelines.cli import main
+
+    out = tmp_path / "calib.json"
+    assert main(["calibrate", "--env", "door-tactile", "--out", str(out), "--pushes", "1", "--held-out", "1"]) == 0
+    cal = load_calibration(out, sensor_id="door-tactile-v1:sts")
+    assert (tmp_path / "calib.png").read_bytes()[:4] == b"\x89PNG"
+    assert cal.provenance["fit_seeds"] == [0] and cal.provenance["held_out_seeds"] == [1]
+    for axis in ("Fx", "Fy", "Fz"):
+        assert cal.residuals["held_out"][axis]["relative_rmse_displacement"] < 0.15, axis
+    assert "held_out displacement RMSE" in capsys.readouterr().out
+    assert main(["calibrate", "--env", "panda-play", "--task", "lift", "--out", str(tmp_path / "x.json")]) == 2
+    assert "has no tactile sensor" in capsys.readouterr().err
