@@ -132,3 +132,17 @@ def test_bad_configs_are_one_line_errors(tmp_path):
         with pytest.raises(ConfigError, match=message) as info:
             run(raw, tmp_path / "o", params)
         assert "\n" not in str(info.value)
+
+
+def test_dataset_timing_report(tmp_path):
+    from shiftkit.transforms.mode_labels import dataset_timing_report
+
+    raw = write_tactile_raw(tmp_path / "raw")
+    run(raw, tmp_path / "out", {"source": "contact"})
+    table = dataset_timing_report(tmp_path / "out", tmp_path / "h.png")
+    assert "| flat-handle-open | 2 | 100% | +0.00 |" in table
+    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+
+    plain = write_raw_as_lerobot(raw, "test/plain", tmp_path / "plain")
+    with pytest.raises(DatasetError, match="no episode has mode labels"):
+        dataset_timing_report(plain)

@@ -219,3 +219,29 @@ def timing_report(metas: list[dict[str, Any]], png: str | Path | None = None) ->
         fig.savefig(png, dpi=90)
         plt.close(fig)
     return "\n".join(lines)
+
+
+def dataset_timing_report(root: str | Path, png: str | Path | None = None) -> str:
+    """`timing_report` over the episodes of a LeRobot dataset written with a `mode_label` stage."""
+    import json
+
+    from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
+
+    reader = open_lerobot_dataset(root)
+    if META_COLUMN not in reader.episodes:
+        raise DatasetError(f"{root}: no shiftkit episode metadata (not written by a shiftkit pipeline)")
+    metas = [json.loads(m) if isinstance(m, str) else {} for m in reader.episodes[META_COLUMN]]
+    if not any(SWITCH_STEP in m for m in metas):
+        raise DatasetError(f"{root}: no episode has mode labels (run a mode_label stage)")
+    return timing_report(metas, png)
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="STS mode-switch timing vs true first contact (thesis Fig. 4.15)")
+    parser.add_argument("datasets", nargs="+", help="LeRobot dataset roots written with a mode_label stage")
+    parser.add_argument("--png", help="histogram PNG (one dataset)")
+    args = parser.parse_args()
+    for root in args.datasets:
+        print(f"{root}:\n{dataset_timing_report(root, args.png)}")
