@@ -39,13 +39,14 @@ MODES = ("visual", "tactile")
 class MembraneModel:
     """How contact deforms the marker grid (membrane units: millimetres on the pad)."""
 
-    size_mm: tuple[float, float] = (28.0, 22.0)
-    """Membrane extent along sensor x (image columns) and y (image rows)."""
-    grid: tuple[int, int] = (9, 7)
+    size_mm: tuple[float, float] = (36.0, 30.0)
+    """Membrane extent seen by the camera along sensor x (image columns) and y (image rows); larger
+    than the 28 x 22 mm pad face so that a load at the pad's end still deforms markers all round."""
+    grid: tuple[int, int] = (11, 9)
     """Markers along x and y."""
     spread_mm: float = 4.0
     """Gaussian radius of the deformation around a contact."""
-    shear_mm_per_n: float = 0.35
+    shear_mm_per_n: float = 0.25
     """Tangential marker displacement under a contact per newton of shear."""
     normal_mm_per_n: float = 0.12
     """Outward (spacing-increasing) marker displacement per newton of normal force."""
@@ -127,7 +128,9 @@ class STSSensor:
         self.px_per_mm = size / max(mem.size_mm)
         self._renderer: mujoco.Renderer | None = None
         self._rng = np.random.default_rng(0)
+        # see-through: the clear gel and the robot itself are not in the view, only the scene
         self._option = scene_option("fast")
+        self._option.geomgroup[3] = 0
 
     def reset(self, seed: int, mode: str = "tactile") -> None:
         self._rng = np.random.default_rng(seed)
@@ -166,12 +169,18 @@ class STSSensor:
         for xy, f, tz in zip(contacts.xy * 1000.0, contacts.force, contacts.torsion, strict=True):
             r = ref - xy
             w = np.exp(-np.sum(r * r, axis=1) / (2 * mem.spread_mm**2))[:, None]
-            normal = max(0.0, f[2])
             disp += w * (
-                mem.shear_mm_per_n * f[:2]
-                + mem.normal_mm_per_n * normal * r / mem.spread_mm
-                + mem.torsion_rad_per_nm * tz * np.column_stack([-r[:, 1], r[:, 0]])
+                mem.shear_mm_per_n * f[:2] + mem.torsion_rad_per_nm * tz * np.column_stack([-r[:, 1], r[:, 0]])
             )
+        # the gel spreads the normal load of all points into one pressure patch around the centre of
+        # pressure, which pushes the markers apart
+        normal = np.clip(contacts.force[:, 2], 0.0, None) if len(contacts.xy) else np.zeros(0)
+        if normal.sum() > 1e-9:
+            xy = contacts.xy * 1000.0
+            centre = (normal[:, None] * xy).sum(axis=0) / normal.sum()
+            r = ref - centre
+            w = np.exp(-np.sum(r * r, axis=1) / (2 * mem.spread_mm**2))[:, None]
+            disp += w * mem.normal_mm_per_n * normal.sum() * r / mem.spread_mm
         size = np.linalg.norm(disp, axis=1, keepdims=True)
         scale = np.where(
             size > 1e-12, mem.saturation_mm * np.tanh(size / mem.saturation_mm) / np.maximum(size, 1e-12), 1

@@ -1,7 +1,8 @@
 """Tactile wrench estimation from STS marker images with OpenCV (thesis §4.3.3).
 
 Per frame: adaptive threshold of the grey image, marker centroids (connected components of
-plausible size), each marker tracked to its nearest marker of the reference (no-contact) frame,
+plausible size), each marker of the reference (no-contact) frame tracked to the nearest centroid of
+its position in the previous frame (so displacements may exceed the marker spacing),
 outliers rejected from nearest-neighbour statistics (a marker whose displacement differs from its
 neighbours' median by far more than their spread), then, in pixels (unscaled):
 
@@ -35,7 +36,7 @@ class MarkerWrenchEstimator:
     """Stateful estimator: `reset(reference_image)` per episode, then `update(image)` per frame."""
 
     def __init__(
-        self, max_track_px: float = 6.0, neighbours: int = 4, smoothing: float = 0.5, spacing_deadband: float = 0.08
+        self, max_track_px: float = 3.0, neighbours: int = 4, smoothing: float = 0.5, spacing_deadband: float = 0.08
     ) -> None:
         self.max_track_px, self.neighbours, self.smoothing = max_track_px, neighbours, smoothing
         self.spacing_deadband = spacing_deadband  # px: centroid noise is not pressure
@@ -43,6 +44,7 @@ class MarkerWrenchEstimator:
         self._ref_spacing = np.zeros(0)
         self._ref_nn = np.zeros((0, 0), dtype=np.int64)
         self._state: np.ndarray | None = None
+        self._prev: np.ndarray | None = None
 
     def reset(self, reference_image: np.ndarray) -> None:
         self.reference = detect_markers(reference_image)
@@ -52,6 +54,7 @@ class MarkerWrenchEstimator:
         self._ref_nn = np.argsort(d, axis=1)[:, :k]
         self._ref_spacing = np.take_along_axis(d, self._ref_nn, axis=1).mean(axis=1)
         self._state = None
+        self._prev = None
 
     def raw(self, image: np.ndarray) -> np.ndarray:
         """Unfiltered (Fx, Fy, Fz, tau_z) of one frame, in pixels."""
@@ -61,10 +64,12 @@ class MarkerWrenchEstimator:
         found = detect_markers(image)
         if not len(found):
             return np.zeros(4)
-        d = _distances(ref, found)
+        # track from the previous frame (small motions at 10 Hz), identities from the reference
+        prev = ref if self._prev is None else self._prev
+        d = _distances(prev, found)
         nearest = d.argmin(axis=1)
         tracked = d[np.arange(len(ref)), nearest] <= self.max_track_px
-        cur = np.where(tracked[:, None], found[nearest], ref)
+        cur = np.where(tracked[:, None], found[nearest], prev)
         disp = cur - ref
         # outliers: displacement far from the median of the reference neighbours' displacements
         neigh = disp[self._ref_nn]
@@ -75,6 +80,7 @@ class MarkerWrenchEstimator:
             return np.zeros(4)
         disp = np.where(ok[:, None], disp, med)  # a rejected marker takes its neighbours' motion
         cur = ref + disp
+        self._prev = cur
         spacing = np.linalg.norm(cur[:, None, :] - cur[self._ref_nn], axis=2).mean(axis=1)
         growth = spacing - self._ref_spacing
         fz = float(np.clip(growth - self.spacing_deadband, 0.0, None).sum())

@@ -112,8 +112,8 @@ def test_marker_estimate_follows_the_contact_wrench(env_open):
         readings.append(est.raw(sensor.render_markers(sensor.marker_positions(c), c)))
     r = np.array(readings)
     assert r[1, 2] > r[0, 2] > 0  # pressure spreads the markers: Fz grows with the normal force
-    assert r[2, 0] > 0.2 and r[2, 0] > 4 * abs(r[2, 1])  # shear along x moves the markers along x
-    assert r[3, 1] < -0.2 and -r[3, 1] > 4 * abs(r[3, 0])
+    assert r[2, 0] > 0.1 and r[2, 0] > 4 * abs(r[2, 1])  # shear along x moves the markers along x
+    assert r[3, 1] < -0.1 and -r[3, 1] > 4 * abs(r[3, 0])
 
 
 def test_scripted_expert_closes_the_door():
@@ -123,4 +123,51 @@ def test_scripted_expert_closes_the_door():
     assert r.images["wrist"].shape == (len(r.actions), 48, 64, 3) and r.images["sts"].shape[1:] == (64, 64, 3)
     assert r.actions[:, 6].max() == 1.0 and r.actions[0, 6] == 0.0  # switches to tactile for contact
     assert r.observations[:, 23].max() > 5.0  # pressed on the handle
+    env.close()
+
+
+def test_kinesthetic_dataset_converts_to_lerobot(tmp_path, capsys):
+    """`shiftkit collect --kinesthetic` (5 episodes) -> `shiftkit run` with no stages -> a LeRobot
+    dataset with STS and wrist images, x_raw and F~_raw that LeRobotDataset loads."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.pipelines.cli import main
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
+
+    raw, out = tmp_path / "raw", tmp_path / "lerobot"
+    args = ["collect", "--env", "door-tactile", "--task", "knob-close", "--kinesthetic", "--episodes", "5"]
+    assert main([*args, "--cameras", "wrist", "--width", "32", "--height", "24", "--out", str(raw)]) == 0
+    assert "5 successful" in capsys.readouterr().out
+    dataset = open_raw_dataset(raw)
+    for i in range(5):
+        ep = dataset.read_episode(i)
+        meta = ep.meta
+        assert meta["kinesthetic"] and abs(meta["mode_switch_step"] - meta["first_contact_step"]) <= 4
+        action = ep.frames["action"]
+        assert (action[:, 6] == (np.arange(len(action)) >= meta["mode_switch_step"])).all()  # operator label
+    config = tmp_path / "p.toml"
+    config.write_text(f'[[sources]]\npath = "{raw}"\n[destination]\nroot = "{out}"\nrepo_id = "test/door"\n')
+    assert main(["run", str(config), "--no-progress"]) == 0
+    ds = LeRobotDataset("test/door", root=out, video_backend="pyav")
+    assert ds.num_episodes == 5
+    frame = ds[len(ds) - 1]
+    assert tuple(frame["observation.images.sts"].shape) == (3, 64, 64)
+    assert tuple(frame["observation.images.wrist"].shape) == (3, 24, 32)
+    assert tuple(frame["observation.wrench"].shape) == (4,) and tuple(frame["observation.ee_pose"].shape) == (7,)
+    assert ds.features["observation.wrench"]["names"] == ["Fx", "Fy", "Fz", "tau_z"]
+
+
+def test_position_replay_tracks_poses_but_loses_the_force():
+    from shiftkit.envs.door_tactile.experts import kinesthetic_rollout, replay_positions
+
+    env = DoorTactileEnv("knob-close")
+    demo = kinesthetic_rollout(env, seed=1)
+    assert demo.succeeded and demo.arrays["wrench_raw"].shape == (len(demo.actions), 4)
+    replay = replay_positions(env, 1, demo.arrays["ee_pose"], demo.actions[:, 6], demo.meta["recording_start_step"])
+    assert len(replay.actions) == len(demo.actions) - 1
+    # the replay follows x_raw (within the impedance controller's lag) ...
+    env.set_sim_state(replay.qpos[-1], replay.qvel[-1])
+    assert np.linalg.norm(env.ee_pose()[:3] - demo.arrays["ee_pose"][-2, :3]) < 0.05
+    # ... but presses far less than the demonstration did (F = K (x_d - x) with x_d = x_raw)
+    assert replay.observations[:, 23].max() < 0.5 * demo.observations[:, 23].max()
     env.close()

@@ -144,11 +144,16 @@ class DoorTactileEnv(gym.Env):
         if a.shape != (len(ACTION_NAMES),) or not np.isfinite(a).all():
             raise ValueError(f"action must be {len(ACTION_NAMES)} finite numbers, got {action!r}")
         a = a.clip(-1.0, 1.0)
+        pos, rot = self.physics.ee_pos(), self.physics.ee_rot()
+        target_rot = rot @ rotation_from_vector(a[3:6] * MAX_ROTATION)
+        return self.step_pose(pos + rot @ (a[:3] * MAX_TRANSLATION), target_rot, "tactile" if a[6] > 0 else "visual")
+
+    def step_pose(self, target_pos: np.ndarray, target_rot: np.ndarray, mode: str = "tactile"):
+        """One control period towards an absolute sensor pose target (base frame) under the impedance
+        controller, e.g. replaying recorded poses; returns what `step` returns."""
         p = self.physics
-        pos, rot = p.ee_pos(), p.ee_rot()
-        p.target_pos = pos + rot @ (a[:3] * MAX_TRANSLATION)
-        p.target_rot = rot @ rotation_from_vector(a[3:6] * MAX_ROTATION)
-        return self._advance(lambda: p.simulate(p.n_substeps), "tactile" if a[6] > 0 else "visual")
+        p.target_pos, p.target_rot = np.asarray(target_pos, float).copy(), np.asarray(target_rot, float).copy()
+        return self._advance(lambda: p.simulate(p.n_substeps), mode)
 
     def step_freedrive(self, teacher, mode: str = "tactile"):
         """One control period with the arm in freedrive (zero stiffness, damping only) while

@@ -28,12 +28,13 @@ import numpy as np
 
 from shiftkit.envs.controllers import rotation_vector
 from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, DoorTactileEnv
-from shiftkit.envs.door_tactile.physics import DoorTactilePhysics
+from shiftkit.envs.door_tactile.physics import HANDLE_RADIUS, DoorTactilePhysics
 from shiftkit.envs.door_tactile.tasks import CLOSED_ANGLE, OPEN_ANGLE
 from shiftkit.envs.rollout import Rollout
 
 PRE_CONTACT = 0.012  # m before the handle face at the end of the approach
 PRESS_ACTION = 0.9  # scripted press: targets 2.25 cm inside the handle (about 12 N)
+SCRIPTED_PRESS_STEPS = 3
 DRAG_ACTION = {"flat": 0.7, "knob": 0.6}  # scripted drag: 1.75 / 1.5 cm along the swing (9.6 / 8.3 N)
 HUMAN_PRESS = {"flat": 12.0, "knob": 15.0}  # N: how hard the teacher presses the pad on the handle
 HUMAN_STIFFNESS, HUMAN_DAMPING = 400.0, 50.0  # N/m, Ns/m: the hand guiding the finger
@@ -41,6 +42,10 @@ HUMAN_ROT_STIFFNESS, HUMAN_ROT_DAMPING = 6.0, 0.5  # Nm/rad, Nms/rad
 HUMAN_MAX_FORCE = 30.0  # N: approach
 HUMAN_MAX_DRAG = 9.0  # N: in the pad plane while pressing (a person feels the finger start to slip)
 HUMAN_PACE = 0.3  # rad/s: how fast the teacher swings the door
+HUMAN_PACE_GAIN = 60.0  # N per m/s of handle speed below the pace
+HUMAN_START_PUSH = 3.5  # N along the swing when opening (the self-closing spring holds ~3 N)
+LOST_SUBSTEPS = 100  # 0.2 s off the handle and the teacher re-grasps
+PRESS_DWELL = 300  # 0.6 s of pressing on the handle before the swing starts
 RECORD_THRESHOLD = 0.0005  # m of motion before kinesthetic recording starts
 SWITCH_JITTER = 1.5  # steps (std) of the operator's mode-switch press around first contact
 SWITCH_JITTER_MAX = 4
@@ -109,31 +114,39 @@ def _run_until_done(rec: _Recorder, step: Callable[[], tuple], extra_steps: int,
 
 # ----------------------------------------------------------------------------- scripted policy
 class ScriptedDoorExpert:
-    """Approach the hinge side of the handle, switch the STS to tactile, press and drag along the arc."""
+    """Approach the hinge side of the handle, switch the STS to tactile, press until in contact for
+    `SCRIPTED_PRESS_STEPS` steps, then drag along the arc; back to the approach if the handle is lost."""
 
     def __init__(self, env: DoorTactileEnv) -> None:
         self.env = env
         self.phase = "approach"
+        self.pressed = 0
 
     def act(self) -> np.ndarray:
         p = self.env.physics
         pos, rot = p.ee_pos(), p.ee_rot()
-        angle = p.door_angle()
+        g_pos, g_rot = p.grasp_pose(p.door_angle())
         if self.phase == "approach":
-            g_pos, g_rot = p.grasp_pose(angle)
             goal = g_pos - g_rot[:, 2] * PRE_CONTACT
-            if np.linalg.norm(goal - pos) < 0.004:
-                self.phase = "drag"
-            else:
+            if np.linalg.norm(goal - pos) >= 0.004:
                 return np.append(relative_action(pos, rot, goal, g_rot), 0.0)
+            self.phase, self.pressed = "press", 0
         if _done(self.env):
             return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
-        g_pos, g_rot = p.grasp_pose(angle)
-        # hold the pad on the handle's middle (sensor y, z errors), press along the pad normal and
-        # drag along the finger axis, which the yaw keeps on the door's swing direction
+        contact = p.handle_contact()
+        if self.phase == "press":
+            self.pressed = self.pressed + 1 if contact else 0
+            if self.pressed >= SCRIPTED_PRESS_STEPS:
+                self.phase = "drag"
+        elif not contact:
+            self.phase = "approach"
+        # hold the pad on the handle's middle (sensor y and the rotation), press along the pad normal
+        # and drag along the finger axis, which the yaw keeps on the door's swing direction
         hold = relative_action(pos, rot, g_pos, g_rot)
-        drag = DRAG_ACTION[self.env.task.variant] * (-1.0 if self.env.task.opening else 1.0)
-        return np.array([drag, hold[1], PRESS_ACTION, *hold[3:], 1.0])
+        drag = 0.0
+        if self.phase == "drag":
+            drag = DRAG_ACTION[self.env.task.variant] * (-1.0 if self.env.task.opening else 1.0)
+        return np.array([drag if self.phase == "drag" else hold[0], hold[1], PRESS_ACTION, *hold[3:], 1.0])
 
 
 def rollout(
@@ -158,57 +171,66 @@ def rollout(
 
 # ----------------------------------------------------------------------------- kinesthetic teacher
 class KinestheticTeacher:
-    """The scripted person's hand on the finger: a wrench at the sensor every physics step."""
+    """The scripted person's hand on the finger: a wrench at the sensor every physics step.
+
+    Approach: a spring-damper pulls the finger to just before the hinge side of the handle. Press:
+    a force along the pad normal, held for `PRESS_DWELL` steps in contact. Drag: the press continues while a force along the door's swing
+    keeps the door at the person's pace (plus a start-up push against the self-closing spring when
+    opening) and re-centres the pad on the handle when it creeps; in-plane errors are held by the
+    spring-damper. A finger that lost the handle for 0.2 s goes back to the approach (a person
+    re-grasps); once the task is done the hand lets go."""
 
     def __init__(self, env: DoorTactileEnv) -> None:
         self.env = env
         self.phase = "approach"
         self.press = HUMAN_PRESS[env.task.variant]
         self.sign = 1.0 if env.task.opening else -1.0
-        self.schedule = 0.0  # door angle the hand is heading for
-        self.dt = env.physics.model.opt.timestep
+        self.lost = 0
+        self.pressed = 0
 
     def __call__(self, p: DoorTactilePhysics) -> np.ndarray:
-        d = p.data
-        pos, rot = p.ee_pos(), p.ee_rot()
         vel = np.zeros(6)
-        mujoco.mj_objectVelocity(p.model, d, mujoco.mjtObj.mjOBJ_SITE, p.ee_site, vel, 0)
+        mujoco.mj_objectVelocity(p.model, p.data, mujoco.mjtObj.mjOBJ_SITE, p.ee_site, vel, 0)
         ang, lin = vel[:3], vel[3:]
+        pos, rot = p.ee_pos(), p.ee_rot()
         angle = p.door_angle()
-        press = np.zeros(3)
+        goal, goal_rot = p.grasp_pose(angle)
+        normal = goal_rot[:, 2]
+        if self.phase == "release" or (self.phase == "drag" and _done(self.env)):
+            self.phase = "release"  # let go: the hand only damps
+            return np.concatenate([-HUMAN_DAMPING * lin, -HUMAN_ROT_DAMPING * ang])
         if self.phase == "approach":
-            goal, goal_rot = p.grasp_pose(angle)
-            goal = goal - goal_rot[:, 2] * PRE_CONTACT
+            goal = goal - normal * PRE_CONTACT
             if np.linalg.norm(goal - pos) < 0.003 and np.linalg.norm(lin) < 0.05:
                 self.phase = "press"
-        elif self.phase == "press":
-            goal, goal_rot = p.grasp_pose(angle)
-            press = goal_rot[:, 2] * self.press
-            if p.handle_contact() and -(rot[:, 2] @ lin) < 0.01:
-                self.phase, self.schedule = "drag", angle
-        elif self.phase == "drag":
-            if _done(self.env):
-                self.phase = "release"
-            self.schedule = float(np.clip(self.schedule + self.sign * HUMAN_PACE * self.dt, angle - 0.2, angle + 0.2))
-            goal, goal_rot = p.grasp_pose(max(0.0, self.schedule))
-            _, goal_rot = p.grasp_pose(angle)
-            press = goal_rot[:, 2] * self.press
-        else:  # release: let go, only damp the hand
-            return np.concatenate([-HUMAN_DAMPING * lin, -HUMAN_ROT_DAMPING * ang])
-        err = goal - pos
-        if self.phase != "approach":  # the press force, not the position spring, sets the normal force
-            n = goal_rot[:, 2]
-            err = err - n * (n @ err)
-        force = HUMAN_STIFFNESS * err - HUMAN_DAMPING * lin
-        if self.phase != "approach":
-            n = goal_rot[:, 2]
-            force = force - n * (n @ force)
-        limit = HUMAN_MAX_FORCE if self.phase == "approach" else HUMAN_MAX_DRAG
-        size = np.linalg.norm(force)
-        if size > limit:
-            force *= limit / size
+            force = HUMAN_STIFFNESS * (goal - pos) - HUMAN_DAMPING * lin
+            size = np.linalg.norm(force)
+            if size > HUMAN_MAX_FORCE:
+                force *= HUMAN_MAX_FORCE / size
+        else:
+            contact = p.handle_contact()
+            self.pressed = self.pressed + 1 if self.phase == "press" and contact else 0
+            if self.pressed > PRESS_DWELL:
+                self.phase = "drag"
+            self.lost = 0 if contact else self.lost + 1
+            if self.phase == "drag" and self.lost > LOST_SUBSTEPS:
+                self.phase, self.lost = "approach", 0
+            err = goal - pos
+            err -= normal * (normal @ err)
+            swing = p.door_outward(angle) * self.sign  # handle motion direction that does the task
+            across = lin - normal * (normal @ lin) - swing * (swing @ lin)  # the pace term handles the swing
+            in_plane = HUMAN_STIFFNESS * (err - swing * (swing @ err)) - HUMAN_DAMPING * across
+            if self.phase == "drag":
+                speed = self.sign * p.door_velocity() * HANDLE_RADIUS
+                push = HUMAN_START_PUSH if self.env.task.opening else 0.0
+                drag = push + HUMAN_PACE_GAIN * (HUMAN_PACE * HANDLE_RADIUS - speed) + HUMAN_STIFFNESS * (swing @ err)
+                in_plane += swing * float(np.clip(drag, -HUMAN_MAX_DRAG, HUMAN_MAX_DRAG))
+            size = np.linalg.norm(in_plane)
+            if size > HUMAN_MAX_DRAG:
+                in_plane *= HUMAN_MAX_DRAG / size
+            force = in_plane + normal * self.press
         torque = HUMAN_ROT_STIFFNESS * rotation_vector(goal_rot @ rot.T) - HUMAN_ROT_DAMPING * ang
-        return np.concatenate([force + press, torque])
+        return np.concatenate([force, torque])
 
 
 def kinesthetic_rollout(
@@ -285,7 +307,6 @@ def kinesthetic_rollout(
         arrays={
             "ee_pose": np.array([f["pose"] for f in body]),
             "wrench_raw": np.array([f["wrench"] for f in body]),
-            "contact_wrench": np.array([f["obs"][21:25] for f in body], dtype=np.float64),
         },
         meta={
             "first_contact_step": int(first_contact),
@@ -306,34 +327,29 @@ def replay_positions(
     cameras: tuple[str, ...] = (),
     depth: bool = False,
 ) -> Rollout:
-    """Position replay (no force matching): from `reset(seed=seed)`, after `warmup_steps` holding
-    steps (the steps the demonstration spent before recording started), command each next recorded
-    pose x_raw[t + 1] (`ee_pose`: position + quaternion xyzw) through the impedance controller.
-    `modes` (T,) gives the STS mode per step (default tactile)."""
+    """Position replay (no force matching): from `reset(seed=seed)`, the impedance controller's
+    target is set to each recorded pose in turn: x_raw[0] for `warmup_steps` steps (the steps the
+    demonstration spent before recording started), then x_raw[t + 1] for step t (`ee_pose`: position
+    + quaternion xyzw, base frame). `modes` (T,) gives the STS mode per step (default tactile). The
+    recorded actions are the relative poses of those targets from the pose at each step (clipped to
+    the action range: what a policy trained on the replay would output)."""
     poses = np.asarray(ee_pose, dtype=np.float64)
     rots = np.zeros((len(poses), 9))
     for i, q in enumerate(poses[:, 3:7]):
         mujoco.mju_quat2Mat(rots[i], np.array([q[3], q[0], q[1], q[2]]))
+    rots = rots.reshape(-1, 3, 3)
     rec = _Recorder(env, cameras, depth)
     obs, info = env.reset(seed=seed)
     for _ in range(warmup_steps):
-        p = env.physics
-        obs, _, _, _, info = env.step(
-            np.append(relative_action(p.ee_pos(), p.ee_rot(), poses[0, :3], rots[0].reshape(3, 3)), 0.0)
-        )
+        obs, _, _, _, info = env.step_pose(poses[0, :3], rots[0], "visual")
     rec.frame(obs, info)
-    steps = len(poses) - 1
     for t in range(1, len(poses)):
         p = env.physics
-        action = np.append(
-            relative_action(p.ee_pos(), p.ee_rot(), poses[t, :3], rots[t].reshape(3, 3)),
-            1.0 if modes is None else float(modes[t - 1] > 0.5),
-        )
-        rec.actions.append(action)
-        obs, _, _, truncated, info = env.step(action)
+        tactile = modes is None or modes[t - 1] > 0.5
+        rec.actions.append(np.append(relative_action(p.ee_pos(), p.ee_rot(), poses[t, :3], rots[t]), float(tactile)))
+        obs, _, _, truncated, info = env.step_pose(poses[t, :3], rots[t], "tactile" if tactile else "visual")
         rec.success.append(info["is_success"])
-        if t < steps and not truncated:
-            rec.frame(obs, info)
-        if truncated:
+        if truncated or t == len(poses) - 1:
             break
+        rec.frame(obs, info)
     return rec.done()

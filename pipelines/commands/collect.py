@@ -31,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--expert", default="scripted", help="how episodes are recorded: scripted (default) or an env's other recorder"
     )
+    parser.add_argument("--kinesthetic", action="store_true", help="shorthand for --expert kinesthetic")
     parser.add_argument("--cameras", default="", help="comma-separated cameras to render, e.g. front")
     parser.add_argument("--depth", action="store_true", help="also record depth images")
     parser.add_argument("--width", type=int, default=64, help="image width (default: 64)")
@@ -63,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         only_successful=args.only_successful,
         sequence=split(args.sequence),
         env_kwargs=dict(args.env_kwarg),
-        expert=args.expert,
+        expert="kinesthetic" if args.kinesthetic else args.expert,
     )
     path, counts = collect(config)
     print(f"wrote {counts['episodes']} episodes ({counts['successes']} successful) to {path}")
