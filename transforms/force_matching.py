@@ -80,6 +80,7 @@ STS_VISUAL = "observation.images.sts_visual"
 STS_TACTILE = "observation.images.sts_tactile"
 STS_IMAGE = "observation.images.sts"
 CAMERA_PREFIX = "observation.images."
+REPLAY_SECONDS = 60.0  # time limit of a replay per unit of slowdown (the recording's own limit is shorter)
 
 
 @dataclass
@@ -126,10 +127,11 @@ def replay_targets(
     hold_steps: int = 0,
 ) -> Replay:
     """Replay T + 1 sensor target poses through the env's impedance controller, as the door-tactile
-    family's position replay does: reset with the demonstration's seed, hold the first pose for
-    `warmup_steps` (the steps the demonstration spent before recording started), then command
-    target t + 1 at step t (action = the relative pose change from the reached pose, the mode from
-    the (T,) `modes`), then hold the last target for `hold_steps` more steps. Records, per step, the
+    family's position replay does: reset with the demonstration's seed, set the controller's target
+    to the first pose for `warmup_steps` (the steps the demonstration spent before recording
+    started), then to target t + 1 at step t (the mode from the (T,) `modes`; the recorded action is
+    that target's relative pose from the pose reached, clipped to the action range: what a policy
+    trained on the replay outputs), then hold the last target for `hold_steps` more steps. Records, per step, the
     env's observation split into state / environment state, the simulator state, the reached pose,
     the true and raw contact wrench, the requested cameras and the STS image of the active mode
     (`sts_images` "active") or both STS images ("both")."""
@@ -161,20 +163,18 @@ def replay_targets(
         for key, value in values.items():
             rows.setdefault(key, []).append(np.asarray(value))
 
-    def act(t: int, mode: float) -> np.ndarray:
-        p = env.physics
-        return np.append(relative_action(p.ee_pos(), p.ee_rot(), targets[t, :3], rots[t]), mode)
-
     obs, info = env.reset(seed=seed)
     for _ in range(warmup_steps):
-        obs, _, _, _, info = env.step(act(0, 0.0))
+        obs, _, _, _, info = env.step_pose(targets[0, :3], rots[0], "visual")
     n = len(targets) - 1
     for t in range(n + hold_steps):
         if contact is None and info["handle_contact"]:
             contact = t
         record(obs, info)
-        actions.append(act(min(t + 1, n), float(modes[min(t, n - 1)] > 0.5)))
-        obs, _, _, truncated, info = env.step(actions[-1])
+        k, tactile = min(t + 1, n), bool(modes[min(t, n - 1)] > 0.5)
+        p = env.physics
+        actions.append(np.append(relative_action(p.ee_pos(), p.ee_rot(), targets[k, :3], rots[k]), float(tactile)))
+        obs, _, _, truncated, info = env.step_pose(targets[k, :3], rots[k], "tactile" if tactile else "visual")
         success.append(bool(info["is_success"]))
         if truncated:
             break
@@ -288,6 +288,8 @@ class ForceMatch(Stage):
 
         if task not in self._envs:
             kwargs = {} if image_shape is None else {"height": image_shape[0], "width": image_shape[1]}
+            # a demonstration may use the env's whole time limit; its replay lasts `slowdown` times longer
+            kwargs["max_episode_seconds"] = REPLAY_SECONDS * self.config.slowdown + self.config.hold_steps
             self._envs[task] = make(self.config.env, task, **kwargs)
         return self._envs[task]
 
