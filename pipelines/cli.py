@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "eval": "eval",
     "fire": "fire",
     "plot": "plot",
+    "calibrate": "calibrate",
 }
 
 

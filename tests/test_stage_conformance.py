@@ -27,7 +27,19 @@ EXAMPLE_PARAMS = {
     "drop": {"features": ["observation.environment_state"]},
     "cast": {"dtypes": {"action": "float64"}},
     "success_examples": {"n_per_task": 3, "states": "success"},
+    # the synthetic gripper command flips from open (1) to closed (-1) near the goal: a "contact"
+    # replays the recording in the simulator (position mode needs no calibration file)
+    "force_match": {"mode": "position", "hold_steps": 2},
+    "mode_label": {
+        "signal": "observation.state",
+        "signal_dims": ["gripper"],
+        "on_threshold": 1.0,
+        "off_threshold": 0.5,
+    },
 }
+
+# Stages that replay simulator recordings run on a recording of their kind (fixture name).
+FIXTURES = {"force_match": "kinesthetic_raw"}
 
 # Every stage shiftkit ships (tests may register their own stages; those are not covered here).
 STAGES = sorted(name for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit."))
@@ -46,9 +58,19 @@ def test_every_stage_has_example_params():
     assert set(STAGES) <= set(EXAMPLE_PARAMS), f"add example params for {set(STAGES) - set(EXAMPLE_PARAMS)}"
 
 
+@pytest.fixture(scope="module")
+def kinesthetic_raw(tmp_path_factory):
+    """One simulated kinesthetic door demonstration with wrist and STS images."""
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    out = tmp_path_factory.mktemp("kinesthetic") / "raw"
+    collect(CollectConfig(env="door-tactile", task="knob-open", episodes=1, expert="kinesthetic", out=str(out)))
+    return out
+
+
 @pytest.mark.parametrize("name", STAGES)
-def test_stage_conformance(name, synthetic_raw_images, tmp_path):
-    raw = synthetic_raw_images
+def test_stage_conformance(name, request, tmp_path):
+    raw = request.getfixturevalue(FIXTURES.get(name, "synthetic_raw_images"))
     before = tree_hashes(raw)
     dest = tmp_path / "out"
     config = config_for(raw, dest, name, EXAMPLE_PARAMS[name], seed=7)

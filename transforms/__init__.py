@@ -1,3 +1,14 @@
 """shiftkit.transforms: the offline stages. Importing this package registers every built-in stage."""
 
-from shiftkit.transforms import cast, drop, filter_episodes, rename, resample, subsample, success_examples, trim  # noqa: F401
+from shiftkit.transforms import (  # noqa: F401
+    cast,
+    drop,
+    filter_episodes,
+    force_matching,
+    mode_labels,
+    rename,
+    resample,
+    subsample,
+    success_examples,
+    trim,
+)

@@ -1,0 +1,180 @@
+"""`force_match` stage: throughput with 2 workers vs 1, and replay success force-matched vs position.
+
+Default (benchmark): records simulated kinesthetic door demonstrations, then runs the same
+`force_match` (position mode, both STS images) -> `mode_label` pipeline with 1 and with 2 workers;
+reports episodes/s and the speed-up (goal >= 1.6x; it needs two free cores).
+
+`--replay-success N` (the thesis' replay study, §4.4.3): N kinesthetic demonstrations per door task,
+each replayed by position and force-matched through the impedance controller with the stage's own
+code; prints a success table and, as the last line, the JSON result (goal: force-matched >= 90%,
+position <= 40%). The calibration comes from `--calibration` (default: docs').
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+TASKS = ("flat-handle-open", "flat-handle-close", "knob-open", "knob-close")
+
+
+def record(out: Path, task: str, episodes: int, seed: int = 0, cameras: tuple[str, ...] = ()) -> Path:
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    config = CollectConfig(
+        env="door-tactile", task=task, episodes=episodes, seed=seed, expert="kinesthetic", cameras=cameras
+    )
+    config.out = str(out)
+    collect(config)
+    return out
+
+
+def run_pipeline_timed(raw: Path, dest: Path, workers: int) -> float:
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+
+    stages = [
+        StageSpec(name="force_match", params={"mode": "position", "hold_steps": 5}),
+        StageSpec(
+            name="mode_label",
+            params={"visual_image": "observation.images.sts_visual", "tactile_image": "observation.images.sts_tactile"},
+        ),
+    ]
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(raw))], destination=DestinationConfig(root=str(dest)), stages=stages
+    )
+    t0 = time.perf_counter()
+    run_pipeline(config, workers=workers, progress=False)
+    return time.perf_counter() - t0
+
+
+def throughput(quick: bool) -> dict:
+    episodes = 4 if quick else 8
+    with tempfile.TemporaryDirectory() as tmp:
+        raw = record(Path(tmp) / "raw", "knob-open", episodes, cameras=("wrist",))
+        t1 = run_pipeline_timed(raw, Path(tmp) / "w1", 1)
+        t2 = run_pipeline_timed(raw, Path(tmp) / "w2", 2)
+    speedup = t1 / t2
+    print(f"1 worker : {episodes / t1:.3f} episodes/s")
+    print(f"2 workers: {episodes / t2:.3f} episodes/s -> speed-up {speedup:.2f}x (cores: {os.cpu_count()})")
+    return {
+        "bench": "force_match",
+        "metric": "speedup_2_workers_vs_1",
+        "value": round(speedup, 3),
+        "goal": 1.6,
+        "higher_is_better": True,
+        "episodes": episodes,
+        "episodes_per_s_1_worker": round(episodes / t1, 4),
+        "episodes_per_s_2_workers": round(episodes / t2, 4),
+        "cpu_count": os.cpu_count(),
+        "load_average": os.getloadavg()[0],
+        "quick": quick,
+    }
+
+
+def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, tasks: tuple[str, ...]) -> dict:
+    """Replay each demonstration with the stage's code (no images) by position and force-matched."""
+    from tqdm import tqdm
+
+    from shiftkit.envs import env_family, make
+    from shiftkit.pipelines.episode import Episode
+    from shiftkit.pipelines.stage import StageContext, build_stage
+
+    family = env_family("door-tactile")
+    features = {
+        "observation.ee_pose": {"dtype": "float64", "shape": (7,), "names": None},
+        "observation.wrench": {"dtype": "float64", "shape": (4,), "names": None},
+        "action": {"dtype": "float32", "shape": (7,), "names": list(family.action_names)},
+        "next.success": {"dtype": "bool", "shape": (1,), "names": None},
+    }
+    stages = {}
+    for mode in ("position", "force_matched"):
+        params = {"mode": mode, "slowdown": slowdown}
+        if mode == "force_matched":
+            params["calibration"] = calibration
+        s = build_stage("force_match", params, StageContext(fps=10), "bench")
+        s.transform_features(features)
+        s.setup()
+        stages[mode] = s
+    rows = {}
+    for task in tasks:
+        env = make("door-tactile", task)
+        counts = {"demonstrations": 0, "demo_success": 0, "position": 0, "force_matched": 0}
+        for seed in tqdm(range(n), desc=task, leave=False):
+            r = family.experts["kinesthetic"](env, seed, extra_steps=extra_steps)
+            t = len(r.actions)
+            episode = Episode(
+                {
+                    "observation.ee_pose": r.arrays["ee_pose"],
+                    "observation.wrench": r.arrays["wrench_raw"],
+                    "action": r.actions,
+                    "next.success": r.success,
+                    "timestamp": np.arange(t) / 10.0,
+                    "task": np.array([task] * t),
+                },
+                {**r.meta, "task": task, "seed": seed, "sim_model": family.sim_model_id},
+            )
+            counts["demonstrations"] += 1
+            counts["demo_success"] += int(r.succeeded)
+            for mode, s in stages.items():
+                out = next(iter(s.process(episode, np.random.default_rng(0))))
+                counts[mode] += int(out.meta["replay_success"])
+        env.close()
+        rows[task] = counts
+        print(task, counts, flush=True)
+    total = {k: sum(r[k] for r in rows.values()) for k in next(iter(rows.values()))}
+    print("| task | demonstrations | teacher success | position replay | force-matched replay |")
+    print("|---|---|---|---|---|")
+    for task, r in {**rows, "all": total}.items():
+        d = r["demonstrations"]
+        print(
+            f"| {task} | {d} | {r['demo_success'] / d:.0%} | {r['position'] / d:.0%} | {r['force_matched'] / d:.0%} |"
+        )
+    fm, pos = total["force_matched"] / total["demonstrations"], total["position"] / total["demonstrations"]
+    return {
+        "bench": "force_match_replay_success",
+        "metric": "force_matched_minus_position_points",
+        "value": round(100 * (fm - pos), 1),
+        "goal": 62.5,
+        "higher_is_better": True,
+        "force_matched_success": round(fm, 3),
+        "position_success": round(pos, 3),
+        "goal_force_matched": 0.9,
+        "goal_position_max": 0.4,
+        "per_task": rows,
+        "slowdown": slowdown,
+        "extra_steps": extra_steps,
+        "calibration": calibration,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="short run")
+    parser.add_argument("--replay-success", type=int, metavar="N", help="replay study with N demonstrations per task")
+    parser.add_argument("--calibration", default=str(REPO / "docs" / "force_matching_calibration.json"))
+    parser.add_argument("--slowdown", type=int, default=2, help="force_match slowdown (default: 2)")
+    parser.add_argument("--extra-steps", type=int, default=0, help="demonstration frames kept after success")
+    parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated door tasks")
+    args = parser.parse_args()
+    if args.replay_success:
+        tasks = tuple(t for t in args.tasks.split(",") if t)
+        result = replay_success(args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks)
+    else:
+        result = throughput(args.quick)
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,57 @@
+"""`shiftkit calibrate`: fit a tactile sensor's force calibration from autonomous pushes (thesis §4.3.6)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "calibrate a simulated tactile sensor: autonomous pushes, piecewise-linear fit, calibration file + plot"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--env", default="door-tactile", help="environment with a tactile sensor (default: door-tactile)"
+    )
+    parser.add_argument(
+        "--task", default="knob-open", help="task whose scene holds the object pushed (default: knob-open)"
+    )
+    parser.add_argument("--out", required=True, help="calibration file to write (JSON)")
+    parser.add_argument("--plot", help="fit-vs-data PNG (default: the --out path with .png)")
+    parser.add_argument("--pushes", type=int, default=3, help="pushes of each kind to fit on (default: 3)")
+    parser.add_argument("--held-out", type=int, default=2, help="pushes of each kind to test on (default: 2)")
+    parser.add_argument("--seed", type=int, default=0, help="push i uses seed SEED+i (default: 0)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.transforms.force_calibration import WRENCH_AXES, calibrate_env, plot_calibration
+
+    out = Path(args.out)
+    if out.is_dir() or not out.parent.is_dir():
+        raise ConfigError(f"--out {out}: give a file in an existing folder")
+    if args.pushes < 1 or args.held_out < 0:
+        raise ConfigError("--pushes must be >= 1 and --held-out >= 0")
+    fit_seeds = list(range(args.seed, args.seed + args.pushes))
+    held_seeds = list(range(args.seed + args.pushes, args.seed + args.pushes + args.held_out))
+    calibration, fit, held = calibrate_env(args.env, args.task, fit_seeds, held_seeds)
+    calibration.save(out)
+    stack = lambda pushes: [np.concatenate([getattr(p, a) for p in pushes]) for a in ("displacement", "wrench", "mask")]  # noqa: E731
+    e, f, m = stack(fit)
+    plot = Path(args.plot) if args.plot else out.with_suffix(".png")
+    plot_calibration(calibration, e, f, plot, held_out=tuple(stack(held)) if held else None, mask=m)
+    print(f"wrote {out} (sensor {calibration.sensor_id}) and {plot}")
+    split = "held_out" if held else "fit"
+    for axis in WRENCH_AXES:
+        fit_ = calibration.axes[axis]
+        res = calibration.residuals[split][axis]
+        rel = res["relative_rmse_displacement"]
+        print(
+            f"  {axis:6s} slopes {', '.join(f'{s:.4g}' for s in fit_.slopes)}"
+            + (f" (break at {fit_.breakpoints[0]:.4g})" if fit_.breakpoints else "")
+            + f", offset {fit_.offset:+.3f}; {split} displacement RMSE {res['rmse_displacement']:.3g} {res['unit']}"
+            + (f" ({100 * rel:.1f}% of the loaded RMS)" if rel is not None else "")
+        )
+    return 0

@@ -1,0 +1,255 @@
+"""Force matching: replay poses x_rep = A^-1 (F~ - b) + x_raw in the sensor frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shiftkit.transforms.force_calibration import WRENCH_AXES, AxisFit, Calibration
+from shiftkit.transforms.force_matching import (
+    force_matched_poses,
+    matrix_to_quat_xyzw,
+    median_filter,
+    quat_xyzw_to_matrix,
+)
+
+
+def linear_calibration(offset: float = 0.0) -> Calibration:
+    axes = {
+        "Fx": AxisFit(offset, [100.0], clip=0.02),
+        "Fy": AxisFit(offset, [-100.0], clip=0.02),
+        "Fz": AxisFit(offset, [200.0, 400.0], [0.005], clip=0.026),
+        "tau_z": AxisFit(offset, [2.0], clip=1.0),
+    }
+    return Calibration("test", axes)
+
+
+def random_poses(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 3] < 0] *= -1
+    return np.concatenate([rng.uniform(-0.5, 0.5, (n, 3)), q], axis=1)
+
+
+def test_median_filter_removes_spikes_and_keeps_steps():
+    x = np.zeros((9, 2))
+    x[4, 0] = 10.0  # a one-frame spike
+    x[6:, 1] = 1.0  # a step
+    out = median_filter(x, 3)
+    assert out[:, 0].tolist() == [0.0] * 9
+    assert out[:, 1].tolist() == x[:, 1].tolist()
+    assert median_filter(x, 1).tolist() == x.tolist()
+
+
+def test_quaternion_round_trip():
+    poses = random_poses(20)
+    assert matrix_to_quat_xyzw(quat_xyzw_to_matrix(poses[:, 3:])) == pytest.approx(poses[:, 3:], abs=1e-12)
+
+
+def test_zero_force_is_position_replay():
+    poses = random_poses(12)
+    assert np.array_equal(force_matched_poses(poses, np.zeros((12, 4)), linear_calibration(), 5), poses)
+    rep = force_matched_poses(poses, np.full((12, 4), 0.3), linear_calibration(offset=0.3), 5)
+    assert np.array_equal(rep, poses)
+
+
+def test_offsets_in_the_sensor_frame():
+    poses = random_poses(6, seed=3)
+    rot = quat_xyzw_to_matrix(poses[:, 3:])
+    wrench = np.tile([1.0, 0.5, 2.0, 0.2], (6, 1))  # constant: the median filter keeps it
+    rep = force_matched_poses(poses, wrench, linear_calibration(), 3)
+    # Fx / 100, Fy / -100, Fz past the 5 mm breakpoint on the second slope, tau_z / 2
+    e = np.array([0.01, -0.005, 0.005 + (2.0 - 200.0 * 0.005) / 400.0, 0.1])
+    assert rep[:, :3] == pytest.approx(poses[:, :3] + np.einsum("tij,j->ti", rot, e[:3]), abs=1e-12)
+    turn = quat_xyzw_to_matrix(rep[:, 3:]) @ np.transpose(rot, (0, 2, 1))  # world-frame rotation R_rep R^T
+    local = np.transpose(rot, (0, 2, 1)) @ turn @ rot  # in the sensor frame: about z by erz
+    angle = np.arctan2(local[:, 1, 0], local[:, 0, 0])
+    assert angle == pytest.approx(np.full(6, 0.1), abs=1e-12)
+    assert local[:, 2, 2] == pytest.approx(np.ones(6), abs=1e-12)
+
+
+def test_offsets_are_clipped():
+    poses = random_poses(3)
+    rep = force_matched_poses(poses, np.tile([0.0, 0.0, 1e6, 0.0], (3, 1)), linear_calibration(), 1)
+    assert np.linalg.norm(rep[:, :3] - poses[:, :3], axis=1) == pytest.approx(np.full(3, 0.026))
+
+
+# ----------------------------------------------------------------------------- in the simulator
+SENSOR = "door-tactile-v1:sts"
+
+
+@pytest.fixture(scope="module")
+def kinesthetic(tmp_path_factory):
+    """Two simulated kinesthetic demonstrations (flat handle) with wrist and STS images."""
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    out = tmp_path_factory.mktemp("kin") / "raw"
+    collect(CollectConfig(env="door-tactile", task="flat-handle-open", episodes=2, expert="kinesthetic", out=str(out)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def calibration_file(tmp_path_factory):
+    """A calibration of the simulated sensor from one push of each kind."""
+    from shiftkit.transforms.force_calibration import calibrate_env
+
+    cal, _, _ = calibrate_env("door-tactile", "knob-open", [0], [])
+    return cal.save(tmp_path_factory.mktemp("cal") / "calib.json")
+
+
+def stage(features, **params):
+    from shiftkit.pipelines.stage import StageContext, build_stage
+
+    s = build_stage("force_match", params, StageContext(fps=10), "test")
+    s.transform_features(features)
+    s.setup()
+    return s
+
+
+def episodes(raw):
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
+
+    ds = open_raw_dataset(raw)
+    return ds.features(), list(ds.iter_episodes())
+
+
+def replayed(s, episode):
+    out = list(s.process(episode, np.random.default_rng(0)))
+    return out[0] if out else None
+
+
+def test_position_mode_is_the_family_position_replay(kinesthetic):
+    from shiftkit.envs.door_tactile.experts import replay_positions
+
+    features, (ep, _) = episodes(kinesthetic)
+    s = stage(features, mode="position", hold_steps=0, sts_images=False)
+    out = replayed(s, ep)
+    n = len(ep)
+    assert len(out) == n and out.meta["replay_mode"] == "position"
+    env = s._env("flat-handle-open", (48, 64, 3))
+    ref = replay_positions(
+        env,
+        ep.meta["seed"],
+        ep.frames["observation.ee_pose"],
+        ep.frames["action"][:, -1],
+        ep.meta["recording_start_step"],
+    )
+    # the same physics (to rounding): poses, door and contact state, actions; the sensor's noise
+    # stream differs, since this stage also draws the raw reading of every replayed frame
+    close = dict(rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(out.frames["observation.state"][: n - 1, :14], ref.observations[:, :14], **close)
+    np.testing.assert_allclose(out.frames["observation.environment_state"][: n - 1], ref.observations[:, 19:], **close)
+    np.testing.assert_allclose(out.frames["action"][: n - 1], ref.actions, **close)
+
+
+def test_zero_force_is_exactly_position_replay(kinesthetic, tmp_path):
+    features, (ep, _) = episodes(kinesthetic)
+    Calibration(SENSOR, linear_calibration().axes).save(tmp_path / "zero.json")
+    zero = ep.with_frames(**{"observation.wrench": np.zeros_like(ep.frames["observation.wrench"])})
+    fm = replayed(stage(features, calibration=str(tmp_path / "zero.json"), axes=list(WRENCH_AXES)), zero)
+    pos = replayed(stage(features, mode="position"), zero)
+    assert fm.frames.keys() == pos.frames.keys()
+    for key in fm.frames:
+        assert np.array_equal(fm.frames[key], pos.frames[key]), key
+    assert "observation.images.sts_visual" in fm.frames and "observation.images.sts" not in fm.frames
+
+
+def test_force_matching_restores_the_demonstrated_press(kinesthetic, calibration_file):
+    """Position replay loses the contact force; force-matched replay presses as the person did."""
+    features, eps = episodes(kinesthetic)
+    fm_stage = stage(features, calibration=str(calibration_file), sts_images=False, slowdown=2)
+    pos_stage = stage(features, mode="position", sts_images=False, slowdown=2)
+    for ep in eps:
+        demo = ep.frames["observation.environment_state"][:, 4]  # true normal force on the pad
+        touching = np.flatnonzero(demo > 1.0)
+        fm = replayed(fm_stage, ep).frames["observation.environment_state"][::2, 4][touching]
+        pos = replayed(pos_stage, ep).frames["observation.environment_state"][::2, 4][touching]
+        assert np.median(fm) == pytest.approx(np.median(demo[touching]), rel=0.3)
+        assert np.median(pos) < 0.3 * np.median(demo[touching])
+
+
+def test_drop_failed_and_outcome(kinesthetic):
+    features, (ep, _) = episodes(kinesthetic)
+    kept = replayed(stage(features, mode="position", sts_images=False), ep)
+    assert kept.meta["replay_success"] is False and kept.meta["outcome"] == "failure"
+    assert replayed(stage(features, mode="position", sts_images=False, drop_failed=True), ep) is None
+
+
+def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):
+    from shiftkit.pipelines.errors import ConfigError, DatasetError
+
+    features, (ep, _) = episodes(kinesthetic)
+    linear_calibration().save(tmp_path / "other.json")  # sensor "test"
+    for params, message in [
+        ({"calibration": str(tmp_path / "other.json")}, "is for sensor 'test', not 'door-tactile-v1:sts'"),
+        ({}, 'mode "force_matched" needs a calibration file'),
+        ({"mode": "position", "axes": ["Fq"]}, "unknown wrench axes"),
+        ({"mode": "position", "env": "nope"}, "unknown env 'nope'"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            stage(features, **params)
+    with pytest.raises(ConfigError, match="needs the kinesthetic recording's 'observation.ee_pose'"):
+        stage(episodes(synthetic_raw)[0], mode="position")
+    s = stage(features, mode="position", sts_images=False)
+    with pytest.raises(DatasetError, match="no simulator 'seed'"):
+        replayed(s, type(ep)(ep.frames, {**ep.meta, "seed": None}))
+
+
+@pytest.mark.slow
+def test_docs_pipelines_run_with_two_workers_and_train_act(kinesthetic, tmp_path):
+    """docs/pipelines/{force_matched,position_replay}.toml run with 2 workers; the outputs load in
+    LeRobotDataset (action with `sts_mode`, one STS image) and lerobot-train (ACT) trains 2 steps."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.pipelines.cli import main
+
+    repo = Path(__file__).resolve().parents[1]
+    roots = {}
+    for name in ("force_matched", "position_replay"):
+        text = (repo / "docs" / "pipelines" / f"{name}.toml").read_text()
+        text = text.replace("../../data/door_kinesthetic", str(kinesthetic))
+        text = text.replace(f"../../out/door_{name}", str(tmp_path / name))
+        text = text.replace("docs/force_matching_calibration.json", str(repo / "docs/force_matching_calibration.json"))
+        (tmp_path / f"{name}.toml").write_text(text)
+        assert main(["run", str(tmp_path / f"{name}.toml"), "--workers", "2", "--no-progress"]) == 0
+        ds = LeRobotDataset(f"local/door_{name}", root=tmp_path / name)
+        assert ds.meta.total_episodes == 2
+        assert ds.features["action"]["names"][-1] == "sts_mode"
+        assert "observation.images.sts" in ds.features and "observation.images.sts_visual" not in ds.features
+        roots[name] = tmp_path / name
+    exe = Path(sys.executable).with_name("lerobot-train")
+    out = subprocess.run(
+        [
+            str(exe),
+            "--policy.type=act",
+            "--dataset.repo_id=local/door_force_matched",
+            f"--dataset.root={roots['force_matched']}",
+            "--steps=2",
+            "--batch_size=2",
+            "--num_workers=0",
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--policy.pretrained_backbone_weights=null",
+            "--wandb.enable=false",
+            "--save_checkpoint=false",
+            "--eval_freq=0",
+            "--log_freq=1",
+            "--policy.chunk_size=4",
+            "--policy.n_action_steps=4",
+            "--policy.dim_model=64",
+            "--policy.dim_feedforward=128",
+            f"--output_dir={tmp_path / 'train'}",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "step:2" in out.stdout + out.stderr

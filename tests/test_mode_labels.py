@@ -1,0 +1,148 @@
+"""`mode_label`: STS mode labels from operator presses or the contact signal (hysteresis), the
+active mode's image kept, label timing vs true first contact reported."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
+from shiftkit.pipelines.planner import plan_pipeline
+from shiftkit.pipelines.runner import run_pipeline
+from shiftkit.pipelines.sources import SourceConfig
+from shiftkit.pipelines.sources.raw import RawDatasetWriter
+from shiftkit.transforms.mode_labels import contact_modes, operator_modes, timing_report
+
+VISUAL, TACTILE = 40, 200  # grey levels of the two synthetic STS images
+
+
+def write_tactile_raw(path, episodes: int = 4, length: int = 16, seed: int = 0):
+    """Kinesthetic-like episodes: a raw wrench whose Fz rises at the true first contact (with noise
+    and an offset), an operator press near it, and constant-grey visual / tactile STS images."""
+    rng = np.random.default_rng(seed)
+    names = {"action": ["dx", "dy", "dz", "drx", "dry", "drz"]}
+    with RawDatasetWriter(path, fps=10, robot="panda", env="synthetic", names=names) as w:
+        for e in range(episodes):
+            contact = int(rng.integers(5, 10))
+            wrench = rng.normal(0.0, 0.03, (length, 4)) + [0.02, -0.03, 0.11, 0.0]
+            wrench[contact:, 2] += np.linspace(0.8, 3.0, length - contact)
+            wrench[contact:, 0] += 0.4
+            shape = (length, 8, 8, 3)
+            w.add_episode(
+                arrays={
+                    "timestamp": np.arange(length) / 10.0,
+                    "action": rng.normal(0, 0.1, (length, 6)).astype(np.float32),
+                    "wrench_raw": wrench.astype(np.float32),
+                },
+                images={
+                    "sts_visual": np.full(shape, VISUAL, np.uint8),
+                    "sts_tactile": np.full(shape, TACTILE, np.uint8),
+                },
+                meta={
+                    "task": "knob-open" if e % 2 else "flat-handle-open",
+                    "labels": {"mode_switch_step": [contact + int(rng.integers(-1, 2))]},
+                    "first_contact_step": contact,
+                },
+            )
+    return path
+
+
+def run(raw, dest, params):
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(raw))],
+        destination=DestinationConfig(root=str(dest)),
+        stages=[StageSpec(name="mode_label", params=params)],
+    )
+    return plan_pipeline(config), run_pipeline(config, progress=False)
+
+
+IMAGES = {"visual_image": "observation.images.sts_visual", "tactile_image": "observation.images.sts_tactile"}
+
+
+@pytest.mark.parametrize("source", ["contact", "operator"])
+def test_labels_action_dim_and_active_image(tmp_path, source):
+    raw = write_tactile_raw(tmp_path / "raw")
+    plan, _ = run(raw, tmp_path / "out", {"source": source, **IMAGES})
+    assert plan.features["action"]["names"][-1] == "sts_mode"
+    assert "observation.images.sts" in plan.features and "observation.images.sts_visual" not in plan.features
+    reader = open_lerobot_dataset(tmp_path / "out")
+    metas = []
+    for ep in reader.iter_episodes():
+        mode = ep.frames["action"][:, -1]
+        assert set(np.unique(mode)) == {0.0, 1.0}
+        switch = int(np.argmax(mode > 0))
+        assert (mode[switch:] == 1).all() and (mode[:switch] == 0).all()
+        grey = ep.frames["observation.images.sts"][:, 0, 0, 0]
+        assert (grey == np.where(mode > 0, TACTILE, VISUAL)).all()  # the active mode's image
+        assert ep.meta["sts_mode_switch_step"] == switch
+        diff = ep.meta["sts_mode_switch_minus_contact"]
+        assert diff == switch - ep.meta["first_contact_step"]
+        if source == "contact":
+            assert diff == 0  # the hysteresis threshold sits below the contact step's rise
+        else:
+            assert diff == ep.meta["labels"]["mode_switch_step"][0] - ep.meta["first_contact_step"]
+        metas.append(ep.meta)
+    table = timing_report(metas, tmp_path / "hist.png")
+    assert "| flat-handle-open | 2 |" in table and "| knob-open | 2 |" in table
+    assert (tmp_path / "hist.png").read_bytes()[:4] == b"\x89PNG"
+    stored = [json.loads(m) for m in reader.episodes[META_COLUMN]]
+    assert [m["sts_mode_switch_step"] for m in stored] == [m["sts_mode_switch_step"] for m in metas]
+
+
+def test_existing_mode_dim_is_overwritten(tmp_path):
+    raw = tmp_path / "raw"
+    names = {"action": ["dx", "sts_mode"], "wrench_raw": ["Fx", "Fy", "Fz", "tau_z"]}
+    with RawDatasetWriter(raw, fps=10, names=names) as w:
+        wrench = np.zeros((6, 4), np.float32)
+        wrench[3:, 2] = 1.0
+        w.add_episode(
+            {"timestamp": np.arange(6) / 10.0, "action": np.ones((6, 2), np.float32), "wrench_raw": wrench},
+            meta={"task": "t"},
+        )
+    plan, _ = run(raw, tmp_path / "out", {"baseline_frames": 0})
+    assert plan.features["action"]["names"] == ["dx", "sts_mode"]
+    ep = next(open_lerobot_dataset(tmp_path / "out").iter_episodes())
+    assert ep.frames["action"][:, 1].tolist() == [0, 0, 0, 1, 1, 1]
+    assert ep.meta["sts_mode_switch_minus_contact"] is None
+
+
+def test_hysteresis_and_presses():
+    level = np.array([0.0, 0.5, 0.3, 0.1, 0.35, 0.5, 0.45])[:, None]
+    assert contact_modes(level, 0, on=0.4, off=0.2).tolist() == [0, 1, 1, 0, 0, 1, 1]
+    assert operator_modes([2, 5], 7, "ep").tolist() == [0, 0, 1, 1, 1, 0, 0]
+    with pytest.raises(DatasetError, match="outside the 7 frames"):
+        operator_modes([9], 7, "ep")
+    with pytest.raises(DatasetError, match="no operator mode-switch presses"):
+        operator_modes(None, 7, "ep")
+
+
+def test_bad_configs_are_one_line_errors(tmp_path):
+    raw = write_tactile_raw(tmp_path / "raw", episodes=1)
+    for params, message in [
+        ({"signal_dims": ["Fw"]}, r"has no dim\(s\) \['Fw'\]"),
+        ({"signal": "observation.nope"}, "no vector signal feature"),
+        ({"visual_image": "observation.images.sts_visual"}, "give both"),
+        ({"on_threshold": 0.1, "off_threshold": 0.5}, "must be <= on_threshold"),
+        ({"visual_image": "observation.images.x", "tactile_image": "observation.images.sts_tactile"}, "no image"),
+    ]:
+        with pytest.raises(ConfigError, match=message) as info:
+            run(raw, tmp_path / "o", params)
+        assert "\n" not in str(info.value)
+
+
+def test_dataset_timing_report(tmp_path):
+    from shiftkit.transforms.mode_labels import dataset_timing_report
+
+    raw = write_tactile_raw(tmp_path / "raw")
+    run(raw, tmp_path / "out", {"source": "contact"})
+    table = dataset_timing_report(tmp_path / "out", tmp_path / "h.png")
+    assert "| flat-handle-open | 2 | 100% | +0.00 |" in table
+    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+
+    plain = write_raw_as_lerobot(raw, "test/plain", tmp_path / "plain")
+    with pytest.raises(DatasetError, match="no episode has mode labels"):
+        dataset_timing_report(plain)

@@ -1,0 +1,479 @@
+"""Tactile force calibration (thesis §4.3.6, SPEC §5.2): the map between a tactile sensor's unscaled
+wrench F~ = (Fx, Fy, Fz, tau_z) and the impedance controller's pose error e = x_d - x, both in the
+sensor frame (e = (ex, ey, ez) in metres, erz in radians).
+
+Each axis is fitted on its own by least squares as an odd, piecewise-linear function around an
+offset: F~_k = b_k + sign(e_k) g_k(|e_k|), g_k(0) = 0, continuous, with one slope per segment. The
+normal axis gets two slopes and a fitted breakpoint (the thesis' robot: ~5 mm), the others one
+slope. Inverting it (force matching needs e from F~) clips |e| to the calibrated range (the
+reference robot: ~2.6 cm), since the line is not known beyond the pushes that made it.
+
+A calibration is a versioned JSON file (`FORMAT`, `VERSION`) with the sensor id, the fit, its
+residuals and where the pushes came from; reading one of another version or sensor is a one-line
+`ConfigError`.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shiftkit.pipelines.errors import ConfigError, ShiftkitError
+from shiftkit.pipelines.jsonutil import dumps, read_json_file
+
+FORMAT = "shiftkit-force-calibration"
+VERSION = 1
+WRENCH_AXES = ("Fx", "Fy", "Fz", "tau_z")
+DISPLACEMENT_AXES = ("ex", "ey", "ez", "erz")
+DISPLACEMENT_UNITS = ("m", "m", "m", "rad")
+NORMAL = 2  # index of the normal axis
+# one breakpoint on the normal axis (thesis Fig. 4.5), straight lines elsewhere
+DEFAULT_BREAKPOINTS = (0, 0, 1, 0)
+# largest displacement a force may be mapped to (the reference robot clips at ~2.6 cm)
+DEFAULT_MAX_OFFSET = (0.026, 0.026, 0.026, 1.0)
+BREAKPOINT_CANDIDATES = 200
+LOADED = 0.1  # residuals relative to the displacement count samples above this share of the largest
+
+
+@dataclass
+class AxisFit:
+    """F~ = offset + sign(e) g(|e|) with g piecewise linear: slope `slopes[i]` between consecutive
+    `breakpoints` (|e| in the axis' unit), g(0) = 0."""
+
+    offset: float
+    slopes: list[float]
+    breakpoints: list[float] = field(default_factory=list)
+    clip: float = float("inf")
+    """Largest |e| `displacement` returns: the calibrated range."""
+
+    def _knots(self) -> tuple[np.ndarray, np.ndarray]:
+        """|e| at the segment starts and g there."""
+        starts = np.concatenate(([0.0], self.breakpoints))
+        values = np.concatenate(([0.0], np.cumsum(np.diff(starts) * np.asarray(self.slopes[:-1]))))
+        return starts, values
+
+    def force(self, e: np.ndarray) -> np.ndarray:
+        """The reading predicted for displacement `e`."""
+        e = np.asarray(e, dtype=np.float64)
+        starts, values = self._knots()
+        a = np.abs(e)
+        seg = np.searchsorted(starts, a, side="right") - 1
+        g = values[seg] + np.asarray(self.slopes)[seg] * (a - starts[seg])
+        return self.offset + np.sign(e) * g
+
+    def displacement(self, reading: np.ndarray) -> np.ndarray:
+        """The displacement that produces `reading` (the fit inverted), clipped to +-`clip`."""
+        reading = np.asarray(reading, dtype=np.float64)
+        slopes = np.asarray(self.slopes)
+        sign = np.sign(slopes[0])
+        starts, values = self._knots()
+        y = (reading - self.offset) * sign
+        a = np.abs(y)
+        values = values * sign
+        seg = np.searchsorted(values, a, side="right") - 1
+        e = starts[seg] + (a - values[seg]) / (slopes[seg] * sign)
+        return np.sign(y) * np.minimum(e, self.clip)
+
+
+@dataclass
+class Calibration:
+    """A fitted sensor calibration and what it was made from."""
+
+    sensor_id: str
+    axes: dict[str, AxisFit]
+    """Wrench axis name -> its fit."""
+    residuals: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per data split ("fit", "held_out") and wrench axis: RMSE of the force and of the displacement."""
+    provenance: dict[str, Any] = field(default_factory=dict)
+    """Where the pushes came from (environment, seeds, push counts, step sizes, ...)."""
+
+    def force(self, displacement: np.ndarray) -> np.ndarray:
+        """(..., 4) readings predicted for (..., 4) sensor-frame displacements."""
+        d = np.asarray(displacement, dtype=np.float64)
+        return np.stack([self.axes[a].force(d[..., k]) for k, a in enumerate(WRENCH_AXES)], axis=-1)
+
+    def displacement(self, wrench: np.ndarray) -> np.ndarray:
+        """(..., 4) sensor-frame displacements (ex, ey, ez, erz) that give the (..., 4) readings:
+        A^-1 (F~ - b), piecewise and clipped."""
+        w = np.asarray(wrench, dtype=np.float64)
+        return np.stack([self.axes[a].displacement(w[..., k]) for k, a in enumerate(WRENCH_AXES)], axis=-1)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "sensor_id": self.sensor_id,
+            "wrench_axes": list(WRENCH_AXES),
+            "displacement_axes": list(DISPLACEMENT_AXES),
+            "displacement_units": list(DISPLACEMENT_UNITS),
+            "model": "F~ = offset + sign(e) * piecewise_linear(|e|; slopes, breakpoints); e clipped to +-clip",
+            "axes": {a: asdict(f) for a, f in self.axes.items()},
+            "residuals": self.residuals,
+            "provenance": self.provenance,
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the file atomically (a temporary sibling renamed into place)."""
+        path = Path(path)
+        tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:8]}.tmp"
+        tmp.write_text(dumps(self.to_json(), indent=1))
+        os.replace(tmp, path)
+        return path
+
+
+def load_calibration(path: str | Path, sensor_id: str | None = None) -> Calibration:
+    """Read a calibration file; a file of another format version, or of another sensor than
+    `sensor_id` (when given), is a one-line `ConfigError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"calibration file not found: {path}")
+    try:
+        data = read_json_file(path, "not a shiftkit force calibration")
+    except ShiftkitError as exc:
+        raise ConfigError(str(exc)) from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise ConfigError(f"{path}: not a shiftkit force calibration (format {FORMAT!r} expected)")
+    if data.get("version") != VERSION:
+        raise ConfigError(f"{path}: calibration version {data.get('version')!r} is not supported (this is v{VERSION})")
+    if sensor_id is not None and data.get("sensor_id") != sensor_id:
+        raise ConfigError(f"{path}: calibration is for sensor {data.get('sensor_id')!r}, not {sensor_id!r}")
+    axes = {}
+    for name in WRENCH_AXES:
+        raw = (data.get("axes") or {}).get(name)
+        try:
+            fit = AxisFit(
+                offset=float(raw["offset"]),
+                slopes=[float(s) for s in raw["slopes"]],
+                breakpoints=[float(b) for b in raw.get("breakpoints", [])],
+                clip=float(raw.get("clip", float("inf"))),
+            )
+        except (KeyError, TypeError, ValueError):
+            raise ConfigError(f"{path}: axis {name!r} needs 'offset' and 'slopes' numbers") from None
+        _check_fit(fit, f"{path}: axis {name!r}")
+        axes[name] = fit
+    return Calibration(str(data.get("sensor_id")), axes, data.get("residuals", {}), data.get("provenance", {}))
+
+
+def _check_fit(fit: AxisFit, where: str) -> None:
+    slopes = np.asarray(fit.slopes)
+    if len(slopes) != len(fit.breakpoints) + 1:
+        raise ConfigError(
+            f"{where}: {len(slopes)} slopes need {len(slopes) - 1} breakpoints, got {len(fit.breakpoints)}"
+        )
+    values = [fit.offset, fit.clip, *slopes, *fit.breakpoints]
+    if any(v != v for v in values):
+        raise ConfigError(f"{where}: NaN in the fit")
+    if not (np.all(slopes > 0) or np.all(slopes < 0)):
+        raise ConfigError(f"{where}: slopes {slopes.tolist()} change sign or are zero, so the fit cannot be inverted")
+    if np.any(np.diff([0.0, *fit.breakpoints]) <= 0) or fit.clip <= 0:
+        raise ConfigError(f"{where}: breakpoints must increase from 0 and the clip must be positive")
+
+
+def fit_axis(e: np.ndarray, reading: np.ndarray, breakpoints: int, clip: float, where: str = "fit") -> AxisFit:
+    """Least-squares fit of one axis with `breakpoints` (0 or 1) slope changes; a breakpoint is
+    chosen among candidates spread over the data's |e| range (the one with the smallest squared error).
+    Inverting clips at `clip`: beyond the pushes' range the line is extrapolated up to it (a person
+    drags a handle harder than a calibration shear move that slips)."""
+    e, reading = np.asarray(e, np.float64), np.asarray(reading, np.float64)
+    if breakpoints not in (0, 1):
+        raise ConfigError(f"{where}: breakpoints must be 0 or 1, got {breakpoints}")
+    if len(e) < 3 or not np.isfinite(e).all() or not np.isfinite(reading).all():
+        raise ShiftkitError(f"{where}: need at least 3 finite samples, got {len(e)}")
+    a = np.abs(e)
+    if a.max() <= 0:
+        raise ShiftkitError(f"{where}: no sample has a displacement, nothing to fit")
+    basis = [np.ones_like(e), e]
+    candidates: list[float | None] = [None]
+    if breakpoints:
+        moving = a[a > 1e-3 * a.max()]
+        lo, hi = np.quantile(moving, [0.05, 0.95])
+        candidates = list(np.linspace(lo, hi, BREAKPOINT_CANDIDATES)) if hi > lo else [None]
+    best: tuple[float, np.ndarray, float | None] | None = None
+    for bp in candidates:
+        cols = basis if bp is None else [*basis, np.sign(e) * np.maximum(a - bp, 0.0)]
+        x = np.stack(cols, axis=1)
+        coef, *_ = np.linalg.lstsq(x, reading, rcond=None)
+        sse = float(np.sum((x @ coef - reading) ** 2))
+        if best is None or sse < best[0]:
+            best = (sse, coef, bp)
+    _, coef, bp = best
+    slopes = [float(coef[1])] if bp is None else [float(coef[1]), float(coef[1] + coef[2])]
+    fit = AxisFit(float(coef[0]), slopes, [] if bp is None else [float(bp)], float(clip))
+    try:
+        _check_fit(fit, where)
+    except ConfigError as exc:
+        raise ShiftkitError(str(exc)) from None
+    return fit
+
+
+def fit_calibration(
+    displacement: np.ndarray,
+    wrench: np.ndarray,
+    sensor_id: str,
+    breakpoints: tuple[int, ...] = DEFAULT_BREAKPOINTS,
+    max_offset: tuple[float, ...] = DEFAULT_MAX_OFFSET,
+    provenance: dict[str, Any] | None = None,
+    mask: np.ndarray | None = None,
+) -> Calibration:
+    """Fit every axis from (n, 4) sensor-frame displacements and (n, 4) readings; `mask` (n, 4)
+    says which samples inform which axis (default: all). Records the fit's own residuals under "fit"."""
+    displacement, wrench = np.asarray(displacement, np.float64), np.asarray(wrench, np.float64)
+    if displacement.ndim != 2 or displacement.shape[1] != 4 or wrench.shape != displacement.shape:
+        raise ShiftkitError(f"calibration data must be two (n, 4) arrays, got {displacement.shape} and {wrench.shape}")
+    mask = np.ones(displacement.shape, bool) if mask is None else np.asarray(mask, bool)
+    axes = {
+        a: fit_axis(
+            displacement[mask[:, k], k], wrench[mask[:, k], k], breakpoints[k], max_offset[k], f"calibration axis {a}"
+        )
+        for k, a in enumerate(WRENCH_AXES)
+    }
+    calibration = Calibration(sensor_id, axes, provenance=dict(provenance or {}))
+    calibration.residuals["fit"] = residuals(calibration, displacement, wrench, mask)
+    return calibration
+
+
+def residuals(
+    calibration: Calibration, displacement: np.ndarray, wrench: np.ndarray, mask: np.ndarray | None = None
+) -> dict[str, dict[str, Any]]:
+    """Per axis, over the samples `mask` (n, 4) assigns to it whose displacement lies within the
+    clip: RMSE of the predicted reading, RMSE of the predicted displacement (the inverse, as force
+    matching uses it), and that RMSE over the loaded samples (|e| above `LOADED` of the largest)
+    relative to their RMS displacement (unloaded samples only measure the reading's noise)."""
+    displacement, wrench = np.asarray(displacement, np.float64), np.asarray(wrench, np.float64)
+    mask = np.ones(displacement.shape, bool) if mask is None else np.asarray(mask, bool)
+    predicted_force = calibration.force(displacement)
+    predicted_e = calibration.displacement(wrench)
+    out = {}
+    for k, a in enumerate(WRENCH_AXES):
+        inside = mask[:, k] & (np.abs(displacement[:, k]) <= calibration.axes[a].clip)
+        e, pe = displacement[inside, k], predicted_e[inside, k]
+        rmse = lambda x: float(np.sqrt(np.mean(x**2))) if len(x) else 0.0  # noqa: E731
+        loaded = np.abs(e) > LOADED * np.abs(e).max() if len(e) else np.zeros(0, bool)
+        rms_loaded = rmse(e[loaded])
+        out[a] = {
+            "n": int(len(e)),
+            "n_loaded": int(loaded.sum()),
+            "max_abs_displacement": float(np.abs(e).max()) if len(e) else 0.0,
+            "rmse_force": rmse(predicted_force[inside, k] - wrench[inside, k]),
+            "rmse_displacement": rmse(pe - e),
+            "relative_rmse_displacement": rmse(pe[loaded] - e[loaded]) / rms_loaded if rms_loaded > 0 else None,
+            "unit": DISPLACEMENT_UNITS[k],
+        }
+    return out
+
+
+def plot_calibration(
+    calibration: Calibration,
+    displacement: np.ndarray,
+    wrench: np.ndarray,
+    path: str | Path,
+    held_out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    mask: np.ndarray | None = None,
+) -> Path:
+    """A PNG with one panel per axis: the pushes' (e, F~) samples that inform the axis (`mask`;
+    held-out: (displacement, wrench, mask)) and the fitted line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(1, 4, figsize=(16, 3.6), constrained_layout=True)
+    for k, (a, ax) in enumerate(zip(WRENCH_AXES, axs, strict=True)):
+        m = np.ones(len(displacement), bool) if mask is None else np.asarray(mask, bool)[:, k]
+        ax.scatter(displacement[m, k], wrench[m, k], s=3, c="k", alpha=0.5, label="fit pushes")
+        if held_out is not None:
+            hm = np.asarray(held_out[2], bool)[:, k]
+            ax.scatter(held_out[0][hm, k], held_out[1][hm, k], s=3, c="tab:orange", alpha=0.5, label="held-out pushes")
+        fit = calibration.axes[a]
+        lo, hi = float(np.min(displacement[m, k])), float(np.max(displacement[m, k]))
+        xs = np.linspace(max(lo, -fit.clip), min(hi, fit.clip), 200)
+        ax.plot(xs, fit.force(xs), c="tab:blue", lw=2, label="piecewise-linear fit")
+        for bp in fit.breakpoints:
+            ax.axvline(bp, c="tab:blue", ls=":", lw=1)
+        res = calibration.residuals.get("held_out", calibration.residuals.get("fit", {})).get(a, {})
+        rel = res.get("relative_rmse_displacement")
+        title = f"{a} vs {DISPLACEMENT_AXES[k]}"
+        if rel is not None:
+            title += f"  (displacement RMSE {100 * rel:.1f}%)"
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel(f"{DISPLACEMENT_AXES[k]} = x_d - x ({DISPLACEMENT_UNITS[k]})")
+        ax.set_ylabel(f"raw {a}")
+    axs[0].legend(fontsize=7)
+    fig.suptitle(f"force calibration of sensor {calibration.sensor_id}", fontsize=10)
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------- autonomous pushes
+PUSH_KINDS = ("normal", "shear_x", "shear_y", "torque")
+
+
+@dataclass
+class PushConfig:
+    """The autonomous calibration procedure (thesis §4.4.1): pushes of the sensor pad against a
+    fixed object through the impedance controller, sampled once settled after every step."""
+
+    step: float = 0.001
+    """Normal step of the commanded pose (m)."""
+    travel: float = 0.035
+    """Normal travel of a push (m)."""
+    start_gap: tuple[float, float] = (0.001, 0.003)
+    """Range of the distance between pad and object at a push's start (m)."""
+    jitter: float = 0.001
+    """Lateral start perturbation (m, uniform +-) that makes pushes differ."""
+    press: tuple[float, float] = (0.004, 0.015)
+    """Range of the commanded depth past first contact at which shear / torque moves start (m)."""
+    shear: float = 0.01
+    """Lateral travel of a shear move (m), in steps of `step`."""
+    rotation: float = 1.0
+    """Rotation of a torque move about the pad normal (rad)."""
+    rotation_step: float = 0.05
+    """Rotation per step of a torque move (rad)."""
+    settle_periods: int = 3
+    """Control periods waited after each step before sampling."""
+    contact_reading: float = 0.5
+    """Rise of the raw normal reading over its start value that counts as contact."""
+
+
+@dataclass
+class Push:
+    kind: str
+    seed: int
+    displacement: np.ndarray
+    """(n, 4) sensor-frame e = x_d - x: ex, ey, ez (m), erz (rad)."""
+    wrench: np.ndarray
+    """(n, 4) raw readings F~."""
+    mask: np.ndarray
+    """(n, 4) which samples inform which axis: every axis during the normal approach (its lateral
+    and rotational errors stay near zero), the moved axis and the normal one during a shear or
+    torque move while the pad still touches (a lost contact says nothing about the gain)."""
+
+
+def sensor_id(sim_model_id: str) -> str:
+    """The id of a simulated scene's STS (calibrations name the sensor they belong to)."""
+    return f"{sim_model_id}:sts"
+
+
+def simulate_push(env: Any, kind: str, seed: int, config: PushConfig) -> Push:
+    """One push of the env's tactile sensor against its calibration object (the door-tactile knob or
+    handle, door shut against its stop). `env` is a door-tactile environment (`physics` with
+    `grasp_pose`, `reset`, `simulate`, the impedance targets; `sensor` with the raw reading)."""
+    from shiftkit.envs.controllers import rotation_vector
+    from shiftkit.envs.door_tactile.env import rotation_from_vector
+
+    if kind not in PUSH_KINDS:
+        raise ConfigError(f"unknown push kind {kind!r}; known: {', '.join(PUSH_KINDS)}")
+    rng = np.random.default_rng([seed, PUSH_KINDS.index(kind)])
+    env.reset(seed=int(rng.integers(2**31)))  # seeds the sensor's noise
+    p, sensor = env.physics, env.sensor
+    contact_pos, rot = p.grasp_pose(0.0)
+    normal, lateral = rot[:, 2], rot[:, :2]
+    start = contact_pos - normal * rng.uniform(*config.start_gap) + lateral @ rng.uniform(-1, 1, 2) * config.jitter
+    p.reset(start, rot, 0.0)
+    samples_e, samples_f, masks = [], [], []
+    rest = 0.0
+
+    def sample(axes: tuple[int, ...] | None = None) -> np.ndarray:
+        p.simulate(p.n_substeps * config.settle_periods)
+        x, r = p.ee_pos(), p.ee_rot()
+        e = np.append(r.T @ (p.target_pos - x), rotation_vector(r.T @ p.target_rot)[2])
+        f = sensor.raw_wrench(sensor.contact_wrench(p.data))
+        mask = np.ones(4, bool)
+        if axes is not None:
+            mask[:] = False
+            mask[list(axes)] = f[NORMAL] - rest > config.contact_reading
+        samples_e.append(e)
+        samples_f.append(f)
+        masks.append(mask)
+        return f
+
+    rest = sample()[NORMAL]
+    steps = int(round(config.travel / config.step))
+    press_after = None
+    for k in range(1, steps + 1):
+        p.target_pos = start + normal * config.step * k
+        reading = sample()[2]
+        if kind == "normal":
+            continue
+        if press_after is None and reading - rest > config.contact_reading:
+            press_after = int(round(rng.uniform(*config.press) / config.step))
+        if press_after is not None:
+            press_after -= 1
+            if press_after <= 0:
+                break
+    if kind in ("shear_x", "shear_y"):
+        direction = lateral[:, 0 if kind == "shear_x" else 1] * rng.choice([-1.0, 1.0])
+        base = p.target_pos.copy()
+        for k in range(1, int(round(config.shear / config.step)) + 1):
+            p.target_pos = base + direction * config.step * k
+            sample((0 if kind == "shear_x" else 1, NORMAL))
+    elif kind == "torque":
+        sign = rng.choice([-1.0, 1.0])
+        base = p.target_rot.copy()
+        for k in range(1, int(round(config.rotation / config.rotation_step)) + 1):
+            p.target_rot = base @ rotation_from_vector(np.array([0.0, 0.0, sign * config.rotation_step * k]))
+            sample((3, NORMAL))
+    return Push(kind, seed, np.array(samples_e), np.array(samples_f), np.array(masks))
+
+
+def calibrate_env(
+    env_name: str,
+    task: str,
+    fit_seeds: list[int],
+    held_out_seeds: list[int],
+    push: PushConfig | None = None,
+    kinds: tuple[str, ...] = PUSH_KINDS,
+    breakpoints: tuple[int, ...] = DEFAULT_BREAKPOINTS,
+    max_offset: tuple[float, ...] = DEFAULT_MAX_OFFSET,
+) -> tuple[Calibration, list[Push], list[Push]]:
+    """Push (every kind, once per seed), fit on the `fit_seeds` pushes and report the residuals on
+    the `held_out_seeds` pushes. Returns the calibration and both push lists."""
+    from shiftkit.envs import env_family, make
+
+    push = push or PushConfig()
+    try:
+        family = env_family(env_name)
+        env = make(env_name, task)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    if not hasattr(env, "sensor") or not hasattr(env.physics, "grasp_pose"):
+        env.close()
+        raise ConfigError(f"env {env_name!r} has no tactile sensor and calibration object to push against")
+    try:
+        fit = [simulate_push(env, k, s, push) for s in fit_seeds for k in kinds]
+        held = [simulate_push(env, k, s, push) for s in held_out_seeds for k in kinds]
+    finally:
+        env.close()
+    stack = lambda pushes, attr: np.concatenate([getattr(q, attr) for q in pushes])  # noqa: E731
+    provenance = {
+        "procedure": "simulated autonomous pushes (shiftkit.transforms.force_calibration.simulate_push)",
+        "env": env_name,
+        "task": task,
+        "sim_model": family.sim_model_id,
+        "push_kinds": list(kinds),
+        "fit_seeds": list(fit_seeds),
+        "held_out_seeds": list(held_out_seeds),
+        "samples": {"fit": int(sum(len(q.wrench) for q in fit)), "held_out": int(sum(len(q.wrench) for q in held))},
+        "push_config": asdict(push),
+    }
+    calibration = fit_calibration(
+        stack(fit, "displacement"),
+        stack(fit, "wrench"),
+        sensor_id(family.sim_model_id),
+        breakpoints=breakpoints,
+        max_offset=max_offset,
+        provenance=provenance,
+        mask=stack(fit, "mask"),
+    )
+    if held:
+        calibration.residuals["held_out"] = residuals(
+            calibration, stack(held, "displacement"), stack(held, "wrench"), stack(held, "mask")
+        )
+    return calibration, fit, held

@@ -1,0 +1,356 @@
+"""`force_match`: replay kinesthetic demonstrations so that the replay presses as the person did
+(thesis §4.3.6, SPEC §5.2).
+
+Kinesthetic teaching records the sensor poses x_raw,t and the unscaled tactile wrench F~_raw,t.
+Under an impedance controller a replay of x_raw alone loses the contact force, since the force
+comes from the error between the commanded and the reached pose. Force matching offsets each
+replayed pose by the displacement that the calibration says produces the recorded reading,
+
+    x_rep,t = A^-1 (F~_raw,t - b) + x_raw,t,
+
+in the sensor frame (translation (ex, ey, ez), rotation erz about the pad normal as a rotation
+vector), with F~ median-filtered over time first. With a zero offset (zero force against a
+calibration without offset) it is exactly position replay.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import mujoco
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms.force_calibration import WRENCH_AXES, Calibration, load_calibration, sensor_id
+
+
+def median_filter(values: np.ndarray, kernel: int) -> np.ndarray:
+    """Running median over the first axis (odd `kernel`, edges repeat the end values)."""
+    if kernel <= 1:
+        return np.asarray(values, dtype=np.float64).copy()
+    half = kernel // 2
+    padded = np.concatenate([np.repeat(values[:1], half, 0), values, np.repeat(values[-1:], half, 0)])
+    windows = np.lib.stride_tricks.sliding_window_view(padded, kernel, axis=0)
+    return np.median(windows, axis=-1)
+
+
+def quat_xyzw_to_matrix(quat: np.ndarray) -> np.ndarray:
+    """(T, 4) quaternions x, y, z, w (the raw format's `ee_pose` order) -> (T, 3, 3) rotations."""
+    out = np.zeros((len(quat), 9))
+    for i, q in enumerate(np.asarray(quat, dtype=np.float64)):
+        mujoco.mju_quat2Mat(out[i], q[[3, 0, 1, 2]] / np.linalg.norm(q))
+    return out.reshape(-1, 3, 3)
+
+
+def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) rotations -> (T, 4) quaternions x, y, z, w with w >= 0."""
+    out = np.zeros((len(rot), 4))
+    q = np.zeros(4)
+    for i, r in enumerate(np.asarray(rot, dtype=np.float64)):
+        mujoco.mju_mat2Quat(q, np.ascontiguousarray(r).ravel())
+        out[i] = (q if q[0] >= 0 else -q)[[1, 2, 3, 0]]
+    return out
+
+
+def force_matched_poses(
+    ee_pose: np.ndarray, wrench: np.ndarray, calibration: Calibration, median_kernel: int = 5
+) -> np.ndarray:
+    """x_rep for (T, 7) poses (position, quaternion xyzw; sensor frame = the pose's frame) and
+    (T, 4) raw readings (Fx, Fy, Fz, tau_z): each pose moved by the calibrated displacement of its
+    median-filtered reading, expressed in its own sensor frame."""
+    ee_pose = np.asarray(ee_pose, dtype=np.float64)
+    offset = calibration.displacement(median_filter(np.asarray(wrench, dtype=np.float64), median_kernel))
+    rot = quat_xyzw_to_matrix(ee_pose[:, 3:7])
+    pos = ee_pose[:, :3] + np.einsum("tij,tj->ti", rot, offset[:, :3])
+    # q_raw * (rotation by erz about the sensor z), as a quaternion product: exact for erz = 0
+    x, y, z, w = ee_pose[:, 3:7].T
+    s, c = np.sin(offset[:, 3] / 2), np.cos(offset[:, 3] / 2)
+    quat = np.stack([x * c + y * s, y * c - x * s, z * c + w * s, w * c - z * s], axis=1)
+    return np.concatenate([pos, quat], axis=1)
+
+
+# ----------------------------------------------------------------------------- replay in the simulator
+STS_VISUAL = "observation.images.sts_visual"
+STS_TACTILE = "observation.images.sts_tactile"
+STS_IMAGE = "observation.images.sts"
+CAMERA_PREFIX = "observation.images."
+REPLAY_SECONDS = 60.0  # time limit of a replay per unit of slowdown (the recording's own limit is shorter)
+
+
+@dataclass
+class Replay:
+    """One replay: frame t holds the state before action t (the last target's state is not kept)."""
+
+    frames: dict[str, np.ndarray]
+    """Per-frame arrays by output feature name."""
+    success: bool
+    first_contact_step: int | None
+
+
+def final_pose(pose: np.ndarray, action: np.ndarray) -> np.ndarray:
+    """The door-tactile pose reached by `action` (the relative pose change in the sensor frame,
+    scaled as the env scales it) from `pose`: the recording's last action closes its pose sequence."""
+    from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, rotation_from_vector
+
+    rot = quat_xyzw_to_matrix(pose[None, 3:7])[0]
+    pos = pose[:3] + rot @ (np.asarray(action[:3], np.float64) * MAX_TRANSLATION)
+    turned = rot @ rotation_from_vector(np.asarray(action[3:6], np.float64) * MAX_ROTATION)
+    return np.concatenate([pos, matrix_to_quat_xyzw(turned[None])[0]])
+
+
+def interpolate_poses(poses: np.ndarray, factor: int) -> np.ndarray:
+    """`factor` - 1 poses between consecutive ones (positions linear, quaternions normalised linear:
+    the steps are small); the last pose stays last."""
+    if factor == 1:
+        return poses
+    a = (np.arange(factor) / factor)[None, :, None]
+    inner = ((1 - a) * poses[:-1, None] + a * poses[1:, None]).reshape(-1, poses.shape[1])
+    inner[:, 3:7] /= np.linalg.norm(inner[:, 3:7], axis=1, keepdims=True)
+    return np.concatenate([inner, poses[-1:]])
+
+
+def replay_targets(
+    env: Any,
+    seed: int,
+    targets: np.ndarray,
+    modes: np.ndarray,
+    warmup_steps: int,
+    family: Any,
+    cameras: tuple[str, ...] = (),
+    sts_images: Literal["none", "active", "both"] = "none",
+    hold_steps: int = 0,
+) -> Replay:
+    """Replay T + 1 sensor target poses through the env's impedance controller, as the door-tactile
+    family's position replay does: reset with the demonstration's seed, set the controller's target
+    to the first pose for `warmup_steps` (the steps the demonstration spent before recording
+    started), then to target t + 1 at step t (the mode from the (T,) `modes`; the recorded action is
+    that target's relative pose from the pose reached, clipped to the action range: what a policy
+    trained on the replay outputs), then hold the last target for `hold_steps` more steps. Records, per step, the
+    env's observation split into state / environment state, the simulator state, the reached pose,
+    the true and raw contact wrench, the requested cameras and the STS image of the active mode
+    (`sts_images` "active") or both STS images ("both")."""
+    from shiftkit.envs.door_tactile.experts import relative_action
+
+    targets = np.asarray(targets, dtype=np.float64)
+    rots = quat_xyzw_to_matrix(targets[:, 3:7])
+    rows: dict[str, list[np.ndarray]] = {}
+    actions, success, contact = [], [], None
+
+    def record(obs: np.ndarray, info: dict[str, Any]) -> None:
+        data = env.physics.data
+        wrench = env.sensor.contact_wrench(data)
+        values = {
+            "observation.state": obs[family.state_indices],
+            "observation.environment_state": obs[family.environment_state_indices],
+            "sim.qpos": info["qpos"],
+            "sim.qvel": info["qvel"],
+            "observation.ee_pose": env.ee_pose(),
+            "contact_wrench": wrench,
+            "observation.wrench": env.sensor.raw_wrench(wrench),
+            **{CAMERA_PREFIX + c: env.render_rgb(c) for c in cameras},
+        }
+        if sts_images == "both":
+            values[STS_VISUAL] = env.sensor.visual_image(data)
+            values[STS_TACTILE] = env.sensor.tactile_image(data)
+        elif sts_images == "active":
+            values[STS_IMAGE] = env.sts_image()
+        for key, value in values.items():
+            rows.setdefault(key, []).append(np.asarray(value))
+
+    obs, info = env.reset(seed=seed)
+    for _ in range(warmup_steps):
+        obs, _, _, _, info = env.step_pose(targets[0, :3], rots[0], "visual")
+    n = len(targets) - 1
+    for t in range(n + hold_steps):
+        if contact is None and info["handle_contact"]:
+            contact = t
+        record(obs, info)
+        k, tactile = min(t + 1, n), bool(modes[min(t, n - 1)] > 0.5)
+        p = env.physics
+        actions.append(np.append(relative_action(p.ee_pos(), p.ee_rot(), targets[k, :3], rots[k]), float(tactile)))
+        obs, _, _, truncated, info = env.step_pose(targets[k, :3], rots[k], "tactile" if tactile else "visual")
+        success.append(bool(info["is_success"]))
+        if truncated:
+            break
+    frames = {k: np.stack(v) for k, v in rows.items()}
+    frames["action"] = np.array(actions)
+    frames["next.success"] = np.array(success)
+    return Replay(frames, bool(any(success)), contact)
+
+
+@dataclass
+class ForceMatchConfig:
+    calibration: str | None = None
+    """Calibration file (`shiftkit calibrate`); needed for mode "force_matched"."""
+    mode: Literal["force_matched", "position"] = "force_matched"
+    """"force_matched": replay x_rep = A^-1 (F~_raw - b) + x_raw; "position": replay x_raw (the
+    baseline that loses the contact force)."""
+    env: str = "door-tactile"
+    """Simulator environment the episodes were recorded in (its family replays them)."""
+    median_kernel: int = 5
+    """Frames of the running median over F~_raw before it is inverted (odd; 1 = none)."""
+    axes: list[str] = field(default_factory=lambda: ["Fx", "Fy", "Fz"])
+    """Wrench axes whose calibrated displacement offsets the replay (the others stay at x_raw)."""
+    sts_images: bool = True
+    """Record both STS images (visual and tactile) of every replayed frame, replacing the recorded
+    active-mode image `observation.images.sts` (a `mode_label` stage then keeps one); False replays
+    that active-mode image (the mode of the recording's labels)."""
+    drop_failed: bool = False
+    """Drop episodes whose replay does not succeed."""
+    slowdown: int = 1
+    """Control steps per recorded frame: the replay runs this many times slower than the
+    demonstration (targets interpolated), so the output has that many times more frames. The
+    impedance controller's damping resists fast motion that a person's freedrive does not."""
+    hold_steps: int = 10
+    """Steps the last target is held after the demonstration's end (a door may still be moving);
+    they are part of the output."""
+
+    def __post_init__(self) -> None:
+        if self.slowdown < 1 or self.hold_steps < 0:
+            raise ValueError("need slowdown >= 1 and hold_steps >= 0")
+        if self.median_kernel < 1 or self.median_kernel % 2 == 0:
+            raise ValueError(f"median_kernel must be odd and >= 1, got {self.median_kernel}")
+        unknown = [a for a in self.axes if a not in WRENCH_AXES]
+        if unknown:
+            raise ValueError(f"unknown wrench axes {unknown}; known: {', '.join(WRENCH_AXES)}")
+        if self.mode == "force_matched" and not self.calibration:
+            raise ValueError('mode "force_matched" needs a calibration file')
+
+
+# what the replay produces for a recorded feature (cameras are handled apart)
+REPLAYED = (
+    "action",
+    "observation.state",
+    "observation.environment_state",
+    "next.success",
+    "sim.qpos",
+    "sim.qvel",
+    "observation.ee_pose",
+    "observation.wrench",
+    "contact_wrench",
+)
+
+
+@register_stage
+class ForceMatch(Stage):
+    name = "force_match"
+    version = 1
+    Config = ForceMatchConfig
+
+    def _family(self) -> Any:
+        from shiftkit.envs import env_family
+
+        try:
+            return env_family(self.config.env)
+        except ValueError as exc:
+            raise ConfigError(f"force_match: {exc}") from None
+
+    def transform_features(self, features: Features) -> Features:
+        family = self._family()
+        for key in ("observation.ee_pose", "observation.wrench"):
+            if key not in features:
+                raise ConfigError(f"force_match: needs the kinesthetic recording's {key!r} feature")
+        cameras = []
+        for key in features:
+            cam = key[len(CAMERA_PREFIX) :] if key.startswith(CAMERA_PREFIX) else None
+            if cam is not None and cam != "sts" and cam in family.cameras:
+                cameras.append(cam)
+            elif key not in REPLAYED and key != STS_IMAGE:
+                raise ConfigError(f"force_match: cannot replay feature {key!r}; drop it before this stage")
+        self._cameras = tuple(cameras)
+        self._sts = "none" if STS_IMAGE not in features else "both" if self.config.sts_images else "active"
+        out = dict(features)
+        if self._sts == "both":
+            del out[STS_IMAGE]
+            for key in (STS_VISUAL, STS_TACTILE):
+                out[key] = copy.deepcopy(features[STS_IMAGE])
+        if self.config.mode == "force_matched":
+            load_calibration(self.config.calibration, sensor_id(family.sim_model_id))
+        return out
+
+    def setup(self) -> None:
+        self._envs: dict[str, Any] = {}
+        family = self._family()
+        self._calibration = (
+            load_calibration(self.config.calibration, sensor_id(family.sim_model_id))
+            if self.config.mode == "force_matched"
+            else None
+        )
+
+    def _env(self, task: str, image_shape: tuple[int, ...] | None) -> Any:
+        from shiftkit.envs import make
+
+        if task not in self._envs:
+            kwargs = {} if image_shape is None else {"height": image_shape[0], "width": image_shape[1]}
+            # a demonstration may use the env's whole time limit; its replay lasts `slowdown` times longer
+            kwargs["max_episode_seconds"] = REPLAY_SECONDS * self.config.slowdown + self.config.hold_steps
+            self._envs[task] = make(self.config.env, task, **kwargs)
+        return self._envs[task]
+
+    def targets(self, episode: Episode) -> np.ndarray:
+        """The replay's T + 1 target poses: x_raw (closed by the pose the last recorded action
+        reached), or x_rep from the calibration (the last reading standing in for the closing pose's)."""
+        poses = np.asarray(episode.frames["observation.ee_pose"], dtype=np.float64)
+        poses = np.concatenate([poses, final_pose(poses[-1], np.asarray(episode.frames["action"][-1]))[None]])
+        if self._calibration is None:
+            return poses
+        wrench = np.asarray(episode.frames["observation.wrench"], dtype=np.float64)
+        keep = np.array([a in self.config.axes for a in WRENCH_AXES])
+        # unmatched axes read as their offset b: zero displacement
+        offsets = np.array([self._calibration.axes[a].offset for a in WRENCH_AXES])
+        wrench = np.where(keep, np.concatenate([wrench, wrench[-1:]]), offsets)
+        return force_matched_poses(poses, wrench, self._calibration, self.config.median_kernel)
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        meta = episode.meta
+        where = f"force_match: episode {meta.get('source_episode_index', '?')}"
+        if meta.get("seed") is None:
+            raise DatasetError(f"{where}: no simulator 'seed' in the episode metadata to replay from")
+        family = self._family()
+        if meta.get("sim_model") not in (None, family.sim_model_id):
+            raise DatasetError(f"{where}: recorded in {meta.get('sim_model')!r}, not {family.sim_model_id!r}")
+        task = str(meta.get("task") or episode.frames["task"][0])
+        shape = next((episode.frames[CAMERA_PREFIX + c].shape[1:] for c in self._cameras), None)
+        env = self._env(task, shape)
+        action = np.asarray(episode.frames["action"])
+        # the operator's mode labels of the recording (the family's last action dim), else tactile
+        modes = action[:, -1] if action.shape[1] == len(family.action_names) else np.ones(len(action))
+        k = self.config.slowdown
+        replay = replay_targets(
+            env,
+            int(meta["seed"]),
+            interpolate_poses(self.targets(episode), k),
+            np.repeat(modes, k),
+            int(meta.get("recording_start_step", 0)),
+            family,
+            self._cameras,
+            self._sts,
+            self.config.hold_steps,
+        )
+        if self.config.drop_failed and not replay.success:
+            return
+        n = len(replay.frames["action"])
+        frames = {k: replay.frames[k].astype(episode.frames[k].dtype) for k in episode.frames if k in replay.frames}
+        if self._sts == "both":
+            frames[STS_VISUAL], frames[STS_TACTILE] = replay.frames[STS_VISUAL], replay.frames[STS_TACTILE]
+        frames["timestamp"] = np.arange(n, dtype=np.float64) / self.context.fps
+        frames["task"] = np.asarray(episode.frames["task"])[np.minimum(np.arange(n) // k, len(episode) - 1)]
+        out_meta = {
+            **meta,
+            "outcome": "success" if replay.success else "failure",
+            "replay_mode": self.config.mode,
+            "replay_success": replay.success,
+            "replay_slowdown": k,
+            # recorded frame indices become replay frame indices; the replay's own first contact
+            "recorded_first_contact_step": meta.get("first_contact_step"),
+            "first_contact_step": replay.first_contact_step,
+        }
+        if meta.get("mode_switch_step") is not None:
+            out_meta["mode_switch_step"] = int(meta["mode_switch_step"]) * k
+        yield Episode(frames, out_meta)
