@@ -21,7 +21,7 @@ def _run(env, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     frames, qpos = [obs], []
     for _ in range(steps):
-        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 4))
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, env.action_space.shape))
         frames.append(obs)
         qpos.append(info["qpos"])
     return np.array(frames), np.array(qpos)
@@ -38,10 +38,15 @@ def shared_envs():
 @pytest.mark.parametrize("pair", PAIRS, ids=[f"{e}-{t}" for e, t in PAIRS])
 def test_reset_step_spaces_and_info(shared_envs, pair):
     env = shared_envs[pair]
+    family = envs.env_family(pair[0])
     obs, info = env.reset(seed=0)
-    assert env.observation_space.shape == (59,) and env.observation_space.dtype == np.float32
-    assert env.action_space.shape == (4,)
-    assert len(env.observation_names) == 59 and tuple(env.observation_names) == OBSERVATION_NAMES
+    dims = len(family.observation_names)
+    assert env.observation_space.shape == (dims,) and env.observation_space.dtype == np.float32
+    assert env.action_space.shape == (len(family.action_names),)
+    assert tuple(env.observation_names) == tuple(family.observation_names)
+    assert len(family.state_indices) + len(family.environment_state_indices) == dims
+    if pair[0] == "panda-play":
+        assert dims == 59 and tuple(env.observation_names) == OBSERVATION_NAMES
     assert env.observation_space.contains(obs)
     for key in ("is_success", "qpos", "qvel"):
         assert key in info
@@ -52,7 +57,9 @@ def test_reset_step_spaces_and_info(shared_envs, pair):
         assert terminated is False and truncated is False
         assert info["qpos"].shape == (env.physics.model.nq,) and info["qvel"].shape == (env.physics.model.nv,)
     with pytest.raises(ValueError):
-        env.step(np.array([np.nan, 0, 0, 0]))
+        env.step(np.full(env.action_space.shape, np.nan))
+    for camera in family.cameras:
+        assert env.render_rgb(camera).shape == (48, 64, 3) and env.render_depth(camera).shape == (48, 64)
 
 
 @pytest.mark.parametrize("pair", PAIRS, ids=[f"{e}-{t}" for e, t in PAIRS])
