@@ -27,7 +27,10 @@ EXAMPLE_PARAMS = {
     "drop": {"features": ["observation.environment_state"]},
     "cast": {"dtypes": {"action": "float64"}},
     "success_examples": {"n_per_task": 3, "states": "success"},
+    "multiview": {"num_views": 2, "depth": True},
 }
+# Stages that need a simulator recording instead of the synthetic fixture: stage -> fixture.
+STAGE_INPUTS = {"multiview": "mv_lift_raw"}
 
 # Every stage shiftkit ships (tests may register their own stages; those are not covered here).
 STAGES = sorted(name for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit."))
@@ -46,9 +49,20 @@ def test_every_stage_has_example_params():
     assert set(STAGES) <= set(EXAMPLE_PARAMS), f"add example params for {set(STAGES) - set(EXAMPLE_PARAMS)}"
 
 
+@pytest.fixture
+def mv_lift_raw(tmp_path):
+    """Two mv-lift expert episodes with simulator state, base-camera RGB-D and camera metadata."""
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    out, _ = collect(
+        CollectConfig(env="mv-lift", task="lift", episodes=2, out=str(tmp_path / "mv"), cameras=("base",), depth=True)
+    )
+    return out
+
+
 @pytest.mark.parametrize("name", STAGES)
-def test_stage_conformance(name, synthetic_raw_images, tmp_path):
-    raw = synthetic_raw_images
+def test_stage_conformance(name, request, tmp_path):
+    raw = request.getfixturevalue(STAGE_INPUTS.get(name, "synthetic_raw_images"))
     before = tree_hashes(raw)
     dest = tmp_path / "out"
     config = config_for(raw, dest, name, EXAMPLE_PARAMS[name], seed=7)
