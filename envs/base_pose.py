@@ -103,6 +103,13 @@ class BasePoseSampler:
         dyaw = rng.uniform(-self.yaw_noise, self.yaw_noise)
         return BasePose(pose.x + float(dx), pose.y + float(dy), pose.yaw + float(dyaw))
 
+    def sample_at(self, yaw: float, rng: np.random.Generator) -> BasePose:
+        """An aimed pose at exactly this yaw (any, also outside `yaw_range`) with x, y noise only
+        (evaluation sweeps over yaw bins)."""
+        pose = self.solve(yaw)
+        dx, dy = rng.uniform(-self.xy_noise, self.xy_noise, 2)
+        return BasePose(pose.x + float(dx), pose.y + float(dy), pose.yaw)
+
     def axis_miss(self, pose: BasePose) -> float:
         """Distance (metres) between the task centre and the camera's optical axis at `pose`."""
         rot = pose.rotation()

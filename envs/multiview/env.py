@@ -4,7 +4,8 @@ Observation: proprioception (TCP pose, fingers now, t-1, t-2) then object state,
 frame (`observation_names`). Action: Box(-1, 1): TCP velocity in the base frame (1 = 25 cm/s), for
 6-DOF tasks also the angular velocity (1 = 1 rad/s), and the gripper (> 0 opens, < 0 closes).
 Control at 10 Hz. `view="multiview"` samples the base pose per episode (`physics.SAMPLER`, from the
-episode seed); `view="fixed"` uses the centre pose; `options={"base_pose": BasePose}` forces one.
+episode seed); `view="fixed"` uses the centre pose; `options={"base_pose": BasePose}` forces one,
+`options={"base_yaw": yaw}` an aimed pose at that yaw with the x, y noise (yaw sweeps).
 Reward 1.0 while success holds; episodes are truncated after `max_episode_seconds`.
 `info` every step: `is_success`, `success_now`, `qpos`, `qvel`, `base_pose`.
 """
@@ -68,9 +69,12 @@ class MultiviewEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         rng = self.np_random
-        forced = (options or {}).get("base_pose")
+        options = options or {}
+        forced = options.get("base_pose")
         if forced is not None:
             pose = forced if isinstance(forced, BasePose) else BasePose.from_dict(forced)
+        elif options.get("base_yaw") is not None:
+            pose = SAMPLER.sample_at(float(options["base_yaw"]), rng)
         elif self.view == "multiview":
             pose = SAMPLER.sample(rng)
         else:
