@@ -212,8 +212,9 @@ class Multiview(Stage):
                 break
         for k, (pose, frames) in enumerate(made):
             out_meta = dict(meta)
-            out_meta["cameras"] = {**meta["cameras"], CAMERA_NAME: {**env.camera_metadata()[CAMERA_NAME]}}
-            out_meta["cameras"][CAMERA_NAME]["base_pose"] = pose.as_dict()
+            # other entries of the camera (e.g. a depth encoding) are kept; the pose is the new one
+            camera = {**meta["cameras"][CAMERA_NAME], **env.camera_metadata()[CAMERA_NAME], "base_pose": pose.as_dict()}
+            out_meta["cameras"] = {**meta["cameras"], CAMERA_NAME: camera}
             out_meta["multiview"] = {
                 "view": k,
                 "source_base_pose": source_pose.as_dict(),
