@@ -1,9 +1,12 @@
-"""The demo pipeline on embedded defaults: record episodes, run a pipeline, validate the result.
+"""The demo pipeline on embedded defaults: record episodes, run a multiview pipeline, validate it.
 
-It records scripted-expert lift episodes (state + a 64x48 camera, with simulator state) in the
-Panda play simulator with `shiftkit collect`, runs a pipeline config (written next to the
-outputs so it can be edited and re-run) that keeps successful episodes, trims them and drops the
-simulator state, and validates the LeRobot dataset it made.
+It records scripted-expert lift episodes from one fixed base pose in the multiview simulator
+(`mv-lift`: a Panda on a mobile base with a base-mounted 64x48 RGB-D camera, with simulator state)
+with `shiftkit collect`, runs a pipeline config (written next to the outputs so it can be edited
+and re-run) that keeps successful episodes, trims them, re-renders each from two new sampled base
+poses with the `multiview` stage (keeping the recorded view too) and drops the simulator state,
+validates the LeRobot dataset it made, and writes `views.png`: the first frame of one episode as
+recorded and as re-rendered from the new base poses.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from pathlib import Path
 from shiftkit.pipelines.errors import ShiftkitError
 
 MARKER = ".shiftkit-demo"
+ENV, TASK, CAMERA = "mv-lift", "lift", "base"
 
 PIPELINE = """\
 # shiftkit demo pipeline: `shiftkit plan` / `shiftkit run` this file.
@@ -31,8 +35,12 @@ name = "trim"
 params = {{ head = 1 }}
 
 [[stages]]
+name = "multiview"
+params = {{ num_views = {views}, keep_source = true }}
+
+[[stages]]
 name = "drop"
-params = {{ features = {drop} }}
+params = {{ features = ["sim.qpos", "sim.qvel"] }}
 
 [destination]
 root = "dataset"
@@ -40,7 +48,7 @@ repo_id = "shiftkit/demo"
 """
 
 
-def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: bool = True) -> dict:
+def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: bool = True, views: int = 2) -> dict:
     from shiftkit.pipelines.config import load_pipeline_config
     from shiftkit.pipelines.dataset_check import summarize, validate_dataset
     from shiftkit.pipelines.runner import run_pipeline
@@ -51,19 +59,63 @@ def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: boo
         shutil.rmtree(out)
     out.mkdir(parents=True)
     (out / MARKER).write_text("made by shiftkit demo\n")
-    drop = record(out / "raw", episodes, seed)
+    record(out / "raw", episodes, seed)
     config_path = out / "pipeline.toml"
-    config_path.write_text(PIPELINE.format(drop=drop))
+    config_path.write_text(PIPELINE.format(views=views))
     dataset = run_pipeline(load_pipeline_config(config_path), workers=1, progress=progress)
     counts = validate_dataset(dataset)
-    return {"dataset": str(dataset), "config": str(config_path), **counts, "summary": summarize(dataset)}
+    figure = write_views_figure(dataset, out / "views.png", views)
+    return {
+        "dataset": str(dataset),
+        "config": str(config_path),
+        "figure": str(figure),
+        **counts,
+        "summary": summarize(dataset),
+    }
 
 
-def record(raw_dir: Path, episodes: int, seed: int) -> str:
-    """Write the demo's raw episodes; returns the TOML list of features the pipeline drops."""
+def record(raw_dir: Path, episodes: int, seed: int) -> None:
+    """Write the demo's raw episodes: fixed-view mv-lift, RGB-D of the base camera, simulator state."""
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     collect(
-        CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=seed, out=str(raw_dir), cameras=("front",))
+        CollectConfig(
+            env=ENV,
+            task=TASK,
+            episodes=episodes,
+            seed=seed,
+            out=str(raw_dir),
+            cameras=(CAMERA,),
+            depth=True,
+            env_kwargs={"view": "fixed"},
+        )
     )
-    return '["sim.qpos", "sim.qvel"]'
+
+
+def write_views_figure(dataset: Path, path: Path, views: int) -> Path:
+    """The first frame (RGB over depth) of the dataset's first source episode as recorded and as
+    re-rendered from each new base pose (the multiview stage writes them in that order)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    reader = open_lerobot_dataset(dataset)
+    episodes = list(reader.iter_episodes(list(range(min(views + 1, reader.num_episodes)))))
+    fig, axes = plt.subplots(2, len(episodes), figsize=(2.6 * len(episodes), 4.0), squeeze=False)
+    for k, episode in enumerate(episodes):
+        pose = episode.meta["cameras"][CAMERA]["base_pose"]
+        title = "recorded" if k == 0 else f"re-rendered {k}"
+        axes[0, k].imshow(episode.frames[f"observation.images.{CAMERA}"][0], interpolation="nearest")
+        axes[0, k].set_title(f"{title}\nbase yaw {pose['yaw']:+.2f} rad", fontsize=8)
+        # depth clipped at 1.5 m: pixels past the floor's edge read the far plane
+        depth = episode.frames[f"observation.depth.{CAMERA}"][0][..., 0]
+        axes[1, k].imshow(depth, cmap="viridis_r", vmin=0.3, vmax=1.5)
+        for ax in axes[:, k]:
+            ax.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -10,6 +10,8 @@ per-dimension `names` looked up in `env.observation_names` (so any split of the 
 `observation.state` / `observation.environment_state` works), cameras `observation.images.<cam>`
 from `env.render_rgb(cam)` and `observation.depth.<cam>` from `env.render_depth(cam)`.
 Episode `i` is reset with seed `seed + i`; it counts as a success once `info["is_success"]` holds.
+`yaw_sweep` evaluates a multiview policy per base-yaw bin (SPEC §5.1: 12 bins [-0.8, -0.7] ...
+[0.3, 0.4] rad) and `write_yaw_sweep` saves its JSON and a PNG of success per bin.
 """
 
 from __future__ import annotations
@@ -179,16 +181,17 @@ def run_episodes(
     seed: int,
     video_dir: str | Path | None = None,
     on_episode: Callable[[EpisodeResult], None] | None = None,
+    reset_options: Callable[[int], dict[str, Any]] | None = None,
 ) -> list[EpisodeResult]:
-    """Run `episodes` episodes of `policy` in `env` (reset with seeds `seed`, `seed + 1`, ...); each
-    stops at its first success or when the env ends it."""
+    """Run `episodes` episodes of `policy` in `env` (reset with seeds `seed`, `seed + 1`, ... and
+    `reset_options(i)` if given); each stops at its first success or when the env ends it."""
     obs_map = ObservationMap(policy.features, list(env.observation_names))
     videos = Path(video_dir) if video_dir is not None else None
     if videos is not None:
         videos.mkdir(parents=True, exist_ok=True)
     results = []
     for i in range(episodes):
-        obs, info = env.reset(seed=seed + i)
+        obs, info = env.reset(seed=seed + i, options=reset_options(i) if reset_options else None)
         if hasattr(policy, "reset"):
             policy.reset()
         frames = [env.render_rgb()] if videos is not None else []
@@ -227,24 +230,103 @@ def evaluate(
 ) -> EvalReport:
     """Build the registered env `env_name`/`task` (rendering at the policy's image size) and run
     `run_episodes` in it."""
-    from shiftkit.envs import make
-
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
-    kwargs = dict(env_kwargs or {})
-    size = camera_size(policy.features)
-    if size is not None:
-        kwargs.update(height=size[0], width=size[1])
-    try:
-        env = make(env_name, task, **kwargs)
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
+    env = _make_env(policy, env_name, task, env_kwargs)
     try:
         report = EvalReport(env=env_name, task=task, policy=policy_name, seed=seed)
         report.episodes = run_episodes(policy, env, episodes, seed, video_dir, on_episode)
         return report
     finally:
         env.close()
+
+
+def _make_env(policy: Policy, env_name: str, task: str, env_kwargs: dict[str, Any] | None) -> Any:
+    from shiftkit.envs import make
+
+    kwargs = dict(env_kwargs or {})
+    size = camera_size(policy.features)
+    if size is not None:
+        kwargs.update(height=size[0], width=size[1])
+    try:
+        return make(env_name, task, **kwargs)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"{env_name}/{task}: {exc}") from None
+
+
+YAW_BINS: tuple[tuple[float, float], ...] = tuple(
+    (round(-0.8 + 0.1 * k, 1), round(-0.7 + 0.1 * k, 1)) for k in range(12)
+)
+"""The out-of-distribution sweep of SPEC §5.1 for policies trained on base yaw U[-0.6, 0.2]."""
+
+
+def yaw_sweep(
+    policy: Policy,
+    env_name: str,
+    task: str,
+    episodes_per_bin: int,
+    seed: int,
+    bins: tuple[tuple[float, float], ...] = YAW_BINS,
+    policy_name: str = "",
+    env_kwargs: dict[str, Any] | None = None,
+    on_bin: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """Success per base-yaw bin: in every bin, episodes with seeds `seed + i` (the same object resets
+    in every bin) at an aimed base pose with yaw uniform in the bin (env reset option `base_yaw`)."""
+    if episodes_per_bin < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {episodes_per_bin}")
+    env = _make_env(policy, env_name, task, env_kwargs)
+    try:
+        if not hasattr(env, "base_pose"):
+            raise ConfigError(f"{env_name} has no mobile base: a yaw sweep needs a multiview env (mv-*)")
+        rows = []
+        for b, (lo, hi) in enumerate(bins):
+            yaws = np.random.default_rng([seed, b]).uniform(lo, hi, episodes_per_bin)
+            results = run_episodes(
+                policy, env, episodes_per_bin, seed, reset_options=lambda i, yaws=yaws: {"base_yaw": float(yaws[i])}
+            )
+            successes = sum(r.success for r in results)
+            row = {
+                "yaw": [lo, hi],
+                "episodes": episodes_per_bin,
+                "successes": successes,
+                "success_rate": successes / episodes_per_bin,
+                "ci95": list(wilson_interval(successes, episodes_per_bin)),
+            }
+            rows.append(row)
+            if on_bin is not None:
+                on_bin(row)
+    finally:
+        env.close()
+    return {"env": env_name, "task": task, "policy": policy_name, "seed": seed, "ci_method": "wilson", "bins": rows}
+
+
+def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
+    """Write the sweep's JSON at `path` and a PNG of success rate (with 95% intervals) per yaw bin
+    beside it; returns both paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(sweep, indent=2) + "\n")
+    rows = sweep["bins"]
+    centres = [(r["yaw"][0] + r["yaw"][1]) / 2 for r in rows]
+    rates = np.array([r["success_rate"] for r in rows])
+    err = np.array([[r["success_rate"] - r["ci95"][0], r["ci95"][1] - r["success_rate"]] for r in rows]).T
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.bar(centres, rates, width=0.08, yerr=err, capsize=3, color="tab:blue")
+    ax.set_xlabel("base yaw (rad), bin centre")
+    ax.set_ylabel("success rate")
+    ax.set_ylim(0, 1.05)
+    ax.set_title(f"{sweep['env']} / {sweep['task']}: success per base-yaw bin", fontsize=9)
+    fig.tight_layout()
+    png = path.with_suffix(".png")
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return path, png
 
 
 def record_evaluation(report: EvalReport, policy_path: str | Path, out: str | Path | None = None) -> Path:

@@ -40,11 +40,13 @@ def test_reset_step_spaces_and_info(shared_envs, pair):
     env = shared_envs[pair]
     family = envs.env_family(pair[0])
     obs, info = env.reset(seed=0)
-    dim = len(family.observation_names)
-    assert env.observation_space.shape == (dim,) and env.observation_space.dtype == np.float32
+    dims = len(family.observation_names)
+    assert env.observation_space.shape == (dims,) and env.observation_space.dtype == np.float32
     assert env.action_space.shape == (len(family.action_names),)
-    assert tuple(env.observation_names) == family.observation_names
-    assert sorted(np.r_[family.state_indices, family.environment_state_indices].tolist()) == list(range(dim))
+    assert tuple(env.observation_names) == tuple(family.observation_names)
+    assert sorted(np.r_[family.state_indices, family.environment_state_indices].tolist()) == list(range(dims))
+    if pair[0] == "panda-play":
+        assert dims == 59 and tuple(env.observation_names) == OBSERVATION_NAMES
     assert env.observation_space.contains(obs)
     for key in ("is_success", "qpos", "qvel"):
         assert key in info
@@ -56,6 +58,8 @@ def test_reset_step_spaces_and_info(shared_envs, pair):
         assert info["qpos"].shape == (env.physics.model.nq,) and info["qvel"].shape == (env.physics.model.nv,)
     with pytest.raises(ValueError):
         env.step(np.full(env.action_space.shape, np.nan))
+    for camera in family.cameras:
+        assert env.render_rgb(camera).shape == (48, 64, 3) and env.render_depth(camera).shape == (48, 64)
 
 
 @pytest.mark.parametrize("pair", PAIRS, ids=[f"{e}-{t}" for e, t in PAIRS])

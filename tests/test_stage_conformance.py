@@ -36,10 +36,10 @@ EXAMPLE_PARAMS = {
         "on_threshold": 1.0,
         "off_threshold": 0.5,
     },
+    "multiview": {"num_views": 2, "depth": True},
 }
-
-# Stages that replay simulator recordings run on a recording of their kind (fixture name).
-FIXTURES = {"force_match": "kinesthetic_raw"}
+# Stages that replay or re-render simulator recordings run on a recording of their kind: stage -> fixture.
+STAGE_INPUTS = {"multiview": "mv_lift_raw", "force_match": "kinesthetic_raw"}
 
 # Every stage shiftkit ships (tests may register their own stages; those are not covered here).
 STAGES = sorted(name for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit."))
@@ -68,9 +68,20 @@ def kinesthetic_raw(tmp_path_factory):
     return out
 
 
+@pytest.fixture
+def mv_lift_raw(tmp_path):
+    """Two mv-lift expert episodes with simulator state, base-camera RGB-D and camera metadata."""
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    out, _ = collect(
+        CollectConfig(env="mv-lift", task="lift", episodes=2, out=str(tmp_path / "mv"), cameras=("base",), depth=True)
+    )
+    return out
+
+
 @pytest.mark.parametrize("name", STAGES)
 def test_stage_conformance(name, request, tmp_path):
-    raw = request.getfixturevalue(FIXTURES.get(name, "synthetic_raw_images"))
+    raw = request.getfixturevalue(STAGE_INPUTS.get(name, "synthetic_raw_images"))
     before = tree_hashes(raw)
     dest = tmp_path / "out"
     config = config_for(raw, dest, name, EXAMPLE_PARAMS[name], seed=7)

@@ -6,6 +6,7 @@ from shiftkit.transforms import (  # noqa: F401
     filter_episodes,
     force_matching,
     mode_labels,
+    multiview,
     rename,
     resample,
     subsample,

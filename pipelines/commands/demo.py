@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-HELP = "record demo episodes, run the demo pipeline and validate the LeRobot dataset it makes"
+HELP = "record demo episodes, re-render them from new base poses (multiview), validate the LeRobot dataset"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="outputs/demo", help="output directory (default outputs/demo)")
-    parser.add_argument("--episodes", type=int, default=6, help="episodes to record (default 6)")
+    parser.add_argument("--episodes", type=int, default=4, help="episodes to record (default 4)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overwrite", action="store_true", help="replace an earlier demo output")
 
@@ -23,4 +23,5 @@ def run(args: argparse.Namespace) -> int:
     print(format_summary(result["summary"]))
     print(f"\nvalid LeRobot dataset: {result['dataset']} ({result['episodes']} episodes, {result['frames']} frames)")
     print(f"pipeline config: {result['config']} (try `shiftkit plan {result['config']}`)")
+    print(f"recorded vs re-rendered views: {result['figure']}")
     return 0

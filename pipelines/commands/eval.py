@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from shiftkit.pipelines.dataclass_config import key_value
+
 HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
 
 
@@ -17,13 +19,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--videos", help="folder for one MP4 per episode (default: none)")
     parser.add_argument("--control-hz", type=int, choices=(5, 20), help="env control rate (default: the env's)")
     parser.add_argument("--device", default="cpu", help="torch device for the policy (default: cpu)")
+    parser.add_argument(
+        "--env-kwarg",
+        action="append",
+        default=[],
+        type=key_value,
+        metavar="KEY=VALUE",
+        help="env constructor argument (JSON value), repeatable, e.g. view=fixed",
+    )
+    parser.add_argument(
+        "--yaw-sweep",
+        action="store_true",
+        help="multiview envs: --episodes per base-yaw bin over 12 bins [-0.8,-0.7]..[0.3,0.4] rad; "
+        "writes JSON (--out, default <run>/eval/<env>-<task>-yawsweep-seed<S>.json) and a PNG beside it",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from shiftkit.pipelines.errors import ConfigError
-    from shiftkit.policies.evaluation import evaluate, load_policy, record_evaluation
+    from shiftkit.policies.evaluation import evaluate, load_policy, record_evaluation, write_yaw_sweep, yaw_sweep
 
     # Output paths are checked before the rollouts, which can take minutes.
     if args.out and Path(args.out).is_dir():
@@ -33,7 +49,24 @@ def run(args: argparse.Namespace) -> int:
     if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
         raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
     policy = load_policy(args.policy, device=args.device)
-    env_kwargs = {"control_hz": args.control_hz} if args.control_hz else {}
+    env_kwargs = {**dict(args.env_kwarg), **({"control_hz": args.control_hz} if args.control_hz else {})}
+    if args.yaw_sweep:
+        from shiftkit.policies.run_dir import EVAL, run_folder
+
+        sweep = yaw_sweep(
+            policy,
+            args.env,
+            args.task,
+            args.episodes,
+            args.seed,
+            policy_name=str(args.policy),
+            env_kwargs=env_kwargs,
+            on_bin=lambda r: print(f"yaw {r['yaw']}: {r['successes']}/{r['episodes']} ({r['success_rate']:.0%})"),
+        )
+        default = run_folder(args.policy) / EVAL / f"{args.env}-{args.task}-yawsweep-seed{args.seed}.json"
+        json_path, png = write_yaw_sweep(sweep, args.out or default)
+        print(f"yaw sweep written to {json_path} and {png}")
+        return 0
     report = evaluate(
         policy,
         args.env,

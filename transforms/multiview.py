@@ -1,0 +1,325 @@
+"""`multiview`: re-render simulator-recorded episodes from new mobile-base poses (thesis ch. 3, SPEC §5.1).
+
+Input: episodes of a multiview env (`mv-lift`, `mv-stack`, `mv-pick-insert`, `mv-door`, any view)
+recorded with simulator state (`sim.qpos`, `sim.qvel`) and the per-episode camera metadata that
+`shiftkit collect` writes (`meta["cameras"]["base"]["base_pose"]`). For each episode the stage
+samples `num_views` base poses with the thesis' sampler (seeded from the episode's rng) and, per
+pose:
+
+1. moves the free objects so that they keep their world poses (`rebase_state`);
+2. solves the arm joints frame by frame (MuJoCo-Jacobian damped least squares, warm-started from
+   the previous frame) so that the tool follows the recorded *world* trajectory, position and
+   orientation;
+3. re-renders RGB (and depth) from the base camera at the new pose;
+4. re-expresses `observation.state` (tool pose; fingers unchanged), `observation.environment_state`
+   (object poses, from the rebased state) and the actions (velocities, rotated by the yaw change) in
+   the new base frame, and writes the new base pose into `meta["cameras"]` (the camera-metadata
+   contract; intrinsics and camera-in-base extrinsics do not change).
+
+A view is dropped when IK misses the recorded tool pose (`max_ik_error`, `max_ik_rotation`) or an
+object leaves the image; drops are counted in each output episode's `meta["multiview"]` and logged,
+and `select` logs the run's totals. `matched = true` emits exactly one view per episode (the first
+of up to `num_views` sampled poses that works), so a multiview dataset built from the same
+demonstrations has the same episodes and frames as the fixed-view one (docs/multiview.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import mujoco
+import numpy as np
+
+from shiftkit.envs import make
+from shiftkit.envs.base_pose import BasePose
+from shiftkit.envs.multiview.physics import CAMERA_NAME, SAMPLER, rebase_state, rotation_z
+from shiftkit.envs.multiview.tasks import TASKS
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.pipelines.features import Features, image_feature
+from shiftkit.pipelines.stage import Stage, register_stage
+
+log = logging.getLogger(__name__)
+
+REQUIRED = ("sim.qpos", "sim.qvel", "observation.state", "action")
+IMAGE_KEY = f"observation.images.{CAMERA_NAME}"
+DEPTH_KEY = f"observation.depth.{CAMERA_NAME}"
+# TCP pose in the family's observation.state: position 0:3, xyzw quaternion 3:7, fingers after
+STATE_POS, STATE_QUAT = slice(0, 3), slice(3, 7)
+
+
+@dataclass
+class MultiviewConfig:
+    num_views: int = 3
+    """Base poses sampled per episode (with `matched`: poses tried until one works)."""
+    yaw_range: tuple[float, float] = SAMPLER.yaw_range
+    """Base yaw interval (rad) sampled uniformly; the envs' training range is (-0.6, 0.2)."""
+    xy_noise: float = SAMPLER.xy_noise
+    """Half-width of the uniform noise on base x, y (m)."""
+    yaw_noise: float = SAMPLER.yaw_noise
+    """Half-width of the uniform noise on base yaw (rad)."""
+    distance: float = SAMPLER.distance
+    """Camera-to-task-centre distance along the optical axis (m); the camera's height and tilt only
+    reach the centre near the default (the sampler refuses others)."""
+    matched: bool = False
+    """One view per episode (equal-size fixed-view and multiview datasets from the same demos)."""
+    keep_source: bool = False
+    """Also emit the source episode unchanged (first), before its views."""
+    depth: bool = True
+    """Render depth (`observation.depth.base`) too."""
+    render_quality: Literal["fast", "full"] = "fast"
+    """"fast" (collision geometry) or "full" (visual meshes)."""
+    width: int = 64
+    """Image width when the input has no base-camera images (else the input's)."""
+    height: int = 48
+    """Image height when the input has no base-camera images (else the input's)."""
+    max_ik_error: float = 0.005
+    """Largest tool position error (m) of the IK solution at any frame before the view is dropped."""
+    max_ik_rotation: float = 0.05
+    """Largest tool orientation error (rad) at any frame before the view is dropped."""
+    ik_iterations: int = 20
+    """IK iterations per frame (the first frame gets four times as many)."""
+
+    def __post_init__(self) -> None:
+        if self.num_views < 1:
+            raise ValueError(f"num_views must be >= 1, got {self.num_views}")
+        if self.max_ik_error <= 0 or self.max_ik_rotation <= 0 or self.ik_iterations < 1:
+            raise ValueError("max_ik_error, max_ik_rotation and ik_iterations must be > 0")
+        if self.width < 1 or self.height < 1:
+            raise ValueError("width and height must be >= 1")
+        self.yaw_range = tuple(self.yaw_range)
+        self.sampler()  # the sampler checks range, noise and distance
+
+    def sampler(self):
+        return dataclasses.replace(
+            SAMPLER,
+            yaw_range=self.yaw_range,
+            xy_noise=self.xy_noise,
+            yaw_noise=self.yaw_noise,
+            distance=self.distance,
+        )
+
+
+def _quat_xyzw_to_mat(q: np.ndarray) -> np.ndarray:
+    out = np.zeros(9)
+    mujoco.mju_quat2Mat(out, np.array([q[3], q[0], q[1], q[2]], dtype=np.float64))
+    return out.reshape(3, 3)
+
+
+def _mat_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, rot.ravel())
+    xyzw = q[[1, 2, 3, 0]]
+    return -xyzw if xyzw[3] < 0 else xyzw
+
+
+def _project(points: np.ndarray, extrinsics: dict[str, Any], intrinsics: dict[str, float]) -> np.ndarray:
+    """Pixel coordinates (u, v) and depth of base-frame points seen by a MuJoCo camera (x right, y up,
+    looking along -z); depth <= 0 means behind the camera."""
+    rot, pos = np.asarray(extrinsics["rotation"]), np.asarray(extrinsics["position"])
+    cam = (np.asarray(points) - pos) @ rot
+    depth = -cam[:, 2]
+    safe = np.where(depth > 1e-6, depth, 1e-6)
+    u = intrinsics["cx"] + intrinsics["fx"] * cam[:, 0] / safe
+    v = intrinsics["cy"] - intrinsics["fy"] * cam[:, 1] / safe
+    return np.stack([u, v, depth], axis=1)
+
+
+@register_stage
+class Multiview(Stage):
+    name = "multiview"
+    version = 1
+    Config = MultiviewConfig
+
+    def setup(self) -> None:
+        self._envs: dict[str, Any] = {}
+        self._sampler = self.config.sampler()
+
+    def transform_features(self, features: Features) -> Features:
+        missing = [k for k in REQUIRED if k not in features]
+        if missing:
+            raise ConfigError(
+                f"multiview: input lacks {', '.join(missing)}; record with `shiftkit collect --env mv-...` "
+                "(simulator state) and keep sim.qpos/sim.qvel through earlier stages"
+            )
+        out = dict(features)
+        shape = tuple(features[IMAGE_KEY]["shape"]) if IMAGE_KEY in features else None
+        h, w = (shape[0], shape[1]) if shape else (self.config.height, self.config.width)
+        out[IMAGE_KEY] = image_feature((h, w, 3), features.get(IMAGE_KEY, {}).get("info"))
+        if self.config.depth or DEPTH_KEY in features:
+            out[DEPTH_KEY] = {
+                "dtype": "float32",
+                "shape": (h, w, 1),
+                "names": ["height", "width", "channels"],
+                "info": {"unit": "m"},
+            }
+        return out
+
+    # ----------------------------------------------------------------- per episode
+    def _env(self, sim_model: str, size: tuple[int, int]):
+        task = next((t for t in TASKS.values() if t.model_id == sim_model), None)
+        if task is None:
+            known = ", ".join(t.model_id for t in TASKS.values())
+            raise DatasetError(f"multiview: episode recorded with sim model {sim_model!r}; needs one of {known}")
+        key = f"{sim_model}:{size}"
+        if key not in self._envs:
+            self._envs[key] = make(
+                task.env,
+                task.name,
+                view="fixed",
+                width=size[1],
+                height=size[0],
+                render_quality=self.config.render_quality,
+            )
+        return self._envs[key]
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        if not hasattr(self, "_envs"):  # direct use without a runner
+            self.setup()
+        meta = episode.meta
+        try:
+            source_pose = BasePose.from_dict(meta["cameras"][CAMERA_NAME]["base_pose"])
+        except (KeyError, TypeError) as exc:
+            raise DatasetError(
+                f"multiview: episode {meta.get('source_episode_index')} has no meta.cameras.{CAMERA_NAME}.base_pose "
+                "(record it with `shiftkit collect --env mv-...`)"
+            ) from exc
+        image = episode.frames.get(IMAGE_KEY)
+        size = tuple(image.shape[1:3]) if image is not None else (self.config.height, self.config.width)
+        env = self._env(str(meta.get("sim_model")), size)
+        if self.config.keep_source:
+            yield self._source_copy(episode, env, size)
+        dropped = {"ik": 0, "out_of_view": 0}
+        made = []
+        for _ in range(self.config.num_views):
+            pose = self._sampler.sample(rng)
+            result = self._render_view(episode, env, source_pose, pose)
+            if isinstance(result, str):
+                dropped[result] += 1
+                log.warning(
+                    "multiview: episode %s, base pose %s dropped (%s)",
+                    meta.get("source_episode_index"),
+                    pose.as_dict(),
+                    "IK missed the recorded tool pose" if result == "ik" else "an object left the image",
+                )
+                continue
+            made.append((pose, result))
+            if self.config.matched:
+                break
+        for k, (pose, frames) in enumerate(made):
+            out_meta = dict(meta)
+            # other entries of the camera (e.g. a depth encoding) are kept; the pose is the new one
+            camera = {**meta["cameras"][CAMERA_NAME], **env.camera_metadata()[CAMERA_NAME], "base_pose": pose.as_dict()}
+            out_meta["cameras"] = {**meta["cameras"], CAMERA_NAME: camera}
+            out_meta["multiview"] = {
+                "view": k,
+                "source_base_pose": source_pose.as_dict(),
+                "dropped_views": dict(dropped),
+            }
+            yield Episode({**episode.frames, **frames}, out_meta)
+
+    def _source_copy(self, episode: Episode, env, size: tuple[int, int]) -> Episode:
+        """The source episode with the camera features the output schema has (rendered if absent)."""
+        frames = dict(episode.frames)
+        if IMAGE_KEY not in frames or (self.config.depth and DEPTH_KEY not in frames):
+            pose = BasePose.from_dict(episode.meta["cameras"][CAMERA_NAME]["base_pose"])
+            env.set_base_pose(pose)
+            rgb, depth = self._render(env, episode.frames["sim.qpos"], episode.frames["sim.qvel"])
+            frames.setdefault(IMAGE_KEY, rgb)
+            if self.config.depth:
+                frames.setdefault(DEPTH_KEY, depth)
+        meta = dict(episode.meta)
+        meta["multiview"] = {"view": "source"}
+        return Episode(frames, meta)
+
+    def _render(self, env, qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rgb, depth = [], []
+        for q, v in zip(qpos, qvel, strict=True):
+            env.set_sim_state(q, v)
+            rgb.append(env.render_rgb())
+            if self.config.depth:
+                depth.append(env.render_depth()[..., None])
+        return np.array(rgb, dtype=np.uint8), np.array(depth, dtype=np.float32)
+
+    def _render_view(self, episode: Episode, env, old: BasePose, new: BasePose) -> dict[str, np.ndarray] | str:
+        """The re-rendered, re-expressed frames at base pose `new`, or the reason it was dropped."""
+        cfg = self.config
+        f = episode.frames
+        state = np.asarray(f["observation.state"], dtype=np.float64)
+        rel = rotation_z(old.yaw - new.yaw)  # old base axes in the new base frame
+        tcp = new.to_base(old.to_world(state[:, STATE_POS]))
+        rots = [rel @ _quat_xyzw_to_mat(q) for q in state[:, STATE_QUAT]]
+        physics = env.physics
+        env.set_base_pose(new)
+        qpos, qvel = [], []
+        q_arm = np.asarray(f["sim.qpos"][0][physics.arm_qpos], dtype=np.float64)
+        for t in range(len(episode)):
+            q_new, v_new = rebase_state(physics, f["sim.qpos"][t], f["sim.qvel"][t], old, new)
+            physics.data.qpos[:] = q_new
+            iterations = cfg.ik_iterations * (4 if t == 0 else 1)
+            q_arm = physics.solve_arm(tcp[t], rots[t], q_arm, iterations=iterations)
+            pos_err, rot_err = physics.tcp_error(q_arm, tcp[t], rots[t])
+            if pos_err > cfg.max_ik_error or rot_err > cfg.max_ik_rotation:
+                return "ik"
+            q_new[physics.arm_qpos] = q_arm
+            v_new[physics.arm_dofs] = 0.0  # joint velocities of another arm posture are not recorded
+            qpos.append(q_new)
+            qvel.append(v_new)
+        rgb, depth, env_state = [], [], []
+        camera = env.camera_metadata()[CAMERA_NAME]
+        h, w = camera["intrinsics"]["height"], camera["intrinsics"]["width"]
+        for q, v in zip(qpos, qvel, strict=True):
+            env.set_sim_state(q, v)
+            u, v_px, depth_m = _project(self._object_points(physics), camera["extrinsics"], camera["intrinsics"]).T
+            if not np.all((depth_m > 0) & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)):
+                return "out_of_view"
+            rgb.append(env.render_rgb())
+            if cfg.depth:
+                depth.append(env.render_depth()[..., None])
+            env_state.append(physics.object_state())
+        new_state = state.copy()
+        new_state[:, STATE_POS] = tcp
+        new_state[:, STATE_QUAT] = [_mat_to_quat_xyzw(r) for r in rots]
+        action = np.asarray(f["action"], dtype=np.float64).copy()
+        action[:, 0:3] = action[:, 0:3] @ rel.T
+        if action.shape[1] == 7:  # 6-DOF: the angular velocity turns with the base too
+            action[:, 3:6] = action[:, 3:6] @ rel.T
+        out = {
+            "observation.state": new_state.astype(f["observation.state"].dtype),
+            "action": action.astype(f["action"].dtype),
+            "sim.qpos": np.array(qpos, dtype=f["sim.qpos"].dtype),
+            "sim.qvel": np.array(qvel, dtype=f["sim.qvel"].dtype),
+            IMAGE_KEY: np.array(rgb, dtype=np.uint8),
+        }
+        if "observation.environment_state" in f:
+            out["observation.environment_state"] = np.array(env_state, dtype=f["observation.environment_state"].dtype)
+        if cfg.depth:
+            out[DEPTH_KEY] = np.array(depth, dtype=np.float32)
+        return out
+
+    @staticmethod
+    def _object_points(physics) -> np.ndarray:
+        """Base-frame points that must stay in the image: the free objects, or the door handle."""
+        points = [physics.object_pos(n) for n in physics.objects]
+        if physics.door_qpos is not None:
+            points.append(physics.handle_pos())
+        return np.array(points)
+
+    def select(self, metas: list[dict[str, Any]]) -> list[bool] | None:
+        # per source episode once: its views all carry the same drop counts
+        per_source = {m.get("source_episode_index"): m.get("multiview", {}).get("dropped_views") for m in metas}
+        totals = {"ik": 0, "out_of_view": 0}
+        for counts in per_source.values():
+            for k in totals:
+                totals[k] += (counts or {}).get(k, 0)
+        log.warning(
+            "multiview: %d episodes written; views dropped: %d (IK), %d (object out of view)",
+            len(metas),
+            totals["ik"],
+            totals["out_of_view"],
+        )
+        return None
