@@ -36,6 +36,7 @@ def summarize(root: str | Path) -> dict[str, Any]:
             for k, v in stats.items()
             if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")
         },
+        "cameras": {"cameras": reader.cameras["cameras"], "episodes": reader.cameras["episodes"]},
         "provenance": json.loads(prov_path.read_text()) if prov_path.exists() else None,
     }
 
@@ -56,6 +57,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         st = summary["stats"].get(key)
         extra = f"mean {short(st['mean'])} std {short(st['std'])}" if st and "mean" in st else ""
         lines.append(f"  {key:<{width}}  {ft['dtype']:<8} {str(tuple(ft['shape'])):<14} {extra}")
+    lines += _camera_lines(summary["cameras"], summary["episodes"])
     prov = summary["provenance"]
     if prov:
         lines.append(
@@ -68,6 +70,32 @@ def format_summary(summary: dict[str, Any]) -> str:
     else:
         lines.append("provenance: none (not made by shiftkit)")
     return "\n".join(lines)
+
+
+def _camera_lines(cameras: dict[str, Any], num_episodes: int) -> list[str]:
+    """One line per camera: intrinsics, extrinsics and which entries vary per episode."""
+    per_episode: dict[str, set[str]] = {}
+    for cams in cameras["episodes"].values():
+        for name, cam in cams.items():
+            per_episode.setdefault(name, set()).update(cam)
+    names = sorted(set(cameras["cameras"]) | set(per_episode))
+    if not names:
+        return []
+    lines = ["cameras (meta/cameras.json):"]
+    for name in names:
+        cam, parts = cameras["cameras"].get(name, {}), []
+        if intr := cam.get("intrinsics"):
+            parts.append(
+                f"{intr['width']}x{intr['height']} fx {intr['fx']:.1f} fy {intr['fy']:.1f} "
+                f"cx {intr['cx']:.1f} cy {intr['cy']:.1f}"
+            )
+        if extr := cam.get("extrinsics"):
+            parts.append(f"at [{', '.join(f'{x:.3f}' for x in extr['position'])}] in the {extr['frame']} frame")
+        if varying := per_episode.get(name):
+            counts = sum(name in cams for cams in cameras["episodes"].values())
+            parts.append(f"per episode: {', '.join(sorted(varying))} ({counts}/{num_episodes} episodes)")
+        lines.append(f"  {name}: " + "; ".join(parts))
+    return lines
 
 
 def validate_dataset(root: str | Path) -> dict[str, int]:

@@ -20,15 +20,22 @@ import shutil
 import uuid
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from shiftkit.pipelines import camera_meta
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, check_episode, check_features, user_features
+from shiftkit.pipelines.features import (
+    Features,
+    check_episode,
+    check_features,
+    plain_camera_features,
+    user_features,
+)
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
@@ -116,7 +123,7 @@ class DatasetWriter:
         self.root = Path(root)
         if self.root.exists():
             raise DatasetError(f"destination already exists: {self.root}")
-        self.features = user_features(features)
+        self.features = plain_camera_features(user_features(features))
         check_features(self.features, where=f"schema of {self.root}")
         if any(ft["dtype"] == "video" for ft in self.features.values()):
             raise DatasetError("shiftkit writes camera features as dtype 'image'; declare them as 'image'")
@@ -138,6 +145,7 @@ class DatasetWriter:
         self._file_start = 0  # global index of the first frame in the current data file
         self.num_episodes = 0
         self.num_frames = 0
+        self._cameras: dict[int, camera_meta.Cameras] = {}  # episode index -> its camera metadata
         self._closed = False
 
     def __enter__(self) -> DatasetWriter:
@@ -162,6 +170,7 @@ class DatasetWriter:
 
         where = f"episode {episode.meta.get('source_episode_index', self.num_episodes)}"
         check_episode(episode, self.features, self.fps, where)
+        episode_meta = self._take_cameras(episode.meta, where)
         n = len(episode)
         tasks = [str(t) for t in episode.frames["task"]]
         episode_tasks = list(dict.fromkeys(tasks))  # first-appearance order: deterministic
@@ -217,7 +226,7 @@ class DatasetWriter:
                 "data/file_index": self._chunk_file[1],
                 "dataset_from_index": start,
                 "dataset_to_index": start + n,
-                META_COLUMN: dumps(episode.meta),
+                META_COLUMN: dumps(episode_meta),
                 **flatten_dict({"stats": stats}),
             }
         )
@@ -228,6 +237,14 @@ class DatasetWriter:
         self._meta.stats = aggregate_stats([self._meta.stats, stats]) if self._meta.stats is not None else stats
         self.num_episodes += 1
         self.num_frames += n
+
+    def _take_cameras(self, meta: dict[str, Any], where: str) -> dict[str, Any]:
+        """Keep the episode's camera metadata for meta/cameras.json; the rest of `meta` is returned
+        for the episodes table (the cameras live in their own file, not twice)."""
+        if meta.get("cameras"):
+            cameras = camera_meta.check_cameras(meta["cameras"], f"{where} meta")
+            self._cameras[self.num_episodes] = json.loads(dumps(cameras))
+        return {k: v for k, v in meta.items() if k != "cameras"}
 
     def _arrow_table(self, columns: dict[str, Any]) -> Any:
         """The episode as Arrow, encoded exactly as `datasets.Dataset.from_dict` does for lerobot,
@@ -255,8 +272,9 @@ class DatasetWriter:
             self._writer = None
         self._meta._close_writer()
         self._write_info_and_stats()
+        cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
         if provenance is not None:
-            write_provenance(self.tmp, provenance)
+            write_provenance(self.tmp, {**provenance, "cameras": cameras} if cameras else provenance)
         if self.root.exists():
             self.abort()
             raise DatasetError(f"destination already exists: {self.root}")
@@ -302,6 +320,7 @@ class LeRobotDatasetReader:
     info: dict[str, Any]
     episodes: Any  # pandas DataFrame of meta/episodes without stats columns
     tasks: list[str]
+    cameras: dict[str, Any] = field(default_factory=dict)  # meta/cameras.json (camera_meta)
 
     @property
     def fps(self) -> int:
@@ -376,6 +395,8 @@ class LeRobotDatasetReader:
         frames["task"] = np.array([self.tasks[t] for t in task_idx], dtype=str)
         meta = json.loads(row[META_COLUMN]) if META_COLUMN in row and isinstance(row[META_COLUMN], str) else {}
         meta["source_episode_index"] = i
+        if cameras := camera_meta.episode_cameras(self.cameras, i):
+            meta["cameras"] = cameras
         return Episode(frames, meta)
 
     def _decode_video(self, key: str, row: Any, timestamps: np.ndarray) -> np.ndarray:
@@ -450,7 +471,10 @@ def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     tasks = [""] * len(tasks_df)
     for task, idx in zip(tasks_df.index, tasks_df["task_index"], strict=True):
         tasks[int(idx)] = str(task)
-    return LeRobotDatasetReader(root, info, episodes, tasks)
+    cameras = camera_meta.read_cameras_file(root)
+    if not cameras["cameras"] and not cameras["episodes"]:
+        cameras["cameras"] = camera_meta.cameras_from_feature_info(info["features"])
+    return LeRobotDatasetReader(root, info, episodes, tasks, cameras)
 
 
 # --------------------------------------------------------------------------- dataset IDs

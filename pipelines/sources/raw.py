@@ -28,6 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from shiftkit.pipelines.camera_meta import check_cameras, merge_cameras
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, image_feature, vector_feature
@@ -130,6 +131,8 @@ class RawDatasetWriter:
         where = f"episode {index}"
         if not isinstance(meta.get("task"), str) or not meta["task"]:
             raise DatasetError(f"{where}: meta['task'] must be a non-empty string")
+        if "cameras" in meta:
+            check_cameras(meta["cameras"], f"{where}: meta")
         arrays = {k: np.asarray(v) for k, v in arrays.items()}
         _validate_arrays(arrays, where)
         length = len(arrays["timestamp"])
@@ -247,10 +250,9 @@ class RawDataset:
             if len(dims) != dim:
                 raise DatasetError(f"{self.root}/dataset.json: names[{name!r}] has {len(dims)} entries for {dim} dims")
             features[key] = vector_feature(str(arr.dtype), dims)
-        cameras = self.index.get("info", {}).get("cameras", {})  # intrinsics/extrinsics per view
         for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
             first = _read_png(cam_dir / "frame_000000.png")
-            features[_camera_feature(cam_dir.name)] = image_feature(first.shape, cameras.get(cam_dir.name))
+            features[_camera_feature(cam_dir.name)] = image_feature(first.shape)
         for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
             d = np.load(path, mmap_mode="r", allow_pickle=False)
             features[_depth_feature(path.stem)] = {
@@ -298,6 +300,9 @@ class RawDataset:
         frames["task"] = _frame_tasks(meta, length, where)
         episode_meta = {k: v for k, v in meta.items() if k not in ("length",)}
         episode_meta["source_episode_index"] = i
+        cameras = merge_cameras(self.index.get("info", {}).get("cameras"), meta.get("cameras"))
+        if cameras:
+            episode_meta["cameras"] = check_cameras(cameras, f"{where}/meta.json")
         return Episode(frames, episode_meta)
 
     def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:

@@ -132,7 +132,10 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
     info = {
         "observation_layout": family.observation_layout,
         "control_hz": config.control_hz,
-        "cameras": {c: camera_intrinsics(env.physics.model, c, config.width, config.height) for c in config.cameras},
+        "cameras": {
+            c: {"intrinsics": camera_intrinsics(env.physics.model, c, config.width, config.height)}
+            for c in config.cameras
+        },
     }
     counts = {"episodes": 0, "successes": 0, "skipped": 0}
     sequence = tuple(config.sequence) or family.play_sequences.get(config.task, ())
