@@ -1,3 +1,13 @@
 """shiftkit.transforms: the offline stages. Importing this package registers every built-in stage."""
 
-from shiftkit.transforms import cast, drop, filter_episodes, rename, resample, subsample, success_examples, trim  # noqa: F401
+from shiftkit.transforms import (  # noqa: F401
+    cast,
+    depth_image,
+    drop,
+    filter_episodes,
+    rename,
+    resample,
+    subsample,
+    success_examples,
+    trim,
+)
