@@ -37,12 +37,13 @@ def image_feature(shape: tuple[int, int, int]) -> dict[str, Any]:
     return {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
 
 
-def plain_camera_features(features: Features) -> Features:
+def plain_camera_features(features: Features, dtype: str | None = None) -> Features:
     """`features` with every camera feature reduced to the keys lerobot itself declares (its writer
     fills a video's `info`; anything else there, e.g. intrinsics of older shiftkit datasets, stops
-    `aggregate_datasets` from merging with datasets recorded elsewhere)."""
+    `aggregate_datasets` from merging with datasets recorded elsewhere), stored as `dtype`
+    ("image" or "video") when given."""
     return {
-        key: {"dtype": ft["dtype"], "shape": tuple(ft["shape"]), "names": ft.get("names")}
+        key: {"dtype": dtype or ft["dtype"], "shape": tuple(ft["shape"]), "names": ft.get("names")}
         if ft.get("dtype") in CAMERA_DTYPES
         else ft
         for key, ft in features.items()

@@ -7,7 +7,8 @@ statistics, `LeRobotDatasetMetadata.save_episode`), so the files are what lerobo
 the two costs of the high-level path that do not apply to whole episodes held in memory: the
 per-frame `add_frame` loop, and `embed_images`, a `datasets.map` over every row that re-reads PNG
 files from disk (here images are encoded straight into the row, with the same PNG bytes and file
-name lerobot would embed). Camera features are written as `image` (PNG in parquet, no codec).
+name lerobot would embed). Camera features are written as `image` (PNG in parquet, no codec) or,
+declared `video`, through lerobot's own video encoder (`pipelines/video.py`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from shiftkit.pipelines import camera_meta
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import (
+    CAMERA_DTYPES,
     Features,
     check_episode,
     check_features,
@@ -37,6 +39,7 @@ from shiftkit.pipelines.features import (
     user_features,
 )
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.video import decode_episode, save_episode_videos
 
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
 PROVENANCE_PATH = "meta/shiftkit_provenance.json"
@@ -95,7 +98,8 @@ def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, n
     from lerobot.datasets.utils import DEFAULT_FEATURES
 
     columns = _episode_columns(episode, features)
-    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] == "image"}
+    # Camera features, image or video: lerobot computes both from the frames before encoding.
+    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
     stats = _stats(columns, {**features, **DEFAULT_FEATURES})
     stats.update({k: _image_stats(v) for k, v in images.items()})
     return stats
@@ -125,21 +129,21 @@ class DatasetWriter:
             raise DatasetError(f"destination already exists: {self.root}")
         self.features = plain_camera_features(user_features(features))
         check_features(self.features, where=f"schema of {self.root}")
-        if any(ft["dtype"] == "video" for ft in self.features.values()):
-            raise DatasetError("shiftkit writes camera features as dtype 'image'; declare them as 'image'")
         self.fps = int(fps)
         self.repo_id = repo_id
         self.tmp = self.root.parent / f".{self.root.name}.partial-{uuid.uuid4().hex[:8]}"
+        video_keys = [k for k, ft in self.features.items() if ft["dtype"] == "video"]  # pipelines/video.py
         try:
             self.root.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DatasetError(f"cannot create the destination's folder {self.root.parent}: {exc.strerror}") from None
         self._ds = LeRobotDataset.create(
-            repo_id, self.fps, dict(self.features), root=self.tmp, robot_type=robot_type, use_videos=False
+            repo_id, self.fps, dict(self.features), root=self.tmp, robot_type=robot_type, use_videos=bool(video_keys)
         )
         self._meta = self._ds.meta
         self._hf_features = get_hf_features_from_features(self._ds.features)
         self._image_keys = [k for k, ft in self.features.items() if ft["dtype"] == "image"]
+        self._video_keys = video_keys
         self._writer = None  # pyarrow ParquetWriter of the current data file
         self._chunk_file = (0, 0)
         self._file_start = 0  # global index of the first frame in the current data file
@@ -192,6 +196,7 @@ class DatasetWriter:
         stats = {k: stats[k] for k in self._ds.features}
 
         table = self._arrow_table(columns)
+        videos = save_episode_videos(self._ds, self.num_episodes, {k: episode.frames[k] for k in self._video_keys})
 
         # Same file rotation rule as lerobot's writer: start a new data file when this episode
         # would push the current one past data_files_size_in_mb.
@@ -226,6 +231,7 @@ class DatasetWriter:
                 "data/file_index": self._chunk_file[1],
                 "dataset_from_index": start,
                 "dataset_to_index": start + n,
+                **videos,
                 META_COLUMN: dumps(episode_meta),
                 **flatten_dict({"stats": stats}),
             }
@@ -271,6 +277,7 @@ class DatasetWriter:
             self._writer.close()
             self._writer = None
         self._meta._close_writer()
+        shutil.rmtree(self.tmp / "images", ignore_errors=True)  # the video encoder's input frames
         self._write_info_and_stats()
         cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
         if provenance is not None:
@@ -400,13 +407,10 @@ class LeRobotDatasetReader:
         return Episode(frames, meta)
 
     def _decode_video(self, key: str, row: Any, timestamps: np.ndarray) -> np.ndarray:
-        from lerobot.datasets.video_utils import decode_video_frames
-
         chunk, file = int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])
         path = self.root / self.info["video_path"].format(video_key=key, chunk_index=chunk, file_index=file)
         offset = float(row[f"videos/{key}/from_timestamp"])
-        frames = decode_video_frames(path, [float(t) + offset for t in timestamps], 1e-4, backend="pyav")
-        return (frames.numpy().transpose(0, 2, 3, 1) * 255.0).round().astype(np.uint8)
+        return decode_episode(path, offset, timestamps, f"{self.root} episode {int(row['episode_index'])} {key}")
 
 
 def _column_to_numpy(col: Any, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
@@ -537,7 +541,12 @@ def resolve_dataset(ref: str, root: str | Path | None = None, revision: str | No
 
 
 def write_raw_as_lerobot(
-    raw_dir: str | Path, repo_id: str, root: str | Path, workers: int = 1, progress: bool = False
+    raw_dir: str | Path,
+    repo_id: str,
+    root: str | Path,
+    workers: int = 1,
+    progress: bool = False,
+    video: bool = False,
 ) -> Path:
     """Convert a raw-episode directory into a LeRobot dataset at `root` (a pipeline with no stages)."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
@@ -546,6 +555,6 @@ def write_raw_as_lerobot(
 
     config = PipelineConfig(
         sources=[SourceConfig(path=str(Path(raw_dir).resolve()))],
-        destination=DestinationConfig(root=str(Path(root).resolve()), repo_id=repo_id),
+        destination=DestinationConfig(root=str(Path(root).resolve()), repo_id=repo_id, video=video),
     )
     return run_pipeline(config, workers=workers, progress=progress)
