@@ -6,11 +6,11 @@ episodes, so the reader seeks once to the episode's start in the (concatenated) 
 decodes forward, matching frames to the episode's timestamps with lerobot's tolerance. PyAV is the
 backend that works here (torchcodec cannot load its FFmpeg libraries on these machines).
 
-Encoding: the frames go to the PNG files lerobot's recorder writes, then
-`LeRobotDataset._save_episode_video` encodes them with lerobot's settings (libsvtav1, yuv420p,
-g=2, crf=30), appends them to the current video file (starting a new one at
-`video_files_size_in_mb`), fills the feature's `info` from the first episode and returns the
-`videos/KEY/*` episode metadata, exactly as `save_episode` does.
+Encoding: `encode_frames` is lerobot's `encode_video_frames` (libsvtav1, yuv420p, g=2, crf=30)
+fed from memory instead of from PNG files; `LeRobotDataset._save_episode_video` then appends the
+episode to the current video file (starting a new one at `video_files_size_in_mb`), fills the
+feature's `info` from the first episode and returns the `videos/KEY/*` episode metadata, exactly
+as `save_episode` does.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ import numpy as np
 from shiftkit.pipelines.errors import DatasetError
 
 TOLERANCE_S = 1e-4  # lerobot's default tolerance between a frame's timestamp and the query
-_PNG_FAST = 1  # the PNGs are read once by the encoder and deleted: favour speed (lerobot's recorder uses 1 too)
 
 
 def decode_episode(path: Path, start: float, timestamps: np.ndarray, where: str) -> np.ndarray:
@@ -59,20 +58,47 @@ def decode_episode(path: Path, start: float, timestamps: np.ndarray, where: str)
 
 def save_episode_videos(dataset: Any, episode_index: int, videos: dict[str, np.ndarray]) -> dict[str, Any]:
     """Encode one episode's video features into `dataset` (a `LeRobotDataset` being written) with
-    lerobot's own encoder; returns the `videos/KEY/...` metadata of the episode."""
-    import cv2
-    from lerobot.datasets.utils import DEFAULT_IMAGE_PATH
+    lerobot's own encoder settings and file handling; returns the `videos/KEY/...` metadata."""
+    import tempfile
 
     metadata: dict[str, Any] = {}
     for key, frames in videos.items():
-        folder = None
-        for t, frame in enumerate(frames):
-            path = Path(dataset.root) / DEFAULT_IMAGE_PATH.format(
-                image_key=key, episode_index=episode_index, frame_index=t
-            )
-            if folder is None:
-                folder = path.parent
-                folder.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(path), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, _PNG_FAST])
-        metadata.update(dataset._save_episode_video(key, episode_index))
+        # lerobot's layout: a temporary folder in the dataset root, removed by _save_episode_video.
+        path = Path(tempfile.mkdtemp(dir=dataset.root)) / f"{key}_{episode_index:03d}.mp4"
+        encode_frames(frames, path, dataset.fps, dataset.vcodec, dataset._encoder_threads)
+        metadata.update(dataset._save_episode_video(key, episode_index, temp_path=path))
     return metadata
+
+
+def encode_frames(
+    frames: np.ndarray, path: Path, fps: int, vcodec: str = "libsvtav1", encoder_threads: int | None = None
+) -> None:
+    """lerobot's `encode_video_frames` (same codec, options, pixel format and muxing) fed from
+    memory: it reads PNG files a recorder wrote, which a pipeline would have to write first."""
+    import logging
+
+    import av
+    from lerobot.datasets.video_utils import _get_codec_options, resolve_vcodec
+
+    vcodec = resolve_vcodec(vcodec)
+    options = _get_codec_options(vcodec, 2, 30, None)  # encode_video_frames' defaults: g=2, crf=30
+    if encoder_threads is not None:
+        if vcodec == "libsvtav1":
+            options["svtav1-params"] = f"lp={encoder_threads}"
+        else:
+            options["threads"] = str(encoder_threads)
+    logging.getLogger("libav").setLevel(logging.WARNING)
+    try:
+        with av.open(str(path), "w") as output:
+            stream = output.add_stream(vcodec, fps, options=options)
+            stream.pix_fmt = "yuv420p"
+            stream.height, stream.width = frames.shape[1:3]
+            for frame in frames:
+                packet = stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24"))
+                if packet:
+                    output.mux(packet)
+            packet = stream.encode()
+            if packet:
+                output.mux(packet)
+    finally:
+        av.logging.restore_default_callback()

@@ -190,3 +190,22 @@ def test_video_needs_lerobot_output(tmp_path):
 
     with pytest.raises(ConfigError, match="--video applies to LeRobot output"):
         collect(CollectConfig(task="lift", episodes=1, cameras=("front",), video=True, out=str(tmp_path / "raw")))
+
+
+def test_in_memory_encoder_is_lerobots_encoder(tmp_path):
+    """The writer encodes from memory; the file is byte for byte what lerobot's encode_video_frames
+    makes from the same frames as PNG files."""
+    import PIL.Image
+    from lerobot.datasets.video_utils import encode_video_frames
+
+    from shiftkit.pipelines.video import decode_episode, encode_frames
+
+    frames = np.stack([_frame(t, 1) for t in range(12)])
+    (tmp_path / "png").mkdir()
+    for t, frame in enumerate(frames):
+        PIL.Image.fromarray(frame).save(tmp_path / "png" / f"frame-{t:06d}.png")
+    encode_video_frames(tmp_path / "png", tmp_path / "lerobot.mp4", 10, overwrite=True)
+    encode_frames(frames, tmp_path / "ours.mp4", 10)
+    assert (tmp_path / "ours.mp4").read_bytes() == (tmp_path / "lerobot.mp4").read_bytes()
+    decoded = decode_episode(tmp_path / "ours.mp4", 0.0, np.arange(12) / 10, "test")
+    assert decoded.shape == frames.shape and np.abs(decoded.astype(int) - frames).mean() < 6
