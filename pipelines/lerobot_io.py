@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from shiftkit.pipelines import camera_meta
+from shiftkit.pipelines.encoded_frames import EncodedFrames, source_png
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import (
@@ -57,6 +58,8 @@ def _png_bytes(frame: np.ndarray) -> bytes:
 def _image_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
     """lerobot's image statistics (`sample_images` + `get_feature_stats`) from in-memory frames."""
     from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
+
+    frames = np.asarray(frames)  # a plain array (not EncodedFrames) for the statistics
 
     sampled = np.stack(
         [auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))]
@@ -184,7 +187,10 @@ class DatasetWriter:
         start = self.num_frames
         columns = _episode_columns(episode, self.features)
         for key in self._image_keys:
-            columns[key] = [{"bytes": _png_bytes(f), "path": f"frame-{t:06d}.png"} for t, f in enumerate(columns[key])]
+            columns[key] = [
+                {"bytes": source_png(f, columns[key]) or _png_bytes(f), "path": f"frame-{t:06d}.png"}
+                for t, f in enumerate(columns[key])
+            ]
         columns["episode_index"] = np.full(n, self.num_episodes, dtype=np.int64)
         columns["index"] = np.arange(start, start + n, dtype=np.int64)
         columns["task_index"] = np.array([task_index[t] for t in tasks], dtype=np.int64)
@@ -392,7 +398,8 @@ class LeRobotDatasetReader:
                 continue
             col = part.column(key)
             if ft["dtype"] == "image":
-                frames[key] = np.stack([_decode_png(v["bytes"], where) for v in col.to_pylist()])
+                encoded = [v["bytes"] for v in col.to_pylist()]  # kept: unchanged frames are not re-encoded
+                frames[key] = EncodedFrames.wrap(np.stack([_decode_png(b, where) for b in encoded]), encoded)
             elif ft["dtype"] == "string":
                 frames[key] = np.array(col.to_pylist(), dtype=str).reshape(n, 1)
             else:
