@@ -49,6 +49,9 @@ class DestinationConfig:
     """Hub branch to push to (default: main)."""
     private: bool = False
     """Create the hub repository as private."""
+    video: bool | None = None
+    """Camera features as lerobot videos (true) or PNG images (false); unset: as the source has them.
+    Images are faster to write and read for small frames (docs/video_depth.md)."""
 
 
 @dataclass

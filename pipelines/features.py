@@ -31,12 +31,23 @@ def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
     return feature
 
 
-def image_feature(shape: tuple[int, int, int], info: dict[str, Any] | None = None) -> dict[str, Any]:
-    """An RGB camera feature; `info` carries the view's intrinsics/extrinsics when known."""
-    feature: dict[str, Any] = {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
-    if info:
-        feature["info"] = dict(info)
-    return feature
+def image_feature(shape: tuple[int, int, int]) -> dict[str, Any]:
+    """An RGB camera feature, exactly as lerobot declares one (camera intrinsics/extrinsics live in
+    the episode metadata and `meta/cameras.json`, see `camera_meta`)."""
+    return {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
+
+
+def plain_camera_features(features: Features, dtype: str | None = None) -> Features:
+    """`features` with every camera feature reduced to the keys lerobot itself declares (its writer
+    fills a video's `info`; anything else there, e.g. intrinsics of older shiftkit datasets, stops
+    `aggregate_datasets` from merging with datasets recorded elsewhere), stored as `dtype`
+    ("image" or "video") when given."""
+    return {
+        key: {"dtype": dtype or ft["dtype"], "shape": tuple(ft["shape"]), "names": ft.get("names")}
+        if ft.get("dtype") in CAMERA_DTYPES
+        else ft
+        for key, ft in features.items()
+    }
 
 
 def user_features(features: Features) -> Features:
