@@ -18,7 +18,6 @@ import json
 import os
 import shutil
 import uuid
-import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, check_episode, check_features, user_features
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.stats import image_stats, numeric_stats
 
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
 PROVENANCE_PATH = "meta/shiftkit_provenance.json"
@@ -42,17 +42,6 @@ def _png_bytes(frame: np.ndarray) -> bytes:
     buf = io.BytesIO()
     PIL.Image.fromarray(frame).save(buf, format="PNG", compress_level=_PNG_COMPRESS_LEVEL)
     return buf.getvalue()
-
-
-def _image_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
-    """lerobot's image statistics (`sample_images` + `get_feature_stats`) from in-memory frames."""
-    from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
-
-    sampled = np.stack(
-        [auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))]
-    )
-    stats = get_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)
-    return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
 
 
 # Statistics that depend on where an episode lands in the dataset; all others are a function of
@@ -74,23 +63,13 @@ def _episode_columns(episode: Episode, features: Features) -> dict[str, Any]:
     return columns
 
 
-def _stats(columns: dict[str, Any], all_features: Features) -> dict[str, dict[str, np.ndarray]]:
-    from lerobot.datasets.compute_stats import compute_episode_stats
-
-    with warnings.catch_warnings():
-        # lerobot's histogram code warns for every bool feature (e.g. next.success).
-        warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
-        return compute_episode_stats(columns, all_features)
-
-
 def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, np.ndarray]]:
-    """lerobot's per-episode statistics of every position-independent column of `episode`."""
-    from lerobot.datasets.utils import DEFAULT_FEATURES
-
+    """lerobot's per-episode statistics of every position-independent column of `episode`
+    (`compute_episode_stats`' values, computed by `shiftkit.pipelines.stats`)."""
     columns = _episode_columns(episode, features)
-    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] == "image"}
-    stats = _stats(columns, {**features, **DEFAULT_FEATURES})
-    stats.update({k: _image_stats(v) for k, v in images.items()})
+    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] in ("image", "video")}
+    stats = numeric_stats({k: v for k, v in columns.items() if k not in features or features[k]["dtype"] != "string"})
+    stats.update({k: image_stats(v) for k, v in images.items()})
     return stats
 
 
@@ -178,7 +157,7 @@ class DatasetWriter:
 
         if stats is None:
             stats = episode_stats(episode, self.features)
-        stats = {**stats, **_stats({k: columns[k] for k in POSITION_KEYS}, self._ds.features)}
+        stats = {**stats, **numeric_stats({k: columns[k] for k in POSITION_KEYS})}
         # Same key order as lerobot (feature order), which fixes the episodes-parquet columns.
         stats = {k: stats[k] for k in self._ds.features}
 

@@ -72,11 +72,15 @@ def test_content_identical_to_lerobot_writer(tmp_path):
     assert json.loads(data_ours.schema.metadata[b"huggingface"]) == hf_ref
     assert data_ours.equals(data_ref)
     assert json.loads((ours / "meta/info.json").read_text()) == json.loads((ref / "meta/info.json").read_text())
-    assert json.loads((ours / "meta/stats.json").read_text()) == json.loads((ref / "meta/stats.json").read_text())
+    stats = json.loads((ours / "meta/stats.json").read_text())
+    assert stats == json.loads((ref / "meta/stats.json").read_text())
+    quantiles = {"q01", "q10", "q50", "q90", "q99"}
+    assert all(quantiles <= set(stats[key]) for key in [*FEATURES, "index", "timestamp"])  # quantiles compared too
     assert pq.read_table(ours / "meta/tasks.parquet").equals(pq.read_table(ref / "meta/tasks.parquet"))
     ep_ref = pq.read_table(ref / "meta/episodes/chunk-000/file-000.parquet")
     ep_ours = pq.read_table(ours / "meta/episodes/chunk-000/file-000.parquet").drop_columns([META_COLUMN])
-    assert ep_ours.equals(ep_ref)
+    assert ep_ours.equals(ep_ref)  # per-episode statistics, quantile columns included
+    assert {f"stats/{key}/q50" for key in FEATURES} <= set(ep_ours.column_names)
 
 
 def test_lerobot_loads_and_reader_round_trips(tmp_path):
