@@ -175,3 +175,84 @@ def _lerobot_feature_stats(data: np.ndarray, **kwargs: Any) -> Stats:
         # lerobot's histogram code warns for every bool feature (e.g. next.success).
         warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
         return get_feature_stats(data, **kwargs)
+
+
+class RunningStats:
+    """Dataset statistics updated episode by episode exactly as lerobot's writer does
+    (`stats = aggregate_stats([stats, episode_stats])` after each episode), each step's arithmetic
+    done once over the values of all features laid end to end instead of feature by feature.
+
+    It is `aggregate_feature_stats`' arithmetic for two inputs, in the same order and precision
+    (float32 statistics are squared before being widened, as numpy does there), so the values are
+    lerobot's. Every episode must have the same features (the writer's do).
+    """
+
+    def __init__(self) -> None:
+        self._first: dict[str, Stats] | None = None  # the statistics while there is one episode
+        self._keys: list[str] = []
+        self._shapes: list[tuple[int, ...]] = []
+        self._sizes = np.zeros(0, dtype=np.int64)  # values per feature
+        self._count = np.zeros(0, dtype=np.int64)  # samples per feature
+        # mean, std, var (what lerobot's next `std ** 2` evaluates to) and quantiles, float64
+        self._flat: dict[str, np.ndarray] = {}
+        self._min: list[np.ndarray] = []
+        self._max: list[np.ndarray] = []
+
+    def add(self, stats: dict[str, Stats]) -> None:
+        if self._first is None and not self._keys:
+            self._first = stats
+            return
+        if self._first is not None:
+            self._start(self._first)
+            self._first = None
+        if list(stats) != self._keys:
+            raise ValueError(f"episode statistics have features {list(stats)}, earlier ones {self._keys}")
+        old, new = self._flat, self._flatten(stats)
+        count = np.array([int(stats[k]["count"][0]) for k in self._keys])
+        total = self._count + count
+        c0, c1, t = (np.repeat(c, self._sizes) for c in (self._count, count, total))
+        mean = (old["mean"] * c0 + new["mean"] * c1) / t
+        var = ((old["var"] + (old["mean"] - mean) ** 2) * c0 + (new["var"] + (new["mean"] - mean) ** 2) * c1) / t
+        std = np.sqrt(var)
+        self._flat = {"mean": mean, "std": std, "var": std**2}
+        self._flat.update({q: (old[q] * c0 + new[q] * c1) / t for q in QUANTILE_KEYS})
+        self._count = total
+        for i, key in enumerate(self._keys):
+            self._min[i] = np.minimum(self._min[i], stats[key]["min"])
+            self._max[i] = np.maximum(self._max[i], stats[key]["max"])
+
+    def _start(self, first: dict[str, Stats]) -> None:
+        self._keys = list(first)
+        self._shapes = [np.shape(first[k]["mean"]) for k in self._keys]
+        self._sizes = np.array([int(np.prod(shape)) for shape in self._shapes], dtype=np.int64)
+        self._count = np.array([int(first[k]["count"][0]) for k in self._keys])
+        self._flat = self._flatten(first)
+        self._min = [first[k]["min"] for k in self._keys]
+        self._max = [first[k]["max"] for k in self._keys]
+
+    def _flatten(self, stats: dict[str, Stats]) -> dict[str, np.ndarray]:
+        def cat(values: list[np.ndarray]) -> np.ndarray:
+            return np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in values])
+
+        flat = {"mean": cat([stats[k]["mean"] for k in self._keys])}
+        flat["var"] = cat([stats[k]["std"] ** 2 for k in self._keys])  # squared in the stats' own dtype
+        flat.update({q: cat([stats[k][q] for k in self._keys]) for q in QUANTILE_KEYS})
+        return flat
+
+    def result(self) -> dict[str, Stats] | None:
+        """The statistics so far in lerobot's layout (None before the first episode)."""
+        if not self._keys:
+            return self._first
+        bounds = np.concatenate([[0], np.cumsum(self._sizes)])
+        out: dict[str, Stats] = {}
+        for i, key in enumerate(self._keys):
+            part = {name: v[bounds[i] : bounds[i + 1]].reshape(self._shapes[i]) for name, v in self._flat.items()}
+            out[key] = {
+                "min": self._min[i],
+                "max": self._max[i],
+                "mean": part["mean"],
+                "std": part["std"],
+                "count": self._count[i : i + 1].copy(),
+                **{q: part[q] for q in QUANTILE_KEYS},
+            }
+        return out

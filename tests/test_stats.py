@@ -10,7 +10,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from lerobot.datasets import compute_stats as lerobot_stats
 
-from shiftkit.pipelines.stats import NUM_BINS, QUANTILE_KEYS, QUANTILES, feature_stats, image_stats, numeric_stats
+from shiftkit.pipelines.stats import (
+    NUM_BINS,
+    QUANTILE_KEYS,
+    QUANTILES,
+    RunningStats,
+    feature_stats,
+    image_stats,
+    numeric_stats,
+)
 
 
 def assert_same(ours: dict, ref: dict) -> None:
@@ -112,3 +120,24 @@ def test_image_stats_equal_lerobot(shape):
     assert_same(image_stats(frames), lerobot_image_stats(frames))
     dark = np.zeros(shape, np.uint8)
     assert_same(image_stats(dark), lerobot_image_stats(dark))
+
+
+def test_running_stats_equal_lerobots_pairwise_aggregation():
+    """The writer's dataset statistics: aggregate_stats([stats, episode]) after every episode."""
+    rng = np.random.default_rng(3)
+    episodes = []
+    for e in range(6):
+        n = 3 + 7 * e
+        columns = {k: v for k, v in _cases(n, rng).items() if k not in ("3-D", "uint8")}
+        stats = numeric_stats(columns)
+        stats["image"] = image_stats(rng.integers(0, 255, size=(n, 6, 8, 3), dtype=np.uint8))
+        episodes.append(stats)
+    running, ref = RunningStats(), None
+    assert running.result() is None
+    for k, stats in enumerate(episodes):
+        running.add(stats)
+        ref = stats if ref is None else lerobot_stats.aggregate_stats([ref, stats])
+        ours = running.result()
+        assert set(ours) == set(ref), k
+        for key in ref:
+            assert_same(ours[key], ref[key])
