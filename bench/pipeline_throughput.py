@@ -105,6 +105,17 @@ def shiftkit_copy(src: Path, dst: Path, workers: int = 1) -> float:
     return time.perf_counter() - t0
 
 
+def print_profile(src: Path, dst: Path, top: int) -> None:
+    """cProfile of one more pass-through run (profiling slows it, so it is not the timed one)."""
+    import cProfile
+    import pstats
+
+    profile = cProfile.Profile()
+    profile.runcall(shiftkit_copy, src, dst)
+    for order in ("cumulative", "tottime"):
+        pstats.Stats(profile, stream=sys.stdout).strip_dirs().sort_stats(order).print_stats(top)
+
+
 def peak_rss_mb(src: Path, dst: Path) -> float:
     """Peak RSS of a fresh process that runs the pass-through pipeline."""
     code = (
@@ -121,6 +132,13 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="short run (< 1 minute)")
     parser.add_argument("--episodes", type=int, default=None)
     parser.add_argument("--length", type=int, default=None)
+    parser.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also profile one more pipeline run; print its top N entries",
+    )
     args = parser.parse_args()
     episodes = args.episodes or 200
     length = args.length or (40 if args.quick else 100)
@@ -131,6 +149,8 @@ def main() -> None:
         t_lerobot = lerobot_copy(src, tmp / "lerobot_copy")
         t_shiftkit = shiftkit_copy(src, tmp / "shiftkit_copy")
         t_floor = min(io_floor(src, tmp / f"floor{k}") for k in range(3))  # best of 3: it is short
+        if args.profile:
+            print_profile(src, tmp / "profiled_copy", args.profile)
         fps_lerobot, fps_shiftkit = frames / t_lerobot, frames / t_shiftkit
         rss_episodes = 50 if args.quick else episodes
         small = make_source(tmp / "small", rss_episodes, length, seed=1)

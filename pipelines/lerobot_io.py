@@ -318,6 +318,7 @@ class LeRobotDatasetReader:
         # Global index of each data file's first frame, to map episodes to the file's row groups.
         starts = self.episodes.groupby(["chunk", "file"])["dataset_from_index"].min()
         self._file_starts = {(int(c), int(f)): int(v) for (c, f), v in starts.items()}
+        self._features = user_features(self.info["features"])  # `features` hands out copies
 
     @property
     def fps(self) -> int:
@@ -404,7 +405,7 @@ class LeRobotDatasetReader:
         if not (ep_idx == int(row["episode_index"])).all():
             raise DatasetError(f"{where}: data rows belong to another episode (corrupt index)")
         frames: dict[str, np.ndarray] = {"timestamp": part.column("timestamp").to_numpy().astype(np.float64)}
-        for key, ft in self.features.items():
+        for key, ft in self._features.items():
             if ft["dtype"] == "video":
                 frames[key] = self._decode_video(key, row, frames["timestamp"])
                 continue
