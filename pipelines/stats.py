@@ -48,12 +48,10 @@ def _moments(rows: np.ndarray, count: int) -> Stats:
 def _edge_at(j: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
     """Bin edges number `j` (cols, k) of each column, equal to `np.linspace(start, stop, NUM_BINS + 1)[j]`
     column by column (same arithmetic: arange * step + start, the last edge set to stop), without
-    materialising all NUM_BINS + 1 edges."""
-    delta = (stop - start)[:, None]
-    step = delta / NUM_BINS
-    jj = j.astype(start.dtype)
-    # linspace's path for a zero step (tiny float32 ranges): scale before multiplying.
-    edges = np.where(step == 0, (jj / NUM_BINS) * delta, jj * step) + start[:, None]
+    materialising all NUM_BINS + 1 edges. (linspace's other path, for a step that underflows to
+    zero, cannot occur: the 1e-10 padding makes the range either 0 or far above 5000 denormals.)"""
+    step = (stop - start)[:, None] / NUM_BINS
+    edges = j.astype(start.dtype) * step + start[:, None]
     return np.where(j == NUM_BINS, stop[:, None], edges)
 
 
@@ -71,15 +69,12 @@ def _edges_at_most(v: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.nda
             (v - start[:, None]).astype(np.float64) / ((stop - start) / NUM_BINS)[:, None].astype(np.float64)
         )
     m = np.clip(np.nan_to_num(guess, nan=NUM_BINS, posinf=NUM_BINS), 0, NUM_BINS).astype(np.int64) + 1
-    for _ in range(8):  # the guess is off by rounding only: one or two steps
+    while True:  # the guess is off by rounding only: each pass moves it one edge closer, if at all
         down = (m > 0) & (_edge_at(np.maximum(m - 1, 0), start, stop) > v)
         up = (m <= NUM_BINS) & (_edge_at(np.minimum(m, NUM_BINS), start, stop) <= v)
         if not (down.any() or up.any()):
             return m
         m = m - down + up
-    # Pathological ranges (denormal steps): search all edges.
-    edges = _edge_at(np.broadcast_to(np.arange(NUM_BINS + 1), (len(start), NUM_BINS + 1)), start, stop)
-    return np.stack([np.searchsorted(e, vs, side="right") for e, vs in zip(edges, v, strict=True)])
 
 
 def _quantiles(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
