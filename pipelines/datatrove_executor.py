@@ -586,10 +586,11 @@ def fix_position_stats(root: Path) -> tuple[int, int]:
     import numpy as np
     import pandas as pd
     import pyarrow.parquet as pq
-    from lerobot.datasets.compute_stats import aggregate_stats, compute_episode_stats
+    from lerobot.datasets.compute_stats import aggregate_stats
     from lerobot.datasets.utils import load_stats, write_stats
 
     from shiftkit.pipelines.lerobot_io import POSITION_KEYS
+    from shiftkit.pipelines.stats import numeric_stats
 
     info = json.loads((root / "meta" / "info.json").read_text())
     features = info["features"]
@@ -602,9 +603,7 @@ def fix_position_stats(root: Path) -> tuple[int, int]:
         df = pd.read_parquet(path)
         new: dict[str, list[Any]] = {}
         for lo, hi in zip(df["dataset_from_index"], df["dataset_to_index"], strict=True):
-            stats = compute_episode_stats(
-                {k: columns[k][lo:hi] for k in POSITION_KEYS}, {k: features[k] for k in POSITION_KEYS}
-            )
+            stats = numeric_stats({k: columns[k][lo:hi] for k in POSITION_KEYS})
             episode_stats.append(stats)
             for key, values in stats.items():
                 for name, value in values.items():

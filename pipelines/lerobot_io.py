@@ -2,12 +2,14 @@
 per-episode reader, and dataset-ID resolution.
 
 The writer creates the dataset with `LeRobotDataset.create` and stores each episode through
-lerobot's own pieces (`datasets.Dataset.from_dict` with lerobot's HF features, lerobot's episode
-statistics, `LeRobotDatasetMetadata.save_episode`), so the files are what lerobot writes. It skips
-the two costs of the high-level path that do not apply to whole episodes held in memory: the
-per-frame `add_frame` loop, and `embed_images`, a `datasets.map` over every row that re-reads PNG
-files from disk (here images are encoded straight into the row, with the same PNG bytes and file
-name lerobot would embed). Camera features are written as `image` (PNG in parquet, no codec) or,
+lerobot's own pieces (lerobot's HF features and their Arrow schema, lerobot's episode statistics,
+`LeRobotDatasetMetadata.save_episode`), so the files are what lerobot writes. It skips the costs of
+the high-level path that do not apply to whole episodes held in memory: the per-frame `add_frame`
+loop, `embed_images`, a `datasets.map` over every row that re-reads PNG files from disk (here
+images are encoded straight into the row, with the same PNG bytes and file name lerobot would
+embed), and per-value Python conversion (numeric columns go to Arrow from their numpy buffers).
+Statistics come from `shiftkit.pipelines.stats` (lerobot's values, vectorised), computed by the
+worker that produced the episode. Camera features are written as `image` (PNG in parquet, no codec) or,
 declared `video`, through lerobot's own video encoder (`pipelines/video.py`).
 """
 
@@ -19,7 +21,6 @@ import json
 import os
 import shutil
 import uuid
-import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,8 +41,10 @@ from shiftkit.pipelines.features import (
     user_features,
 )
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.stats import RunningStats, image_stats, numeric_stats
 from shiftkit.pipelines.video import decode_episode, save_episode_videos
 
+_EPISODES_PER_READ = 64  # a reader holds at most this many episodes' rows of one data file
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
 PROVENANCE_PATH = "meta/shiftkit_provenance.json"
 _PNG_COMPRESS_LEVEL = 6  # what lerobot's add_frame uses for `image` features
@@ -53,19 +56,6 @@ def _png_bytes(frame: np.ndarray) -> bytes:
     buf = io.BytesIO()
     PIL.Image.fromarray(frame).save(buf, format="PNG", compress_level=_PNG_COMPRESS_LEVEL)
     return buf.getvalue()
-
-
-def _image_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
-    """lerobot's image statistics (`sample_images` + `get_feature_stats`) from in-memory frames."""
-    from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
-
-    frames = np.asarray(frames)  # a plain array (not EncodedFrames) for the statistics
-
-    sampled = np.stack(
-        [auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))]
-    )
-    stats = get_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)
-    return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
 
 
 # Statistics that depend on where an episode lands in the dataset; all others are a function of
@@ -87,24 +77,15 @@ def _episode_columns(episode: Episode, features: Features) -> dict[str, Any]:
     return columns
 
 
-def _stats(columns: dict[str, Any], all_features: Features) -> dict[str, dict[str, np.ndarray]]:
-    from lerobot.datasets.compute_stats import compute_episode_stats
-
-    with warnings.catch_warnings():
-        # lerobot's histogram code warns for every bool feature (e.g. next.success).
-        warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
-        return compute_episode_stats(columns, all_features)
-
-
 def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, np.ndarray]]:
-    """lerobot's per-episode statistics of every position-independent column of `episode`."""
-    from lerobot.datasets.utils import DEFAULT_FEATURES
-
+    """lerobot's per-episode statistics of every position-independent column of `episode`
+    (`compute_episode_stats`' values, computed by `shiftkit.pipelines.stats`)."""
     columns = _episode_columns(episode, features)
-    # Camera features, image or video: lerobot computes both from the frames before encoding.
-    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
-    stats = _stats(columns, {**features, **DEFAULT_FEATURES})
-    stats.update({k: _image_stats(v) for k, v in images.items()})
+    # Camera features, image or video: lerobot computes both from the frames before encoding
+    # (EncodedFrames carry decoded pixels: statistics read a plain array).
+    images = {k: np.asarray(columns.pop(k)) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
+    stats = numeric_stats({k: v for k, v in columns.items() if k not in features or features[k]["dtype"] != "string"})
+    stats.update({k: image_stats(v) for k, v in images.items()})
     return stats
 
 
@@ -144,7 +125,9 @@ class DatasetWriter:
             repo_id, self.fps, dict(self.features), root=self.tmp, robot_type=robot_type, use_videos=bool(video_keys)
         )
         self._meta = self._ds.meta
+        self._stats = RunningStats()
         self._hf_features = get_hf_features_from_features(self._ds.features)
+        self._arrow_schema = self._hf_features.arrow_schema  # with datasets' feature metadata
         self._image_keys = [k for k, ft in self.features.items() if ft["dtype"] == "image"]
         self._video_keys = video_keys
         self._writer = None  # pyarrow ParquetWriter of the current data file
@@ -172,7 +155,6 @@ class DatasetWriter:
         (index, episode_index, task_index).
         """
         import pyarrow.parquet as pq
-        from lerobot.datasets.compute_stats import aggregate_stats
         from lerobot.datasets.utils import flatten_dict, get_file_size_in_mb, update_chunk_file_indices
 
         where = f"episode {episode.meta.get('source_episode_index', self.num_episodes)}"
@@ -197,7 +179,7 @@ class DatasetWriter:
 
         if stats is None:
             stats = episode_stats(episode, self.features)
-        stats = {**stats, **_stats({k: columns[k] for k in POSITION_KEYS}, self._ds.features)}
+        stats = {**stats, **numeric_stats({k: columns[k] for k in POSITION_KEYS})}
         # Same key order as lerobot (feature order), which fixes the episodes-parquet columns.
         stats = {k: stats[k] for k in self._ds.features}
 
@@ -246,7 +228,7 @@ class DatasetWriter:
         info["total_frames"] += n
         info["total_tasks"] = len(self._meta.tasks)
         info["splits"] = {"train": f"0:{info['total_episodes']}"}
-        self._meta.stats = aggregate_stats([self._meta.stats, stats]) if self._meta.stats is not None else stats
+        self._stats.add(stats)  # lerobot's aggregate_stats([stats, episode stats]), vectorised
         self.num_episodes += 1
         self.num_frames += n
 
@@ -260,16 +242,26 @@ class DatasetWriter:
 
     def _arrow_table(self, columns: dict[str, Any]) -> Any:
         """The episode as Arrow, encoded exactly as `datasets.Dataset.from_dict` does for lerobot,
-        without the Dataset object, whose fingerprinting pickles every value (~50 ms/episode)."""
-        from datasets.arrow_writer import OptimizedTypedSequence
-        from datasets.table import InMemoryTable
+        without the Dataset object, whose fingerprinting pickles every value (~50 ms/episode).
+        Numeric columns go straight from their numpy arrays; the others (images, n-d arrays)
+        through datasets' own per-value encoding."""
+        import pyarrow as pa
 
-        features = self._hf_features
-        typed = {
-            key: OptimizedTypedSequence(features.encode_column(columns[key], key), type=features[key], col=key)
-            for key in features
-        }
-        return InMemoryTable.from_pydict(mapping=typed).table.cast(features.arrow_schema)
+        schema = self._arrow_schema
+        arrays = {field.name: _numeric_arrow_array(columns[field.name], field.type) for field in schema}
+        encoded = [key for key, array in arrays.items() if array is None]
+        if encoded:
+            from datasets.arrow_writer import OptimizedTypedSequence
+            from datasets.table import InMemoryTable
+
+            features = self._hf_features
+            typed = {
+                key: OptimizedTypedSequence(features.encode_column(columns[key], key), type=features[key], col=key)
+                for key in encoded
+            }
+            table = InMemoryTable.from_pydict(mapping=typed).table.cast(pa.schema([schema.field(k) for k in encoded]))
+            arrays.update({key: table.column(key) for key in encoded})
+        return pa.Table.from_arrays([arrays[field.name] for field in schema], schema=schema)
 
     def close(self, provenance: dict[str, Any] | None = None) -> Path:
         """Finalize, write provenance and the dataset card rendered from it, and move the dataset
@@ -301,7 +293,7 @@ class DatasetWriter:
         from lerobot.datasets.utils import write_info, write_stats
 
         write_info(self._meta.info, self.tmp)
-        stats = self._meta.stats
+        stats = self._meta.stats = self._stats.result()
         write_stats({k: stats[k] for k in self._ds.features if k in stats}, self.tmp)
 
     def abort(self) -> None:
@@ -312,6 +304,24 @@ class DatasetWriter:
         self._meta._close_writer()
         shutil.rmtree(self.tmp, ignore_errors=True)
         self._closed = True
+
+
+def _numeric_arrow_array(values: Any, arrow_type: Any) -> Any:
+    """`values` (a numpy column) as an Arrow array of a numeric or fixed-size-list-of-numeric type,
+    built from its buffer; None for other types."""
+    import pyarrow as pa
+
+    def numeric(t: Any) -> bool:
+        return pa.types.is_integer(t) or pa.types.is_floating(t) or pa.types.is_boolean(t)
+
+    if not isinstance(values, np.ndarray):
+        return None
+    if numeric(arrow_type):
+        return pa.array(values.reshape(-1).astype(arrow_type.to_pandas_dtype(), copy=False), type=arrow_type)
+    if pa.types.is_fixed_size_list(arrow_type) and numeric(arrow_type.value_type):
+        flat = values.reshape(-1).astype(arrow_type.value_type.to_pandas_dtype(), copy=False)
+        return pa.FixedSizeListArray.from_arrays(pa.array(flat, type=arrow_type.value_type), type=arrow_type)
+    return None
 
 
 def write_provenance(root: Path, provenance: dict[str, Any]) -> None:
@@ -334,6 +344,12 @@ class LeRobotDatasetReader:
     episodes: Any  # pandas DataFrame of meta/episodes without stats columns
     tasks: list[str]
     cameras: dict[str, Any] = field(default_factory=dict)  # meta/cameras.json (camera_meta)
+
+    def __post_init__(self) -> None:
+        # Global index of each data file's first frame, to map episodes to the file's row groups.
+        starts = self.episodes.groupby(["chunk", "file"])["dataset_from_index"].min()
+        self._file_starts = {(int(c), int(f)): int(v) for (c, f), v in starts.items()}
+        self._features = user_features(self.info["features"])  # `features` hands out copies
 
     @property
     def fps(self) -> int:
@@ -359,29 +375,57 @@ class LeRobotDatasetReader:
         return list(groups.values())
 
     def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:
+        """The episodes at `indices`, in that order. Consecutive episodes of one data file (a work
+        unit's) share one read of just the row groups that hold them."""
+        indices = list(range(self.num_episodes)) if indices is None else list(indices)
+        k = 0
+        while k < len(indices):
+            run = [(indices[k], self._row(indices[k]))]
+            key = self._file_of(run[0][1])
+            while k + len(run) < len(indices) and len(run) < _EPISODES_PER_READ:
+                i = indices[k + len(run)]
+                if self._file_of(row := self._row(i)) != key:
+                    break
+                run.append((i, row))
+            table, table_start = self._read_rows(
+                key,
+                min(int(row["dataset_from_index"]) for _, row in run),
+                max(int(row["dataset_to_index"]) for _, row in run),
+            )
+            for i, row in run:
+                start, stop = int(row["dataset_from_index"]), int(row["dataset_to_index"])
+                yield self._episode_from_table(i, table.slice(start - table_start, stop - start), row)
+            k += len(run)
+
+    def _row(self, i: int) -> Any:
+        if not 0 <= i < self.num_episodes:
+            raise DatasetError(f"{self.root}: no episode {i} (dataset has {self.num_episodes})")
+        return self.episodes.iloc[i]
+
+    @staticmethod
+    def _file_of(row: Any) -> tuple[int, int]:
+        return int(row["chunk"]), int(row["file"])
+
+    def _read_rows(self, key: tuple[int, int], lo: int, hi: int) -> tuple[Any, int]:
+        """The row groups of data file `key` that hold global frames [lo, hi), and the global index
+        of their first row."""
         import pyarrow.parquet as pq
 
-        indices = list(range(self.num_episodes)) if indices is None else list(indices)
-        table, table_key, table_start = None, None, 0
-        for i in indices:
-            if not 0 <= i < self.num_episodes:
-                raise DatasetError(f"{self.root}: no episode {i} (dataset has {self.num_episodes})")
-            row = self.episodes.iloc[i]
-            key = (int(row["chunk"]), int(row["file"]))
-            if key != table_key:
-                path = self.root / self.info["data_path"].format(chunk_index=key[0], file_index=key[1])
-                try:
-                    table = pq.read_table(path)
-                except FileNotFoundError:
-                    raise DatasetError(f"{path}: data file is missing") from None
-                except Exception as exc:  # pyarrow raises several types for corrupt files
-                    raise DatasetError(f"{path}: unreadable parquet file ({type(exc).__name__}: {exc})") from None
-                table_key = key
-                same_file = self.episodes[(self.episodes["chunk"] == key[0]) & (self.episodes["file"] == key[1])]
-                table_start = int(same_file["dataset_from_index"].min())
-            start, stop = int(row["dataset_from_index"]), int(row["dataset_to_index"])
-            part = table.slice(start - table_start, stop - start)
-            yield self._episode_from_table(i, part, row)
+        path = self.root / self.info["data_path"].format(chunk_index=key[0], file_index=key[1])
+        try:
+            with pq.ParquetFile(path) as data:
+                groups, first, row = [], lo, int(self._file_starts[key])
+                for g in range(data.metadata.num_row_groups):
+                    n = data.metadata.row_group(g).num_rows
+                    if row < hi and row + n > lo:
+                        first = row if not groups else first
+                        groups.append(g)
+                    row += n
+                return data.read_row_groups(groups), first
+        except FileNotFoundError:
+            raise DatasetError(f"{path}: data file is missing") from None
+        except Exception as exc:  # pyarrow raises several types for corrupt files
+            raise DatasetError(f"{path}: unreadable parquet file ({type(exc).__name__}: {exc})") from None
 
     def _episode_from_table(self, i: int, part: Any, row: Any) -> Episode:
         where = f"{self.root} episode {i}"
@@ -392,7 +436,7 @@ class LeRobotDatasetReader:
         if not (ep_idx == int(row["episode_index"])).all():
             raise DatasetError(f"{where}: data rows belong to another episode (corrupt index)")
         frames: dict[str, np.ndarray] = {"timestamp": part.column("timestamp").to_numpy().astype(np.float64)}
-        for key, ft in self.features.items():
+        for key, ft in self._features.items():
             if ft["dtype"] == "video":
                 frames[key] = self._decode_video(key, row, frames["timestamp"])
                 continue

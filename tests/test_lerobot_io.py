@@ -20,6 +20,31 @@ FEATURES = {
 }
 
 
+# Dtypes and shapes FEATURES lacks, for the content-identity test (Arrow built from numpy buffers
+# for scalars and vectors of every numeric type; datasets' encoding for n-d arrays).
+MORE_FEATURES = {
+    "observation.effort": {"dtype": "float64", "shape": (1,), "names": None},
+    "observation.counts": {"dtype": "int32", "shape": (4,), "names": ["a", "b", "c", "d"]},
+    "observation.flags": {"dtype": "bool", "shape": (2,), "names": ["x", "y"]},
+    "observation.grid": {"dtype": "float32", "shape": (2, 3), "names": None},
+}
+
+
+def with_more_features(episodes: list[Episode], seed: int = 1) -> list[Episode]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for ep in episodes:
+        n = len(ep)
+        extra = {
+            "observation.effort": rng.normal(size=(n, 1)),
+            "observation.counts": rng.integers(-3, 3, size=(n, 4)).astype(np.int32),
+            "observation.flags": rng.integers(0, 2, size=(n, 2)).astype(bool),
+            "observation.grid": rng.normal(size=(n, 2, 3)).astype(np.float32),
+        }
+        out.append(Episode({**ep.frames, **extra}, dict(ep.meta)))
+    return out
+
+
 def make_episodes(n_eps: int = 3, seed: int = 0) -> list[Episode]:
     rng = np.random.default_rng(seed)
     eps = []
@@ -41,24 +66,26 @@ def make_episodes(n_eps: int = 3, seed: int = 0) -> list[Episode]:
     return eps
 
 
-def write_with_lerobot(root, episodes):
+def write_with_lerobot(root, episodes, features=FEATURES):
     """The reference: lerobot's high-level add_frame/save_episode loop (timestamps = frame_index / fps)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    ds = LeRobotDataset.create("test/ref", 10, dict(FEATURES), root=root, use_videos=False)
+    ds = LeRobotDataset.create("test/ref", 10, dict(features), root=root, use_videos=False)
     for ep in episodes:
         for t in range(len(ep)):
-            frame = {k: ep.frames[k][t] for k in FEATURES}
+            frame = {k: ep.frames[k][t] for k in features}
             frame["task"] = str(ep.frames["task"][t])
             ds.add_frame(frame)
         ds.save_episode()
     ds.finalize()
 
 
-def test_content_identical_to_lerobot_writer(tmp_path):
-    episodes = make_episodes()
-    write_with_lerobot(tmp_path / "ref", episodes)
-    with DatasetWriter("test/ref", tmp_path / "ours", 10, FEATURES) as w:
+@pytest.mark.parametrize("more", [False, True], ids=["features", "more-dtypes"])
+def test_content_identical_to_lerobot_writer(tmp_path, more):
+    features = {**FEATURES, **MORE_FEATURES} if more else FEATURES
+    episodes = with_more_features(make_episodes()) if more else make_episodes()
+    write_with_lerobot(tmp_path / "ref", episodes, features)
+    with DatasetWriter("test/ref", tmp_path / "ours", 10, features) as w:
         for ep in episodes:
             w.add_episode(ep)
     ref, ours = tmp_path / "ref", tmp_path / "ours"
@@ -72,11 +99,15 @@ def test_content_identical_to_lerobot_writer(tmp_path):
     assert json.loads(data_ours.schema.metadata[b"huggingface"]) == hf_ref
     assert data_ours.equals(data_ref)
     assert json.loads((ours / "meta/info.json").read_text()) == json.loads((ref / "meta/info.json").read_text())
-    assert json.loads((ours / "meta/stats.json").read_text()) == json.loads((ref / "meta/stats.json").read_text())
+    stats = json.loads((ours / "meta/stats.json").read_text())
+    assert stats == json.loads((ref / "meta/stats.json").read_text())
+    quantiles = {"q01", "q10", "q50", "q90", "q99"}
+    assert all(quantiles <= set(stats[key]) for key in [*features, "index", "timestamp"])  # quantiles compared too
     assert pq.read_table(ours / "meta/tasks.parquet").equals(pq.read_table(ref / "meta/tasks.parquet"))
     ep_ref = pq.read_table(ref / "meta/episodes/chunk-000/file-000.parquet")
     ep_ours = pq.read_table(ours / "meta/episodes/chunk-000/file-000.parquet").drop_columns([META_COLUMN])
-    assert ep_ours.equals(ep_ref)
+    assert ep_ours.equals(ep_ref)  # per-episode statistics, quantile columns included
+    assert {f"stats/{key}/q50" for key in features} <= set(ep_ours.column_names)
 
 
 def test_lerobot_loads_and_reader_round_trips(tmp_path):
@@ -95,6 +126,16 @@ def test_lerobot_loads_and_reader_round_trips(tmp_path):
             np.testing.assert_array_equal(back.frames[key], original.frames[key])
         assert list(back.frames["task"]) == list(original.frames["task"])
         assert back.meta["outcome"] == "success"
+    # Any subset, in any order: each read holds just the row groups of the episodes it serves.
+    for order in ([2, 0, 1], [1], [2, 2]):
+        for i, back in zip(order, reader.iter_episodes(order), strict=True):
+            assert back.meta["source_episode_index"] == i
+            np.testing.assert_array_equal(back.frames["action"], episodes[i].frames["action"])
+    # Files lerobot wrote itself read back the same.
+    write_with_lerobot(tmp_path / "ref", episodes)
+    for i, back in zip([0, 2, 1], open_lerobot_dataset(tmp_path / "ref").iter_episodes([0, 2, 1]), strict=True):
+        for key in FEATURES:
+            np.testing.assert_array_equal(back.frames[key], episodes[i].frames[key])
 
 
 def test_failed_write_leaves_nothing(tmp_path):

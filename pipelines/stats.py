@@ -1,0 +1,253 @@
+"""Episode statistics with lerobot's values, computed without lerobot's per-dimension loops.
+
+lerobot 0.4.4 (`lerobot.datasets.compute_stats`) estimates quantiles from a 5000-bin histogram per
+dimension: one `np.histogram` (a sort) and, per quantile, a `cumsum` over all 5000 bins. Only a few
+bins matter: the one holding each quantile's target count and its left neighbour. Here each column
+is sorted once (all columns of a dtype together) and those bins' cumulative counts are found by
+binary search in the sorted column, which gives the histogram's counts exactly, so every value
+(and dtype) equals `compute_episode_stats` / `get_feature_stats`. Mean, mean of squares, min and
+max use lerobot's own numpy expressions on the same arrays, so their rounding is the same too.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any
+
+import numpy as np
+
+# lerobot 0.4.4's DEFAULT_QUANTILES and RunningQuantileStats' bin count (tests/test_stats.py checks).
+QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
+QUANTILE_KEYS = tuple(f"q{int(q * 100):02d}" for q in QUANTILES)
+NUM_BINS = 5000
+_PAD = 1e-10  # lerobot widens the histogram range by this much on both sides
+
+Stats = dict[str, np.ndarray]
+
+
+def _edge_dtype(dtype: np.dtype) -> np.dtype:
+    """dtype of lerobot's bin edges for a column (`np.linspace(min - 1e-10, ...)` under NEP 50)."""
+    return np.dtype(np.float32) if dtype == np.float32 else np.dtype(np.float64)
+
+
+def _moments(rows: np.ndarray, count: int) -> Stats:
+    """min, max, mean, std and `count` exactly as RunningQuantileStats computes them from one batch."""
+    mean = np.mean(rows, axis=0)
+    mean_sq = np.mean(rows**2, axis=0)
+    # (lerobot's running update then adds (batch_mean - mean) * 1, a no-op: np.mean never returns -0.0.)
+    return {
+        "min": np.min(rows, axis=0),
+        "max": np.max(rows, axis=0),
+        "mean": mean,
+        "std": np.sqrt(np.maximum(0, mean_sq - mean**2)),
+        "count": np.array([count]),
+    }
+
+
+def _edge_at(j: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """Bin edges number `j` (cols, k) of each column, equal to `np.linspace(start, stop, NUM_BINS + 1)[j]`
+    column by column (same arithmetic: arange * step + start, the last edge set to stop), without
+    materialising all NUM_BINS + 1 edges. (linspace's other path, for a step that underflows to
+    zero, cannot occur: the 1e-10 padding makes the range either 0 or far above 5000 denormals.)"""
+    step = (stop - start)[:, None] / NUM_BINS
+    edges = j.astype(start.dtype) * step + start[:, None]
+    return np.where(j == NUM_BINS, stop[:, None], edges)
+
+
+def _count_below(ordered: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """#(ordered[c] < x[c, k]) for sorted rows `ordered` (cols, rows) and values `x` (cols, k)."""
+    if ordered.shape[1] <= 512:
+        return (ordered[:, None, :] < x[:, :, None]).sum(axis=2)
+    return np.stack([np.searchsorted(row, xs) for row, xs in zip(ordered, x, strict=True)])
+
+
+def _edges_at_most(v: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """#(edges <= v) per column: the index of v's bin plus one (bins [e_i, e_i+1), the last closed)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        guess = np.floor(
+            (v - start[:, None]).astype(np.float64) / ((stop - start) / NUM_BINS)[:, None].astype(np.float64)
+        )
+    m = np.clip(np.nan_to_num(guess, nan=NUM_BINS, posinf=NUM_BINS), 0, NUM_BINS).astype(np.int64) + 1
+    while True:  # the guess is off by rounding only: each pass moves it one edge closer, if at all
+        down = (m > 0) & (_edge_at(np.maximum(m - 1, 0), start, stop) > v)
+        up = (m <= NUM_BINS) & (_edge_at(np.minimum(m, NUM_BINS), start, stop) <= v)
+        if not (down.any() or up.any()):
+            return m
+        m = m - down + up
+
+
+def _quantiles(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """lerobot's histogram quantiles of each column of `columns` (rows, cols), in the edge dtype.
+
+    Returns the values (len(QUANTILES), cols), float64, and a mask of the entries that lerobot
+    returns as a bare bin edge (the first bin), which keep the edge dtype.
+    """
+    rows = columns.shape[0]
+    ordered = np.sort(columns.T, axis=1)  # (cols, rows)
+    start, stop = ordered[:, 0] - _PAD, ordered[:, -1] + _PAD
+    targets = np.array([q * rows for q in QUANTILES])
+    # The first bin whose cumulative count reaches a target holds the value of rank ceil(target)
+    # (histogram counts are integers).
+    at_rank = ordered[:, [math.ceil(t) - 1 for t in targets]]  # (cols, quantiles)
+    idx = np.minimum(_edges_at_most(at_rank, start, stop) - 1, NUM_BINS - 1)
+    lo, hi = _edge_at(idx, start, stop), _edge_at(idx + 1, start, stop)
+    below = _count_below(ordered, lo)  # the histogram's cumsum[idx - 1]
+    through = np.where(idx < NUM_BINS - 1, _count_below(ordered, hi), rows)  # cumsum[idx]
+    first = idx == 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fraction = (targets[None, :] - below) / (through - below)
+    values = lo.astype(np.float64) + fraction * (hi - lo).astype(np.float64)
+    values[first] = lo[first]
+    return values.T, first.T
+
+
+def _batch_stats(batches: list[np.ndarray], counts: list[int]) -> list[Stats]:
+    """`get_feature_stats`' statistics of each 2-D batch (RunningQuantileStats over its rows),
+    reporting `counts` as the sample counts, in lerobot's key order.
+
+    Batches with the same edge dtype and row count share one sort.
+    """
+    out: list[Stats] = [_moments(b, n) for b, n in zip(batches, counts, strict=True)]
+    groups: dict[tuple[np.dtype, int], list[int]] = {}
+    for i, b in enumerate(batches):
+        groups.setdefault((_edge_dtype(b.dtype), b.shape[0]), []).append(i)
+    for (dtype, _), members in groups.items():
+        values, first = _quantiles(np.concatenate([batches[i].astype(dtype, copy=False) for i in members], axis=1))
+        start = 0
+        for i in members:
+            width = batches[i].shape[1]
+            v, f = values[:, start : start + width], first[:, start : start + width]
+            start += width
+            for k, key in enumerate(QUANTILE_KEYS):
+                # lerobot builds each quantile with np.array(list of scalars): float32 only when
+                # every entry is a bare float32 edge.
+                out[i][key] = v[k].astype(np.float32) if dtype == np.float32 and f[k].all() else v[k]
+    return out
+
+
+def feature_stats(data: np.ndarray) -> Stats:
+    """lerobot's `get_feature_stats(data, axis=0, keepdims=data.ndim == 1)` (one numeric column)."""
+    return numeric_stats({"x": data})["x"]
+
+
+def numeric_stats(columns: dict[str, np.ndarray]) -> dict[str, Stats]:
+    """lerobot's `compute_episode_stats` for numeric per-frame columns (1-D or (frames, ...))."""
+    stats: dict[str, Stats] = {}
+    keys, batches = [], []
+    for key, data in columns.items():
+        if data.shape[0] < 2:  # lerobot's own special case (no histogram); rare, so delegate
+            stats[key] = _lerobot_feature_stats(data, axis=0, keepdims=data.ndim == 1)
+            continue
+        keys.append(key)
+        batches.append(data.reshape(-1, 1) if data.ndim == 1 else data.reshape(-1, data.shape[-1]))
+    for key, batch_stats in zip(keys, _batch_stats(batches, [columns[k].shape[0] for k in keys]), strict=True):
+        stats[key] = batch_stats
+    return {key: stats[key] for key in columns}
+
+
+def image_stats(frames: np.ndarray) -> Stats:
+    """lerobot's image statistics (`sample_images` + `get_feature_stats` over (0, 2, 3), divided
+    by 255) from in-memory (frames, H, W, C) uint8 frames: sampled and downscaled as lerobot does."""
+    from lerobot.datasets.compute_stats import auto_downsample_height_width, sample_indices
+
+    sampled = np.stack(
+        [auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))]
+    )
+    pixels = sampled.transpose(0, 2, 3, 1).reshape(-1, sampled.shape[1])
+    if pixels.shape[0] < 2:
+        stats = _lerobot_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)
+    else:
+        stats = _batch_stats([pixels], [sampled.shape[0]])[0]
+        stats = {k: v if k == "count" else v.reshape(1, -1, 1, 1) for k, v in stats.items()}
+    return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
+
+
+def _lerobot_feature_stats(data: np.ndarray, **kwargs: Any) -> Stats:
+    from lerobot.datasets.compute_stats import get_feature_stats
+
+    with warnings.catch_warnings():
+        # lerobot's histogram code warns for every bool feature (e.g. next.success).
+        warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
+        return get_feature_stats(data, **kwargs)
+
+
+class RunningStats:
+    """Dataset statistics updated episode by episode exactly as lerobot's writer does
+    (`stats = aggregate_stats([stats, episode_stats])` after each episode), each step's arithmetic
+    done once over the values of all features laid end to end instead of feature by feature.
+
+    It is `aggregate_feature_stats`' arithmetic for two inputs, in the same order and precision
+    (float32 statistics are squared before being widened, as numpy does there), so the values are
+    lerobot's. Every episode must have the same features (the writer's do).
+    """
+
+    def __init__(self) -> None:
+        self._first: dict[str, Stats] | None = None  # the statistics while there is one episode
+        self._keys: list[str] = []
+        self._shapes: list[tuple[int, ...]] = []
+        self._sizes = np.zeros(0, dtype=np.int64)  # values per feature
+        self._count = np.zeros(0, dtype=np.int64)  # samples per feature
+        # mean, std, var (what lerobot's next `std ** 2` evaluates to) and quantiles, float64
+        self._flat: dict[str, np.ndarray] = {}
+        self._min: list[np.ndarray] = []
+        self._max: list[np.ndarray] = []
+
+    def add(self, stats: dict[str, Stats]) -> None:
+        if self._first is None and not self._keys:
+            self._first = stats
+            return
+        if self._first is not None:
+            self._start(self._first)
+            self._first = None
+        if list(stats) != self._keys:
+            raise ValueError(f"episode statistics have features {list(stats)}, earlier ones {self._keys}")
+        old, new = self._flat, self._flatten(stats)
+        count = np.array([int(stats[k]["count"][0]) for k in self._keys])
+        total = self._count + count
+        c0, c1, t = (np.repeat(c, self._sizes) for c in (self._count, count, total))
+        mean = (old["mean"] * c0 + new["mean"] * c1) / t
+        var = ((old["var"] + (old["mean"] - mean) ** 2) * c0 + (new["var"] + (new["mean"] - mean) ** 2) * c1) / t
+        std = np.sqrt(var)
+        self._flat = {"mean": mean, "std": std, "var": std**2}
+        self._flat.update({q: (old[q] * c0 + new[q] * c1) / t for q in QUANTILE_KEYS})
+        self._count = total
+        for i, key in enumerate(self._keys):
+            self._min[i] = np.minimum(self._min[i], stats[key]["min"])
+            self._max[i] = np.maximum(self._max[i], stats[key]["max"])
+
+    def _start(self, first: dict[str, Stats]) -> None:
+        self._keys = list(first)
+        self._shapes = [np.shape(first[k]["mean"]) for k in self._keys]
+        self._sizes = np.array([int(np.prod(shape)) for shape in self._shapes], dtype=np.int64)
+        self._count = np.array([int(first[k]["count"][0]) for k in self._keys])
+        self._flat = self._flatten(first)
+        self._min = [first[k]["min"] for k in self._keys]
+        self._max = [first[k]["max"] for k in self._keys]
+
+    def _flatten(self, stats: dict[str, Stats]) -> dict[str, np.ndarray]:
+        def cat(values: list[np.ndarray]) -> np.ndarray:
+            return np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in values])
+
+        flat = {"mean": cat([stats[k]["mean"] for k in self._keys])}
+        flat["var"] = cat([stats[k]["std"] ** 2 for k in self._keys])  # squared in the stats' own dtype
+        flat.update({q: cat([stats[k][q] for k in self._keys]) for q in QUANTILE_KEYS})
+        return flat
+
+    def result(self) -> dict[str, Stats] | None:
+        """The statistics so far in lerobot's layout (None before the first episode)."""
+        if not self._keys:
+            return self._first
+        bounds = np.concatenate([[0], np.cumsum(self._sizes)])
+        out: dict[str, Stats] = {}
+        for i, key in enumerate(self._keys):
+            part = {name: v[bounds[i] : bounds[i + 1]].reshape(self._shapes[i]) for name, v in self._flat.items()}
+            out[key] = {
+                "min": self._min[i],
+                "max": self._max[i],
+                "mean": part["mean"],
+                "std": part["std"],
+                "count": self._count[i : i + 1].copy(),
+                **{q: part[q] for q in QUANTILE_KEYS},
+            }
+        return out

@@ -1,0 +1,143 @@
+"""shiftkit's episode statistics equal lerobot's, value for value and dtype for dtype."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from lerobot.datasets import compute_stats as lerobot_stats
+
+from shiftkit.pipelines.stats import (
+    NUM_BINS,
+    QUANTILE_KEYS,
+    QUANTILES,
+    RunningStats,
+    feature_stats,
+    image_stats,
+    numeric_stats,
+)
+
+
+def assert_same(ours: dict, ref: dict) -> None:
+    assert list(ours) == list(ref)  # key order fixes the episodes-parquet column order
+    for key in ref:
+        assert ours[key].dtype == ref[key].dtype, key
+        assert ours[key].shape == ref[key].shape, key
+        np.testing.assert_array_equal(ours[key], ref[key], err_msg=key)
+        if ref[key].dtype.kind == "f":
+            np.testing.assert_array_equal(np.signbit(ours[key]), np.signbit(ref[key]), err_msg=key)
+
+
+def lerobot_feature_stats(data: np.ndarray) -> dict:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return lerobot_stats.get_feature_stats(data, axis=0, keepdims=data.ndim == 1)
+
+
+def lerobot_image_stats(frames: np.ndarray) -> dict:
+    """lerobot's `sample_images` + `get_feature_stats` path, on frames held in memory."""
+    sampled = np.stack(
+        [
+            lerobot_stats.auto_downsample_height_width(frames[i].transpose(2, 0, 1))
+            for i in lerobot_stats.sample_indices(len(frames))
+        ]
+    )
+    stats = lerobot_stats.get_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)
+    return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
+
+
+def test_constants_are_lerobots():
+    assert list(QUANTILES) == lerobot_stats.DEFAULT_QUANTILES
+    assert lerobot_stats.RunningQuantileStats()._num_quantile_bins == NUM_BINS
+    assert list(QUANTILE_KEYS) == lerobot_stats.RunningQuantileStats()._quantile_keys
+
+
+def _cases(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    return {
+        "float32 vector": rng.normal(size=(n, 8)).astype(np.float32),
+        "float64 scalar": rng.normal(size=n),
+        "int64 few values": rng.integers(-5, 5, size=(n, 3)),
+        "bool column": (np.arange(n) >= n - 2).reshape(n, 1),
+        "bool 1-D": np.arange(n) >= n - 2,
+        "constant float32": np.full((n, 2), 0.3, np.float32),
+        "constant int64": np.full(n, 7, np.int64),
+        "index": np.arange(n, dtype=np.int64),
+        "negative zeros": np.full(n, -0.0),
+        "negative zeros 2-D": np.full((n, 2), -0.0, np.float32),
+        "ties float32": rng.integers(0, 3, size=(n, 4)).astype(np.float32),
+        "3-D": rng.normal(size=(n, 2, 3)).astype(np.float32),
+        "tiny range": (rng.normal(size=(n, 3)) * 1e-30).astype(np.float32),
+        "timestamps": np.arange(n) / 20.0,
+        "uint8": rng.integers(0, 255, size=(n, 5), dtype=np.uint8),
+        "int32": rng.integers(0, 2, size=(n, 1)).astype(np.int32),
+    }
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 40, 101, 1500])
+def test_feature_stats_equal_lerobot(n):
+    for name, data in _cases(n, np.random.default_rng(n)).items():
+        try:
+            assert_same(feature_stats(data), lerobot_feature_stats(data))
+        except AssertionError as exc:
+            raise AssertionError(f"{name}: {exc}") from None
+
+
+def test_numeric_stats_equal_compute_episode_stats():
+    """Columns of one dtype are sorted together; every column's values stay its own."""
+    columns = _cases(40, np.random.default_rng(7))
+    features = {k: {"dtype": str(v.dtype), "shape": v.shape[1:]} for k, v in columns.items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = lerobot_stats.compute_episode_stats(columns, features)
+    ours = numeric_stats(columns)
+    assert list(ours) == list(ref)
+    for key in ref:
+        assert_same(ours[key], ref[key])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(2, 60),
+    dim=st.integers(1, 4),
+    dtype=st.sampled_from(["float32", "float64", "int64", "bool"]),
+    levels=st.integers(1, 1000),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_feature_stats_equal_lerobot_property(n, dim, dtype, levels, seed):
+    """Random shapes, dtypes and numbers of distinct values (ties land on bin edges)."""
+    rng = np.random.default_rng(seed)
+    data = (rng.integers(0, levels, size=(n, dim)) * rng.normal()).astype(dtype)
+    assert_same(feature_stats(data), lerobot_feature_stats(data))
+
+
+@pytest.mark.parametrize("shape", [(1, 4, 4, 3), (7, 6, 8, 3), (40, 48, 64, 3), (3, 320, 240, 3)])
+def test_image_stats_equal_lerobot(shape):
+    """Sampled and downscaled frames as lerobot does (shape (3, 1, 1), divided by 255)."""
+    frames = np.random.default_rng(0).integers(0, 255, size=shape, dtype=np.uint8)
+    assert_same(image_stats(frames), lerobot_image_stats(frames))
+    dark = np.zeros(shape, np.uint8)
+    assert_same(image_stats(dark), lerobot_image_stats(dark))
+
+
+def test_running_stats_equal_lerobots_pairwise_aggregation():
+    """The writer's dataset statistics: aggregate_stats([stats, episode]) after every episode."""
+    rng = np.random.default_rng(3)
+    episodes = []
+    for e in range(6):
+        n = 3 + 7 * e
+        columns = {k: v for k, v in _cases(n, rng).items() if k not in ("3-D", "uint8")}
+        stats = numeric_stats(columns)
+        stats["image"] = image_stats(rng.integers(0, 255, size=(n, 6, 8, 3), dtype=np.uint8))
+        episodes.append(stats)
+    running, ref = RunningStats(), None
+    assert running.result() is None
+    for k, stats in enumerate(episodes):
+        running.add(stats)
+        ref = stats if ref is None else lerobot_stats.aggregate_stats([ref, stats])
+        ours = running.result()
+        assert set(ours) == set(ref), k
+        for key in ref:
+            assert_same(ours[key], ref[key])
