@@ -136,15 +136,18 @@ def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> 
     family = env_family(config.env)
     state_idx, env_idx = family.state_indices, family.environment_state_indices
     record = family.rollout if config.expert == "scripted" else family.experts[config.expert]
-    env = make(
-        config.env,
-        config.task,
-        **config.env_kwargs,
-        control_hz=config.control_hz,
-        width=config.width,
-        height=config.height,
-        render_quality=config.render_quality,
-    )
+    try:
+        env = make(
+            config.env,
+            config.task,
+            **config.env_kwargs,
+            control_hz=config.control_hz,
+            width=config.width,
+            height=config.height,
+            render_quality=config.render_quality,
+        )
+    except TypeError as exc:  # a keyword the env's constructor does not take
+        raise ConfigError(f"--env-kwarg for {config.env}: {exc}") from None
     names = {
         "state": [family.observation_names[i] for i in state_idx],
         "environment_state": [family.observation_names[i] for i in env_idx],

@@ -68,6 +68,57 @@ CASES = {
         lambda t, r, d: ["collect", "--task", "lift", "--cameras", "x", "--out", str(t / "o")],
         2,
     ),
+    "collect height 0": (lambda t, r, d: ["collect", "--task", "lift", "--height", "0", "--out", str(t / "o")], 2),
+    "collect negative extra steps": (
+        lambda t, r, d: ["collect", "--task", "lift", "--extra-steps", "-1", "--out", str(t / "o")],
+        2,
+    ),
+    "collect control rate 7": (
+        lambda t, r, d: ["collect", "--task", "lift", "--control-hz", "7", "--out", str(t / "o")],
+        2,
+    ),
+    "collect unknown env": (lambda t, r, d: ["collect", "--env", "nope", "--task", "lift", "--out", str(t / "o")], 2),
+    "collect unknown task": (lambda t, r, d: ["collect", "--task", "fly", "--out", str(t / "o")], 2),
+    "collect unknown expert": (
+        lambda t, r, d: ["collect", "--task", "lift", "--expert", "x", "--out", str(t / "o")],
+        2,
+    ),
+    "collect both outputs": (
+        lambda t, r, d: [
+            "collect",
+            "--task",
+            "lift",
+            "--out",
+            str(t / "o"),
+            "--lerobot",
+            "me/x",
+            "--root",
+            str(t / "r"),
+        ],
+        2,
+    ),
+    "collect lerobot without root": (lambda t, r, d: ["collect", "--task", "lift", "--lerobot", "me/x"], 2),
+    "collect no output": (lambda t, r, d: ["collect", "--task", "lift"], 2),
+    "collect render quality": (lambda t, r, d: ["collect", "--task", "lift", "--render-quality", "x", "--out", "o"], 2),
+    "collect bad env kwarg": (lambda t, r, d: ["collect", "--task", "lift", "--env-kwarg", "novalue", "--out", "o"], 2),
+    "collect unknown env kwarg": (
+        lambda t, r, d: [
+            "collect",
+            "--task",
+            "lift",
+            "--env-kwarg",
+            "nope=1",
+            "--episodes",
+            "1",
+            "--out",
+            str(t / "o"),
+        ],
+        2,
+    ),
+    "collect episodes not a number": (
+        lambda t, r, d: ["collect", "--task", "lift", "--episodes", "x", "--out", "o"],
+        2,
+    ),
     # run / plan
     "run config missing": (lambda t, r, d: ["run", str(t / "nope.toml")], 2),
     "run config is a folder": (lambda t, r, d: ["run", str(t)], 2),
@@ -122,6 +173,132 @@ CASES = {
         lambda t, r, d: ["run", pipeline(t, raw_with(t, d, _json_edit("meta/info.json", fps="x")))],
         2,
     ),
+    "run unknown config suffix": (lambda t, r, d: ["run", str(_write(t / "p.txt", "x"))], 2),
+    "run invalid json": (lambda t, r, d: ["run", str(_write(t / "p.json", "{"))], 2),
+    "run invalid yaml": (lambda t, r, d: ["run", str(_write(t / "p.yaml", "a: [\n"))], 2),
+    "run yaml not a mapping": (lambda t, r, d: ["run", str(_write(t / "p.yaml", "- 1\n"))], 2),
+    "run json list": (lambda t, r, d: ["run", str(_write(t / "p.json", "[1, 2]"))], 2),
+    "run unknown top-level key": (lambda t, r, d: ["run", str(_write(t / "p.toml", "sed = 1\n" + _src(r)))], 2),
+    "run no sources": (
+        lambda t, r, d: ["run", str(_write(t / "p.json", '{"sources": [], "destination": {"root": "o"}}'))],
+        2,
+    ),
+    "run source with path and repo id": (
+        lambda t, r, d: [
+            "run",
+            str(_write(t / "p.toml", f'[[sources]]\npath = "{r}"\nrepo_id = "a/b"\n[destination]\nroot = "o"\n')),
+        ],
+        2,
+    ),
+    "run no destination": (lambda t, r, d: ["run", str(_write(t / "p.toml", f'[[sources]]\npath = "{r}"\n'))], 2),
+    "run destination root is a number": (
+        lambda t, r, d: ["run", str(_write(t / "p.toml", f'[[sources]]\npath = "{r}"\n[destination]\nroot = 5\n'))],
+        2,
+    ),
+    "run seed is text": (lambda t, r, d: ["run", pipeline(t, r, seed='"x"')], 2),
+    "run seed is a float": (lambda t, r, d: ["run", pipeline(t, r, seed="1.5")], 2),
+    "run stage unknown param": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "trim"\nparams = { nope = 1 }')],
+        2,
+    ),
+    "run stage param wrong type": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "subsample"\nparams = { every = "2" }')],
+        2,
+    ),
+    "run stage version mismatch": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "trim"\nversion = 99')],
+        2,
+    ),
+    "run subsample not dividing fps": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "subsample"\nparams = { every = 3 }')],
+        2,
+    ),
+    "run drop unknown feature": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "drop"\nparams = { features = ["nope"] }')],
+        2,
+    ),
+    "run cast to unknown dtype": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, r, extra='[[stages]]\nname = "cast"\nparams = { dtypes = { action = "x" } }'),
+        ],
+        2,
+    ),
+    "run every episode filtered out": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "filter"\nparams = { min_length = 999 }')],
+        2,
+    ),
+    "run push invalid repo id": (lambda t, r, d: ["run", pipeline(t, r), "--push", "bad id!!"], 2),
+    "run local executor with address": (lambda t, r, d: ["run", pipeline(t, r), "--address", "x"], 2),
+    "run workers not a number": (lambda t, r, d: ["run", pipeline(t, r), "--workers", "x"], 2),
+    "run raw version 2": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", version=2)))],
+        2,
+    ),
+    "run raw wrong format": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", format="x")))],
+        2,
+    ),
+    "run raw no episodes": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", episodes=[])))],
+        2,
+    ),
+    "run raw fps 0": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", fps=0)))], 2),
+    "run raw episode folder missing": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, lambda c: _rmtree(c / "episode_000002")))],
+        2,
+    ),
+    "run raw meta.json length wrong": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("episode_000001/meta.json", length=3)))],
+        2,
+    ),
+    "run raw meta.json truncated": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, lambda c: _truncate(c / "episode_000001/meta.json")))],
+        2,
+    ),
+    "run raw array truncated": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, r, lambda c: _truncate(c / "episode_000001/arrays/action.npy"))),
+        ],
+        2,
+    ),
+    "run raw action NaN": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _nan_action))], 2),
+    "run raw timestamps decreasing": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _reverse_time))], 2),
+    "run raw image missing": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, r, lambda c: next(c.glob("episode_000001/images/*/*.png")).unlink())),
+        ],
+        2,
+    ),
+    "run raw image garbage": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, r, lambda c: next(c.glob("episode_000001/images/*/*.png")).write_bytes(b"x"))),
+        ],
+        2,
+    ),
+    "run raw array with another width": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _wide_action))], 2),
+    "run lerobot codebase v2.1": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, d, _json_edit("meta/info.json", codebase_version="v2.1")))],
+        2,
+    ),
+    "run lerobot features not an object": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, d, _json_edit("meta/info.json", features=[1])))],
+        2,
+    ),
+    "run lerobot data file missing": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, d, lambda c: next(c.glob("data/*/*.parquet")).unlink()))],
+        2,
+    ),
+    "run lerobot episodes metadata garbage": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, d, lambda c: next(c.glob("meta/episodes/*/*.parquet")).write_bytes(b"x"))),
+        ],
+        2,
+    ),
     # info / validate
     "info raw folder": (lambda t, r, d: ["info", str(r)], 2),
     "validate raw folder": (lambda t, r, d: ["validate", str(r)], 2),
@@ -136,7 +313,74 @@ CASES = {
         lambda t, r, d: ["validate", "--deep", str(raw_with(t, d, _negate_stats))],
         2,
     ),
+    "validate stats.json missing": (
+        lambda t, r, d: ["validate", str(raw_with(t, d, lambda c: (c / "meta/stats.json").unlink()))],
+        2,
+    ),
+    "validate empty folder": (lambda t, r, d: ["validate", str(_mkdir(t / "e"))], 2),
+    "info invalid id": (lambda t, r, d: ["info", "a/b/c"], 2),
     # train / eval
+    "train bc batch size 0": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--batch-size", "0"],
+        2,
+    ),
+    "train bc ensemble 0": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--ensemble", "0"],
+        2,
+    ),
+    "train bc val fraction 2": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--val-fraction", "2"],
+        2,
+    ),
+    "train bc unknown input": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--inputs", "x"],
+        2,
+    ),
+    "train bc encoder weights missing": (
+        lambda t, r, d: [
+            "train",
+            "bc",
+            "--dataset",
+            str(d),
+            "--output",
+            str(t / "r"),
+            "--encoder",
+            "resnet18",
+            "--encoder-weights",
+            "nope.pt",
+        ],
+        2,
+    ),
+    "train bc steps 0": (
+        lambda t, r, d: [
+            "train",
+            "bc",
+            "--dataset",
+            str(d),
+            "--output",
+            str(t / "r"),
+            "--regime",
+            "fixed",
+            "--steps",
+            "0",
+        ],
+        2,
+    ),
+    "train bc device nope": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "r"), "--device", "nope"],
+        2,
+    ),
+    "train bc dataset missing": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(t / "none"), "--output", str(t / "r")],
+        2,
+    ),
+    "eval episodes 0": (lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--episodes", "0"], 2),
+    "eval policy not a run": (lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift"], 2),
+    "eval videos is a file": (
+        lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--videos", str(a_file(t))],
+        2,
+    ),
+    "eval out is a folder": (lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--out", str(t)], 2),
     "train bc raw folder": (lambda t, r, d: ["train", "bc", "--dataset", str(r), "--output", str(t / "run")], 2),
     "train bc id does not match root": (
         lambda t, r, d: ["train", "bc", "--dataset", "me/other", "--root", str(d), "--output", str(t / "run")],
@@ -173,6 +417,28 @@ CASES = {
         ],
         2,
     ),
+    "import vpace missing file": (
+        lambda t, r, d: ["import", "vpace", str(t / "none.gz"), "--repo-id", "me/x", "--root", str(t / "x")],
+        2,
+    ),
+    "import vpace not gzip": (
+        lambda t, r, d: [
+            "import",
+            "vpace",
+            str(_write(t / "3_lift.gz", "x")),
+            "--repo-id",
+            "me/x",
+            "--root",
+            str(t / "x"),
+        ],
+        2,
+    ),
+    "import vpace root exists": (
+        lambda t, r, d: ["import", "vpace", str(_buffer(t, pointer=0)), "--repo-id", "me/x", "--root", str(r)],
+        2,
+    ),
+    "push not a dataset": (lambda t, r, d: ["push", str(r), "--repo-id", "me/x"], 2),
+    "pull invalid id": (lambda t, r, d: ["pull", "bad id!!"], 2),
     "pull with HF_ENDPOINT=notaurl": (
         lambda t, r, d: _env(HF_ENDPOINT="notaurl", HF_HUB_OFFLINE="0") + ["pull", "me/x"],
         2,
@@ -195,6 +461,40 @@ def _copy(src: Path, dst: Path) -> Path:
 
     shutil.copytree(src, dst)
     return dst
+
+
+def _src(r: Path) -> str:
+    return f'[[sources]]\npath = "{r}"\n[destination]\nroot = "o"\n'
+
+
+def _rmtree(path: Path) -> None:
+    import shutil
+
+    shutil.rmtree(path)
+
+
+def _nan_action(root: Path) -> None:
+    import numpy as np
+
+    path = root / "episode_000001/arrays/action.npy"
+    a = np.load(path)
+    a[2, 0] = np.nan
+    np.save(path, a)
+
+
+def _reverse_time(root: Path) -> None:
+    import numpy as np
+
+    path = root / "episode_000001/arrays/timestamp.npy"
+    np.save(path, np.load(path)[::-1].copy())
+
+
+def _wide_action(root: Path) -> None:
+    import numpy as np
+
+    path = root / "episode_000002/arrays/action.npy"
+    a = np.load(path)
+    np.save(path, np.concatenate([a, a], axis=1))
 
 
 def _non_utf8_pipeline(t: Path, r: Path, dest: str = "out") -> str:
@@ -276,19 +576,24 @@ def test_bad_input_gives_one_line(name, tmp_path, rel_raw, rel_ds, monkeypatch):
     assert (tree_state(rel_raw), tree_state(rel_ds)) == before, f"{name} modified an input"
 
 
-def test_os_errors_are_one_line(tmp_path, rel_raw, monkeypatch):
-    """PermissionError / ENOSPC / NotADirectoryError anywhere under a command: one line naming path and cause."""
+OS_ERRORS = (
+    PermissionError(errno.EACCES, "Permission denied", "/x/locked"),
+    NotADirectoryError(errno.ENOTDIR, "Not a directory", "/x/file/sub"),
+    OSError(errno.EIO, "Input/output error", "/x/disk"),
+    OSError(errno.EROFS, "Read-only file system", "/x/ro"),
+)
+
+
+@pytest.mark.parametrize("exc", OS_ERRORS, ids=lambda e: e.strerror)
+def test_os_errors_are_one_line(exc, tmp_path, rel_raw, monkeypatch):
+    """An OSError on a user path anywhere under a command: one line naming the path and the cause
+    (as root, permissions cannot be taken away here, so the error is raised where the work dir is made)."""
     import shiftkit.pipelines.runner as runner
 
-    for exc in (
-        PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "x")),
-        OSError(errno.EIO, "Input/output error", str(tmp_path / "y")),
-    ):
+    def fail(*args, **kwargs):
+        raise exc
 
-        def fail(*args, exc=exc, **kwargs):
-            raise exc
-
-        monkeypatch.setattr(runner, "_prepare_work_dir", fail)
-        outcome = cli(["run", pipeline(tmp_path, rel_raw), "--no-progress"])
-        assert outcome.clean and outcome.code == 2, outcome
-        assert exc.strerror in outcome.error_line and exc.filename in outcome.error_line
+    monkeypatch.setattr(runner, "_prepare_work_dir", fail)
+    outcome = cli(["run", pipeline(tmp_path, rel_raw), "--no-progress"])
+    assert outcome.clean and outcome.code == 2, outcome
+    assert exc.strerror in outcome.error_line and exc.filename in outcome.error_line
