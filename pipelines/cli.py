@@ -59,6 +59,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def os_error_text(exc: OSError) -> str:
+    """One line naming the path(s) and the cause of an OSError."""
+    cause = exc.strerror or str(exc) or type(exc).__name__
+    paths = [
+        os.fsdecode(p) if isinstance(p, (str, bytes)) else str(p)
+        for p in (exc.filename, exc.filename2)
+        if p is not None
+    ]
+    named = " -> ".join(ascii(p)[1:-1] if not p.isprintable() else p for p in paths)
+    return f"{named}: {cause}" if named else cause
+
+
+def _fail(command: str, message: str) -> int:
+    # Paths with undecodable bytes (surrogate escapes) are shown escaped rather than crashing print.
+    line = " ".join(message.split("\n")).encode("utf-8", "backslashreplace").decode("utf-8")
+    print(f"shiftkit {command}: error: {line}", file=sys.stderr)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     parser = build_parser()
@@ -67,8 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._run(args) or 0)
     except ShiftkitError as exc:
-        print(f"shiftkit {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(args.command, str(exc))
+    except OSError as exc:  # a user path that cannot be read or written, or a full disk
+        return _fail(args.command, os_error_text(exc))
+    except UnicodeError as exc:  # a file name that is not valid in the file system's encoding
+        return _fail(args.command, f"a path or text is not valid here ({exc.reason})")
     except KeyboardInterrupt:
         print(f"shiftkit {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -68,6 +68,8 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if not self.sources:
             raise ValueError("at least one source is required")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
 
 
 def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConfig:
@@ -77,6 +79,8 @@ def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConf
         data = {**data, "sources": [data["source"]]}
         del data["source"]
     config = from_dict(PipelineConfig, data, where)
+    if not config.destination.root.strip():
+        raise ConfigError(f"{where}: destination root is empty; give the output dataset's folder")
     # Make relative paths relative to the config file, so a pipeline runs from any directory.
     for src in config.sources:
         if src.path is not None and not Path(src.path).is_absolute():
@@ -95,6 +99,8 @@ def read_config_file(path: str | Path, what: str = "pipeline config") -> Any:
         raise ConfigError(f"{what} not found: {path}") from None
     except IsADirectoryError:
         raise ConfigError(f"{what} is a directory: {path}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not UTF-8 text") from None
     suffix = path.suffix.lower()
     try:
         if suffix == ".toml":

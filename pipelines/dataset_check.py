@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, open_lerobot_dataset
 
 
@@ -17,7 +18,7 @@ def summarize(root: str | Path) -> dict[str, Any]:
     root = Path(root)
     reader = open_lerobot_dataset(root)
     stats_path = root / "meta" / "stats.json"
-    stats = json.loads(stats_path.read_text()) if stats_path.exists() else {}
+    stats = _read_stats(stats_path) if stats_path.exists() else {}
     prov_path = root / PROVENANCE_PATH
     return {
         "root": str(root),
@@ -37,7 +38,7 @@ def summarize(root: str | Path) -> dict[str, Any]:
             if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")
         },
         "cameras": {"cameras": reader.cameras["cameras"], "episodes": reader.cameras["episodes"]},
-        "provenance": json.loads(prov_path.read_text()) if prov_path.exists() else None,
+        "provenance": read_json_file(prov_path, "provenance") if prov_path.exists() else None,
     }
 
 
@@ -184,3 +185,52 @@ def check_lerobot_loads(root: Path) -> None:
         raise DatasetError(
             f"{root}: lerobot cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
         ) from None
+
+
+def recompute_stats(root: str | Path, rtol: float = 1e-3) -> int:
+    """Recompute mean/std/min/max of every numeric feature from the data files (streamed per
+    episode) and compare with meta/stats.json; raise DatasetError naming the first mismatch.
+    Returns how many features were checked."""
+    root = Path(root)
+    reader = open_lerobot_dataset(root)
+    stats = _read_stats(root / "meta" / "stats.json")
+    acc: dict[str, list] = {}  # key -> [count, sum, sum of squares, min, max]
+    for ep in reader.iter_episodes():
+        for key, arr in ep.frames.items():
+            ft = reader.features.get(key)
+            if ft is None or ft["dtype"] in ("image", "video", "string") or key not in stats:
+                continue
+            x = np.asarray(arr, dtype=np.float64).reshape(len(arr), -1)
+            a = acc.setdefault(key, [0, 0.0, 0.0, np.inf, -np.inf])
+            a[0] += len(x)
+            a[1] = a[1] + x.sum(0)
+            a[2] = a[2] + (x * x).sum(0)
+            a[3], a[4] = np.minimum(a[3], x.min(0)), np.maximum(a[4], x.max(0))
+    for key, (n, total, squares, lo, hi) in acc.items():
+        mean = total / n
+        std = np.sqrt(np.maximum(squares / n - mean * mean, 0.0))
+        computed = {"mean": mean, "std": std, "min": lo, "max": hi}
+        scale = np.maximum(np.abs(hi - lo), 1e-6)  # tolerance relative to the feature's range
+        for name, value in computed.items():
+            if name not in stats[key]:
+                continue
+            try:
+                recorded = np.asarray(stats[key][name], dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise DatasetError(f"{root}/meta/stats.json: {name} of {key!r} is not a list of numbers") from None
+            if recorded.shape != value.shape or not np.all(np.abs(recorded - value) <= rtol * scale + 1e-6):
+                raise DatasetError(
+                    f"{root}/meta/stats.json: {name} of {key!r} is {_short(recorded)}, the data gives {_short(value)}"
+                )
+    return len(acc)
+
+
+def _read_stats(path: Path) -> dict[str, dict[str, Any]]:
+    stats = read_json_file(path, "dataset statistics")
+    if not isinstance(stats, dict) or not all(isinstance(v, dict) for v in stats.values()):
+        raise DatasetError(f"{path}: expected an object of per-feature statistics")
+    return stats
+
+
+def _short(v: np.ndarray) -> str:
+    return "[" + ", ".join(f"{x:.4g}" for x in v[:4]) + (", ..." if v.size > 4 else "") + "]"

@@ -140,8 +140,10 @@ class ShardStep(PipelineStep):
         # packages (a plugin, a script's __main__) exist on Ray workers too.
         self.stage_classes = stage_classes
         self.write = write
+        self.main_pid = os.getpid()  # workers of a local pool exit when this process dies
 
     def run(self, data: Any = None, rank: int = 0, world_size: int = 1) -> Any:
+        runner.exit_with_parent(getattr(self, "main_pid", None))
         known = registered_stages()
         for cls in self.stage_classes:
             if cls.name not in known:

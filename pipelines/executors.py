@@ -9,6 +9,7 @@ writer pass; it is the default. `datatrove-local`, `ray` and `slurm` run on data
 from __future__ import annotations
 
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any, Protocol
@@ -54,7 +55,7 @@ class LocalExecutor:
         # spawn, not fork: stages may hold threads (torch, EGL) that do not survive a fork.
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(
-            self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config,)
+            self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config, os.getpid())
         ) as pool:
             futures = [pool.submit(runner.process_unit, unit) for unit in units]
             try:

@@ -35,5 +35,7 @@ def read_json_file(path: Path, missing: str) -> Any:
         raise DatasetError(f"{path} is missing ({missing})") from None
     except json.JSONDecodeError as exc:
         raise DatasetError(f"{path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not UTF-8 text") from None
     except OSError as exc:
         raise DatasetError(f"{path}: unreadable ({exc.strerror})") from None

@@ -115,7 +115,7 @@ class DatasetWriter:
         check_features(self.features, where=f"schema of {self.root}")
         self.fps = int(fps)
         self.repo_id = repo_id
-        self.tmp = self.root.parent / f".{self.root.name}.partial-{uuid.uuid4().hex[:8]}"
+        self.tmp = self.root.parent / f".{self.root.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         video_keys = [k for k, ft in self.features.items() if ft["dtype"] == "video"]  # pipelines/video.py
         try:
             self.root.parent.mkdir(parents=True, exist_ok=True)
@@ -329,7 +329,8 @@ def write_provenance(root: Path, provenance: dict[str, Any]) -> None:
     from shiftkit.cards import render_dataset_card
 
     (root / PROVENANCE_PATH).write_text(dumps(provenance, indent=2))
-    (root / "README.md").write_text(render_dataset_card(root, provenance))
+    # errors=: a source path that is not UTF-8 is shown escaped rather than failing the write.
+    (root / "README.md").write_text(render_dataset_card(root, provenance), errors="backslashreplace")
 
 
 # --------------------------------------------------------------------------- reading
@@ -486,6 +487,28 @@ def _decode_png(data: bytes, where: str) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def check_info_values(info: dict[str, Any], info_path: Path) -> None:
+    """The types of info.json values the reader relies on (a hand-edited file may be off)."""
+    fps = info["fps"]
+    if isinstance(fps, bool) or not isinstance(fps, int) or fps <= 0:
+        raise DatasetError(f"{info_path}: 'fps' must be a positive integer, got {fps!r}")
+    if not isinstance(info["data_path"], str) or (
+        "video_path" in info and info["video_path"] is not None and not isinstance(info["video_path"], str)
+    ):
+        raise DatasetError(f"{info_path}: 'data_path' / 'video_path' must be strings")
+    features = info["features"]
+    if not isinstance(features, dict) or not features:
+        raise DatasetError(f"{info_path}: 'features' must be a non-empty object")
+    for key, ft in features.items():
+        shape = ft.get("shape") if isinstance(ft, dict) else None
+        if (
+            not isinstance(ft.get("dtype") if isinstance(ft, dict) else None, str)
+            or not isinstance(shape, list | tuple)
+            or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
+        ):
+            raise DatasetError(f"{info_path}: feature {key!r} needs a 'dtype' string and a 'shape' list of sizes")
+
+
 def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     """Open a local LeRobot v3.0 dataset for streaming; one-line errors for broken metadata."""
     import pyarrow.parquet as pq
@@ -502,6 +525,7 @@ def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     for key in ("fps", "features", "data_path"):
         if key not in info:
             raise DatasetError(f"{info_path}: missing key {key!r}")
+    check_info_values(info, info_path)
     ep_files = sorted((root / "meta" / "episodes").glob("*/*.parquet"))
     if not ep_files:
         raise DatasetError(f"{root}/meta/episodes: no episode metadata files")
@@ -569,6 +593,17 @@ def find_local_dataset(ref: str | Path) -> Path | None:
     return None
 
 
+def _not_a_dataset(path: Path) -> str:
+    """Why `path` is not a LeRobot dataset, in words a user can act on."""
+    if (path / "dataset.json").is_file():
+        return f"{path} is a raw episode folder, not a LeRobot dataset: convert it with `shiftkit run` first"
+    if path.is_dir():
+        return f"{path} is not a LeRobot dataset: {path / 'meta' / 'info.json'} is missing"
+    if path.exists():
+        return f"{path} is a file, not a LeRobot dataset folder"
+    return f"dataset not found: {path} (neither a dataset directory nor an ORG/NAME id)"
+
+
 def resolve_dataset(ref: str, root: str | Path | None = None, revision: str | None = None) -> ResolvedDataset:
     """Find a dataset given a local path or a dataset ID.
 
@@ -577,14 +612,14 @@ def resolve_dataset(ref: str, root: str | Path | None = None, revision: str | No
     """
     if root is not None:
         if not (Path(root) / "meta" / "info.json").is_file():
-            raise DatasetError(f"no LeRobot dataset at {root} (meta/info.json missing)")
+            raise DatasetError(_not_a_dataset(Path(root)))
         return ResolvedDataset(ref, Path(root), revision, fingerprint(root))
     path = find_local_dataset(ref)
     if path is not None:
         repo_id = Path(ref).name if Path(ref).exists() else ref
         return ResolvedDataset(repo_id, path, revision, fingerprint(path))
     if Path(ref).exists() or ref.startswith((".", "/")) or ref.count("/") != 1:
-        raise DatasetError(f"dataset not found: {ref} (neither a dataset directory nor an ORG/NAME id)")
+        raise DatasetError(_not_a_dataset(Path(ref)))
     from shiftkit.pipelines import hub
 
     path = hub.pull_dataset(ref, revision=revision, root=lerobot_home() / ref)

@@ -10,12 +10,16 @@ directory is removed: the destination holds a complete dataset or nothing.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import logging
 import os
 import pickle
 import shutil
+import threading
+import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,6 +29,7 @@ import numpy as np
 
 from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.features import check_episode
 from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.stage import select_outputs
@@ -95,13 +100,35 @@ def work_dir_for(destination: Path) -> Path:
     return destination.parent / f".{destination.name}.shiftkit-work"
 
 
+def source_fingerprint(root: Path) -> str:
+    """What a source's files are now: every file's relative path, size and modification time, and
+    the bytes of its small JSON metadata. A source re-recorded or edited at the same path gets a
+    new fingerprint, so its old parts are never mixed with new episodes (a copy without preserved
+    times is merely redone)."""
+    h = hashlib.sha256()
+    for folder, dirs, files in os.walk(root):
+        dirs.sort()
+        for name in sorted(files):
+            path = Path(folder, name)
+            st = path.stat()
+            h.update(f"{path.relative_to(root)}\0{st.st_size}\0{st.st_mtime_ns}\0".encode("utf-8", "surrogateescape"))
+            if name.endswith(".json"):
+                h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _files_of(source: Any) -> str | None:
+    root = getattr(source, "root", None)
+    return source_fingerprint(Path(root)) if root is not None and Path(root).is_dir() else None
+
+
 def run_key(plan: Plan) -> str:
-    """Identifies the job: same config, same sources, same stage versions -> resumable parts."""
+    """Identifies the job: same config, same source contents, same stage versions -> resumable parts."""
     from shiftkit.pipelines.provenance import versions
 
     doc = {
         "pipeline": asdict(plan.config),
-        "sources": [s.describe() for s in plan.sources],
+        "sources": [{**s.describe(), "files": _files_of(s)} for s in plan.sources],
         "stages": [s.describe() for s in plan.stages],
         "versions": versions(),
     }
@@ -129,11 +156,29 @@ def transform_episode(plan: Plan, source: int, episode: Episode) -> list[Episode
     return current
 
 
+def exit_with_parent(main_pid: int | None, period: float = 1.0) -> None:
+    """In a worker process started by `main_pid`, end the worker when that process dies (even by
+    SIGKILL, which gives it no chance to stop its pool): a daemon thread watches the parent pid.
+    Nothing happens in the main process itself or in a worker someone else started (Ray)."""
+    parent = os.getppid()
+    if main_pid is None or os.getpid() == main_pid or parent != main_pid or _WORKER.get("watchdog"):
+        return
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="shiftkit-parent-watchdog", daemon=True).start()
+    _WORKER["watchdog"] = True
+
+
 # One plan per worker process: sources opened and stages set up once (SPEC §4).
 _WORKER: dict[str, Any] = {}
 
 
-def init_worker(config: PipelineConfig) -> Plan:
+def init_worker(config: PipelineConfig, main_pid: int | None = None) -> Plan:
+    exit_with_parent(main_pid)
     plan = plan_pipeline(config, check_destination=False)
     for stage in plan.stages:
         stage.setup()
@@ -168,15 +213,48 @@ def run_pipeline(
     executor: str = "local",
     executor_options: dict[str, Any] | None = None,
     progress: bool = True,
+    restart: bool = False,
 ) -> Path | None:
-    """Run the pipeline to completion (resuming earlier partial work) and return the dataset path,
-    or None when the executor handed the work to a scheduler (slurm): re-running then assembles."""
+    """Run the pipeline to completion (resuming earlier partial work unless `restart`) and return
+    the dataset path, or None when the executor handed the work to a scheduler (slurm): re-running
+    then assembles. One run at a time per destination (a lock beside the work directory)."""
     from shiftkit.pipelines.executors import get_executor
+    from shiftkit.pipelines.hub import validate_repo_id
 
     engine = get_executor(executor, workers, **(executor_options or {}))
+    if config.destination.repo_id is not None:
+        validate_repo_id(config.destination.repo_id)
     plan = plan_pipeline(config)
     dest = plan.destination
+    check_writable_name(dest)
     work = work_dir_for(dest)
+    with WorkLock(work):
+        if restart and work.exists():
+            shutil.rmtree(work)
+        try:
+            return _run_locked(config, plan, engine, work, progress)
+        except OSError as exc:
+            if exc.errno == errno.ENOSPC:
+                raise ShiftkitError(
+                    f"no space left on the device of {work.parent}: the work directory {work} holds "
+                    f"{_size_text(work)}; free space and re-run to resume, or re-run with --restart to discard it"
+                ) from None
+            raise
+
+
+def check_writable_name(dest: Path) -> None:
+    """LeRobot's parquet writer (pyarrow) takes UTF-8 paths only: refuse others before any work."""
+    try:
+        str(dest).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = str(dest).encode("utf-8", "backslashreplace").decode()
+        raise ShiftkitError(
+            f"destination {shown} is not a UTF-8 path; LeRobot datasets can only be written to UTF-8 paths"
+        ) from None
+
+
+def _run_locked(config: PipelineConfig, plan: Plan, engine: Any, work: Path, progress: bool) -> Path | None:
+    dest = plan.destination
     key = run_key(plan)
     _prepare_work_dir(work, key, dest)
     parts = PartStore(work)
@@ -186,11 +264,17 @@ def run_pipeline(
         logging.getLogger("shiftkit").warning(
             "resuming: %d of %d source episodes were already transformed", done, plan.num_source_episodes
         )
-    with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
-        if not engine.run(plan, units, parts, bar):
-            return None
-    with _progress(plan.num_source_episodes, 0, "write", progress) as bar:
-        path = engine.assemble(plan, parts, bar)
+    try:
+        with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
+            if not engine.run(plan, units, parts, bar):
+                return None
+        with _progress(plan.num_source_episodes, 0, "write", progress) as bar:
+            path = engine.assemble(plan, parts, bar)
+    except ShiftkitError:
+        # A problem with the data or config itself (e.g. every episode filtered out): re-running the
+        # same job fails the same way and a changed one has another key, so nothing is resumable.
+        shutil.rmtree(work, ignore_errors=True)
+        raise
     shutil.rmtree(work, ignore_errors=True)
     if config.destination.push:
         from shiftkit.pipelines import hub
@@ -241,6 +325,60 @@ def _prepare_work_dir(work: Path, key: str, dest: Path) -> None:
     key_file.write_text(key)
     for tmp in (work / "parts").glob("*.tmp-*"):
         tmp.unlink()
+
+
+def _size_text(folder: Path) -> str:
+    total = 0
+    for dirpath, _, files in os.walk(folder):
+        for name in files:
+            with contextlib.suppress(OSError):  # removed meanwhile
+                total += os.lstat(os.path.join(dirpath, name)).st_size
+    return f"{total / 1e6:.1f} MB"
+
+
+class WorkLock:
+    """An exclusive lock on a work directory (`<work>.lock`, flock'ed, holding the owner's pid).
+
+    The kernel drops the flock when its owner dies, so the lock of a killed run is simply taken
+    over; a second live run on the same destination gets a one-line error naming the first."""
+
+    def __init__(self, work: Path) -> None:
+        self.path = work.with_name(work.name + ".lock")
+        self._fd: int | None = None
+
+    def __enter__(self) -> WorkLock:
+        import fcntl
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                owner = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+                os.close(fd)
+                raise ShiftkitError(
+                    f"another shiftkit run (pid {owner}) is writing this destination (lock {self.path}); "
+                    "wait for it to finish or stop it"
+                ) from None
+            # The file may have been removed by the previous owner between open and flock.
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._fd is not None:
+            self.path.unlink(missing_ok=True)
+            os.close(self._fd)
+            self._fd = None
 
 
 class _progress:

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from tqdm import tqdm
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.policies.data import FrameTable, Prefetcher, batches_per_epoch, epoch_batches, open_datasets
@@ -359,9 +360,29 @@ def _merged_stats(datasets: list, keys: list[str]) -> dict[str, dict[str, list]]
     return out
 
 
-def train(args: BCArgs) -> dict:
-    """Train (or resume) a BC ensemble; returns the final metrics written to the model card."""
+def check_root_id(ref: str, root: str | None) -> None:
+    """`--dataset ID --root DIR`: the folder must hold that dataset (by the ID its provenance
+    records), else the run would record an ID it did not train on."""
+    import json
+
+    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+
+    if root is None:
+        return
+    try:
+        recorded = json.loads((Path(root) / PROVENANCE_PATH).read_text())["output"]["repo_id"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return  # not made by shiftkit: nothing recorded to compare with
+    if recorded != ref:
+        raise ConfigError(f"--dataset {ref} but {root} holds {recorded}: give --dataset {recorded} (or omit --root)")
+
+
+def train(args: BCArgs, progress: bool = False) -> dict:
+    """Train (or resume) a BC ensemble; returns the final metrics written to the model card.
+    `progress` shows a bar with the training loss (its total is the step budget: early stopping
+    may end sooner)."""
     args = args.resolved()
+    check_root_id(args.datasets[0], args.root)
     run = RunDir(args.output_dir, args.resume)
     device = torch_device(args.device)
     if args.threads is not None:
@@ -471,7 +492,8 @@ def train(args: BCArgs) -> dict:
     # --- the loop: every step updates each still-active member on its own batch ---
     policy.train()
     started, start_step = time.perf_counter(), step
-    with Prefetcher(table, step_rows(step), pin=device.type == "cuda") as batches:
+    bar = tqdm(total=int(total_steps), initial=step, desc="train bc", unit="step", disable=not progress, leave=False)
+    with bar, Prefetcher(table, step_rows(step), pin=device.type == "cuda") as batches:
         for batch in batches:
             batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
             lr = args.lr * (0.5 if args.regime == "fixed" and step >= total_steps // 2 else 1.0)
@@ -481,6 +503,7 @@ def train(args: BCArgs) -> dict:
                     loss_sum[m] += loss
                     loss_count[m] += 1
             step += 1
+            bar.update(1)
 
             if step % args.log_every == 0:
                 trained = loss_count > 0
@@ -495,6 +518,7 @@ def train(args: BCArgs) -> dict:
                     lr=lr,
                     steps_per_s=(step - start_step) / (time.perf_counter() - started),
                 )
+                bar.set_postfix(loss=f"{(loss_sum[trained] / loss_count[trained]).mean().item():.4g}")
                 loss_sum, loss_count = torch.zeros(M), torch.zeros(M)
             if step % per_epoch == 0 and val_batches:
                 losses = val_losses()

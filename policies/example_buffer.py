@@ -12,12 +12,14 @@ vary (std 0) stay exact.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, ResolvedDataset
 from shiftkit.policies.data import numeric_column, open_datasets
 
 STATE_KEYS = ("observation.state", "observation.environment_state")
@@ -46,19 +48,46 @@ def _column_order(dataset, keys: list[str], observation_names: list[str] | None,
     return np.asarray([index[n] for n in observation_names])
 
 
+def check_example_set(ref: str, root: Path, dataset) -> None:
+    """Refuse to take every frame of a trajectory dataset as a success example: an example set is
+    made by the `success_examples` stage, imported as one (`import vpace`, kind examples), or holds
+    states only (no `action`)."""
+    if "action" not in dataset.features:
+        return
+    try:
+        provenance = json.loads((Path(root) / PROVENANCE_PATH).read_text())
+    except (OSError, ValueError):
+        provenance = {}
+    stages = [s.get("name") for s in provenance.get("stages") or [] if isinstance(s, dict)]
+    importer = provenance.get("importer") or {}
+    if "success_examples" in stages or (isinstance(importer, dict) and importer.get("kind") == "examples"):
+        return
+    raise DatasetError(
+        f"{ref} holds trajectories ({dataset.meta.total_episodes} episodes with actions), not a success-example set: "
+        "make one with the success_examples stage, or pass --frames-as-examples to use all its frames"
+    )
+
+
 def load_dataset_examples(
-    refs: list[str], tasks: list[str], with_actions: bool = False, observation_names: list[str] | None = None
+    refs: list[str],
+    tasks: list[str],
+    with_actions: bool = False,
+    observation_names: list[str] | None = None,
+    require_example_set: bool = False,
 ) -> tuple[dict[str, TaskExamples], list[ResolvedDataset]]:
     """Collect each task's frames from LeRobot datasets, keyed by the frame's `task` string.
 
     With `with_actions` (LfGP), frames keep their actions and every episode's final state is added once
     more with a zero action, the `(s_T, 0)` pair that marks the end of a demonstration. Given the
-    env's `observation_names`, state columns are put in that order by their dimension names.
+    env's `observation_names`, state columns are put in that order by their dimension names. With
+    `require_example_set`, each dataset must be an example set (`check_example_set`).
     """
     obs_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
     act_parts: dict[str, list[np.ndarray]] = {t: [] for t in tasks}
     opened = open_datasets(refs)
-    for ref, (_, dataset) in zip(refs, opened, strict=True):
+    for ref, (resolved, dataset) in zip(refs, opened, strict=True):
+        if require_example_set:
+            check_example_set(ref, resolved.root, dataset)
         keys = [k for k in STATE_KEYS if k in dataset.features]
         if "observation.state" not in keys:
             raise DatasetError(f"example dataset {ref!r} has no 'observation.state' feature")

@@ -78,6 +78,8 @@ class VPACEArgs:
     """VP weight lambda; 0 turns value penalization off."""
     full_trajectories: bool = False
     """LfGP: examples are expert trajectories with actions; DAC on (s, a); critic on buffer data only."""
+    frames_as_examples: bool = False
+    """Use every frame of an `examples` dataset as a success example even if it holds trajectories."""
     examples_per_task: int | None = None
     """Use at most this many examples per task (thesis: 200 in simulation); None uses all."""
     aug_factor: float = 0.1
@@ -449,6 +451,7 @@ def train(
             tasks,
             with_actions=args.full_trajectories,
             observation_names=list(names) if names is not None else None,
+            require_example_set=not (args.full_trajectories or args.frames_as_examples),
         )
     missing = [t for t in tasks if t not in examples]
     if missing:

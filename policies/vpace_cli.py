@@ -25,6 +25,7 @@ _SPECIAL = {
     "output_dir",
     "torch_threads",
     "resume",
+    "frames_as_examples",
 }
 
 
@@ -94,6 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--threads", dest="torch_threads", type=int, default=None, help=docs["torch_threads"])
     p.add_argument("--resume", action="store_true", help=docs["resume"])
+    p.add_argument("--frames-as-examples", action="store_true", default=None, help=docs["frames_as_examples"])
     for f in dataclasses.fields(VPACEArgs):
         if f.name in _SPECIAL or f.name in ("env", "main_task"):
             continue

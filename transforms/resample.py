@@ -3,7 +3,8 @@
 Irregular recorder timestamps (real teleop logs) are mapped onto `k / fps` for every grid time
 inside the recording. Float features are linearly interpolated; integer, bool, string and image
 features take the nearest earlier-or-equal frame (interpolating a gripper command or an image
-would invent values that never happened).
+would invent values that never happened). `next.success` / `next.done` are OR-ed over the frames
+a grid frame stands for, so downsampling never drops a success.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms.episode_events import or_events
 
 
 @dataclass
@@ -34,7 +36,7 @@ class ResampleConfig:
 @register_stage
 class Resample(Stage):
     name = "resample"
-    version = 1
+    version = 2  # v2: episode events OR-ed over the dropped frames
     Config = ResampleConfig
 
     def transform_fps(self, fps: int) -> int:
@@ -58,6 +60,7 @@ class Resample(Stage):
                 frames[key] = np.stack(cols, axis=1).reshape((len(grid), *arr.shape[1:])).astype(arr.dtype)
             else:
                 frames[key] = arr[prev]
+        or_events(episode.frames, frames, prev)
         frames["timestamp"] = grid
         meta = dict(episode.meta)
         if "segments" in meta:

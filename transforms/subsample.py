@@ -1,4 +1,7 @@
-"""`subsample`: keep every k-th frame; the dataset's fps becomes fps / k."""
+"""`subsample`: keep every k-th frame; the dataset's fps becomes fps / k.
+
+A kept frame stands for the frames up to the next kept one: `next.success` / `next.done` are OR-ed
+over that window, so an episode that ends in success still does."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms.episode_events import or_events
 
 
 @dataclass
@@ -28,7 +32,7 @@ class SubsampleConfig:
 @register_stage
 class Subsample(Stage):
     name = "subsample"
-    version = 1
+    version = 2  # v2: episode events OR-ed over the dropped frames
     Config = SubsampleConfig
 
     def transform_fps(self, fps: int) -> int:
@@ -43,6 +47,9 @@ class Subsample(Stage):
         if len(episode) <= self.config.offset:
             return
         out = episode.select(slice(self.config.offset, None, self.config.every))
+        starts = np.arange(self.config.offset, len(episode), self.config.every)
+        starts[0] = 0  # events before the first kept frame belong to it
+        or_events(episode.frames, out.frames, starts)
         out.frames["timestamp"] = np.arange(len(out), dtype=np.float64) / self.transform_fps(self.context.fps)
         if "segments" in out.meta:
             k, o = self.config.every, self.config.offset

@@ -40,6 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--render-quality", default="fast", choices=("fast", "full"), help="geometry shown")
     parser.add_argument("--extra-steps", type=int, default=0, help="frames kept after success (default: 0)")
     parser.add_argument("--only-successful", action="store_true", help="skip failed episodes")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +69,6 @@ def run(args: argparse.Namespace) -> int:
         env_kwargs=dict(args.env_kwarg),
         expert="kinesthetic" if args.kinesthetic else args.expert,
     )
-    path, counts = collect(config)
+    path, counts = collect(config, progress=not args.no_progress)
     print(f"wrote {counts['episodes']} episodes ({counts['successes']} successful) to {path}")
     return 0

@@ -48,7 +48,12 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {args.out}: a parent of it is a file, not a folder")
     if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
         raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
+    if args.seed < 0 or args.episodes < 1:
+        raise ConfigError(f"need --seed >= 0 and --episodes >= 1, got {args.seed} and {args.episodes}")
+    for folder in [Path(args.out).parent] if args.out else []:
+        _check_writable(folder, "--out")
     policy = load_policy(args.policy, device=args.device)
+    _warn_if_unfinished(Path(args.policy))
     env_kwargs = {**dict(args.env_kwarg), **({"control_hz": args.control_hz} if args.control_hz else {})}
     if args.yaw_sweep:
         from shiftkit.policies.run_dir import EVAL, run_folder
@@ -87,3 +92,32 @@ def run(args: argparse.Namespace) -> int:
         f"95% CI [{s['ci95'][0]:.1%}, {s['ci95'][1]:.1%}] (Wilson); results in {out}"
     )
     return 0
+
+
+def _check_writable(folder, flag: str) -> None:
+    """The nearest existing folder on the way to `folder` must take new files (tried, not guessed)."""
+    import tempfile
+
+    from shiftkit.pipelines.errors import ConfigError
+
+    existing = next(p for p in [folder, *folder.parents] if p.exists())
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{flag}: cannot write into {existing} ({exc.strerror})") from None
+
+
+def _warn_if_unfinished(policy) -> None:
+    """A run folder whose trainer never wrote its final metrics was stopped mid-training."""
+    import logging
+
+    from shiftkit.policies.run_dir import CARD_METRICS, RunDir
+
+    if policy.is_dir() and not (policy / CARD_METRICS).exists():
+        latest = RunDir(policy, resume=True).latest_checkpoint()
+        logging.getLogger("shiftkit").warning(
+            "warning: %s has not finished training (stopped or still running): evaluating %s, not the final policy",
+            policy,
+            latest.name if latest else "its latest checkpoint",
+        )

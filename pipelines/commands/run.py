@@ -20,6 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--partition", help="slurm: partition of the generated job array (required for slurm)")
     parser.add_argument("--time", help="slurm: time limit per array task (default 04:00:00)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--restart", action="store_true", help="discard the unfinished work of an earlier run instead of resuming it"
+    )
     parser.add_argument("--push", metavar="ORG/NAME", help="push the result to the hub under this dataset ID")
     parser.add_argument("--push-revision", metavar="BRANCH", help="hub branch for --push (default main)")
     parser.add_argument("--private", action="store_true", help="create the hub repository as private")
@@ -43,7 +46,12 @@ def run(args: argparse.Namespace) -> int:
         )
     options = {k: v for k in ("address", "partition", "time") if (v := getattr(args, k)) is not None}
     path = run_pipeline(
-        config, workers=args.workers, executor=args.executor, executor_options=options, progress=not args.no_progress
+        config,
+        workers=args.workers,
+        executor=args.executor,
+        executor_options=options,
+        progress=not args.no_progress,
+        restart=args.restart,
     )
     if path is None:  # handed to a scheduler; the executor said what to submit
         print(f"{config.destination.root} not written yet: run this command again when the job has finished")

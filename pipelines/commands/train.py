@@ -26,7 +26,12 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
         help="early-stop: 20%% hold-out, patience 30, max 200 epochs, Adam 1e-3; "
         "fixed: --steps (20000) with weight decay 0.1, lr 3e-4 halved midway",
     )
-    p.add_argument("--steps", type=int, help="gradient steps (fixed regime; an upper bound for early-stop)")
+    p.add_argument(
+        "--steps",
+        type=int,
+        help="gradient steps: exactly this many with --regime fixed (default 20000); with early-stop an upper "
+        "bound (default: --max-epochs epochs), training ends sooner once every member stops improving",
+    )
     p.add_argument("--max-epochs", type=int, default=200, help="early-stop: most epochs (default: 200)")
     p.add_argument("--patience", type=int, default=30, help="early-stop: epochs without improvement (default: 30)")
     p.add_argument("--batch-size", type=int, default=64, help="frames per step and member (default: 64)")
@@ -50,11 +55,19 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto, cpu or cuda (default: auto)")
     p.add_argument("--threads", type=int, help="CPU threads for torch (default: torch's; 1 suits busy machines)")
     p.add_argument("--resume", action="store_true", help="continue the run in --output from its last checkpoint")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _run_bc(args: argparse.Namespace) -> int:
     from shiftkit.policies.bc import BCArgs, train
 
+    if args.regime == "early-stop":
+        bound = (
+            f"at most {args.steps} steps or {args.max_epochs} epochs"
+            if args.steps
+            else f"at most {args.max_epochs} epochs"
+        )
+        print(f"early-stop: {bound}; ends sooner once every member has not improved for {args.patience} epochs")
     metrics = train(
         BCArgs(
             datasets=_csv(args.dataset),
@@ -80,7 +93,8 @@ def _run_bc(args: argparse.Namespace) -> int:
             device=args.device,
             threads=args.threads,
             resume=args.resume,
-        )
+        ),
+        progress=not args.no_progress,
     )
     shown = ", ".join(
         f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in metrics.items() if not isinstance(v, list)

@@ -10,6 +10,11 @@ HELP = "check a dataset end to end; exits non-zero naming the first problem"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", help="dataset directory or dataset ID")
     parser.add_argument("--revision", help="hub revision when the ID is pulled")
+    parser.add_argument(
+        "--deep",
+        action="store_true",
+        help="also recompute every numeric feature's statistics and compare with stats.json",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -18,7 +23,12 @@ def run(args: argparse.Namespace) -> int:
 
     resolved = resolve_dataset(args.dataset, revision=args.revision)
     counts = validate_dataset(resolved.root)
+    if args.deep:
+        from shiftkit.pipelines.dataset_check import recompute_stats
+
+        counts["stats"] = recompute_stats(resolved.root)
     for warning in counts["warnings"]:
         print(f"warning: {warning}")
-    print(f"ok: {resolved.root} ({counts['episodes']} episodes, {counts['frames']} frames)")
+    deep = f", statistics of {counts['stats']} features recomputed" if args.deep else ""
+    print(f"ok: {resolved.root} ({counts['episodes']} episodes, {counts['frames']} frames{deep})")
     return 0

@@ -121,6 +121,7 @@ def write_imported(
     robot_type: str | None,
     sources: list[dict[str, Any]],
     importer: dict[str, Any],
+    seed: int | None = None,
 ) -> tuple[int, int]:
     """The one path from imported episodes to a LeRobot dataset at `root`: repo id checked before
     anything is read, written atomically, provenance naming the inputs (with fingerprints) and the
@@ -141,7 +142,7 @@ def write_imported(
                 "sources": sources,
                 "stages": [],
                 "importer": importer,
-                "seed": None,
+                "seed": seed,
                 "output": {
                     "repo_id": repo_id,
                     "fps": fps,

@@ -100,7 +100,8 @@ class RawDatasetWriter:
         self.env = env
         self.names = {k: list(v) for k, v in (names or {}).items()}
         self.info = dict(info or {})
-        self._tmp = self.out_dir.parent / f".{self.out_dir.name}.partial-{uuid.uuid4().hex[:8]}"
+        # The pid names the writer, so a later run can tell a killed writer's leftovers from a live one.
+        self._tmp = self.out_dir.parent / f".{self.out_dir.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self._episodes: list[dict[str, Any]] = []
         self._layout: dict[str, Any] | None = None
 
@@ -163,7 +164,7 @@ class RawDatasetWriter:
             cam_dir = ep_dir / "images" / cam
             cam_dir.mkdir(parents=True)
             for t, frame in enumerate(frames):
-                cv2.imwrite(str(cam_dir / f"frame_{t:06d}.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+                _write_png(cam_dir / f"frame_{t:06d}.png", frame)
         for cam, d in depth.items():
             _check_name(cam, "camera")
             d = np.asarray(d, dtype=np.float32)
@@ -241,7 +242,7 @@ class RawDataset:
             name = path.stem
             if name == "timestamp":
                 continue
-            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+            arr = _load_npy(path, mmap=True)
             key = FEATURE_OF_ARRAY.get(name, name)
             dim = arr.shape[1] if arr.ndim == 2 else 1
             dims = (
@@ -256,7 +257,9 @@ class RawDataset:
             first = _read_png(cam_dir / "frame_000000.png")
             features[_camera_feature(cam_dir.name)] = image_feature(first.shape)
         for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
-            d = np.load(path, mmap_mode="r", allow_pickle=False)
+            d = _load_npy(path, mmap=True)
+            if d.ndim != 3:
+                raise DatasetError(f"{path}: depth must be (T, H, W), got {d.shape}")
             features[_depth_feature(path.stem)] = image_feature((d.shape[1], d.shape[2], 3))  # pipelines.depth
         return features
 
@@ -264,12 +267,11 @@ class RawDataset:
         ep = self.episode_dir(i)
         where = f"{ep}"
         meta = read_json_file(ep / "meta.json", "episode metadata")
+        if not isinstance(meta, dict):
+            raise DatasetError(f"{ep}/meta.json: expected an object")
         arrays: dict[str, np.ndarray] = {}
         for path in sorted((ep / "arrays").glob("*.npy")):
-            try:
-                arrays[path.stem] = np.load(path, allow_pickle=False)
-            except (ValueError, OSError, EOFError) as exc:
-                raise DatasetError(f"{path}: unreadable array ({exc})") from None
+            arrays[path.stem] = _load_npy(path)
         _validate_arrays(arrays, where)
         length = len(arrays["timestamp"])
         if meta.get("length", length) != length:
@@ -293,8 +295,8 @@ class RawDataset:
             merge_cameras(self.index.get("info", {}).get("cameras"), meta.get("cameras")), f"{where}/meta.json"
         )
         for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
-            d = np.load(path, allow_pickle=False).astype(np.float32)
-            if len(d) != length:
+            d = _load_npy(path).astype(np.float32)
+            if d.ndim != 3 or len(d) != length:
                 raise DatasetError(f"{path}: {len(d)} depth frames for {length} frames")
             # Metres become grey levels (what lerobot's tools accept); the encoding goes with the camera.
             encoding = depth_encoding(cameras, path.stem)
@@ -312,6 +314,15 @@ class RawDataset:
             yield self.read_episode(i)
 
 
+def _load_npy(path: Path, mmap: bool = False) -> np.ndarray:
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DatasetError(
+            f"{path}: unreadable array ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+        ) from None
+
+
 def _frame_tasks(meta: dict[str, Any], length: int, where: str) -> np.ndarray:
     """Per-frame task: the segment's task inside a labelled segment, else the episode's task."""
     tasks = np.full(length, meta["task"], dtype=object)
@@ -326,10 +337,28 @@ def _frame_tasks(meta: dict[str, Any], length: int, where: str) -> np.ndarray:
     return tasks.astype(str)
 
 
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    # Encoded in memory and written by Python: cv2's own file IO crashes on non-UTF-8 paths.
+    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise DatasetError(f"{path}: cannot encode image")
+    path.write_bytes(data.tobytes())
+
+
 def _read_png(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    try:
+        data = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+    except OSError as exc:
+        raise DatasetError(f"{path}: missing or unreadable image ({exc.strerror})") from None
+    img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         raise DatasetError(f"{path}: missing or unreadable image")
+    if img.dtype != np.uint8:
+        # Squashing 16-bit data to 8 bits would silently destroy it (12-bit frames turn black).
+        raise DatasetError(
+            f"{path}: {img.dtype.itemsize * 8}-bit image; raw camera frames must be 8-bit RGB PNGs "
+            "(store other data, e.g. 16-bit depth, as a .npy array)"
+        )
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
@@ -340,6 +369,8 @@ def open_raw_dataset(root: str | Path) -> RawDataset:
     if not root.is_dir():
         raise DatasetError(f"raw dataset not found: {root}")
     index = read_json_file(index_path, "not a shiftkit raw dataset")
+    if not isinstance(index, dict):
+        raise DatasetError(f"{index_path}: expected an object")
     if index.get("format") != FORMAT:
         raise DatasetError(f"{index_path}: format is {index.get('format')!r}, expected {FORMAT!r}")
     if index.get("version") != VERSION:
@@ -351,10 +382,25 @@ def open_raw_dataset(root: str | Path) -> RawDataset:
     episodes = index.get("episodes")
     if not isinstance(episodes, list) or not episodes:
         raise DatasetError(f"{index_path}: no episodes listed")
+    _check_index_types(index, index_path)
     for ep in episodes:
         if not (root / str(ep.get("name", ""))).is_dir():
             raise DatasetError(f"{index_path}: episode directory {ep.get('name')!r} is missing")
     return RawDataset(root, index)
+
+
+def _check_index_types(index: dict[str, Any], where: Path) -> None:
+    """The shapes of dataset.json values the reader relies on (a hand-edited index may be off)."""
+    for key, kind in (("names", dict), ("info", dict)):
+        if not isinstance(index.get(key, {}), kind):
+            raise DatasetError(f"{where}: {key!r} must be an object")
+    if not all(isinstance(v, list) for v in index.get("names", {}).values()):
+        raise DatasetError(f"{where}: every 'names' entry must be a list of dimension names")
+    if not isinstance(index.get("info", {}).get("cameras", {}), dict):
+        raise DatasetError(f"{where}: info 'cameras' must be an object")
+    for i, ep in enumerate(index["episodes"]):
+        if not isinstance(ep, dict) or not isinstance(ep.get("name"), str) or not ep["name"]:
+            raise DatasetError(f"{where}: episodes[{i}] must be an object with a 'name'")
 
 
 def is_raw_dataset(path: str | Path) -> bool:

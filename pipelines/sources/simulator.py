@@ -11,10 +11,12 @@ its registry entry says (panda-play: reference dims 0:12 + 53:59 and 12:53; docs
 
 from __future__ import annotations
 
+import glob
 import logging
+import os
 import shutil
-import tempfile
-from dataclasses import dataclass, field
+import uuid
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +83,20 @@ class CollectConfig:
         family = env_family(self.env)
         if self.episodes < 1:
             raise ConfigError(f"--episodes must be >= 1, got {self.episodes}")
+        if self.seed < 0:
+            raise ConfigError(f"--seed must be >= 0, got {self.seed}")
+        if self.width < 1 or self.height < 1:
+            raise ConfigError(f"--width and --height must be >= 1, got {self.width}x{self.height}")
+        if self.extra_steps < 0:
+            raise ConfigError(f"--extra-steps must be >= 0, got {self.extra_steps}")
+        if self.lerobot is not None:
+            from shiftkit.pipelines.hub import validate_repo_id
+
+            validate_repo_id(self.lerobot)
+        if self.root is not None:
+            from shiftkit.pipelines.runner import check_writable_name
+
+            check_writable_name(Path(self.root))
         if self.control_hz is None:
             self.control_hz = family.control_rates[0]
         if self.control_hz not in family.control_rates:
@@ -104,6 +120,9 @@ class CollectConfig:
             raise ConfigError(f"env {self.env} records no play episodes")
         if self.play and not self.sequence and self.task not in family.play_sequences:
             raise ConfigError(f"no play sequence for task {self.task!r}; known: {', '.join(family.play_sequences)}")
+        unknown = [t for t in self.sequence if t not in ENV_TASKS[self.env]]
+        if unknown:
+            raise ConfigError(f"unknown task {unknown[0]!r} in --sequence; known: {', '.join(ENV_TASKS[self.env])}")
         for cam in self.cameras:
             if cam not in family.cameras:
                 raise ConfigError(f"unknown camera {cam!r}; known: {', '.join(family.cameras)}")
@@ -111,7 +130,9 @@ class CollectConfig:
             raise ConfigError(f"render quality must be 'fast' or 'full', got {self.render_quality!r}")
 
 
-def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
+def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> dict[str, Any]:
+    from tqdm import tqdm
+
     from shiftkit.envs import env_family, make
     from shiftkit.envs.cameras import camera_intrinsics
     from shiftkit.pipelines.sources.raw import RawDatasetWriter
@@ -119,15 +140,18 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
     family = env_family(config.env)
     state_idx, env_idx = family.state_indices, family.environment_state_indices
     record = family.rollout if config.expert == "scripted" else family.experts[config.expert]
-    env = make(
-        config.env,
-        config.task,
-        **config.env_kwargs,
-        control_hz=config.control_hz,
-        width=config.width,
-        height=config.height,
-        render_quality=config.render_quality,
-    )
+    try:
+        env = make(
+            config.env,
+            config.task,
+            **config.env_kwargs,
+            control_hz=config.control_hz,
+            width=config.width,
+            height=config.height,
+            render_quality=config.render_quality,
+        )
+    except TypeError as exc:  # a keyword the env's constructor does not take
+        raise ConfigError(f"--env-kwarg for {config.env}: {exc}") from None
     names = {
         "state": [family.observation_names[i] for i in state_idx],
         "environment_state": [family.observation_names[i] for i in env_idx],
@@ -143,10 +167,17 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
     }
     counts = {"episodes": 0, "successes": 0, "skipped": 0}
     sequence = tuple(config.sequence) or family.play_sequences.get(config.task, ())
-    with RawDatasetWriter(
-        out_dir, fps=config.control_hz, robot=family.robot, env=config.env, names=names, info=info
-    ) as writer:
+    bar = tqdm(total=config.episodes, desc="collect", unit="ep", disable=not progress, leave=False)
+    with (
+        bar,
+        RawDatasetWriter(
+            out_dir, fps=config.control_hz, robot=family.robot, env=config.env, names=names, info=info
+        ) as writer,
+    ):
         for i in range(config.episodes):
+            if i:
+                bar.update(1)
+                bar.set_postfix(success=f"{(counts['successes']) / i:.0%}")
             seed = config.seed + i
             if config.play:
                 r = family.play_rollout(env, seed, sequence, cameras=config.cameras, depth=config.depth)
@@ -186,25 +217,67 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
             )
             counts["episodes"] += 1
             counts["successes"] += int(ok)
+            counts.setdefault("seeds", []).append(seed)
+        bar.update(1)
     env.close()
     if counts["episodes"] == 0:
         raise ShiftkitError("no episode was kept (all failed with --only-successful)")
     return counts
 
 
-def collect(config: CollectConfig) -> tuple[Path, dict[str, int]]:
-    """Record the episodes; returns the written directory and counts."""
+def collect(config: CollectConfig, progress: bool = False) -> tuple[Path, dict[str, Any]]:
+    """Record the episodes; returns the written directory and counts (`seeds`: those kept).
+    `progress` shows a bar with the success rate so far."""
     config.validate()
+    target = Path(config.out if config.out is not None else config.root)
+    remove_dead_leftovers(target)
     if config.out is not None:
-        out = Path(config.out)
-        return out, _write_raw(config, out)
-    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+        return target, _write_raw(config, target, progress)
+    from shiftkit.pipelines.features import plain_camera_features
+    from shiftkit.pipelines.sources import write_imported
+    from shiftkit.pipelines.sources.raw import RawSource
 
-    root = Path(config.root)
-    tmp = Path(tempfile.mkdtemp(prefix=".collect-", dir=root.parent if root.parent.exists() else None))
+    tmp = target.parent / f".{target.name}.collect-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir(parents=True)
     try:
         raw = tmp / "raw"
-        counts = _write_raw(config, raw)
-        return write_raw_as_lerobot(raw, config.lerobot, root, video=config.video), counts
+        counts = _write_raw(config, raw, progress)
+        source = RawSource(raw)
+        features = plain_camera_features(source.features, "video") if config.video else source.features
+        write_imported(
+            config.lerobot,
+            target,
+            source.fps,
+            features,
+            source.iter_episodes(list(range(source.num_episodes))),
+            robot_type=source.robot_type,
+            # What was recorded, not the temporary raw folder it passed through.
+            sources=[{"kind": "simulator", "env": config.env, "task": config.task, "seeds": counts["seeds"]}],
+            importer={"name": "collect", **{k: v for k, v in asdict(config).items() if k not in ("out", "root")}},
+            seed=config.seed,
+        )
+        return target, counts
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def remove_dead_leftovers(target: Path) -> None:
+    """Remove what a killed `collect` into `target` left beside it (`.<name>.collect-<pid>-*`,
+    `.<name>.partial-<pid>-*`): only folders whose recording process no longer runs."""
+    if not target.parent.is_dir():
+        return
+    for kind in ("collect", "partial"):
+        for path in target.parent.glob(f".{glob.escape(target.name)}.{kind}-*"):
+            pid, _, rest = path.name[len(f".{target.name}.{kind}-") :].partition("-")
+            if pid.isdigit() and rest and not _alive(int(pid)):
+                shutil.rmtree(path, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

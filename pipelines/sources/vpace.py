@@ -195,7 +195,12 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     missing = [k for k in _REQUIRED_KEYS if k not in data]
     if missing:
         raise DatasetError(f"{path}: missing key(s) {missing}")
-    size, pointer, count = int(data["memory_size"]), int(data["pointer"]), int(data["count"])
+    try:
+        size, pointer, count = int(data["memory_size"]), int(data["pointer"]), int(data["count"])
+    except (TypeError, ValueError):
+        raise DatasetError(f"{path}: memory_size, pointer and count must be integers") from None
+    if size < 0 or count < 0 or not 0 <= pointer < max(size, 1):
+        raise DatasetError(f"{path}: pointer {pointer} is outside the buffer of {size} rows (count {count})")
     if min(count, size) == 0:
         raise DatasetError(f"{path}: empty buffer (no rows)")
     arrays = {

@@ -1,0 +1,21 @@
+"""Fixtures of the reliability suite: a small raw dataset and the LeRobot dataset made from it,
+built once per session and never modified by a test (tests copy them before mutating)."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def rel_raw(tmp_path_factory):
+    from shiftkit.pipelines.synthetic import write_synthetic_raw
+
+    return write_synthetic_raw(tmp_path_factory.mktemp("rel") / "raw", episodes=4, length=10, seed=3, camera=(12, 16))
+
+
+@pytest.fixture(scope="session")
+def rel_ds(rel_raw):
+    """LeRobot dataset `me/lift` converted from `rel_raw`."""
+    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+
+    return write_raw_as_lerobot(rel_raw, "me/lift", rel_raw.parent / "ds")

@@ -1,0 +1,63 @@
+"""The counts behind the README's "Reliability" section, computed from the suite itself.
+
+`python -m tests.reliability.counts` prints the section; `test_counts.py` checks the README holds
+exactly this text, so the numbers cannot drift from the tests that back them.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+
+def _tests(module) -> list[str]:
+    return [name for name, obj in inspect.getmembers(module, inspect.isfunction) if name.startswith("test_")]
+
+
+def counts() -> dict[str, int]:
+    from tests.reliability import test_cli_errors, test_faults, test_fuzz, test_integrity
+
+    fuzz = (
+        test_fuzz.RAW_EXAMPLES + test_fuzz.LEROBOT_EXAMPLES + test_fuzz.CONFIG_EXAMPLES + test_fuzz.CONFIG_TEXT_EXAMPLES
+    )
+    # SIGKILLs at seeded random points, plus one fault per other fault test (a killed parent, a
+    # concurrent run, a stale lock, a full disk, an unresumable run, a killed collect, an unfinished
+    # training run).
+    faults = len(test_faults.KILL_SEEDS) + len(_tests(test_faults)) - 1
+    integrity = len(_tests(test_integrity)) - 2 + test_integrity.EVENT_EXAMPLES  # minus the two meta tests
+    return {
+        "bad_inputs": len(test_cli_errors.CASES) + len(test_cli_errors.OS_ERRORS),
+        "fuzzed": fuzz,
+        "faults": faults,
+        "integrity": integrity,
+    }
+
+
+def readme_section() -> str:
+    c = counts()
+    return f"""## Reliability
+
+`tests/reliability/` keeps shiftkit honest under bad input and faults, and runs with the other tests:
+
+* {c["bad_inputs"]} bad inputs against the CLI (negative seeds, invalid repo ids, malformed raw and
+  LeRobot metadata, 16-bit images, non-UTF-8 paths, unwritable or file-blocked outputs, ...): each
+  ends in a correct result or one line `shiftkit COMMAND: error: ...` with exit 2, and no input is
+  modified.
+* {c["fuzzed"]} fuzzed files and configs (hypothesis: truncated files, garbage, wrong dtypes and
+  shapes, NaN/inf, random JSON values) for the raw episode reader, the LeRobot reader and the
+  pipeline config parser: a clean result or a one-line error, never another exception.
+* {c["faults"]} faults injected: SIGKILL of `shiftkit run` at seeded random points (the resumed run
+  writes the clean run's bytes and no pool worker outlives its parent), a second run on the same
+  destination, a stale lock, a full disk, a run that can never resume, a killed `collect` and an
+  evaluation of an unfinished training run.
+* {c["integrity"]} checks against silent wrong results: stale parts after the source changed,
+  success flags kept by every frame-rate-changing stage (property-based), statistics that no longer
+  match the data (`shiftkit validate --deep`), dataset ids that do not match, example sets, VPACE
+  buffer pointers and the provenance of `collect --lerobot`.
+
+The counts are computed by `python -m tests.reliability.counts`, and a test keeps this section equal
+to its output.
+"""
+
+
+if __name__ == "__main__":
+    print(readme_section(), end="")

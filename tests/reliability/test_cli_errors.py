@@ -1,0 +1,599 @@
+"""Bad inputs a new user or a QA engineer tries against the CLI: each gives a one-line error and
+exit 2 (or a correct result), never a traceback, and no input is modified."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from tests.reliability.harness import cli, tree_state
+
+NON_UTF8 = os.fsdecode(b"raw\xff")
+
+
+def pipeline(tmp: Path, source: Path, dest: str = "out", extra: str = "", seed: str = "0") -> str:
+    path = tmp / "p.toml"
+    path.write_text(f'seed = {seed}\n[[sources]]\npath = "{source}"\n{extra}\n[destination]\nroot = "{dest}"\n')
+    return str(path)
+
+
+def a_file(tmp: Path) -> Path:
+    (tmp / "file").write_text("x")
+    return tmp / "file"
+
+
+def raw_with(tmp: Path, raw: Path, edit) -> Path:
+    import shutil
+
+    copy = tmp / "raw_copy"
+    shutil.copytree(raw, copy)
+    edit(copy)
+    return copy
+
+
+def _json_edit(rel: str, **values):
+    def edit(root: Path) -> None:
+        path = root / rel
+        data = json.loads(path.read_text())
+        data.update(values)
+        path.write_text(json.dumps(data))
+
+    return edit
+
+
+# name -> (argv builder (tmp, raw, ds) -> argv, expected exit code)
+CASES = {
+    # collect
+    "collect negative seed": (lambda t, r, d: ["collect", "--task", "lift", "--seed", "-1", "--out", str(t / "o")], 2),
+    "collect width 0": (lambda t, r, d: ["collect", "--task", "lift", "--width", "0", "--out", str(t / "o")], 2),
+    "collect episodes 0": (lambda t, r, d: ["collect", "--task", "lift", "--episodes", "0", "--out", str(t / "o")], 2),
+    "collect unknown play task": (
+        lambda t, r, d: ["collect", "--task", "lift", "--play", "--sequence", "reach,fly", "--out", str(t / "o")],
+        2,
+    ),
+    "collect invalid repo id": (
+        lambda t, r, d: ["collect", "--task", "lift", "--lerobot", "bad id!!", "--root", str(t / "o")],
+        2,
+    ),
+    "collect out exists": (lambda t, r, d: ["collect", "--task", "lift", "--out", str(r)], 2),
+    "collect parent is a file": (
+        lambda t, r, d: ["collect", "--task", "lift", "--episodes", "1", "--out", str(a_file(t) / "o")],
+        2,
+    ),
+    "collect unknown camera": (
+        lambda t, r, d: ["collect", "--task", "lift", "--cameras", "x", "--out", str(t / "o")],
+        2,
+    ),
+    "collect height 0": (lambda t, r, d: ["collect", "--task", "lift", "--height", "0", "--out", str(t / "o")], 2),
+    "collect negative extra steps": (
+        lambda t, r, d: ["collect", "--task", "lift", "--extra-steps", "-1", "--out", str(t / "o")],
+        2,
+    ),
+    "collect control rate 7": (
+        lambda t, r, d: ["collect", "--task", "lift", "--control-hz", "7", "--out", str(t / "o")],
+        2,
+    ),
+    "collect unknown env": (lambda t, r, d: ["collect", "--env", "nope", "--task", "lift", "--out", str(t / "o")], 2),
+    "collect unknown task": (lambda t, r, d: ["collect", "--task", "fly", "--out", str(t / "o")], 2),
+    "collect unknown expert": (
+        lambda t, r, d: ["collect", "--task", "lift", "--expert", "x", "--out", str(t / "o")],
+        2,
+    ),
+    "collect both outputs": (
+        lambda t, r, d: [
+            "collect",
+            "--task",
+            "lift",
+            "--out",
+            str(t / "o"),
+            "--lerobot",
+            "me/x",
+            "--root",
+            str(t / "r"),
+        ],
+        2,
+    ),
+    "collect lerobot without root": (lambda t, r, d: ["collect", "--task", "lift", "--lerobot", "me/x"], 2),
+    "collect no output": (lambda t, r, d: ["collect", "--task", "lift"], 2),
+    "collect render quality": (lambda t, r, d: ["collect", "--task", "lift", "--render-quality", "x", "--out", "o"], 2),
+    "collect bad env kwarg": (lambda t, r, d: ["collect", "--task", "lift", "--env-kwarg", "novalue", "--out", "o"], 2),
+    "collect unknown env kwarg": (
+        lambda t, r, d: [
+            "collect",
+            "--task",
+            "lift",
+            "--env-kwarg",
+            "nope=1",
+            "--episodes",
+            "1",
+            "--out",
+            str(t / "o"),
+        ],
+        2,
+    ),
+    "collect episodes not a number": (
+        lambda t, r, d: ["collect", "--task", "lift", "--episodes", "x", "--out", "o"],
+        2,
+    ),
+    # run / plan
+    "run config missing": (lambda t, r, d: ["run", str(t / "nope.toml")], 2),
+    "run config is a folder": (lambda t, r, d: ["run", str(t)], 2),
+    "run invalid toml": (lambda t, r, d: ["run", str(_write(t / "p.toml", "[[sources]\n"))], 2),
+    "run negative seed": (lambda t, r, d: ["run", pipeline(t, r, seed="-1")], 2),
+    "run empty destination root": (lambda t, r, d: ["run", pipeline(t, r, dest="")], 2),
+    "run invalid destination repo id": (lambda t, r, d: ["run", _bad_repo(t, r)], 2),
+    "run source missing": (lambda t, r, d: ["run", pipeline(t, t / "missing")], 2),
+    "run source without info.json": (lambda t, r, d: ["run", pipeline(t, _mkdir(t / "empty"))], 2),
+    "run destination exists": (lambda t, r, d: ["run", pipeline(t, r, dest=str(d))], 2),
+    "run destination parent is a file": (lambda t, r, d: ["run", pipeline(t, r, dest=str(a_file(t) / "o"))], 2),
+    "run workers 0": (lambda t, r, d: ["run", pipeline(t, r), "--workers", "0"], 2),
+    "run unknown executor": (lambda t, r, d: ["run", pipeline(t, r), "--executor", "nope"], 2),
+    "run unknown stage": (lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "nope"')], 2),
+    "run bad stage param": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "subsample"\nparams = { every = 0 }')],
+        2,
+    ),
+    "plan non-UTF-8 raw folder": (lambda t, r, d: ["plan", _non_utf8_pipeline(t, r)], 0),
+    "run non-UTF-8 raw folder": (lambda t, r, d: ["run", _non_utf8_pipeline(t, r, str(t / "out")), "--no-progress"], 0),
+    "run into a non-UTF-8 folder": (lambda t, r, d: ["run", _non_utf8_pipeline(t, r), "--no-progress"], 2),
+    "collect lerobot into a non-UTF-8 folder": (
+        lambda t, r, d: ["collect", "--task", "lift", "--lerobot", "me/x", "--root", str(t / NON_UTF8)],
+        2,
+    ),
+    "run raw meta.json task is a number": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("episode_000001/meta.json", task=5)))],
+        2,
+    ),
+    "run raw meta.json is a list": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, lambda c: _write(c / "episode_000000/meta.json", "[1]")))],
+        2,
+    ),
+    "run raw dataset.json episodes are numbers": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", episodes=[1, 2])))],
+        2,
+    ),
+    "run raw dataset.json names is a list": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", names=["a"])))],
+        2,
+    ),
+    "run raw dataset.json fps is text": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", fps="10")))],
+        2,
+    ),
+    "run raw segments malformed": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("episode_000000/meta.json", segments=[5])))],
+        2,
+    ),
+    "run raw 16-bit PNG": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _png16))], 2),
+    "run lerobot info.json fps is text": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, d, _json_edit("meta/info.json", fps="x")))],
+        2,
+    ),
+    "run unknown config suffix": (lambda t, r, d: ["run", str(_write(t / "p.txt", "x"))], 2),
+    "run invalid json": (lambda t, r, d: ["run", str(_write(t / "p.json", "{"))], 2),
+    "run invalid yaml": (lambda t, r, d: ["run", str(_write(t / "p.yaml", "a: [\n"))], 2),
+    "run yaml not a mapping": (lambda t, r, d: ["run", str(_write(t / "p.yaml", "- 1\n"))], 2),
+    "run json list": (lambda t, r, d: ["run", str(_write(t / "p.json", "[1, 2]"))], 2),
+    "run unknown top-level key": (lambda t, r, d: ["run", str(_write(t / "p.toml", "sed = 1\n" + _src(r)))], 2),
+    "run no sources": (
+        lambda t, r, d: ["run", str(_write(t / "p.json", '{"sources": [], "destination": {"root": "o"}}'))],
+        2,
+    ),
+    "run source with path and repo id": (
+        lambda t, r, d: [
+            "run",
+            str(_write(t / "p.toml", f'[[sources]]\npath = "{r}"\nrepo_id = "a/b"\n[destination]\nroot = "o"\n')),
+        ],
+        2,
+    ),
+    "run no destination": (lambda t, r, d: ["run", str(_write(t / "p.toml", f'[[sources]]\npath = "{r}"\n'))], 2),
+    "run destination root is a number": (
+        lambda t, r, d: ["run", str(_write(t / "p.toml", f'[[sources]]\npath = "{r}"\n[destination]\nroot = 5\n'))],
+        2,
+    ),
+    "run seed is text": (lambda t, r, d: ["run", pipeline(t, r, seed='"x"')], 2),
+    "run seed is a float": (lambda t, r, d: ["run", pipeline(t, r, seed="1.5")], 2),
+    "run stage unknown param": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "trim"\nparams = { nope = 1 }')],
+        2,
+    ),
+    "run stage param wrong type": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "subsample"\nparams = { every = "2" }')],
+        2,
+    ),
+    "run stage version mismatch": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "trim"\nversion = 99')],
+        2,
+    ),
+    "run subsample not dividing fps": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "subsample"\nparams = { every = 3 }')],
+        2,
+    ),
+    "run drop unknown feature": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "drop"\nparams = { features = ["nope"] }')],
+        2,
+    ),
+    "run cast to unknown dtype": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, r, extra='[[stages]]\nname = "cast"\nparams = { dtypes = { action = "x" } }'),
+        ],
+        2,
+    ),
+    "run every episode filtered out": (
+        lambda t, r, d: ["run", pipeline(t, r, extra='[[stages]]\nname = "filter"\nparams = { min_length = 999 }')],
+        2,
+    ),
+    "run push invalid repo id": (lambda t, r, d: ["run", pipeline(t, r), "--push", "bad id!!"], 2),
+    "run local executor with address": (lambda t, r, d: ["run", pipeline(t, r), "--address", "x"], 2),
+    "run workers not a number": (lambda t, r, d: ["run", pipeline(t, r), "--workers", "x"], 2),
+    "run raw version 2": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", version=2)))],
+        2,
+    ),
+    "run raw wrong format": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", format="x")))],
+        2,
+    ),
+    "run raw no episodes": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", episodes=[])))],
+        2,
+    ),
+    "run raw fps 0": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("dataset.json", fps=0)))], 2),
+    "run raw episode folder missing": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, lambda c: _rmtree(c / "episode_000002")))],
+        2,
+    ),
+    "run raw meta.json length wrong": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _json_edit("episode_000001/meta.json", length=3)))],
+        2,
+    ),
+    "run raw meta.json truncated": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, r, lambda c: _truncate(c / "episode_000001/meta.json")))],
+        2,
+    ),
+    "run raw array truncated": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, r, lambda c: _truncate(c / "episode_000001/arrays/action.npy"))),
+        ],
+        2,
+    ),
+    "run raw action NaN": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _nan_action))], 2),
+    "run raw timestamps decreasing": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _reverse_time))], 2),
+    "run raw image missing": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, r, lambda c: next(c.glob("episode_000001/images/*/*.png")).unlink())),
+        ],
+        2,
+    ),
+    "run raw image garbage": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, r, lambda c: next(c.glob("episode_000001/images/*/*.png")).write_bytes(b"x"))),
+        ],
+        2,
+    ),
+    "run raw array with another width": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _wide_action))], 2),
+    "run lerobot codebase v2.1": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, d, _json_edit("meta/info.json", codebase_version="v2.1")))],
+        2,
+    ),
+    "run lerobot features not an object": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, d, _json_edit("meta/info.json", features=[1])))],
+        2,
+    ),
+    "run lerobot data file missing": (
+        lambda t, r, d: ["run", pipeline(t, raw_with(t, d, lambda c: next(c.glob("data/*/*.parquet")).unlink()))],
+        2,
+    ),
+    "run lerobot episodes metadata garbage": (
+        lambda t, r, d: [
+            "run",
+            pipeline(t, raw_with(t, d, lambda c: next(c.glob("meta/episodes/*/*.parquet")).write_bytes(b"x"))),
+        ],
+        2,
+    ),
+    # info / validate
+    "info raw folder": (lambda t, r, d: ["info", str(r)], 2),
+    "validate raw folder": (lambda t, r, d: ["validate", str(r)], 2),
+    "info folder without info.json": (lambda t, r, d: ["info", str(_mkdir(t / "empty"))], 2),
+    "info a file": (lambda t, r, d: ["info", str(a_file(t))], 2),
+    "info nothing": (lambda t, r, d: ["info", str(t / "nothing")], 2),
+    "validate truncated info.json": (
+        lambda t, r, d: ["validate", str(raw_with(t, d, lambda c: _truncate(c / "meta/info.json")))],
+        2,
+    ),
+    "validate stats not matching (deep)": (
+        lambda t, r, d: ["validate", "--deep", str(raw_with(t, d, _negate_stats))],
+        2,
+    ),
+    "validate stats.json missing": (
+        lambda t, r, d: ["validate", str(raw_with(t, d, lambda c: (c / "meta/stats.json").unlink()))],
+        2,
+    ),
+    "validate empty folder": (lambda t, r, d: ["validate", str(_mkdir(t / "e"))], 2),
+    "info invalid id": (lambda t, r, d: ["info", "a/b/c"], 2),
+    # train / eval
+    "train bc batch size 0": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--batch-size", "0"],
+        2,
+    ),
+    "train bc ensemble 0": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--ensemble", "0"],
+        2,
+    ),
+    "train bc val fraction 2": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--val-fraction", "2"],
+        2,
+    ),
+    "train bc unknown input": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "run"), "--inputs", "x"],
+        2,
+    ),
+    "train bc encoder weights missing": (
+        lambda t, r, d: [
+            "train",
+            "bc",
+            "--dataset",
+            str(d),
+            "--output",
+            str(t / "r"),
+            "--encoder",
+            "resnet18",
+            "--encoder-weights",
+            "nope.pt",
+        ],
+        2,
+    ),
+    "train bc steps 0": (
+        lambda t, r, d: [
+            "train",
+            "bc",
+            "--dataset",
+            str(d),
+            "--output",
+            str(t / "r"),
+            "--regime",
+            "fixed",
+            "--steps",
+            "0",
+        ],
+        2,
+    ),
+    "train bc device nope": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "r"), "--device", "nope"],
+        2,
+    ),
+    "train bc dataset missing": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(t / "none"), "--output", str(t / "r")],
+        2,
+    ),
+    "eval episodes 0": (lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--episodes", "0"], 2),
+    "eval policy not a run": (lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift"], 2),
+    "eval videos is a file": (
+        lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--videos", str(a_file(t))],
+        2,
+    ),
+    "eval out is a folder": (lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--out", str(t)], 2),
+    "train bc raw folder": (lambda t, r, d: ["train", "bc", "--dataset", str(r), "--output", str(t / "run")], 2),
+    "train bc id does not match root": (
+        lambda t, r, d: ["train", "bc", "--dataset", "me/other", "--root", str(d), "--output", str(t / "run")],
+        2,
+    ),
+    "train bc output parent is a file": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(a_file(t) / "run"), "--steps", "1"],
+        2,
+    ),
+    "train vpace trajectories as examples": (
+        lambda t, r, d: ["train", "vpace", "--examples", str(d), "--main-task", "reach", "--output", str(t / "v")],
+        2,
+    ),
+    "eval negative seed": (lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--seed", "-5"], 2),
+    "eval policy missing": (lambda t, r, d: ["eval", "--policy", str(t / "none"), "--task", "lift"], 2),
+    "eval out parent is a file": (
+        lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--out", str(a_file(t) / "x.json")],
+        2,
+    ),
+    # import / hub
+    "import vpace negative pointer": (
+        lambda t, r, d: ["import", "vpace", str(_buffer(t, pointer=-3)), "--repo-id", "me/x", "--root", str(t / "x")],
+        2,
+    ),
+    "import vpace invalid repo id": (
+        lambda t, r, d: [
+            "import",
+            "vpace",
+            str(_buffer(t, pointer=0)),
+            "--repo-id",
+            "bad id!!",
+            "--root",
+            str(t / "x"),
+        ],
+        2,
+    ),
+    "import vpace missing file": (
+        lambda t, r, d: ["import", "vpace", str(t / "none.gz"), "--repo-id", "me/x", "--root", str(t / "x")],
+        2,
+    ),
+    "import vpace not gzip": (
+        lambda t, r, d: [
+            "import",
+            "vpace",
+            str(_write(t / "3_lift.gz", "x")),
+            "--repo-id",
+            "me/x",
+            "--root",
+            str(t / "x"),
+        ],
+        2,
+    ),
+    "import vpace root exists": (
+        lambda t, r, d: ["import", "vpace", str(_buffer(t, pointer=0)), "--repo-id", "me/x", "--root", str(r)],
+        2,
+    ),
+    "push not a dataset": (lambda t, r, d: ["push", str(r), "--repo-id", "me/x"], 2),
+    "pull invalid id": (lambda t, r, d: ["pull", "bad id!!"], 2),
+    "pull with HF_ENDPOINT=notaurl": (
+        lambda t, r, d: _env(HF_ENDPOINT="notaurl", HF_HUB_OFFLINE="0") + ["pull", "me/x"],
+        2,
+    ),
+}
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def _mkdir(path: Path) -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _src(r: Path) -> str:
+    return f'[[sources]]\npath = "{r}"\n[destination]\nroot = "o"\n'
+
+
+def _rmtree(path: Path) -> None:
+    import shutil
+
+    shutil.rmtree(path)
+
+
+def _nan_action(root: Path) -> None:
+    import numpy as np
+
+    path = root / "episode_000001/arrays/action.npy"
+    a = np.load(path)
+    a[2, 0] = np.nan
+    np.save(path, a)
+
+
+def _reverse_time(root: Path) -> None:
+    import numpy as np
+
+    path = root / "episode_000001/arrays/timestamp.npy"
+    np.save(path, np.load(path)[::-1].copy())
+
+
+def _wide_action(root: Path) -> None:
+    import numpy as np
+
+    path = root / "episode_000002/arrays/action.npy"
+    a = np.load(path)
+    np.save(path, np.concatenate([a, a], axis=1))
+
+
+def _non_utf8_pipeline(t: Path, r: Path, dest: str = "out") -> str:
+    """A pipeline (and its raw source, with images) inside a folder whose name is not UTF-8."""
+    folder = _mkdir(t / NON_UTF8)
+    _copy(r, folder / "raw")
+    return pipeline(folder, Path("raw"), dest)
+
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _png16(root: Path) -> None:
+    import cv2
+    import numpy as np
+
+    png = next(root.glob("episode_000000/images/*/frame_000000.png"))
+    ok, data = cv2.imencode(".png", np.full((12, 16, 3), 3000, np.uint16))
+    png.write_bytes(data.tobytes())
+
+
+def _negate_stats(root: Path) -> None:
+    stats = json.loads((root / "meta/stats.json").read_text())
+    stats["action"]["mean"] = [-v - 1.0 for v in stats["action"]["mean"]]
+    (root / "meta/stats.json").write_text(json.dumps(stats))
+
+
+def _bad_repo(t: Path, r: Path) -> str:
+    return str(
+        _write(t / "bad.toml", f'[[sources]]\npath = "{r}"\n[destination]\nroot = "out"\nrepo_id = "bad id!!"\n')
+    )
+
+
+def _buffer(t: Path, pointer: int) -> Path:
+    import gzip
+    import pickle
+
+    import numpy as np
+
+    n = 4
+    data = {
+        "observations": np.zeros((n, 60), np.float32),
+        "next_observations": np.zeros((n, 60), np.float32),
+        "actions": np.zeros((n, 4), np.float32),
+        "rewards": np.zeros((n, 1), np.float32),
+        "dones": np.zeros((n, 1), bool),
+        "memory_size": n,
+        "pointer": pointer,
+        "count": n + 2,
+    }
+    path = t / "3_lift.gz"
+    with gzip.open(path, "wb") as f:
+        pickle.dump(data, f)
+    return path
+
+
+_ENV: dict[str, str] = {}
+
+
+def _env(**values: str) -> list[str]:
+    _ENV.update(values)
+    return []
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_bad_input_gives_one_line(name, tmp_path, rel_raw, rel_ds, monkeypatch):
+    build, expected = CASES[name]
+    before = (tree_state(rel_raw), tree_state(rel_ds))
+    monkeypatch.chdir(tmp_path)
+    _ENV.clear()
+    argv = build(tmp_path, rel_raw, rel_ds)
+    for key, value in _ENV.items():
+        monkeypatch.setenv(key, value)
+    outcome = cli(argv)
+    assert outcome.clean, f"{name}: {outcome}"
+    assert outcome.code == expected, f"{name}: {outcome}"
+    assert (tree_state(rel_raw), tree_state(rel_ds)) == before, f"{name} modified an input"
+
+
+OS_ERRORS = (
+    PermissionError(errno.EACCES, "Permission denied", "/x/locked"),
+    NotADirectoryError(errno.ENOTDIR, "Not a directory", "/x/file/sub"),
+    OSError(errno.EIO, "Input/output error", "/x/disk"),
+    OSError(errno.EROFS, "Read-only file system", "/x/ro"),
+)
+
+
+@pytest.mark.parametrize("exc", OS_ERRORS, ids=lambda e: e.strerror)
+def test_os_errors_are_one_line(exc, tmp_path, rel_raw, monkeypatch):
+    """An OSError on a user path anywhere under a command: one line naming the path and the cause
+    (as root, permissions cannot be taken away here, so the error is raised where the work dir is made)."""
+    import shiftkit.pipelines.runner as runner
+
+    def fail(*args, **kwargs):
+        raise exc
+
+    monkeypatch.setattr(runner, "_prepare_work_dir", fail)
+    outcome = cli(["run", pipeline(tmp_path, rel_raw), "--no-progress"])
+    assert outcome.clean and outcome.code == 2, outcome
+    assert exc.strerror in outcome.error_line and exc.filename in outcome.error_line

@@ -1,0 +1,191 @@
+"""Faults: SIGKILL of `shiftkit run` at random points (resume gives the clean run's bytes and no
+worker outlives its parent), two runs on one destination, a full disk, runs that cannot resume,
+a killed `collect`, and evaluating a run stopped mid-training."""
+
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from shiftkit.pipelines.synthetic import write_synthetic_raw
+from tests.helpers import tree_hashes
+from tests.reliability.harness import cli
+
+KILL_SEEDS = (0, 1, 2)  # one SIGKILL at a random point of the run per seed
+WORKERS = 2
+
+
+def _config(tmp: Path, raw: Path, dest: str, stages: str = "") -> Path:
+    path = tmp / f"{dest}.toml"
+    path.write_text(f'[[sources]]\npath = "{raw}"\n{stages}\n[destination]\nroot = "{dest}"\nrepo_id = "me/k"\n')
+    return path
+
+
+def _children(pid: int) -> set[int]:
+    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True).stdout
+    return {int(x) for x in out.split()}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = Path(f"/proc/{pid}/stat")
+    return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
+
+
+def _shiftkit(*args: str, cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "shiftkit.pipelines.cli", *args],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,  # killing it must not take the test down
+    )
+
+
+def _data(root: Path) -> dict[str, str]:
+    return {k: v for k, v in tree_hashes(root).items() if k != "meta/shiftkit_provenance.json" and k != "README.md"}
+
+
+def test_sigkill_then_resume(tmp_path):
+    """SIGKILL the main process at a seeded random point (after k finished parts, or while the
+    dataset is being written) while its pool works; every worker exits with it; the re-run
+    resumes and writes the clean run's bytes."""
+    from shiftkit.pipelines.config import load_pipeline_config
+    from shiftkit.pipelines.runner import run_pipeline, work_dir_for
+
+    raw = write_synthetic_raw(tmp_path / "raw", episodes=16, length=30, seed=5, camera=(24, 32))
+    stages = '[[stages]]\nname = "subsample"\nparams = { every = 2 }'
+    run_pipeline(load_pipeline_config(_config(tmp_path, raw, "clean", stages)), progress=False)
+    injected = 0
+    for seed in KILL_SEEDS:
+        rng = np.random.default_rng(seed)
+        dest = f"killed{seed}"
+        config = _config(tmp_path, raw, dest, stages)
+        parts_dir = work_dir_for(tmp_path / dest) / "parts"
+        at_parts = int(rng.integers(1, 16)) if rng.random() < 0.75 else None  # else: while writing
+        proc = _shiftkit("run", str(config), "--no-progress", "--workers", str(WORKERS), cwd=tmp_path)
+        workers: set[int] = set()
+        while proc.poll() is None:
+            workers |= _children(proc.pid)
+            done = len(list(parts_dir.glob("*.pkl"))) if parts_dir.is_dir() else 0
+            writing = any(tmp_path.glob(f".{dest}.partial-*"))
+            if (at_parts is not None and done >= at_parts) or (at_parts is None and writing):
+                os.kill(proc.pid, signal.SIGKILL)
+                injected += 1
+                break
+            time.sleep(0.005)
+        proc.wait()
+        gone_by = time.monotonic() + 15
+        while any(_alive(w) for w in workers) and time.monotonic() < gone_by:
+            time.sleep(0.2)
+        assert not [w for w in workers if _alive(w)], f"seed {seed}: workers outlived their killed parent"
+        run_pipeline(load_pipeline_config(config), progress=False)  # resume (any executor gives the same bytes)
+        assert _data(tmp_path / dest) == _data(tmp_path / "clean"), f"seed {seed}: resumed output differs"
+        assert not list(tmp_path.glob(f".{dest}*")), "work directory or lock left behind"
+    assert injected >= 1, "no kill landed inside a run"
+
+
+def test_second_run_on_same_destination_is_refused(tmp_path, rel_raw):
+    from shiftkit.pipelines.runner import WorkLock, work_dir_for
+
+    config = _config(tmp_path, rel_raw, "out")
+    with WorkLock(work_dir_for(tmp_path / "out")):
+        outcome = cli(["run", str(config), "--no-progress"])
+    assert outcome.code == 2 and f"pid {os.getpid()}" in outcome.error_line, outcome
+    assert cli(["run", str(config), "--no-progress"]).code == 0  # released: the next run works
+
+
+def test_stale_lock_of_a_dead_run_is_taken_over(tmp_path, rel_raw):
+    config = _config(tmp_path, rel_raw, "out")
+    (tmp_path / ".out.shiftkit-work.lock").write_text("999999\n")  # a SIGKILLed run's lock file
+    outcome = cli(["run", str(config), "--no-progress"])
+    assert outcome.code == 0, outcome
+    assert not (tmp_path / ".out.shiftkit-work.lock").exists()
+
+
+def test_disk_full_is_one_line_and_restart_discards_work(tmp_path, rel_raw, monkeypatch):
+    from shiftkit.pipelines import runner
+
+    config = _config(tmp_path, rel_raw, "out")
+    real = runner.PartStore.write
+    calls = {"n": 0}
+
+    def write(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.dir / "x.pkl"))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(runner.PartStore, "write", write)
+    outcome = cli(["run", str(config), "--no-progress"])
+    assert outcome.code == 2 and "no space left" in outcome.error_line and ".out.shiftkit-work" in outcome.error_line
+    assert " MB" in outcome.error_line and "--restart" in outcome.error_line
+    monkeypatch.setattr(runner.PartStore, "write", real)
+    outcome = cli(["run", str(config), "--no-progress", "--restart"])
+    assert outcome.code == 0, outcome
+    assert not (tmp_path / ".out.shiftkit-work").exists()
+
+
+def test_run_that_cannot_resume_removes_its_work(tmp_path, rel_raw):
+    stages = '[[stages]]\nname = "filter"\nparams = { min_length = 1000 }'
+    outcome = cli(["run", str(_config(tmp_path, rel_raw, "out", stages)), "--no-progress"])
+    assert outcome.code == 2, outcome
+    assert not list(tmp_path.glob(".out*")), "a run that can never resume left its work directory"
+
+
+def test_killed_collect_leftovers_are_cleaned_safely(tmp_path):
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    leftovers = [tmp_path / f".raw.partial-{dead.pid}-0123abcd", tmp_path / f".raw.collect-{dead.pid}-0123abcd"]
+    live = tmp_path / f".raw.partial-{os.getpid()}-0123abcd"  # a recorder still running: not ours to remove
+    foreign = tmp_path / ".other.partial-1-0123abcd"
+    for folder in [*leftovers, live, foreign]:
+        folder.mkdir()
+    outcome = cli(["collect", "--task", "reach", "--episodes", "1", "--out", str(tmp_path / "raw"), "--no-progress"])
+    assert outcome.code == 0, outcome
+    assert not any(p.exists() for p in leftovers) and live.exists() and foreign.exists()
+
+
+def test_eval_warns_when_the_run_did_not_finish(tmp_path, rel_ds, caplog):
+    from shiftkit.policies.run_dir import CARD_METRICS
+
+    run = tmp_path / "run"
+    args = ["train", "bc", "--dataset", str(rel_ds), "--output", str(run), "--regime", "fixed", "--steps", "2"]
+    assert cli([*args, "--ensemble", "1", "--hidden", "8", "--no-progress"]).code == 0
+    (run / CARD_METRICS).unlink()  # as if training had been killed before its end
+    outcome = cli(
+        ["eval", "--policy", str(run), "--task", "reach", "--episodes", "1", "--out", str(tmp_path / "e.json")]
+    )
+    assert outcome.clean, outcome  # (this synthetic policy's inputs do not fit panda-play: a one-line error)
+    assert "has not finished training" in caplog.text and "step-00000002.pt" in caplog.text
+
+
+def test_watchdog_ends_a_worker_whose_parent_was_killed():
+    """The parent-death watchdog that every executor's workers arm (init_worker, datatrove's step)."""
+    code = (
+        "import os, sys, time\n"
+        "from shiftkit.pipelines import runner\n"
+        "pid = os.fork()\n"
+        "if pid == 0:\n"
+        "    runner._WORKER.clear(); runner.exit_with_parent(os.getppid(), period=0.1)\n"
+        "    print(os.getpid(), flush=True); time.sleep(60); sys.exit(0)\n"
+        "time.sleep(60)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, start_new_session=True)
+    child = int(parent.stdout.readline())
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 10
+    while _alive(child) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive(child)

@@ -1,0 +1,182 @@
+"""Property-based fuzzing of the readers users feed files to: the raw episode reader, the pipeline
+config parser and the LeRobot reader, on mutated files (truncated, garbage, wrong dtypes and
+shapes, NaN/inf, wrong JSON values). Every outcome is a clean result or a one-line ShiftkitError."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from tests.reliability.harness import clean_or_error
+
+RAW_EXAMPLES = 60
+CONFIG_EXAMPLES = 60
+CONFIG_TEXT_EXAMPLES = 30
+LEROBOT_EXAMPLES = 20
+FUZZ = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2**40), 2**40) | st.floats(allow_nan=False) | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+    max_leaves=6,
+)
+npy_arrays = st.tuples(
+    st.sampled_from(["float32", "float64", "int64", "int32", "bool", "uint8", "complex64", "int16", "<U2"]),
+    st.sampled_from([(0,), (1,), (9,), (10,), (11,), (10, 1), (10, 4), (10, 2, 2), (3, 4), ()]),
+    st.sampled_from(["zeros", "nan", "inf", "random"]),
+)
+
+
+def _array(spec) -> np.ndarray:
+    dtype, shape, fill = spec
+    arr = np.zeros(shape, dtype=dtype)
+    if arr.dtype.kind in "fc" and arr.size:
+        arr.flat[0] = {"zeros": 0.0, "nan": np.nan, "inf": np.inf, "random": 0.5}[fill]
+    return arr
+
+
+mutations = st.one_of(
+    st.tuples(st.just("truncate"), st.floats(0, 0.99)),
+    st.tuples(st.just("garbage"), st.binary(max_size=64)),
+    st.tuples(st.just("delete"), st.none()),
+    st.tuples(st.just("npy"), npy_arrays),
+    st.tuples(st.just("json"), st.tuples(st.text(max_size=12), json_values)),
+)
+
+
+def mutate(root: Path, index: int, mutation) -> str:
+    """Apply one mutation to the `index`-th file (sorted) under `root`; returns what was done."""
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    path = files[index % len(files)]
+    kind, arg = mutation
+    if kind == "json" and path.suffix != ".json":
+        kind, arg = "truncate", 0.5
+    if kind == "npy" and path.suffix != ".npy":
+        kind, arg = "garbage", b"\x93NUMPY\x01\x00"
+    if kind == "truncate":
+        data = path.read_bytes()
+        path.write_bytes(data[: int(len(data) * arg)])
+    elif kind == "garbage":
+        path.write_bytes(arg)
+    elif kind == "delete":
+        path.unlink()
+    elif kind == "npy":
+        np.save(path, _array(arg), allow_pickle=False)
+    else:
+        key, value = arg
+        data = json.loads(path.read_text())
+        if isinstance(data, dict):
+            key = sorted(data)[len(key) % len(data)] if data and len(key) % 3 else key
+            data[key] = value
+        else:
+            data = value
+        path.write_text(json.dumps(data))
+    return f"{kind} {path.relative_to(root)}"
+
+
+def _copy(src: Path) -> tuple[tempfile.TemporaryDirectory, Path]:
+    tmp = tempfile.TemporaryDirectory(prefix="shiftkit-fuzz-")
+    return tmp, Path(shutil.copytree(src, Path(tmp.name) / src.name))
+
+
+def _run_sources(source: Path, dest: Path) -> None:
+    """What `shiftkit run` does with a source before writing: plan, read and transform every episode."""
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
+    from shiftkit.pipelines.planner import plan_pipeline
+    from shiftkit.pipelines.runner import transform_episode
+    from shiftkit.pipelines.sources import SourceConfig
+
+    plan = plan_pipeline(PipelineConfig([SourceConfig(path=str(source))], DestinationConfig(root=str(dest))))
+    for s, src in enumerate(plan.sources):
+        for episode in src.iter_episodes(list(range(src.num_episodes))):
+            transform_episode(plan, s, episode)
+
+
+@settings(max_examples=RAW_EXAMPLES, **FUZZ)
+@given(
+    index=st.integers(0, 10_000), mutation=mutations, second=st.none() | st.tuples(st.integers(0, 10_000), mutations)
+)
+def test_raw_reader_on_mutated_files(rel_raw, index, mutation, second):
+    tmp, root = _copy(rel_raw)
+    with tmp:
+        mutate(root, index, mutation)
+        if second is not None:
+            mutate(root, *second)
+        clean_or_error(lambda: _run_sources(root, Path(tmp.name) / "out"))
+
+
+@settings(max_examples=LEROBOT_EXAMPLES, **FUZZ)
+@given(index=st.integers(0, 10_000), mutation=mutations)
+def test_lerobot_reader_on_mutated_files(rel_ds, index, mutation):
+    from shiftkit.pipelines.dataset_check import validate_dataset
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    tmp, root = _copy(rel_ds)
+    with tmp:
+        mutate(root, index, mutation)
+
+        def read() -> None:
+            for _ in open_lerobot_dataset(root).iter_episodes():
+                pass
+            validate_dataset(root)
+
+        clean_or_error(read)
+
+
+config_fields = st.fixed_dictionaries(
+    {},
+    optional={
+        "seed": json_values,
+        "stages": st.lists(
+            st.fixed_dictionaries(
+                {"name": st.sampled_from(["trim", "subsample", "resample", "filter", "nope", ""]) | json_values},
+                optional={
+                    "params": st.dictionaries(st.sampled_from(["every", "fps", "head", "x"]), json_values),
+                    "version": json_values,
+                },
+            )
+            | json_values,
+            max_size=2,
+        )
+        | json_values,
+        "destination": st.fixed_dictionaries(
+            {}, optional={"root": json_values | st.just("out"), "repo_id": json_values}
+        )
+        | json_values,
+        "sources": json_values,
+        "source": json_values,
+        "unknown": json_values,
+    },
+)
+
+
+@settings(max_examples=CONFIG_EXAMPLES, **FUZZ)
+@given(fields=config_fields)
+def test_pipeline_config_parser_on_random_values(rel_raw, tmp_path, fields):
+    from shiftkit.pipelines.config import parse_pipeline_config
+    from shiftkit.pipelines.planner import plan_pipeline
+
+    data = {"sources": [{"path": str(rel_raw)}], "destination": {"root": "out"}, **fields}
+
+    def parse_and_plan() -> None:
+        plan_pipeline(parse_pipeline_config(data, tmp_path, "fuzz.toml"))
+
+    clean_or_error(parse_and_plan)
+
+
+@settings(max_examples=CONFIG_TEXT_EXAMPLES, **FUZZ)
+@given(
+    suffix=st.sampled_from([".toml", ".json", ".yaml", ".txt"]), text=st.text(max_size=60), raw=st.binary(max_size=30)
+)
+def test_pipeline_config_files_with_random_text(tmp_path, suffix, text, raw):
+    from shiftkit.pipelines.config import load_pipeline_config
+
+    path = tmp_path / f"p{suffix}"
+    path.write_bytes(text.encode("utf-8", "surrogatepass") + raw)
+    clean_or_error(lambda: load_pipeline_config(path))
