@@ -17,7 +17,9 @@ before D trains) and the BC ensemble's doubt `||diag Cov||_2` of its members' ac
   without any a true negative).
 
 After answering a question the watch restarts (consecutive counters go back to 0), so one long dip
-of D is one question, not one per step.
+of D is one question, not one per step. A false negative only counts against a predictor that could
+have predicted in that episode (`watching`: it had a defined signal at some step); before D trains, or
+before GDA has statistics, a D-based rule is not blamed for failures it could not see.
 """
 
 from __future__ import annotations
@@ -57,16 +59,21 @@ class BetaRule:
     def __init__(self, beta: int = 20, delta_fp: int = 1, delta_fn: int = 3, threshold: float = 0.5) -> None:
         self.beta, self.delta_fp, self.delta_fn, self.threshold = beta, delta_fp, delta_fn, threshold
         self.run = 0
+        self.watching = False
 
     def reset(self) -> None:
         self.run = 0
+        self.watching = False
 
     def predict(self, t: int, d_t: float | None, doubt_t: float = 0.0) -> bool:
+        self.watching = self.watching or d_t is not None
         self.run = self.run + 1 if d_t is not None and d_t < self.threshold else 0
         return self.run >= self.beta
 
     def feedback(self, kind: str) -> None:
         _check_feedback(kind)
+        if kind == "fn" and not self.watching:
+            return
         if kind == "fp":
             self.beta += self.delta_fp
         elif kind == "fn":
@@ -124,6 +131,7 @@ class GDARule:
         self.n_failed = self.n_total = 0
         self._stats: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.run = 0
+        self.watching = False
 
     # --- statistics
     def _fit(self) -> None:
@@ -169,11 +177,13 @@ class GDARule:
     # --- prediction
     def reset(self) -> None:
         self.run = 0
+        self.watching = False
         if self.beta is not None:
             self.beta.reset()
 
     def predict(self, t: int, d_t: float | None, doubt_t: float = 0.0) -> bool:
         p = self.posterior(t, d_t)
+        self.watching = self.watching or p is not None
         above = p is not None and p > self.gamma
         if self.beta is None:
             return above
@@ -182,11 +192,14 @@ class GDARule:
 
     def feedback(self, kind: str) -> None:
         _check_feedback(kind)
+        if kind == "fn" and not self.watching:
+            return
         if kind == "fp":
             self.gamma = min(0.99, self.gamma + self.delta_fp)
         elif kind == "fn":
             self.gamma = max(0.01, self.gamma - self.delta_fn)
         if self.beta is not None:
+            self.beta.watching = True  # GDA's own watch decided above
             self.beta.feedback(kind)
         self.run = 0
 

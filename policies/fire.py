@@ -41,6 +41,8 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import user_features, vector_feature
 from shiftkit.pipelines.lerobot_io import DatasetWriter, lerobot_home, open_lerobot_dataset
+from shiftkit.pipelines.provenance import PROVENANCE_VERSION
+from shiftkit.pipelines.provenance import versions as provenance_versions
 from shiftkit.policies.bc import BCArgs, BCPolicy, ensemble_doubt, load_policy, update_members
 from shiftkit.policies.bc import train as train_bc
 from shiftkit.policies.data import FrameTable, epoch_batches, open_datasets
@@ -744,11 +746,22 @@ def write_aggregated(
             writer.add_episode(Episode(frames, meta))
         writer.close(
             provenance={
-                "provenance_version": 1,
+                "provenance_version": PROVENANCE_VERSION,
+                "tool": "shiftkit",
+                "versions": provenance_versions(),
                 "seed": args.seed,
-                "sources": [{"kind": "fire", "path": str(demo_root), "env": args.env, "task": args.task}],
-                "fire": {"run": str(run_dir.path), "predictor": args.predictor, "episodes": len(paths)},
-                "output": {"episodes": writer.num_episodes, "frames": writer.num_frames, "repo_id": args.repo_id},
+                "sources": [
+                    {"kind": "lerobot", "path": str(demo_root), "num_episodes": reader.num_episodes},
+                    {"kind": "fire", "path": str(run_dir.path), "env": args.env, "num_episodes": len(paths)},
+                ],
+                "stages": [],
+                "fire": {"run": str(run_dir.path), "task": args.task, "predictor": args.predictor},
+                "output": {
+                    "repo_id": args.repo_id,
+                    "fps": reader.fps,
+                    "episodes": writer.num_episodes,
+                    "frames": writer.num_frames,
+                },
             }
         )
 

@@ -227,6 +227,7 @@ def test_fire_writes_the_aggregated_dataset(demo, fire_run):
         assert line["length"] == len(ep)
     assert sum(line["episode_expert_samples"] for line in lines) == lines[-1]["corrections"]
     assert lines[-1]["env_steps"] == sum(len(ep) for ep in episodes[3:])
+    assert main(["info", str(ds_root)]) == 0 and main(["validate", str(ds_root)]) == 0
     # the current policy is a BC run folder that `shiftkit eval` understands
     assert (run / "policy" / "config.json").is_file() and (run / "policy" / "checkpoints" / "last.txt").is_file()
 

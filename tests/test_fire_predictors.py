@@ -38,6 +38,9 @@ def test_beta_fires_after_beta_consecutive_low_scores():
 def test_beta_update_rules():
     rule = BetaRule()
     assert rule.beta == 20
+    rule.feedback("fn")
+    assert rule.beta == 20  # no D score seen this episode: it could not have predicted
+    rule.predict(0, 0.9)
     rule.feedback("fp")
     assert rule.beta == 21  # false positive: +delta_fp (1)
     rule.feedback("fn")
@@ -45,6 +48,7 @@ def test_beta_update_rules():
     rule.feedback("tp")
     assert rule.beta == 18  # agreed: unchanged
     small = BetaRule(beta=2)
+    small.predict(0, 0.9)
     small.feedback("fn")
     assert small.beta == 1  # never below one step
     # answering restarts the watch: the run of low scores counts again from zero
@@ -86,6 +90,13 @@ def test_gda_needs_both_outcomes_and_adapts_gamma():
     gda.update(trace([0.1, 0.1]), failed=True)
     gda.update(trace([0.1, 0.2]), failed=True)
     assert gda.posterior(0, 0.1) is None  # no successful episode yet
+    assert gda.predict(0, 0.1) is False
+    gda.feedback("fn")
+    assert gda.gamma == 0.5  # without statistics it could not have predicted: not blamed
+    gda.update(trace([0.9, 0.9]), failed=False)
+    gda.update(trace([0.8, 0.8]), failed=False)
+    gda.reset()
+    gda.predict(0, 0.85)
     gda.feedback("fp")
     assert gda.gamma == pytest.approx(0.6)
     gda.feedback("fn")
@@ -105,6 +116,8 @@ def test_gda_with_beta_needs_consecutive_steps():
     assert [gda.predict(t, 0.15) for t in range(3)] == [False, True, True]
     gda.feedback("fp")
     assert gda.beta.beta == 3 and gda.gamma == pytest.approx(0.52)
+    gda.feedback("fn")
+    assert gda.beta.beta == 1 and gda.gamma == pytest.approx(0.46)
 
 
 def test_doubt_and_or():
