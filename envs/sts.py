@@ -104,7 +104,8 @@ class PadContacts:
 
 class STSSensor:
     """A simulated STS on `pad_geom`, its frame the site `site` (z out of the pad), its visual-mode
-    camera `camera`. Images are `size` x `size` RGB; noise comes from the seed given to `reset`."""
+    camera `camera`. Images are `height` x `width` RGB (the membrane view fitted inside); noise
+    comes from the seed given to `reset`."""
 
     def __init__(
         self,
@@ -112,11 +113,13 @@ class STSSensor:
         pad_geom: int,
         site: int,
         camera: str,
-        size: int = 64,
+        width: int = 64,
+        height: int = 64,
         membrane: MembraneModel | None = None,
         gain: RawGain | None = None,
     ) -> None:
-        self.model, self.pad_geom, self.site, self.camera, self.size = model, pad_geom, site, camera, size
+        self.model, self.pad_geom, self.site, self.camera = model, pad_geom, site, camera
+        self.width, self.height = width, height
         self.membrane = membrane or MembraneModel()
         self.gain = gain or RawGain()
         self.mode = "tactile"
@@ -125,7 +128,7 @@ class STSSensor:
         gy = (np.arange(mem.grid[1]) + 0.5) / mem.grid[1] - 0.5
         xx, yy = np.meshgrid(gx * mem.size_mm[0], gy * mem.size_mm[1])
         self.reference_mm = np.column_stack([xx.ravel(), yy.ravel()])
-        self.px_per_mm = size / max(mem.size_mm)
+        self.px_per_mm = min(width / mem.size_mm[0], height / mem.size_mm[1])
         self._renderer: mujoco.Renderer | None = None
         self._rng = np.random.default_rng(0)
         # see-through: the clear gel and the robot itself are not in the view, only the scene
@@ -193,10 +196,10 @@ class STSSensor:
         return self.render_markers(self.marker_positions(contacts), contacts)
 
     def render_markers(self, markers_mm: np.ndarray, contacts: PadContacts) -> np.ndarray:
-        s, mem = self.size, self.membrane
-        img = np.full((s, s), 200.0)
+        mem = self.membrane
+        img = np.full((self.height, self.width), 200.0)
         # pressed gel scatters more LED light: a soft bright blob around each contact
-        yy, xx = np.mgrid[0:s, 0:s].astype(np.float64)
+        yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         for xy, f in zip(contacts.xy * 1000.0, contacts.force, strict=True):
             cx, cy = self._to_px(xy)
             sigma = mem.spread_mm * self.px_per_mm
@@ -215,12 +218,11 @@ class STSSensor:
 
     def _to_px(self, mm: np.ndarray) -> tuple[float, float]:
         """Membrane mm -> image pixel coordinates (x along columns, y along rows, centred)."""
-        c = (self.size - 1) / 2
-        return c + mm[0] * self.px_per_mm, c + mm[1] * self.px_per_mm
+        return (self.width - 1) / 2 + mm[0] * self.px_per_mm, (self.height - 1) / 2 + mm[1] * self.px_per_mm
 
     def visual_image(self, data: mujoco.MjData) -> np.ndarray:
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, height=self.size, width=self.size)
+            self._renderer = mujoco.Renderer(self.model, height=self.height, width=self.width)
         self._renderer.update_scene(data, camera=self.camera, scene_option=self._option)
         disable_costly_flags(self._renderer.scene)
         return self._renderer.render().copy()

@@ -36,10 +36,16 @@ class MarkerWrenchEstimator:
     """Stateful estimator: `reset(reference_image)` per episode, then `update(image)` per frame."""
 
     def __init__(
-        self, max_track_px: float = 3.0, neighbours: int = 4, smoothing: float = 0.5, spacing_deadband: float = 0.08
+        self,
+        max_track_px: float = 3.0,
+        neighbours: int = 4,
+        smoothing: float = 0.5,
+        spacing_deadband: float = 0.08,
+        pressure_radius: float = 1.2,
     ) -> None:
         self.max_track_px, self.neighbours, self.smoothing = max_track_px, neighbours, smoothing
         self.spacing_deadband = spacing_deadband  # px: centroid noise is not pressure
+        self.pressure_radius = pressure_radius  # in marker spacings: the pressure pattern's size
         self.reference = np.zeros((0, 2))
         self._ref_spacing = np.zeros(0)
         self._ref_nn = np.zeros((0, 0), dtype=np.int64)
@@ -83,17 +89,28 @@ class MarkerWrenchEstimator:
         self._prev = cur
         spacing = np.linalg.norm(cur[:, None, :] - cur[self._ref_nn], axis=2).mean(axis=1)
         growth = spacing - self._ref_spacing
-        fz = float(np.clip(growth - self.spacing_deadband, 0.0, None).sum())
+        pressed = np.clip(growth - self.spacing_deadband, 0.0, None)
+        fz = float(pressed.sum())
         centre = cur[int(np.argmax(growth))]
-        r = cur - centre
+        if fz > 0:
+            centre = (pressed[:, None] * ref).sum(axis=0) / pressed.sum()
+        r = ref - centre
+        shear = disp
+        if fz > 0:
+            # pressure pushes markers apart about the centre; where the view cuts that pattern off its
+            # mean is not zero, so the radial part fitted about the centre is removed before averaging
+            sigma = self.pressure_radius * np.median(self._ref_spacing)
+            radial = np.exp(-np.sum(r * r, axis=1) / (2 * sigma**2))[:, None] * r / sigma
+            k = float(np.sum(radial * (disp - disp.mean(axis=0)))) / max(float(np.sum(radial * radial)), 1e-9)
+            shear = disp - max(k, 0.0) * radial
         dist = np.linalg.norm(r, axis=1)
         near = (dist > 1e-6) & (dist < 3.0 * np.median(self._ref_spacing))
         tau = (
-            float(np.mean((r[near, 0] * disp[near, 1] - r[near, 1] * disp[near, 0]) / dist[near]))
+            float(np.mean((r[near, 0] * shear[near, 1] - r[near, 1] * shear[near, 0]) / dist[near]))
             if near.any()
             else 0.0
         )
-        fx, fy = disp.mean(axis=0)
+        fx, fy = shear.mean(axis=0)
         return np.array([fx, fy, fz, tau])
 
     def update(self, image: np.ndarray) -> np.ndarray:

@@ -83,10 +83,11 @@ def test_sts_images_modes_and_raw_wrench(env_open):
     env = env_open
     env.reset(seed=2)
     visual = env.sts_image()
-    assert visual.shape == (64, 64, 3) and visual.dtype == np.uint8
+    assert visual.shape == (48, 64, 3) and visual.dtype == np.uint8  # the env's camera size
     obs, *_ = env.step(np.array([0, 0, 0, 0, 0, 0, 1.0]))
     tactile = env.sts_image()
-    assert obs[18] == 1.0 and tactile.shape == (64, 64, 3)
+    assert obs[18] == 1.0 and tactile.shape == (48, 64, 3)
+    np.testing.assert_array_equal(env.render_rgb("sts"), tactile)  # what evaluation renders
     assert len(detect_markers(tactile)) == len(env.sensor.reference_mm)
     assert np.abs(obs[14:18]).max() < 0.2  # no contact: the estimate stays near zero
     with pytest.raises(ValueError, match="mode"):
@@ -120,7 +121,7 @@ def test_scripted_expert_closes_the_door():
     env = DoorTactileEnv("flat-handle-close")
     r = rollout(env, seed=0, cameras=("wrist",))
     assert r.succeeded and not r.success[0]
-    assert r.images["wrist"].shape == (len(r.actions), 48, 64, 3) and r.images["sts"].shape[1:] == (64, 64, 3)
+    assert r.images["wrist"].shape == (len(r.actions), 48, 64, 3) and r.images["sts"].shape[1:] == (48, 64, 3)
     assert r.actions[:, 6].max() == 1.0 and r.actions[0, 6] == 0.0  # switches to tactile for contact
     assert r.observations[:, 23].max() > 5.0  # pressed on the handle
     env.close()
@@ -136,7 +137,7 @@ def test_kinesthetic_dataset_converts_to_lerobot(tmp_path, capsys):
 
     raw, out = tmp_path / "raw", tmp_path / "lerobot"
     args = ["collect", "--env", "door-tactile", "--task", "knob-close", "--kinesthetic", "--episodes", "5"]
-    assert main([*args, "--cameras", "wrist", "--width", "32", "--height", "24", "--out", str(raw)]) == 0
+    assert main([*args, "--cameras", "wrist,sts", "--out", str(raw)]) == 0
     assert "5 successful" in capsys.readouterr().out
     dataset = open_raw_dataset(raw)
     for i in range(5):
@@ -151,8 +152,8 @@ def test_kinesthetic_dataset_converts_to_lerobot(tmp_path, capsys):
     ds = LeRobotDataset("test/door", root=out, video_backend="pyav")
     assert ds.num_episodes == 5
     frame = ds[len(ds) - 1]
-    assert tuple(frame["observation.images.sts"].shape) == (3, 64, 64)
-    assert tuple(frame["observation.images.wrist"].shape) == (3, 24, 32)
+    assert tuple(frame["observation.images.sts"].shape) == (3, 48, 64)
+    assert tuple(frame["observation.images.wrist"].shape) == (3, 48, 64)
     assert tuple(frame["observation.wrench"].shape) == (4,) and tuple(frame["observation.ee_pose"].shape) == (7,)
     assert ds.features["observation.wrench"]["names"] == ["Fx", "Fy", "Fz", "tau_z"]
 

@@ -10,8 +10,8 @@ Observation (flat, `observation_names`): the sensor pose relative to the episode
 (position in the initial sensor frame, quaternion xyzw; thesis §4.4.1) now and one step before, the
 STS wrench estimate from the marker image (pixels, unscaled; zero in visual mode, when the markers
 are dark) and the mode; then privileged state: door angle and speed and the true contact wrench on
-the pad (sensor frame). Images: `render_rgb("wrist")` (the wrist camera) and `sts_image()` (the
-STS image of the active mode).
+the pad (sensor frame). Images: `render_rgb("wrist")` (the wrist camera) and `sts_image()` (= `render_rgb("sts")`, the STS
+image of the active mode), both `height` x `width`.
 `info` every step: `is_success`, `qpos`, `qvel`, `door_angle`, `slammed`, `handle_contact`.
 """
 
@@ -93,7 +93,6 @@ class DoorTactileEnv(gym.Env):
         width: int = 64,
         height: int = 48,
         render_quality: str = "fast",
-        sts_size: int = 64,
     ) -> None:
         self.task = get_task(task)
         if control_hz != 10:
@@ -103,7 +102,8 @@ class DoorTactileEnv(gym.Env):
         if camera not in CAMERAS:
             raise ValueError(f"unknown camera {camera!r}; known: {', '.join(CAMERAS)}")
         self.physics = DoorTactilePhysics(self.task.variant, control_hz)
-        self.sensor = STSSensor(self.physics.model, self.physics.pad_geom, self.physics.ee_site, "sts", sts_size)
+        # the STS image has the cameras' size, so that datasets and policies see one image size
+        self.sensor = STSSensor(self.physics.model, self.physics.pad_geom, self.physics.ee_site, "sts", width, height)
         self.estimator = MarkerWrenchEstimator()
         self.control_hz = control_hz
         self.max_episode_steps = int(round(max_episode_seconds * control_hz))
@@ -237,6 +237,9 @@ class DoorTactileEnv(gym.Env):
         return self._renderer
 
     def render_rgb(self, camera: str | None = None) -> np.ndarray:
+        """RGB of a camera; "sts" gives the STS image of the active mode (what datasets record)."""
+        if (camera or self.camera) == "sts":
+            return self.sts_image()
         return self._get_renderer().rgb(self.physics.data, camera or self.camera)
 
     def render_depth(self, camera: str | None = None) -> np.ndarray:

@@ -69,9 +69,10 @@ class _Recorder:
     """Frames of one episode: observation before each action, images, simulator state."""
 
     def __init__(self, env: DoorTactileEnv, cameras: tuple[str, ...], depth: bool) -> None:
-        self.env, self.cameras, self.depth_cameras = env, cameras, cameras if depth else ()
+        self.cameras = tuple(c for c in cameras if c != "sts")  # "sts" is always recorded
+        self.env, self.depth_cameras = env, self.cameras if depth else ()
         self.obs, self.actions, self.success, self.qpos, self.qvel = [], [], [], [], []
-        self.images: dict[str, list[np.ndarray]] = {c: [] for c in (*cameras, "sts")}
+        self.images: dict[str, list[np.ndarray]] = {c: [] for c in (*self.cameras, "sts")}
         self.depth: dict[str, list[np.ndarray]] = {c: [] for c in self.depth_cameras}
 
     def frame(self, obs: np.ndarray, info: dict[str, Any], sts: np.ndarray | None = None) -> None:
@@ -241,6 +242,7 @@ def kinesthetic_rollout(
     position + quaternion xyzw, base frame) and `wrench_raw` (F~_raw); actions are the relative
     pose changes between recorded frames plus the operator's mode label (1 tactile / 0 visual);
     meta: `first_contact_step`, `mode_switch_step` (frame indices), `recording_start_step`."""
+    cameras = tuple(c for c in cameras if c != "sts")  # "sts" is always recorded
     obs, info = env.reset(seed=seed)
     teacher = KinestheticTeacher(env)
     rng = np.random.default_rng([seed, 1])  # the operator's timing, apart from the env's streams

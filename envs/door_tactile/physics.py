@@ -8,15 +8,16 @@ is the MuJoCo world frame (base at the origin, z up):
   single rigid finger (a 9 cm box along the flange axis); on the finger's side near the tip sits the
   STS pad, a soft (gel-like) box whose outward normal is the sensor's z axis. The `ee` site is the
   sensor frame: z = pad normal, x = along the finger towards the tip;
-* a cabinet whose door (40 x 50 cm) hangs on a vertical hinge at x = -0.30, y = 0.55; opening
+* a wall cabinet whose door (40 x 50 cm, bottom at z = 0.50) hangs on a vertical hinge at
+  x = -0.30, y = 0.68 (where the Panda reaches it with the finger level); opening
   (positive angle) swings the free edge towards the robot. The hinge is self-closing: below
   `SPRING_ENGAGE` rad a spring pulls the door shut (1 Nm at the stop), above it dry hinge friction
   holds the door where it is (a cabinet self-closing hinge);
 * a flat metal handle (a 6 mm fin standing out 4 cm from the door) or a spherical glass knob
-  (1.8 cm radius on a 2.5 cm stem), 5 cm from the free edge at z = 0.40. A single finger opens or
+  (1.8 cm radius on a 2.5 cm stem), 5 cm from the free edge at z = 0.75. A single finger opens or
   closes the door by pressing the pad against the hinge side of the handle and dragging it along the
-  door's arc: the pull is transmitted by friction, so it needs a pressing force (thesis §4.4.1,
-  "press and pull").
+  door's arc: the pull is transmitted by friction, so it needs a pressing force (thesis §4.1,
+  "press and pull"; fig. 4.2b).
 
 Control: joint torques from `controllers.CartesianImpedance` (550 N/m, 30 Nm/rad, near-critical
 damping, null-space posture) every 2 ms physics step; gravity is compensated by the model
@@ -290,11 +291,9 @@ class DoorTactilePhysics:
         self.pad_geom = m.geom("sts_pad").id
         self.handle_geom = m.geom("handle").id
         self.finger_body = m.body("sts_finger").id
-        self.door_body = m.body("door").id
         self.controller = CartesianImpedance(m, self.ee_site, self.arm_qpos, self.arm_dofs, HOME_QPOS, TORQUE_LIMIT)
         self.target_pos = np.zeros(3)
         self.target_rot = EE_ROTATION.copy()
-        self._vel6 = np.zeros(6)
 
     # ----------------------------------------------------------------- state access
     def ee_pos(self) -> np.ndarray:
@@ -308,16 +307,6 @@ class DoorTactilePhysics:
 
     def door_velocity(self) -> float:
         return float(self.data.qvel[self.door_dof])
-
-    def handle_pos(self) -> np.ndarray:
-        return self.data.geom_xpos[self.handle_geom].copy()
-
-    def door_rot(self) -> np.ndarray:
-        return self.data.xmat[self.door_body].reshape(3, 3).copy()
-
-    def ee_speed(self) -> float:
-        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.ee_site, self._vel6, 0)
-        return float(np.linalg.norm(self._vel6[3:]))
 
     # ----------------------------------------------------------------- reset
     def reset(self, ee_pos: np.ndarray, ee_rot: np.ndarray, door_angle: float) -> None:
