@@ -8,6 +8,9 @@ reports episodes/s and the speed-up (goal >= 1.6x; it needs two free cores).
 each replayed by position and force-matched through the impedance controller with the stage's own
 code; prints a success table and, as the last line, the JSON result (goal: force-matched >= 90%,
 position <= 40%). The calibration comes from `--calibration` (default: docs').
+
+`--label-timing ROOT...` prints, for datasets written with a `mode_label` stage, the table of
+mode-switch step minus true first-contact step per task (thesis Fig. 4.15); `--png` draws it.
 """
 
 from __future__ import annotations
@@ -167,7 +170,15 @@ def main() -> None:
     parser.add_argument("--slowdown", type=int, default=2, help="force_match slowdown (default: 2)")
     parser.add_argument("--extra-steps", type=int, default=0, help="demonstration frames kept after success")
     parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated door tasks")
+    parser.add_argument("--label-timing", nargs="+", metavar="ROOT", help="mode-label timing table of datasets")
+    parser.add_argument("--png", help="with --label-timing: the histogram PNG (of the first dataset)")
     args = parser.parse_args()
+    if args.label_timing:
+        from shiftkit.transforms.mode_labels import dataset_timing_report
+
+        for i, root in enumerate(args.label_timing):
+            print(f"{root}:\n{dataset_timing_report(root, args.png if i == 0 else None)}")
+        return
     if args.replay_success:
         tasks = tuple(t for t in args.tasks.split(",") if t)
         result = replay_success(args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks)
