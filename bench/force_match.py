@@ -86,7 +86,9 @@ def throughput(quick: bool) -> dict:
     }
 
 
-def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, tasks: tuple[str, ...]) -> dict:
+def replay_success(
+    n: int, calibration: str, slowdown: int, extra_steps: int, tasks: tuple[str, ...], damping_time: float = 0.0
+) -> dict:
     """Replay each demonstration with the stage's code (no images) by position and force-matched."""
     from tqdm import tqdm
 
@@ -105,7 +107,7 @@ def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, ta
     for mode in ("position", "force_matched"):
         params = {"mode": mode, "slowdown": slowdown}
         if mode == "force_matched":
-            params["calibration"] = calibration
+            params.update(calibration=calibration, damping_time=damping_time)
         s = build_stage("force_match", params, StageContext(fps=10), "bench")
         s.transform_features(features)
         s.setup()
@@ -157,6 +159,7 @@ def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, ta
         "goal_position_max": 0.4,
         "per_task": rows,
         "slowdown": slowdown,
+        "damping_time": damping_time,
         "extra_steps": extra_steps,
         "calibration": calibration,
     }
@@ -169,6 +172,7 @@ def main() -> None:
     parser.add_argument("--calibration", default=str(REPO / "docs" / "force_matching_calibration.json"))
     parser.add_argument("--slowdown", type=int, default=2, help="force_match slowdown (default: 2)")
     parser.add_argument("--extra-steps", type=int, default=0, help="demonstration frames kept after success")
+    parser.add_argument("--damping-time", type=float, default=0.0, help="force_match damping_time (default: 0)")
     parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated door tasks")
     parser.add_argument("--label-timing", nargs="+", metavar="ROOT", help="mode-label timing table of datasets")
     parser.add_argument("--png", help="with --label-timing: the histogram PNG (of the first dataset)")
@@ -181,7 +185,9 @@ def main() -> None:
         return
     if args.replay_success:
         tasks = tuple(t for t in args.tasks.split(",") if t)
-        result = replay_success(args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks)
+        result = replay_success(
+            args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks, args.damping_time
+        )
     else:
         result = throughput(args.quick)
     print(json.dumps(result))
