@@ -87,7 +87,13 @@ def throughput(quick: bool) -> dict:
 
 
 def replay_success(
-    n: int, calibration: str, slowdown: int, extra_steps: int, tasks: tuple[str, ...], damping_time: float = 0.0
+    n: int,
+    calibration: str,
+    slowdown: int,
+    extra_steps: int,
+    tasks: tuple[str, ...],
+    damping_time: float = 0.0,
+    first_seed: int = 0,
 ) -> dict:
     """Replay each demonstration with the stage's code (no images) by position and force-matched."""
     from tqdm import tqdm
@@ -116,7 +122,7 @@ def replay_success(
     for task in tasks:
         env = make("door-tactile", task)
         counts = {"demonstrations": 0, "demo_success": 0, "position": 0, "force_matched": 0}
-        for seed in tqdm(range(n), desc=task, leave=False):
+        for seed in tqdm(range(first_seed, first_seed + n), desc=task, leave=False):
             r = family.experts["kinesthetic"](env, seed, extra_steps=extra_steps)
             t = len(r.actions)
             episode = Episode(
@@ -160,6 +166,7 @@ def replay_success(
         "per_task": rows,
         "slowdown": slowdown,
         "damping_time": damping_time,
+        "seeds": [first_seed, first_seed + n - 1],
         "extra_steps": extra_steps,
         "calibration": calibration,
     }
@@ -173,6 +180,7 @@ def main() -> None:
     parser.add_argument("--slowdown", type=int, default=2, help="force_match slowdown (default: 2)")
     parser.add_argument("--extra-steps", type=int, default=0, help="demonstration frames kept after success")
     parser.add_argument("--damping-time", type=float, default=0.0, help="force_match damping_time (default: 0)")
+    parser.add_argument("--seed", type=int, default=0, help="demonstration seeds SEED..SEED+N-1 (default: 0)")
     parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated door tasks")
     parser.add_argument("--label-timing", nargs="+", metavar="ROOT", help="mode-label timing table of datasets")
     parser.add_argument("--png", help="with --label-timing: the histogram PNG (of the first dataset)")
@@ -186,7 +194,7 @@ def main() -> None:
     if args.replay_success:
         tasks = tuple(t for t in args.tasks.split(",") if t)
         result = replay_success(
-            args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks, args.damping_time
+            args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks, args.damping_time, args.seed
         )
     else:
         result = throughput(args.quick)
