@@ -213,7 +213,8 @@ class ForceMatchConfig:
     damping_time: float = 0.0
     """Velocity feed-forward (s, force_matched only; not in the thesis): x_rep also moves by
     damping_time * v_raw, the pose error the replay controller's damping D needs at the recorded
-    velocity (D / K: about 0.15 s for the door-tactile controller). 0 = the static model F = K e."""
+    velocity (about D / K: 0.25 s replays the door-tactile demonstrations best, docs/force_matching.md).
+    0 = the static model F = K e."""
 
     def __post_init__(self) -> None:
         if self.slowdown < 1 or self.hold_steps < 0 or self.damping_time < 0:
