@@ -8,6 +8,9 @@ reports episodes/s and the speed-up (goal >= 1.6x; it needs two free cores).
 each replayed by position and force-matched through the impedance controller with the stage's own
 code; prints a success table and, as the last line, the JSON result (goal: force-matched >= 90%,
 position <= 40%). The calibration comes from `--calibration` (default: docs').
+
+`--label-timing ROOT...` prints, for datasets written with a `mode_label` stage, the table of
+mode-switch step minus true first-contact step per task (thesis Fig. 4.15); `--png` draws it.
 """
 
 from __future__ import annotations
@@ -83,7 +86,15 @@ def throughput(quick: bool) -> dict:
     }
 
 
-def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, tasks: tuple[str, ...]) -> dict:
+def replay_success(
+    n: int,
+    calibration: str,
+    slowdown: int,
+    extra_steps: int,
+    tasks: tuple[str, ...],
+    damping_time: float = 0.0,
+    first_seed: int = 0,
+) -> dict:
     """Replay each demonstration with the stage's code (no images) by position and force-matched."""
     from tqdm import tqdm
 
@@ -102,7 +113,7 @@ def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, ta
     for mode in ("position", "force_matched"):
         params = {"mode": mode, "slowdown": slowdown}
         if mode == "force_matched":
-            params["calibration"] = calibration
+            params.update(calibration=calibration, damping_time=damping_time)
         s = build_stage("force_match", params, StageContext(fps=10), "bench")
         s.transform_features(features)
         s.setup()
@@ -111,7 +122,7 @@ def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, ta
     for task in tasks:
         env = make("door-tactile", task)
         counts = {"demonstrations": 0, "demo_success": 0, "position": 0, "force_matched": 0}
-        for seed in tqdm(range(n), desc=task, leave=False):
+        for seed in tqdm(range(first_seed, first_seed + n), desc=task, leave=False):
             r = family.experts["kinesthetic"](env, seed, extra_steps=extra_steps)
             t = len(r.actions)
             episode = Episode(
@@ -154,6 +165,8 @@ def replay_success(n: int, calibration: str, slowdown: int, extra_steps: int, ta
         "goal_position_max": 0.4,
         "per_task": rows,
         "slowdown": slowdown,
+        "damping_time": damping_time,
+        "seeds": [first_seed, first_seed + n - 1],
         "extra_steps": extra_steps,
         "calibration": calibration,
     }
@@ -166,11 +179,23 @@ def main() -> None:
     parser.add_argument("--calibration", default=str(REPO / "docs" / "force_matching_calibration.json"))
     parser.add_argument("--slowdown", type=int, default=2, help="force_match slowdown (default: 2)")
     parser.add_argument("--extra-steps", type=int, default=0, help="demonstration frames kept after success")
+    parser.add_argument("--damping-time", type=float, default=0.0, help="force_match damping_time (default: 0)")
+    parser.add_argument("--seed", type=int, default=0, help="demonstration seeds SEED..SEED+N-1 (default: 0)")
     parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated door tasks")
+    parser.add_argument("--label-timing", nargs="+", metavar="ROOT", help="mode-label timing table of datasets")
+    parser.add_argument("--png", help="with --label-timing: the histogram PNG (of the first dataset)")
     args = parser.parse_args()
+    if args.label_timing:
+        from shiftkit.transforms.mode_labels import dataset_timing_report
+
+        for i, root in enumerate(args.label_timing):
+            print(f"{root}:\n{dataset_timing_report(root, args.png if i == 0 else None)}")
+        return
     if args.replay_success:
         tasks = tuple(t for t in args.tasks.split(",") if t)
-        result = replay_success(args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks)
+        result = replay_success(
+            args.replay_success, args.calibration, args.slowdown, args.extra_steps, tasks, args.damping_time, args.seed
+        )
     else:
         result = throughput(args.quick)
     print(json.dumps(result))

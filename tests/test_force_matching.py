@@ -253,3 +253,32 @@ def test_docs_pipelines_run_with_two_workers_and_train_act(kinesthetic, tmp_path
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "step:2" in out.stdout + out.stderr
+
+
+def test_damping_feed_forward_moves_targets_along_the_velocity(tmp_path):
+    from shiftkit.pipelines.episode import Episode
+
+    Calibration(SENSOR, linear_calibration().axes).save(tmp_path / "zero.json")
+    poses = random_poses(1)[[0] * 6]
+    poses[:, 0] += 0.01 * np.arange(6)  # 1 cm per frame along x: 0.1 m/s at 10 fps
+    actions = np.zeros((6, 7), np.float32)
+    ep = Episode(
+        {
+            "observation.ee_pose": poses,
+            "observation.wrench": np.zeros((6, 4)),
+            "action": actions,
+            "timestamp": np.arange(6) / 10.0,
+            "task": np.array(["flat-handle-open"] * 6),
+        }
+    )
+    features = {
+        "observation.ee_pose": {"dtype": "float64", "shape": (7,)},
+        "observation.wrench": {"dtype": "float64", "shape": (4,)},
+        "action": {"dtype": "float32", "shape": (7,)},
+    }
+    plain = stage(features, calibration=str(tmp_path / "zero.json")).targets(ep)
+    fed = stage(features, calibration=str(tmp_path / "zero.json"), damping_time=0.15).targets(ep)
+    assert np.array_equal(plain[:6], poses)  # zero force: the recorded poses (+ the closing pose)
+    # 0.15 s x 0.1 m/s (the last recorded frame's velocity sees the still closing pose)
+    assert fed[:5, :3] - plain[:5, :3] == pytest.approx(np.tile([0.015, 0.0, 0.0], (5, 1)), abs=1e-12)
+    assert np.array_equal(fed[:, 3:], plain[:, 3:])

@@ -210,10 +210,15 @@ class ForceMatchConfig:
     hold_steps: int = 10
     """Steps the last target is held after the demonstration's end (a door may still be moving);
     they are part of the output."""
+    damping_time: float = 0.0
+    """Velocity feed-forward (s, force_matched only; not in the thesis): x_rep also moves by
+    damping_time * v_raw, the pose error the replay controller's damping D needs at the recorded
+    velocity (about D / K: 0.25 s replays the door-tactile demonstrations best, docs/force_matching.md).
+    0 = the static model F = K e."""
 
     def __post_init__(self) -> None:
-        if self.slowdown < 1 or self.hold_steps < 0:
-            raise ValueError("need slowdown >= 1 and hold_steps >= 0")
+        if self.slowdown < 1 or self.hold_steps < 0 or self.damping_time < 0:
+            raise ValueError("need slowdown >= 1, hold_steps >= 0 and damping_time >= 0")
         if self.median_kernel < 1 or self.median_kernel % 2 == 0:
             raise ValueError(f"median_kernel must be odd and >= 1, got {self.median_kernel}")
         unknown = [a for a in self.axes if a not in WRENCH_AXES]
@@ -305,7 +310,11 @@ class ForceMatch(Stage):
         # unmatched axes read as their offset b: zero displacement
         offsets = np.array([self._calibration.axes[a].offset for a in WRENCH_AXES])
         wrench = np.where(keep, np.concatenate([wrench, wrench[-1:]]), offsets)
-        return force_matched_poses(poses, wrench, self._calibration, self.config.median_kernel)
+        targets = force_matched_poses(poses, wrench, self._calibration, self.config.median_kernel)
+        if self.config.damping_time > 0 and len(poses) > 1:
+            velocity = np.gradient(poses[:, :3], axis=0) * self.context.fps
+            targets[:, :3] += self.config.damping_time * velocity
+        return targets
 
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         meta = episode.meta

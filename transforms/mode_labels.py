@@ -234,14 +234,3 @@ def dataset_timing_report(root: str | Path, png: str | Path | None = None) -> st
     if not any(SWITCH_STEP in m for m in metas):
         raise DatasetError(f"{root}: no episode has mode labels (run a mode_label stage)")
     return timing_report(metas, png)
-
-
-if __name__ == "__main__":
-    import argparse
-
-    parser = argparse.ArgumentParser(description="STS mode-switch timing vs true first contact (thesis Fig. 4.15)")
-    parser.add_argument("datasets", nargs="+", help="LeRobot dataset roots written with a mode_label stage")
-    parser.add_argument("--png", help="histogram PNG (one dataset)")
-    args = parser.parse_args()
-    for root in args.datasets:
-        print(f"{root}:\n{dataset_timing_report(root, args.png)}")
