@@ -155,7 +155,8 @@ def test_lerobot_train_diffusion_on_outputs(outputs, variant, tmp_path):
 
 
 def test_collect_writes_videos(tmp_path):
-    """`collect --video`: camera and depth features as lerobot videos, decodable and valid."""
+    """`collect --video`: the RGB camera as a lerobot video (depth stays a lossless image, as
+    lerobot's `convert_image_to_video_dataset` leaves it), decodable and valid."""
     from shiftkit.pipelines.depth import DEFAULT_ENCODING, decode_depth
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
@@ -172,16 +173,14 @@ def test_collect_writes_videos(tmp_path):
     )
     info = json.loads((root / "meta/info.json").read_text())
     assert info["features"]["observation.images.front"]["dtype"] == "video"
-    assert info["features"]["observation.depth.front"]["dtype"] == "video"
-    assert sorted(p.parent.parent.name for p in (root / "videos").rglob("*.mp4")) == [
-        "observation.depth.front",
-        "observation.images.front",
-    ]
+    assert info["features"]["observation.depth.front"]["dtype"] == "image"
+    assert [p.parent.parent.name for p in (root / "videos").rglob("*.mp4")] == ["observation.images.front"]
     assert validate_dataset(root)["episodes"] == 1
     episode = next(open_lerobot_dataset(root).iter_episodes())
     depth = decode_depth(episode.frames["observation.depth.front"])
     assert counts["episodes"] == 1 and depth.shape == (len(episode), 48, 64)
     assert 0.3 < float(np.median(depth)) < DEFAULT_ENCODING["far"]
+    assert episode.frames["observation.images.front"].shape == (len(episode), 48, 64, 3)
 
 
 def test_video_needs_lerobot_output(tmp_path):
