@@ -136,7 +136,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=96, help="square frame size in pixels (default 96)")
     args = parser.parse_args()
     episodes = args.episodes or (4 if args.quick else 10)
-    length = args.length or (60 if args.quick else 200)
+    length = args.length or (100 if args.quick else 200)
     frames = episodes * length
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
