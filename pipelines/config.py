@@ -50,8 +50,8 @@ class DestinationConfig:
     private: bool = False
     """Create the hub repository as private."""
     video: bool | None = None
-    """Camera features as lerobot videos (true) or PNG images (false); unset: as the source has them.
-    Images are faster to write and read for small frames (docs/video_depth.md)."""
+    """RGB camera features (`observation.image*`) as lerobot videos (true) or PNG images (false);
+    unset: as the source has them. Depth stays a lossless image (docs/video_depth.md)."""
 
 
 @dataclass

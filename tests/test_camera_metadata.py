@@ -109,6 +109,24 @@ def test_stages_carry_each_episodes_cameras_to_its_new_index(tmp_path):
     assert doc["episodes"]["1"]["front"]["extrinsics"] == _extrinsics(2)
 
 
+def test_sharded_executor_keeps_the_cameras(tmp_path):
+    """The datatrove executor writes shards and merges them with lerobot's aggregation, which drops
+    meta/cameras.json: the merged dataset gets the shards' cameras, re-indexed."""
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+
+    raw = _write_raw(tmp_path / "raw")
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(raw))], destination=DestinationConfig(root=str(tmp_path / "out"))
+    )
+    out = run_pipeline(config, executor="datatrove-local", executor_options={"shard_episodes": 1}, progress=False)
+    episodes = list(open_lerobot_dataset(out).iter_episodes())
+    assert [ep.meta["cameras"]["front"]["extrinsics"] for ep in episodes] == [_extrinsics(e) for e in range(3)]
+    prov = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert prov["cameras"]["per_episode"] == {"front": ["base_pose", "extrinsics"]}
+
+
 def test_aggregate_datasets_merges_shiftkit_with_lerobot_written(tmp_path):
     from lerobot.datasets.aggregate import aggregate_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset

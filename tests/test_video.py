@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shiftkit.pipelines.camera_meta import factor_cameras
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
 from shiftkit.pipelines.dataset_check import validate_dataset
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
@@ -20,6 +22,7 @@ from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
 
 SIZE = 32
+INTRINSICS = {"fx": 30.0, "fy": 30.0, "cx": 15.5, "cy": 15.5, "width": SIZE, "height": SIZE}
 FRAMES = 30
 STAGES = [
     StageSpec("filter", {"indices": [0, 2, 3]}),
@@ -155,7 +158,8 @@ def test_lerobot_train_diffusion_on_outputs(outputs, variant, tmp_path):
 
 
 def test_collect_writes_videos(tmp_path):
-    """`collect --video`: camera and depth features as lerobot videos, decodable and valid."""
+    """`collect --video`: the RGB camera as a lerobot video (depth stays a lossless image, as
+    lerobot's `convert_image_to_video_dataset` leaves it), decodable and valid."""
     from shiftkit.pipelines.depth import DEFAULT_ENCODING, decode_depth
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
@@ -172,16 +176,14 @@ def test_collect_writes_videos(tmp_path):
     )
     info = json.loads((root / "meta/info.json").read_text())
     assert info["features"]["observation.images.front"]["dtype"] == "video"
-    assert info["features"]["observation.depth.front"]["dtype"] == "video"
-    assert sorted(p.parent.parent.name for p in (root / "videos").rglob("*.mp4")) == [
-        "observation.depth.front",
-        "observation.images.front",
-    ]
+    assert info["features"]["observation.depth.front"]["dtype"] == "image"
+    assert [p.parent.parent.name for p in (root / "videos").rglob("*.mp4")] == ["observation.images.front"]
     assert validate_dataset(root)["episodes"] == 1
     episode = next(open_lerobot_dataset(root).iter_episodes())
     depth = decode_depth(episode.frames["observation.depth.front"])
     assert counts["episodes"] == 1 and depth.shape == (len(episode), 48, 64)
     assert 0.3 < float(np.median(depth)) < DEFAULT_ENCODING["far"]
+    assert episode.frames["observation.images.front"].shape == (len(episode), 48, 64, 3)
 
 
 def test_video_needs_lerobot_output(tmp_path):
@@ -209,3 +211,37 @@ def test_in_memory_encoder_is_lerobots_encoder(tmp_path):
     assert (tmp_path / "ours.mp4").read_bytes() == (tmp_path / "lerobot.mp4").read_bytes()
     decoded = decode_episode(tmp_path / "ours.mp4", 0.0, np.arange(12) / 10, "test")
     assert decoded.shape == frames.shape and np.abs(decoded.astype(int) - frames).mean() < 6
+
+
+def test_video_dataset_round_trips_through_the_hub(outputs, tmp_path):
+    """Push a video output with camera metadata to a loopback hub and pull it: same files, and the
+    pulled copy reads the same episodes and cameras."""
+    from tests.hub_server import LoopbackHub
+    from tests.test_hub import WRITE, assert_ok, file_hashes, shiftkit_batch
+
+    local = tmp_path / "local"
+    shutil.copytree(outputs["video"], local)
+    (local / "meta/cameras.json").write_text(
+        json.dumps(factor_cameras({i: {"front": {"intrinsics": INTRINSICS}} for i in range(3)}))
+    )
+    pulled = tmp_path / "pulled"
+    with LoopbackHub(tmp_path / "store", {WRITE: "write"}) as hub:
+        results = shiftkit_batch(
+            [
+                (["push", str(local), "--repo-id", "shiftkit-test/video"], WRITE),
+                (["pull", "shiftkit-test/video", "--root", str(pulled)], WRITE),
+            ],
+            hub.endpoint,
+            tmp_path / "home",
+        )
+    assert_ok(results)
+    ours, theirs = file_hashes(local), file_hashes(pulled)
+    assert any(k.startswith("videos/") for k in ours)
+    hub_files = ("README.md", ".gitattributes")  # the card and the hub's own file
+    assert {k: v for k, v in ours.items() if k not in hub_files} == {
+        k: v for k, v in theirs.items() if k not in hub_files
+    }
+    a, b = (list(open_lerobot_dataset(root).iter_episodes()) for root in (local, pulled))
+    assert [ep.meta["cameras"] for ep in b] == [{"front": {"intrinsics": INTRINSICS}}] * 3
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.frames["observation.images.front"], y.frames["observation.images.front"])
