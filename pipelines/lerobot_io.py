@@ -126,6 +126,7 @@ class DatasetWriter:
         )
         self._meta = self._ds.meta
         self._stats = RunningStats()
+        self._task_index: dict[str, int] = {}
         self._hf_features = get_hf_features_from_features(self._ds.features)
         self._arrow_schema = self._hf_features.arrow_schema  # with datasets' feature metadata
         self._image_keys = [k for k, ft in self.features.items() if ft["dtype"] == "image"]
@@ -164,7 +165,10 @@ class DatasetWriter:
         tasks = [str(t) for t in episode.frames["task"]]
         episode_tasks = list(dict.fromkeys(tasks))  # first-appearance order: deterministic
         self._meta.save_episode_tasks(episode_tasks)
-        task_index = {t: self._meta.get_task_index(t) for t in episode_tasks}
+        for t in episode_tasks:  # lerobot's lookup is a pandas .loc (~1 ms); indices never change
+            if t not in self._task_index:
+                self._task_index[t] = self._meta.get_task_index(t)
+        task_index = self._task_index
 
         start = self.num_frames
         columns = _episode_columns(episode, self.features)
@@ -351,6 +355,8 @@ class LeRobotDatasetReader:
         starts = self.episodes.groupby(["chunk", "file"])["dataset_from_index"].min()
         self._file_starts = {(int(c), int(f)): int(v) for (c, f), v in starts.items()}
         self._features = user_features(self.info["features"])  # `features` hands out copies
+        self._rows = self.episodes.to_dict("records")  # a pandas row lookup costs ~1 ms
+        self._footers: dict[tuple[int, int], Any] = {}  # parsed parquet metadata per data file
 
     @property
     def fps(self) -> int:
@@ -401,7 +407,7 @@ class LeRobotDatasetReader:
     def _row(self, i: int) -> Any:
         if not 0 <= i < self.num_episodes:
             raise DatasetError(f"{self.root}: no episode {i} (dataset has {self.num_episodes})")
-        return self.episodes.iloc[i]
+        return self._rows[i]
 
     @staticmethod
     def _file_of(row: Any) -> tuple[int, int]:
@@ -414,7 +420,8 @@ class LeRobotDatasetReader:
 
         path = self.root / self.info["data_path"].format(chunk_index=key[0], file_index=key[1])
         try:
-            with pq.ParquetFile(path) as data:
+            with pq.ParquetFile(path, metadata=self._footers.get(key)) as data:
+                self._footers[key] = data.metadata
                 groups, first, row = [], lo, int(self._file_starts[key])
                 for g in range(data.metadata.num_row_groups):
                     n = data.metadata.row_group(g).num_rows
