@@ -264,15 +264,15 @@ def _run_locked(config: PipelineConfig, plan: Plan, engine: Any, work: Path, pro
         logging.getLogger("shiftkit").warning(
             "resuming: %d of %d source episodes were already transformed", done, plan.num_source_episodes
         )
+    with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
+        if not engine.run(plan, units, parts, bar):
+            return None
     try:
-        with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
-            if not engine.run(plan, units, parts, bar):
-                return None
         with _progress(plan.num_source_episodes, 0, "write", progress) as bar:
             path = engine.assemble(plan, parts, bar)
     except ShiftkitError:
-        # A problem with the data or config itself (e.g. every episode filtered out): re-running the
-        # same job fails the same way and a changed one has another key, so nothing is resumable.
+        # Every part exists, so the data itself is the problem (e.g. every episode filtered out): the
+        # same job fails the same way again and a changed one has another key. Nothing to resume.
         shutil.rmtree(work, ignore_errors=True)
         raise
     shutil.rmtree(work, ignore_errors=True)

@@ -50,8 +50,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
     if args.seed < 0 or args.episodes < 1:
         raise ConfigError(f"need --seed >= 0 and --episodes >= 1, got {args.seed} and {args.episodes}")
-    for folder in [Path(args.out).parent] if args.out else []:
-        _check_writable(folder, "--out")
+    from shiftkit.policies.run_dir import EVAL, run_folder
+
+    _check_writable(Path(args.out).parent if args.out else run_folder(args.policy) / EVAL, "--out")
     policy = load_policy(args.policy, device=args.device)
     _warn_if_unfinished(Path(args.policy))
     env_kwargs = {**dict(args.env_kwarg), **({"control_hz": args.control_hz} if args.control_hz else {})}

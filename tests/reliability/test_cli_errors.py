@@ -119,6 +119,20 @@ CASES = {
         lambda t, r, d: ["collect", "--task", "lift", "--episodes", "x", "--out", "o"],
         2,
     ),
+    "collect cameras into a non-UTF-8 folder": (
+        lambda t, r, d: [
+            "collect",
+            "--task",
+            "reach",
+            "--episodes",
+            "1",
+            "--cameras",
+            "front",
+            "--out",
+            str(t / NON_UTF8),
+        ],
+        0,
+    ),
     # run / plan
     "run config missing": (lambda t, r, d: ["run", str(t / "nope.toml")], 2),
     "run config is a folder": (lambda t, r, d: ["run", str(t)], 2),

@@ -63,7 +63,7 @@ def test_sigkill_then_resume(tmp_path):
     from shiftkit.pipelines.config import load_pipeline_config
     from shiftkit.pipelines.runner import run_pipeline, work_dir_for
 
-    raw = write_synthetic_raw(tmp_path / "raw", episodes=16, length=30, seed=5, camera=(24, 32))
+    raw = write_synthetic_raw(tmp_path / "raw", episodes=10, length=20, seed=5, camera=(16, 24))
     stages = '[[stages]]\nname = "subsample"\nparams = { every = 2 }'
     run_pipeline(load_pipeline_config(_config(tmp_path, raw, "clean", stages)), progress=False)
     injected = 0
@@ -72,7 +72,7 @@ def test_sigkill_then_resume(tmp_path):
         dest = f"killed{seed}"
         config = _config(tmp_path, raw, dest, stages)
         parts_dir = work_dir_for(tmp_path / dest) / "parts"
-        at_parts = int(rng.integers(1, 16)) if rng.random() < 0.75 else None  # else: while writing
+        at_parts = int(rng.integers(1, 10)) if rng.random() < 0.75 else None  # else: while writing
         proc = _shiftkit("run", str(config), "--no-progress", "--workers", str(WORKERS), cwd=tmp_path)
         workers: set[int] = set()
         while proc.poll() is None:
