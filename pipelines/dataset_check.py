@@ -149,10 +149,7 @@ def check_stats(root: Path, features: dict[str, Any]) -> list[str]:
     stats_path = root / "meta" / "stats.json"
     if not stats_path.exists():
         raise DatasetError(f"{stats_path} is missing (trainers read the normalisation statistics from it)")
-    try:
-        stats = json.loads(stats_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{stats_path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+    stats = _read_stats(stats_path)
     warnings = []
     for key in features:
         entry = stats.get(key)

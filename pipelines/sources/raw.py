@@ -194,6 +194,8 @@ def _validate_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
     for name in REQUIRED_ARRAYS:
         if name not in arrays:
             raise DatasetError(f"{where}: required array {name!r} is missing")
+    if np.ndim(arrays["timestamp"]) != 1:
+        raise DatasetError(f"{where}: 'timestamp' must be a 1-D float array of seconds")
     length = len(arrays["timestamp"])
     if length == 0:
         raise DatasetError(f"{where}: episode has no frames")
