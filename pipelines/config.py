@@ -49,6 +49,9 @@ class DestinationConfig:
     """Hub branch to push to (default: main)."""
     private: bool = False
     """Create the hub repository as private."""
+    video: bool | None = None
+    """RGB camera features (`observation.image*`) as lerobot videos (true) or PNG images (false);
+    unset: as the source has them. Depth stays a lossless image (docs/video_depth.md)."""
 
 
 @dataclass

@@ -36,6 +36,7 @@ def summarize(root: str | Path) -> dict[str, Any]:
             for k, v in stats.items()
             if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")
         },
+        "cameras": {"cameras": reader.cameras["cameras"], "episodes": reader.cameras["episodes"]},
         "provenance": json.loads(prov_path.read_text()) if prov_path.exists() else None,
     }
 
@@ -56,6 +57,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         st = summary["stats"].get(key)
         extra = f"mean {short(st['mean'])} std {short(st['std'])}" if st and "mean" in st else ""
         lines.append(f"  {key:<{width}}  {ft['dtype']:<8} {str(tuple(ft['shape'])):<14} {extra}")
+    lines += _camera_lines(summary["cameras"], summary["episodes"])
     prov = summary["provenance"]
     if prov:
         lines.append(
@@ -70,24 +72,46 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def validate_dataset(root: str | Path) -> dict[str, int]:
+def _camera_lines(cameras: dict[str, Any], num_episodes: int) -> list[str]:
+    """One line per camera: intrinsics, extrinsics and which entries vary per episode."""
+    per_episode: dict[str, set[str]] = {}
+    for cams in cameras["episodes"].values():
+        for name, cam in cams.items():
+            per_episode.setdefault(name, set()).update(cam)
+    names = sorted(set(cameras["cameras"]) | set(per_episode))
+    if not names:
+        return []
+    lines = ["cameras (meta/cameras.json):"]
+    for name in names:
+        cam, parts = cameras["cameras"].get(name, {}), []
+        if intr := cam.get("intrinsics"):
+            parts.append(
+                f"{intr['width']}x{intr['height']} fx {intr['fx']:.1f} fy {intr['fy']:.1f} "
+                f"cx {intr['cx']:.1f} cy {intr['cy']:.1f}"
+            )
+        if extr := cam.get("extrinsics"):
+            parts.append(f"at [{', '.join(f'{x:.3f}' for x in extr['position'])}] in the {extr['frame']} frame")
+        if varying := per_episode.get(name):
+            counts = sum(name in cams for cams in cameras["episodes"].values())
+            parts.append(f"per episode: {', '.join(sorted(varying))} ({counts}/{num_episodes} episodes)")
+        lines.append(f"  {name}: " + "; ".join(parts))
+    return lines
+
+
+def validate_dataset(root: str | Path) -> dict[str, Any]:
     """Read every episode and check it against the metadata; raise DatasetError on the first problem.
 
     Checks: info/episodes/tasks metadata readable and consistent; every data file readable; each
     episode's rows, indices, frame indices, timestamps and tasks; shapes and dtypes; NaN/inf in
-    float features; stats present for every feature; lerobot itself can open the dataset.
+    float features; the statistics a trainer needs (`check_stats`); lerobot itself can open the
+    dataset and read its first and last frame (videos through the pyav backend). Returns the
+    counts and the `warnings` (problems no trainer fails on).
     """
     from shiftkit.pipelines.features import check_episode
 
     root = Path(root)
     reader = open_lerobot_dataset(root)
-    stats_path = root / "meta" / "stats.json"
-    if not stats_path.exists():
-        raise DatasetError(f"{stats_path} is missing")
-    stats = json.loads(stats_path.read_text())
-    missing = [k for k in reader.features if k not in stats]
-    if missing:
-        raise DatasetError(f"{stats_path}: no statistics for {missing}")
+    warnings = check_stats(root, reader.features)
     frames = 0
     next_index = 0
     for ep in reader.iter_episodes():
@@ -106,12 +130,57 @@ def validate_dataset(root: str | Path) -> dict[str, int]:
         raise DatasetError(
             f"{root}: {reader.num_episodes} episodes, info.json says {reader.info.get('total_episodes')}"
         )
+    check_lerobot_loads(root)
+    return {"episodes": reader.num_episodes, "frames": frames, "warnings": warnings}
+
+
+# What lerobot's normalizer reads from a feature's statistics entry (MEAN_STD or MIN_MAX modes).
+TRAINING_STATS = ("mean", "std", "min", "max")
+
+
+def check_stats(root: Path, features: dict[str, Any]) -> list[str]:
+    """The statistics trainers read. An entry that exists but lacks mean/std/min/max, or holds
+    NaN/inf, is an error (lerobot's normalizer raises on it, or trains on NaN); so is a missing
+    `action` entry (every trainer normalises the action). A feature without an entry is a warning:
+    lerobot's trainers leave it unnormalised (lerobot's own tools write such datasets, e.g. a video
+    feature after `convert_image_to_video_dataset`, a feature from `add_features`), and shiftkit's
+    BC cannot take it as an input until `shiftkit run` recomputes the statistics."""
+    stats_path = root / "meta" / "stats.json"
+    if not stats_path.exists():
+        raise DatasetError(f"{stats_path} is missing (trainers read the normalisation statistics from it)")
+    try:
+        stats = json.loads(stats_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{stats_path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
+    warnings = []
+    for key in features:
+        entry = stats.get(key)
+        if entry is None:
+            if key == "action":
+                raise DatasetError(f"{stats_path}: no statistics for 'action' (every trainer normalises it)")
+            warnings.append(
+                f"{stats_path}: no statistics for {key!r} (lerobot trains with it unnormalised; "
+                "shiftkit's BC cannot use it as an input)"
+            )
+            continue
+        lacking = [s for s in TRAINING_STATS if s not in entry]
+        if lacking:
+            raise DatasetError(f"{stats_path}: statistics of {key!r} lack {lacking} (lerobot's normalizer needs them)")
+        if not all(np.isfinite(np.asarray(entry[s], dtype=float)).all() for s in TRAINING_STATS):
+            raise DatasetError(f"{stats_path}: statistics of {key!r} hold NaN or inf")
+    return warnings
+
+
+def check_lerobot_loads(root: Path) -> None:
+    """lerobot opens the dataset and reads its first and last frame (decoding videos with pyav,
+    the backend that works where torchcodec cannot load FFmpeg)."""
     try:
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-        LeRobotDataset(f"local/{root.name}", root=root)
+        dataset = LeRobotDataset(f"local/{root.name}", root=root, video_backend="pyav")
+        dataset[0]
+        dataset[len(dataset) - 1]
     except Exception as exc:
         raise DatasetError(
             f"{root}: lerobot cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
         ) from None
-    return {"episodes": reader.num_episodes, "frames": frames}

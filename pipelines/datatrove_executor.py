@@ -540,6 +540,7 @@ def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any]) ->
     """Aggregate the shard datasets (in order) into the destination, atomically."""
     from lerobot.datasets.aggregate import aggregate_datasets
 
+    from shiftkit.pipelines import camera_meta
     from shiftkit.pipelines.lerobot_io import write_provenance
     from shiftkit.pipelines.provenance import build_provenance
 
@@ -550,7 +551,9 @@ def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any]) ->
             aggregate_datasets([plan.repo_id] * len(roots), plan.repo_id, roots=roots, aggr_root=tmp)
         num_episodes, num_frames = fix_position_stats(tmp)
         provenance = build_provenance(plan, executor_info, num_episodes, num_frames)
-        write_provenance(tmp, provenance)
+        # lerobot's aggregation does not know meta/cameras.json: concatenate the shards' own.
+        cameras = camera_meta.provenance_entry(camera_meta.concat_cameras_files(roots, tmp))
+        write_provenance(tmp, {**provenance, "cameras": cameras} if cameras else provenance)
         if dest.exists():
             raise DatasetError(f"destination already exists: {dest}")
         os.rename(tmp, dest)

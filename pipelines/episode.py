@@ -29,7 +29,8 @@ class Episode:
 
     def select(self, index: np.ndarray | slice) -> Episode:
         """A new episode made of the frames picked by `index` (arrays are copied, meta too)."""
-        return Episode({k: np.array(v[index]) for k, v in self.frames.items()}, dict(self.meta))
+        # subok: camera frames read from PNG keep their source bytes (pipelines/encoded_frames.py)
+        return Episode({k: np.array(v[index], subok=True) for k, v in self.frames.items()}, dict(self.meta))
 
     def with_frames(self, **updates: np.ndarray) -> Episode:
         frames = dict(self.frames)

@@ -17,6 +17,7 @@ DEFAULT_KEYS = ("timestamp", "frame_index", "episode_index", "index", "task_inde
 NUMERIC_DTYPES = {"float32", "float64", "int64", "int32", "int16", "int8", "uint8", "bool"}
 CAMERA_DTYPES = {"image", "video"}
 IMAGE_NAMES = ["height", "width", "channels"]
+VIDEO_KEY_PREFIX = "observation.image"  # lerobot's OBS_IMAGE: the camera keys it stores as videos
 
 
 def numpy_dtype(dtype: str) -> np.dtype:
@@ -31,12 +32,29 @@ def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
     return feature
 
 
-def image_feature(shape: tuple[int, int, int], info: dict[str, Any] | None = None) -> dict[str, Any]:
-    """An RGB camera feature; `info` carries the view's intrinsics/extrinsics when known."""
-    feature: dict[str, Any] = {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
-    if info:
-        feature["info"] = dict(info)
-    return feature
+def image_feature(shape: tuple[int, int, int]) -> dict[str, Any]:
+    """An RGB camera feature, exactly as lerobot declares one (camera intrinsics/extrinsics live in
+    the episode metadata and `meta/cameras.json`, see `camera_meta`)."""
+    return {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
+
+
+def plain_camera_features(features: Features, dtype: str | None = None) -> Features:
+    """`features` with every camera feature reduced to the keys lerobot itself declares (its writer
+    fills a video's `info`; anything else there, e.g. intrinsics of older shiftkit datasets, stops
+    `aggregate_datasets` from merging with datasets recorded elsewhere). `dtype="image"` stores
+    every camera as images; `dtype="video"` only the RGB cameras (`observation.image*`, the keys
+    lerobot's `convert_image_to_video_dataset` converts): depth stays a lossless image (AV1 smears
+    depth edges by up to a metre, docs/video_depth.md)."""
+    return {
+        key: {
+            "dtype": dtype if dtype == "image" or (dtype and key.startswith(VIDEO_KEY_PREFIX)) else ft["dtype"],
+            "shape": tuple(ft["shape"]),
+            "names": ft.get("names"),
+        }
+        if ft.get("dtype") in CAMERA_DTYPES
+        else ft
+        for key, ft in features.items()
+    }
 
 
 def user_features(features: Features) -> Features:

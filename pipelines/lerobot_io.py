@@ -7,7 +7,8 @@ statistics, `LeRobotDatasetMetadata.save_episode`), so the files are what lerobo
 the two costs of the high-level path that do not apply to whole episodes held in memory: the
 per-frame `add_frame` loop, and `embed_images`, a `datasets.map` over every row that re-reads PNG
 files from disk (here images are encoded straight into the row, with the same PNG bytes and file
-name lerobot would embed). Camera features are written as `image` (PNG in parquet, no codec).
+name lerobot would embed). Camera features are written as `image` (PNG in parquet, no codec) or,
+declared `video`, through lerobot's own video encoder (`pipelines/video.py`).
 """
 
 from __future__ import annotations
@@ -20,16 +21,26 @@ import shutil
 import uuid
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from shiftkit.pipelines import camera_meta
+from shiftkit.pipelines.encoded_frames import EncodedFrames, source_png
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, check_episode, check_features, user_features
+from shiftkit.pipelines.features import (
+    CAMERA_DTYPES,
+    Features,
+    check_episode,
+    check_features,
+    plain_camera_features,
+    user_features,
+)
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.video import decode_episode, save_episode_videos
 
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
 PROVENANCE_PATH = "meta/shiftkit_provenance.json"
@@ -47,6 +58,8 @@ def _png_bytes(frame: np.ndarray) -> bytes:
 def _image_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
     """lerobot's image statistics (`sample_images` + `get_feature_stats`) from in-memory frames."""
     from lerobot.datasets.compute_stats import auto_downsample_height_width, get_feature_stats, sample_indices
+
+    frames = np.asarray(frames)  # a plain array (not EncodedFrames) for the statistics
 
     sampled = np.stack(
         [auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))]
@@ -88,7 +101,8 @@ def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, n
     from lerobot.datasets.utils import DEFAULT_FEATURES
 
     columns = _episode_columns(episode, features)
-    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] == "image"}
+    # Camera features, image or video: lerobot computes both from the frames before encoding.
+    images = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
     stats = _stats(columns, {**features, **DEFAULT_FEATURES})
     stats.update({k: _image_stats(v) for k, v in images.items()})
     return stats
@@ -116,28 +130,29 @@ class DatasetWriter:
         self.root = Path(root)
         if self.root.exists():
             raise DatasetError(f"destination already exists: {self.root}")
-        self.features = user_features(features)
+        self.features = plain_camera_features(user_features(features))
         check_features(self.features, where=f"schema of {self.root}")
-        if any(ft["dtype"] == "video" for ft in self.features.values()):
-            raise DatasetError("shiftkit writes camera features as dtype 'image'; declare them as 'image'")
         self.fps = int(fps)
         self.repo_id = repo_id
         self.tmp = self.root.parent / f".{self.root.name}.partial-{uuid.uuid4().hex[:8]}"
+        video_keys = [k for k, ft in self.features.items() if ft["dtype"] == "video"]  # pipelines/video.py
         try:
             self.root.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DatasetError(f"cannot create the destination's folder {self.root.parent}: {exc.strerror}") from None
         self._ds = LeRobotDataset.create(
-            repo_id, self.fps, dict(self.features), root=self.tmp, robot_type=robot_type, use_videos=False
+            repo_id, self.fps, dict(self.features), root=self.tmp, robot_type=robot_type, use_videos=bool(video_keys)
         )
         self._meta = self._ds.meta
         self._hf_features = get_hf_features_from_features(self._ds.features)
         self._image_keys = [k for k, ft in self.features.items() if ft["dtype"] == "image"]
+        self._video_keys = video_keys
         self._writer = None  # pyarrow ParquetWriter of the current data file
         self._chunk_file = (0, 0)
         self._file_start = 0  # global index of the first frame in the current data file
         self.num_episodes = 0
         self.num_frames = 0
+        self._cameras: dict[int, camera_meta.Cameras] = {}  # episode index -> its camera metadata
         self._closed = False
 
     def __enter__(self) -> DatasetWriter:
@@ -162,6 +177,7 @@ class DatasetWriter:
 
         where = f"episode {episode.meta.get('source_episode_index', self.num_episodes)}"
         check_episode(episode, self.features, self.fps, where)
+        episode_meta = self._take_cameras(episode.meta, where)
         n = len(episode)
         tasks = [str(t) for t in episode.frames["task"]]
         episode_tasks = list(dict.fromkeys(tasks))  # first-appearance order: deterministic
@@ -171,7 +187,10 @@ class DatasetWriter:
         start = self.num_frames
         columns = _episode_columns(episode, self.features)
         for key in self._image_keys:
-            columns[key] = [{"bytes": _png_bytes(f), "path": f"frame-{t:06d}.png"} for t, f in enumerate(columns[key])]
+            columns[key] = [
+                {"bytes": source_png(f, columns[key]) or _png_bytes(f), "path": f"frame-{t:06d}.png"}
+                for t, f in enumerate(columns[key])
+            ]
         columns["episode_index"] = np.full(n, self.num_episodes, dtype=np.int64)
         columns["index"] = np.arange(start, start + n, dtype=np.int64)
         columns["task_index"] = np.array([task_index[t] for t in tasks], dtype=np.int64)
@@ -183,6 +202,7 @@ class DatasetWriter:
         stats = {k: stats[k] for k in self._ds.features}
 
         table = self._arrow_table(columns)
+        videos = save_episode_videos(self._ds, self.num_episodes, {k: episode.frames[k] for k in self._video_keys})
 
         # Same file rotation rule as lerobot's writer: start a new data file when this episode
         # would push the current one past data_files_size_in_mb.
@@ -217,7 +237,8 @@ class DatasetWriter:
                 "data/file_index": self._chunk_file[1],
                 "dataset_from_index": start,
                 "dataset_to_index": start + n,
-                META_COLUMN: dumps(episode.meta),
+                **videos,
+                META_COLUMN: dumps(episode_meta),
                 **flatten_dict({"stats": stats}),
             }
         )
@@ -228,6 +249,14 @@ class DatasetWriter:
         self._meta.stats = aggregate_stats([self._meta.stats, stats]) if self._meta.stats is not None else stats
         self.num_episodes += 1
         self.num_frames += n
+
+    def _take_cameras(self, meta: dict[str, Any], where: str) -> dict[str, Any]:
+        """Keep the episode's camera metadata for meta/cameras.json; the rest of `meta` is returned
+        for the episodes table (the cameras live in their own file, not twice)."""
+        if meta.get("cameras"):
+            cameras = camera_meta.check_cameras(meta["cameras"], f"{where} meta")
+            self._cameras[self.num_episodes] = json.loads(dumps(cameras))
+        return {k: v for k, v in meta.items() if k != "cameras"}
 
     def _arrow_table(self, columns: dict[str, Any]) -> Any:
         """The episode as Arrow, encoded exactly as `datasets.Dataset.from_dict` does for lerobot,
@@ -254,9 +283,11 @@ class DatasetWriter:
             self._writer.close()
             self._writer = None
         self._meta._close_writer()
+        shutil.rmtree(self.tmp / "images", ignore_errors=True)  # the video encoder's input frames
         self._write_info_and_stats()
+        cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
         if provenance is not None:
-            write_provenance(self.tmp, provenance)
+            write_provenance(self.tmp, {**provenance, "cameras": cameras} if cameras else provenance)
         if self.root.exists():
             self.abort()
             raise DatasetError(f"destination already exists: {self.root}")
@@ -302,6 +333,7 @@ class LeRobotDatasetReader:
     info: dict[str, Any]
     episodes: Any  # pandas DataFrame of meta/episodes without stats columns
     tasks: list[str]
+    cameras: dict[str, Any] = field(default_factory=dict)  # meta/cameras.json (camera_meta)
 
     @property
     def fps(self) -> int:
@@ -366,7 +398,8 @@ class LeRobotDatasetReader:
                 continue
             col = part.column(key)
             if ft["dtype"] == "image":
-                frames[key] = np.stack([_decode_png(v["bytes"], where) for v in col.to_pylist()])
+                encoded = [v["bytes"] for v in col.to_pylist()]  # kept: unchanged frames are not re-encoded
+                frames[key] = EncodedFrames.wrap(np.stack([_decode_png(b, where) for b in encoded]), encoded)
             elif ft["dtype"] == "string":
                 frames[key] = np.array(col.to_pylist(), dtype=str).reshape(n, 1)
             else:
@@ -376,16 +409,15 @@ class LeRobotDatasetReader:
         frames["task"] = np.array([self.tasks[t] for t in task_idx], dtype=str)
         meta = json.loads(row[META_COLUMN]) if META_COLUMN in row and isinstance(row[META_COLUMN], str) else {}
         meta["source_episode_index"] = i
+        if cameras := camera_meta.episode_cameras(self.cameras, i):
+            meta["cameras"] = cameras
         return Episode(frames, meta)
 
     def _decode_video(self, key: str, row: Any, timestamps: np.ndarray) -> np.ndarray:
-        from lerobot.datasets.video_utils import decode_video_frames
-
         chunk, file = int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])
         path = self.root / self.info["video_path"].format(video_key=key, chunk_index=chunk, file_index=file)
         offset = float(row[f"videos/{key}/from_timestamp"])
-        frames = decode_video_frames(path, [float(t) + offset for t in timestamps], 1e-4, backend="pyav")
-        return (frames.numpy().transpose(0, 2, 3, 1) * 255.0).round().astype(np.uint8)
+        return decode_episode(path, offset, timestamps, f"{self.root} episode {int(row['episode_index'])} {key}")
 
 
 def _column_to_numpy(col: Any, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
@@ -450,7 +482,10 @@ def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     tasks = [""] * len(tasks_df)
     for task, idx in zip(tasks_df.index, tasks_df["task_index"], strict=True):
         tasks[int(idx)] = str(task)
-    return LeRobotDatasetReader(root, info, episodes, tasks)
+    cameras = camera_meta.read_cameras_file(root)
+    if not cameras["cameras"] and not cameras["episodes"]:
+        cameras["cameras"] = camera_meta.cameras_from_feature_info(info["features"])
+    return LeRobotDatasetReader(root, info, episodes, tasks, cameras)
 
 
 # --------------------------------------------------------------------------- dataset IDs
@@ -513,7 +548,12 @@ def resolve_dataset(ref: str, root: str | Path | None = None, revision: str | No
 
 
 def write_raw_as_lerobot(
-    raw_dir: str | Path, repo_id: str, root: str | Path, workers: int = 1, progress: bool = False
+    raw_dir: str | Path,
+    repo_id: str,
+    root: str | Path,
+    workers: int = 1,
+    progress: bool = False,
+    video: bool = False,
 ) -> Path:
     """Convert a raw-episode directory into a LeRobot dataset at `root` (a pipeline with no stages)."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
@@ -522,6 +562,6 @@ def write_raw_as_lerobot(
 
     config = PipelineConfig(
         sources=[SourceConfig(path=str(Path(raw_dir).resolve()))],
-        destination=DestinationConfig(root=str(Path(root).resolve()), repo_id=repo_id),
+        destination=DestinationConfig(root=str(Path(root).resolve()), repo_id=repo_id, video=video),
     )
     return run_pipeline(config, workers=workers, progress=progress)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, check_features
+from shiftkit.pipelines.features import Features, check_features, plain_camera_features
 from shiftkit.pipelines.sources import Source, open_source
 from shiftkit.pipelines.stage import Stage, StageContext, build_stage
 
@@ -53,6 +53,8 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
         features = stage.transform_features(features)
         check_features(features, where=f"output of stages[{i}] ({spec.name})")
         stages.append(stage)
+    if config.destination.video is not None:
+        features = plain_camera_features(features, "video" if config.destination.video else "image")
     plan = Plan(config, sources, stages, first.features, first.fps, features, fps, first.robot_type)
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")

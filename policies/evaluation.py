@@ -26,6 +26,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from shiftkit.pipelines.depth import DEPTH_PREFIX, encode_depth
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 
 # trainer name (config.json / checkpoint) -> module with `load_policy(path, device)`
@@ -66,6 +67,7 @@ class ObservationMap:
     def __init__(self, features: dict[str, dict], observation_names: list[str]) -> None:
         self.vectors: dict[str, np.ndarray] = {}
         self.cameras: dict[str, tuple[str, str]] = {}  # feature -> ("rgb" | "depth", camera)
+        self.depth_images = {k for k, ft in features.items() if k.startswith(DEPTH_PREFIX) and ft["dtype"] == "image"}
         index = {name: i for i, name in enumerate(observation_names)}
         for key, ft in features.items():
             if key.startswith("observation.images."):
@@ -86,7 +88,12 @@ class ObservationMap:
     def __call__(self, env: Any, obs: np.ndarray) -> dict[str, np.ndarray]:
         out = {key: np.asarray(obs, dtype=np.float32)[idx] for key, idx in self.vectors.items()}
         for key, (kind, cam) in self.cameras.items():
-            out[key] = env.render_rgb(cam) if kind == "rgb" else env.render_depth(cam)[..., None].astype(np.float32)
+            if kind == "rgb":
+                out[key] = env.render_rgb(cam)
+            elif key in self.depth_images:  # the dataset's grey-level encoding (pipelines.depth)
+                out[key] = encode_depth(env.render_depth(cam))
+            else:  # float (H, W, 1) metres: datasets written before the encoding
+                out[key] = env.render_depth(cam)[..., None].astype(np.float32)
         return out
 
 

@@ -26,6 +26,7 @@ EXAMPLE_PARAMS = {
     "rename": {"mapping": {"observation.environment_state": "observation.goal"}},
     "drop": {"features": ["observation.environment_state"]},
     "cast": {"dtypes": {"action": "float64"}},
+    "depth_image": {"far": 2.0},
     "success_examples": {"n_per_task": 3, "states": "success"},
     "multiview": {"num_views": 2, "depth": True},
 }

@@ -2,6 +2,7 @@
 
 from shiftkit.transforms import (  # noqa: F401
     cast,
+    depth_image,
     drop,
     filter_episodes,
     multiview,

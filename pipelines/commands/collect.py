@@ -33,6 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--cameras", default="", help="comma-separated cameras to render, e.g. front")
     parser.add_argument("--depth", action="store_true", help="also record depth images")
+    parser.add_argument("--video", action="store_true", help="cameras as lerobot videos (with --lerobot)")
     parser.add_argument("--width", type=int, default=64, help="image width (default: 64)")
     parser.add_argument("--height", type=int, default=48, help="image height (default: 48)")
     parser.add_argument("--render-quality", default="fast", choices=("fast", "full"), help="geometry shown")
@@ -56,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         control_hz=args.control_hz,
         cameras=split(args.cameras),
         depth=args.depth,
+        video=args.video,
         width=args.width,
         height=args.height,
         render_quality=args.render_quality,

@@ -18,5 +18,7 @@ def run(args: argparse.Namespace) -> int:
 
     resolved = resolve_dataset(args.dataset, revision=args.revision)
     counts = validate_dataset(resolved.root)
+    for warning in counts["warnings"]:
+        print(f"warning: {warning}")
     print(f"ok: {resolved.root} ({counts['episodes']} episodes, {counts['frames']} frames)")
     return 0

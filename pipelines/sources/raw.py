@@ -8,7 +8,8 @@ Layout::
     DIR/episode_000000/meta.json        task, outcome, seed, segments, labels, sim_model, ...
     DIR/episode_000000/arrays/NAME.npy  per-frame arrays, first axis = frame
     DIR/episode_000000/images/CAM/frame_000000.png   RGB frames (one PNG per frame)
-    DIR/episode_000000/depth/CAM.npy    (T, H, W) float32 metres
+    DIR/episode_000000/depth/CAM.npy    (T, H, W) float32 metres (read as a grey-level image, see
+                                        pipelines/depth.py)
 
 Every array and image is checked on read (lengths, dtypes, NaNs, missing frames) and a problem is
 reported as one line naming the file. `.npy` and PNG bytes are deterministic, so the same
@@ -28,6 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from shiftkit.pipelines.camera_meta import check_cameras, merge_cameras
+from shiftkit.pipelines.depth import depth_encoding, encode_depth
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, image_feature, vector_feature
@@ -130,6 +133,8 @@ class RawDatasetWriter:
         where = f"episode {index}"
         if not isinstance(meta.get("task"), str) or not meta["task"]:
             raise DatasetError(f"{where}: meta['task'] must be a non-empty string")
+        if "cameras" in meta:
+            check_cameras(meta["cameras"], f"{where}: meta")
         arrays = {k: np.asarray(v) for k, v in arrays.items()}
         _validate_arrays(arrays, where)
         length = len(arrays["timestamp"])
@@ -247,18 +252,12 @@ class RawDataset:
             if len(dims) != dim:
                 raise DatasetError(f"{self.root}/dataset.json: names[{name!r}] has {len(dims)} entries for {dim} dims")
             features[key] = vector_feature(str(arr.dtype), dims)
-        cameras = self.index.get("info", {}).get("cameras", {})  # intrinsics/extrinsics per view
         for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
             first = _read_png(cam_dir / "frame_000000.png")
-            features[_camera_feature(cam_dir.name)] = image_feature(first.shape, cameras.get(cam_dir.name))
+            features[_camera_feature(cam_dir.name)] = image_feature(first.shape)
         for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
             d = np.load(path, mmap_mode="r", allow_pickle=False)
-            features[_depth_feature(path.stem)] = {
-                "dtype": "float32",
-                "shape": (d.shape[1], d.shape[2], 1),
-                "names": ["height", "width", "channels"],
-                "info": {"unit": "m"},
-            }
+            features[_depth_feature(path.stem)] = image_feature((d.shape[1], d.shape[2], 3))  # pipelines.depth
         return features
 
     def read_episode(self, i: int) -> Episode:
@@ -290,14 +289,22 @@ class RawDataset:
             if len(files) != length:
                 raise DatasetError(f"{cam_dir}: {len(files)} image files for {length} frames")
             frames[_camera_feature(cam_dir.name)] = np.stack([_read_png(f) for f in files])
+        cameras = check_cameras(
+            merge_cameras(self.index.get("info", {}).get("cameras"), meta.get("cameras")), f"{where}/meta.json"
+        )
         for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
             d = np.load(path, allow_pickle=False).astype(np.float32)
             if len(d) != length:
                 raise DatasetError(f"{path}: {len(d)} depth frames for {length} frames")
-            frames[_depth_feature(path.stem)] = d[..., None]
+            # Metres become grey levels (what lerobot's tools accept); the encoding goes with the camera.
+            encoding = depth_encoding(cameras, path.stem)
+            frames[_depth_feature(path.stem)] = encode_depth(d, encoding)
+            cameras[path.stem] = {**cameras.get(path.stem, {}), "depth": encoding}
         frames["task"] = _frame_tasks(meta, length, where)
         episode_meta = {k: v for k, v in meta.items() if k not in ("length",)}
         episode_meta["source_episode_index"] = i
+        if cameras:
+            episode_meta["cameras"] = cameras
         return Episode(frames, episode_meta)
 
     def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:

@@ -56,6 +56,8 @@ class CollectConfig:
     """Cameras rendered every frame (e.g. "front"); empty = state only."""
     depth: bool = False
     """Also record depth images for each camera."""
+    video: bool = False
+    """Write camera features as lerobot videos (with `lerobot`); default: PNG images."""
     width: int = 64
     """Image width in pixels."""
     height: int = 48
@@ -93,6 +95,8 @@ class CollectConfig:
             raise ConfigError("give exactly one of --out DIR (raw episodes) or --lerobot REPO_ID --root DIR")
         if self.lerobot is not None and self.root is None:
             raise ConfigError("--lerobot needs --root DIR")
+        if self.video and self.lerobot is None:
+            raise ConfigError("--video applies to LeRobot output (--lerobot REPO_ID --root DIR)")
         target = Path(self.out if self.out is not None else self.root)
         if target.exists():
             raise ConfigError(f"output directory already exists: {target}")
@@ -132,7 +136,10 @@ def _write_raw(config: CollectConfig, out_dir: Path) -> dict[str, int]:
     info = {
         "observation_layout": family.observation_layout,
         "control_hz": config.control_hz,
-        "cameras": {c: camera_intrinsics(env.physics.model, c, config.width, config.height) for c in config.cameras},
+        "cameras": {
+            c: {"intrinsics": camera_intrinsics(env.physics.model, c, config.width, config.height)}
+            for c in config.cameras
+        },
     }
     counts = {"episodes": 0, "successes": 0, "skipped": 0}
     sequence = tuple(config.sequence) or family.play_sequences.get(config.task, ())
@@ -198,6 +205,6 @@ def collect(config: CollectConfig) -> tuple[Path, dict[str, int]]:
     try:
         raw = tmp / "raw"
         counts = _write_raw(config, raw)
-        return write_raw_as_lerobot(raw, config.lerobot, root), counts
+        return write_raw_as_lerobot(raw, config.lerobot, root, video=config.video), counts
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,71 @@
+"""Unchanged camera frames keep their source PNG bytes through stages and the runner's parts; a
+frame a stage changed (even in place) is always encoded afresh."""
+
+from __future__ import annotations
+
+import pickle
+
+import cv2
+import numpy as np
+import pyarrow.parquet as pq
+
+from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+from shiftkit.pipelines.encoded_frames import EncodedFrames, source_png
+from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, write_raw_as_lerobot
+from shiftkit.pipelines.runner import run_pipeline
+from shiftkit.pipelines.sources import SourceConfig
+
+KEY = "observation.images.front"
+
+
+def _png_column(root):
+    table = pq.read_table(sorted((root / "data").rglob("*.parquet"))[0], columns=[KEY])
+    return [v["bytes"] for v in table.column(KEY).to_pylist()]
+
+
+def _recode_with_opencv(root):
+    """Rewrite the dataset's PNGs with another encoder (same pixels, different bytes), as a
+    dataset from elsewhere may have them."""
+    path = sorted((root / "data").rglob("*.parquet"))[0]
+    table = pq.read_table(path)
+    images = table.column(KEY).to_pylist()
+    for v in images:
+        v["bytes"] = cv2.imencode(".png", cv2.imdecode(np.frombuffer(v["bytes"], np.uint8), 1))[1].tobytes()
+    import pyarrow as pa
+
+    table = table.set_column(
+        table.schema.get_field_index(KEY), KEY, pa.array(images, type=table.schema.field(KEY).type)
+    )
+    pq.write_table(table, path)
+
+
+def test_unchanged_frames_keep_their_bytes_through_stages(synthetic_raw_images, tmp_path):
+    src = write_raw_as_lerobot(synthetic_raw_images, "test/src", tmp_path / "src")
+    _recode_with_opencv(src)
+    source_bytes = set(_png_column(src))
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(src))],
+        destination=DestinationConfig(root=str(tmp_path / "out")),
+        stages=[StageSpec("trim", {"head": 1}), StageSpec("subsample", {"every": 2})],
+    )
+    out = run_pipeline(config, workers=2, progress=False)
+    written = _png_column(out)
+    assert written and set(written) <= source_bytes  # reused, not re-encoded by PIL
+    for a, b in zip(open_lerobot_dataset(src).iter_episodes(), open_lerobot_dataset(out).iter_episodes(), strict=True):
+        np.testing.assert_array_equal(a.frames[KEY][1:][::2], b.frames[KEY])
+
+
+def test_changed_frames_are_encoded_afresh(synthetic_raw_images, tmp_path):
+    src = write_raw_as_lerobot(synthetic_raw_images, "test/src", tmp_path / "src")
+    reader = open_lerobot_dataset(src)
+    episode = next(reader.iter_episodes())
+    frames = episode.frames[KEY]
+    assert isinstance(frames, EncodedFrames) and source_png(frames[2], frames) is not None
+    frames = pickle.loads(pickle.dumps(episode.select(slice(0, 4)).frames[KEY]))  # parts, select
+    assert source_png(frames[3], frames) is not None
+    frames[0, :5] = 255  # in place: the stored bytes no longer match the pixels
+    assert source_png(frames[0], frames) is None
+    episode = episode.select(slice(0, 4)).with_frames(**{KEY: frames})
+    with DatasetWriter("test/out", tmp_path / "out", reader.fps, reader.features) as writer:
+        writer.add_episode(episode)
+    np.testing.assert_array_equal(next(open_lerobot_dataset(tmp_path / "out").iter_episodes()).frames[KEY], frames)

@@ -1,0 +1,247 @@
+"""Video-backed LeRobot datasets in and out: a dataset recorded with lerobot's own writer
+(`use_videos=True`) runs through filter + trim + subsample on two workers, written as video and
+as images; both load in lerobot, pass `shiftkit validate` and train in `lerobot-train`."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shiftkit.pipelines.camera_meta import factor_cameras
+from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+from shiftkit.pipelines.dataset_check import validate_dataset
+from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+from shiftkit.pipelines.runner import run_pipeline
+from shiftkit.pipelines.sources import SourceConfig
+
+SIZE = 32
+INTRINSICS = {"fx": 30.0, "fy": 30.0, "cx": 15.5, "cy": 15.5, "width": SIZE, "height": SIZE}
+FRAMES = 30
+STAGES = [
+    StageSpec("filter", {"indices": [0, 2, 3]}),
+    StageSpec("trim", {"head": 1}),
+    StageSpec("subsample", {"every": 2}),
+]
+
+
+def _frame(t: int, e: int) -> np.ndarray:
+    img = np.zeros((SIZE, SIZE, 3), np.uint8)
+    img[..., 0] = 8 * t
+    img[t % (SIZE - 4) : t % (SIZE - 4) + 4, 6 * e : 6 * e + 4] = 255
+    return img
+
+
+@pytest.fixture(scope="module")
+def lerobot_video(tmp_path_factory):
+    """4 episodes x 30 frames, one 32x32 camera as a video, written by lerobot's own recorder."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    names = ["height", "width", "channels"]
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (2,), "names": ["t", "e"]},
+        "action": {"dtype": "float32", "shape": (2,), "names": ["t", "e"]},
+        "observation.images.front": {"dtype": "video", "shape": (SIZE, SIZE, 3), "names": names},
+    }
+    root = tmp_path_factory.mktemp("video") / "src"
+    ds = LeRobotDataset.create("test/video", 10, features, root=root, use_videos=True)
+    for e in range(4):
+        for t in range(FRAMES):
+            ds.add_frame(
+                {
+                    "observation.state": np.array([t, e], np.float32),
+                    "action": np.array([t + 1, e], np.float32),
+                    "observation.images.front": _frame(t, e),
+                    "task": "reach",
+                }
+            )
+        ds.save_episode()
+    ds.finalize()
+    return root
+
+
+@pytest.fixture(scope="module")
+def outputs(lerobot_video, tmp_path_factory):
+    """The same three stages, output as video (as the source) and as images, on two workers."""
+    out = {}
+    for variant, video in (("video", None), ("image", False)):
+        config = PipelineConfig(
+            sources=[SourceConfig(path=str(lerobot_video))],
+            destination=DestinationConfig(root=str(tmp_path_factory.mktemp(variant) / "out"), video=video),
+            stages=STAGES,
+        )
+        out[variant] = run_pipeline(config, workers=2, progress=False)
+    return out
+
+
+def test_reader_decodes_what_lerobot_decodes(lerobot_video):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ours = list(open_lerobot_dataset(lerobot_video).iter_episodes([1, 3]))
+    theirs = LeRobotDataset("test/video", root=lerobot_video, video_backend="pyav")
+    for episode, e in zip(ours, (1, 3), strict=True):
+        frames = episode.frames["observation.images.front"]
+        assert frames.shape == (FRAMES, SIZE, SIZE, 3) and frames.dtype == np.uint8
+        for t in (0, 13, FRAMES - 1):
+            item = theirs[e * FRAMES + t]["observation.images.front"]
+            np.testing.assert_array_equal(frames[t], (item.numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8))
+        # lossy AV1, but the scene is what was recorded
+        assert np.abs(frames.astype(int) - np.stack([_frame(t, e) for t in range(FRAMES)])).mean() < 6
+
+
+@pytest.mark.parametrize("variant", ["video", "image"])
+def test_stages_run_on_video_sources(outputs, lerobot_video, variant):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    root = outputs[variant]
+    info = json.loads((root / "meta/info.json").read_text())
+    feature = info["features"]["observation.images.front"]
+    assert feature["dtype"] == variant
+    if variant == "video":  # filled by lerobot's writer from the first episode's file
+        assert feature["info"]["video.codec"] == "av1" and feature["info"]["video.height"] == SIZE
+    else:
+        assert set(feature) == {"dtype", "shape", "names"}
+    assert validate_dataset(root)["warnings"] == []
+    loaded = LeRobotDataset(f"test/{variant}", root=root, video_backend="pyav")
+    assert loaded.meta.total_episodes == 3 and loaded.meta.total_frames == 3 * (FRAMES // 2)
+
+    source = open_lerobot_dataset(lerobot_video).iter_episodes([0, 2, 3])
+    for out, src in zip(open_lerobot_dataset(root).iter_episodes(), source, strict=True):
+        expected = src.frames["observation.images.front"][1::2]
+        got = out.frames["observation.images.front"]
+        np.testing.assert_array_equal(out.frames["observation.state"][:, 0], np.arange(1, FRAMES, 2))
+        if variant == "image":
+            np.testing.assert_array_equal(got, expected)  # decoded once, stored losslessly
+        else:
+            assert np.abs(got.astype(int) - expected).mean() < 6  # encoded a second time
+
+    stats = json.loads((root / "meta/stats.json").read_text())["observation.images.front"]
+    assert np.asarray(stats["mean"]).shape == (3, 1, 1)
+    assert 0 < np.asarray(stats["mean"]).ravel()[0] < 1  # lerobot's image statistics scale: [0, 1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", ["video", "image"])
+def test_lerobot_train_diffusion_on_outputs(outputs, variant, tmp_path):
+    """lerobot's own trainer (diffusion, CPU, offline, 2 steps, a small U-Net) on both outputs."""
+    exe = Path(sys.executable).with_name("lerobot-train")
+    args = [
+        "--policy.type=diffusion",
+        f"--dataset.repo_id=test/{variant}",
+        f"--dataset.root={outputs[variant]}",
+        "--dataset.video_backend=pyav",
+        "--steps=2",
+        "--batch_size=2",
+        "--num_workers=0",
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        "--policy.crop_shape=null",
+        "--policy.down_dims=[32,64]",
+        "--policy.horizon=8",
+        "--policy.n_action_steps=4",
+        "--wandb.enable=false",
+        "--save_checkpoint=false",
+        "--eval_freq=0",
+        "--log_freq=1",
+        f"--output_dir={tmp_path / 'train'}",
+    ]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    out = subprocess.run([str(exe), *args], capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "step:2" in out.stdout + out.stderr
+
+
+def test_collect_writes_videos(tmp_path):
+    """`collect --video`: the RGB camera as a lerobot video (depth stays a lossless image, as
+    lerobot's `convert_image_to_video_dataset` leaves it), decodable and valid."""
+    from shiftkit.pipelines.depth import DEFAULT_ENCODING, decode_depth
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    root, counts = collect(
+        CollectConfig(
+            task="lift",
+            episodes=1,
+            cameras=("front",),
+            depth=True,
+            video=True,
+            lerobot="test/collect",
+            root=str(tmp_path / "ds"),
+        )
+    )
+    info = json.loads((root / "meta/info.json").read_text())
+    assert info["features"]["observation.images.front"]["dtype"] == "video"
+    assert info["features"]["observation.depth.front"]["dtype"] == "image"
+    assert [p.parent.parent.name for p in (root / "videos").rglob("*.mp4")] == ["observation.images.front"]
+    assert validate_dataset(root)["episodes"] == 1
+    episode = next(open_lerobot_dataset(root).iter_episodes())
+    depth = decode_depth(episode.frames["observation.depth.front"])
+    assert counts["episodes"] == 1 and depth.shape == (len(episode), 48, 64)
+    assert 0.3 < float(np.median(depth)) < DEFAULT_ENCODING["far"]
+    assert episode.frames["observation.images.front"].shape == (len(episode), 48, 64, 3)
+
+
+def test_video_needs_lerobot_output(tmp_path):
+    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    with pytest.raises(ConfigError, match="--video applies to LeRobot output"):
+        collect(CollectConfig(task="lift", episodes=1, cameras=("front",), video=True, out=str(tmp_path / "raw")))
+
+
+def test_in_memory_encoder_is_lerobots_encoder(tmp_path):
+    """The writer encodes from memory; the file is byte for byte what lerobot's encode_video_frames
+    makes from the same frames as PNG files."""
+    import PIL.Image
+    from lerobot.datasets.video_utils import encode_video_frames
+
+    from shiftkit.pipelines.video import decode_episode, encode_frames
+
+    frames = np.stack([_frame(t, 1) for t in range(12)])
+    (tmp_path / "png").mkdir()
+    for t, frame in enumerate(frames):
+        PIL.Image.fromarray(frame).save(tmp_path / "png" / f"frame-{t:06d}.png")
+    encode_video_frames(tmp_path / "png", tmp_path / "lerobot.mp4", 10, overwrite=True)
+    encode_frames(frames, tmp_path / "ours.mp4", 10)
+    assert (tmp_path / "ours.mp4").read_bytes() == (tmp_path / "lerobot.mp4").read_bytes()
+    decoded = decode_episode(tmp_path / "ours.mp4", 0.0, np.arange(12) / 10, "test")
+    assert decoded.shape == frames.shape and np.abs(decoded.astype(int) - frames).mean() < 6
+
+
+def test_video_dataset_round_trips_through_the_hub(outputs, tmp_path):
+    """Push a video output with camera metadata to a loopback hub and pull it: same files, and the
+    pulled copy reads the same episodes and cameras."""
+    from tests.hub_server import LoopbackHub
+    from tests.test_hub import WRITE, assert_ok, file_hashes, shiftkit_batch
+
+    local = tmp_path / "local"
+    shutil.copytree(outputs["video"], local)
+    (local / "meta/cameras.json").write_text(
+        json.dumps(factor_cameras({i: {"front": {"intrinsics": INTRINSICS}} for i in range(3)}))
+    )
+    pulled = tmp_path / "pulled"
+    with LoopbackHub(tmp_path / "store", {WRITE: "write"}) as hub:
+        results = shiftkit_batch(
+            [
+                (["push", str(local), "--repo-id", "shiftkit-test/video"], WRITE),
+                (["pull", "shiftkit-test/video", "--root", str(pulled)], WRITE),
+            ],
+            hub.endpoint,
+            tmp_path / "home",
+        )
+    assert_ok(results)
+    ours, theirs = file_hashes(local), file_hashes(pulled)
+    assert any(k.startswith("videos/") for k in ours)
+    hub_files = ("README.md", ".gitattributes")  # the card and the hub's own file
+    assert {k: v for k, v in ours.items() if k not in hub_files} == {
+        k: v for k, v in theirs.items() if k not in hub_files
+    }
+    a, b = (list(open_lerobot_dataset(root).iter_episodes()) for root in (local, pulled))
+    assert [ep.meta["cameras"] for ep in b] == [{"front": {"intrinsics": INTRINSICS}}] * 3
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.frames["observation.images.front"], y.frames["observation.images.front"])
