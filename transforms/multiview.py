@@ -131,6 +131,14 @@ def _project(points: np.ndarray, extrinsics: dict[str, Any], intrinsics: dict[st
     return np.stack([u, v, depth], axis=1)
 
 
+def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
+    """Set a state for rendering: positions of bodies, geoms and cameras only (no dynamics)."""
+    physics.data.qpos[:] = qpos
+    physics.data.qvel[:] = qvel
+    mujoco.mj_kinematics(physics.model, physics.data)
+    mujoco.mj_camlight(physics.model, physics.data)
+
+
 @register_stage
 class Multiview(Stage):
     name = "multiview"
@@ -259,7 +267,7 @@ class Multiview(Stage):
         """RGB frames and depth maps in metres at the given states."""
         rgb, depth = [], []
         for q, v in zip(qpos, qvel, strict=True):
-            env.set_sim_state(q, v)
+            _place(env.physics, q, v)
             rgb.append(env.render_rgb())
             if self.config.depth:
                 depth.append(env.render_depth())
@@ -294,7 +302,7 @@ class Multiview(Stage):
         camera = env.camera_metadata()[CAMERA_NAME]
         h, w = camera["intrinsics"]["height"], camera["intrinsics"]["width"]
         for q, v in zip(qpos, qvel, strict=True):
-            env.set_sim_state(q, v)
+            _place(physics, q, v)
             u, v_px, depth_m = _project(self._object_points(physics), camera["extrinsics"], camera["intrinsics"]).T
             if not np.all((depth_m > 0) & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)):
                 return "out_of_view"
