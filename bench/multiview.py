@@ -71,7 +71,8 @@ def bare(raw: Path, views: int) -> tuple[int, float]:
                 q_arm = physics.solve_arm(tcp[t], rel @ rot.reshape(3, 3), q_arm, 80 if t == 0 else 20)
                 qpos[physics.arm_qpos] = q_arm
                 data.qpos[:] = qpos
-                mujoco.mj_forward(model, data)
+                mujoco.mj_kinematics(model, data)  # what rendering needs: body, geom and camera poses
+                mujoco.mj_camlight(model, data)
                 for renderer in (rgb, depth):
                     renderer.update_scene(data, camera="base", scene_option=option)
                     disable_costly_flags(renderer.scene)

@@ -92,7 +92,9 @@ def test_views_carry_new_base_poses_and_the_same_world_trajectory(lift_episodes)
         assert not np.array_equal(
             out.frames["observation.images.base"][0], episode.frames["observation.images.base"][0]
         )
-        assert out.frames["observation.depth.base"].dtype == np.float32
+        depth = out.frames["observation.depth.base"]  # grey levels in the camera's encoding
+        assert depth.dtype == np.uint8 and depth.shape == episode.frames["observation.depth.base"].shape
+        assert cams["depth"] == episode.meta["cameras"]["base"]["depth"]
     assert episode.meta["cameras"]["base"]["base_pose"] == source.as_dict()  # input untouched
 
 
@@ -119,3 +121,30 @@ def test_input_without_simulator_state_is_refused(synthetic_raw, tmp_path):
     with pytest.raises(ConfigError, match="multiview: input lacks sim.qpos") as info:
         plan_pipeline(config)
     assert "\n" not in str(info.value)
+
+
+def test_multiview_dataset_cameras_json_carries_per_episode_base_poses(tmp_path):
+    import json
+
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.pipelines.runner import run_pipeline
+
+    raw, _ = collect(
+        CollectConfig(env="mv-lift", task="lift", episodes=2, out=str(tmp_path / "raw"), cameras=("base",), depth=True)
+    )
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(raw))],
+        destination=DestinationConfig(root=str(tmp_path / "out")),
+        stages=[StageSpec(name="multiview", params={"num_views": 2})],
+    )
+    dest = run_pipeline(config, progress=False)
+    doc = json.loads((dest / "meta" / "cameras.json").read_text())
+    assert doc["format"] == "shiftkit-cameras"
+    # the camera's intrinsics and its pose on the base are constant; the base pose varies per episode
+    assert {"intrinsics", "extrinsics"} <= set(doc["cameras"]["base"])
+    poses = [doc["episodes"][str(i)]["base"]["base_pose"] for i in range(4)]
+    assert len({json.dumps(p, sort_keys=True) for p in poses}) == 4
+    for pose in poses:
+        assert SAMPLER.axis_miss(BasePose.from_dict(pose)) <= SAMPLER.miss_bound()
+    reader = open_lerobot_dataset(dest)
+    assert [e.meta["cameras"]["base"]["base_pose"] for e in reader.iter_episodes([0, 1, 2, 3])] == poses

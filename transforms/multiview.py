@@ -38,6 +38,7 @@ from shiftkit.envs import make
 from shiftkit.envs.base_pose import BasePose
 from shiftkit.envs.multiview.physics import CAMERA_NAME, SAMPLER, rebase_state, rotation_z
 from shiftkit.envs.multiview.tasks import TASKS
+from shiftkit.pipelines.depth import depth_encoding, encode_depth
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features, image_feature
@@ -70,7 +71,8 @@ class MultiviewConfig:
     keep_source: bool = False
     """Also emit the source episode unchanged (first), before its views."""
     depth: bool = True
-    """Render depth (`observation.depth.base`) too."""
+    """Render depth (`observation.depth.base`) too, as grey levels (`pipelines.depth`; an input's
+    own depth feature keeps its form and encoding)."""
     render_quality: Literal["fast", "full"] = "fast"
     """"fast" (collision geometry) or "full" (visual meshes)."""
     width: int = 64
@@ -129,6 +131,14 @@ def _project(points: np.ndarray, extrinsics: dict[str, Any], intrinsics: dict[st
     return np.stack([u, v, depth], axis=1)
 
 
+def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
+    """Set a state for rendering: positions of bodies, geoms and cameras only (no dynamics)."""
+    physics.data.qpos[:] = qpos
+    physics.data.qvel[:] = qvel
+    mujoco.mj_kinematics(physics.model, physics.data)
+    mujoco.mj_camlight(physics.model, physics.data)
+
+
 @register_stage
 class Multiview(Stage):
     name = "multiview"
@@ -149,15 +159,31 @@ class Multiview(Stage):
         out = dict(features)
         shape = tuple(features[IMAGE_KEY]["shape"]) if IMAGE_KEY in features else None
         h, w = (shape[0], shape[1]) if shape else (self.config.height, self.config.width)
-        out[IMAGE_KEY] = image_feature((h, w, 3), features.get(IMAGE_KEY, {}).get("info"))
-        if self.config.depth or DEPTH_KEY in features:
-            out[DEPTH_KEY] = {
-                "dtype": "float32",
-                "shape": (h, w, 1),
-                "names": ["height", "width", "channels"],
-                "info": {"unit": "m"},
-            }
+        out[IMAGE_KEY] = image_feature((h, w, 3))
+        if DEPTH_KEY in features:  # grey levels, or float metres in datasets older than the encoding
+            out[DEPTH_KEY] = dict(features[DEPTH_KEY])
+        elif self.config.depth:
+            out[DEPTH_KEY] = image_feature((h, w, 3))
         return out
+
+    def _depth_frames(self, metres: list[np.ndarray], episode: Episode) -> np.ndarray:
+        """Rendered depth in the form of the episode's own depth feature: float (T, H, W, 1) metres
+        for older float datasets, else grey levels in the camera's encoding."""
+        d = np.array(metres, dtype=np.float32)
+        source = episode.frames.get(DEPTH_KEY)
+        if source is not None and source.dtype.kind == "f":
+            return d[..., None]
+        return encode_depth(d, depth_encoding(episode.meta.get("cameras"), CAMERA_NAME))
+
+    def _camera_meta(self, episode: Episode, entries: dict[str, Any]) -> dict[str, Any]:
+        """The episode's cameras with `entries` set on the base camera (other entries kept), and the
+        depth encoding recorded when depth is written as grey levels."""
+        cameras = dict(episode.meta.get("cameras") or {})
+        camera = {**cameras.get(CAMERA_NAME, {}), **entries}
+        source = episode.frames.get(DEPTH_KEY)
+        if (source is not None and source.dtype.kind != "f") or (source is None and self.config.depth):
+            camera["depth"] = depth_encoding(cameras, CAMERA_NAME)
+        return {**cameras, CAMERA_NAME: camera}
 
     # ----------------------------------------------------------------- per episode
     def _env(self, sim_model: str, size: tuple[int, int]):
@@ -212,9 +238,9 @@ class Multiview(Stage):
                 break
         for k, (pose, frames) in enumerate(made):
             out_meta = dict(meta)
-            # other entries of the camera (e.g. a depth encoding) are kept; the pose is the new one
-            camera = {**meta["cameras"][CAMERA_NAME], **env.camera_metadata()[CAMERA_NAME], "base_pose": pose.as_dict()}
-            out_meta["cameras"] = {**meta["cameras"], CAMERA_NAME: camera}
+            out_meta["cameras"] = self._camera_meta(
+                episode, {**env.camera_metadata()[CAMERA_NAME], "base_pose": pose.as_dict()}
+            )
             out_meta["multiview"] = {
                 "view": k,
                 "source_base_pose": source_pose.as_dict(),
@@ -231,24 +257,27 @@ class Multiview(Stage):
             rgb, depth = self._render(env, episode.frames["sim.qpos"], episode.frames["sim.qvel"])
             frames.setdefault(IMAGE_KEY, rgb)
             if self.config.depth:
-                frames.setdefault(DEPTH_KEY, depth)
+                frames.setdefault(DEPTH_KEY, self._depth_frames(depth, episode))
         meta = dict(episode.meta)
+        meta["cameras"] = self._camera_meta(episode, {})
         meta["multiview"] = {"view": "source"}
         return Episode(frames, meta)
 
-    def _render(self, env, qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _render(self, env, qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """RGB frames and depth maps in metres at the given states."""
         rgb, depth = [], []
         for q, v in zip(qpos, qvel, strict=True):
-            env.set_sim_state(q, v)
+            _place(env.physics, q, v)
             rgb.append(env.render_rgb())
             if self.config.depth:
-                depth.append(env.render_depth()[..., None])
-        return np.array(rgb, dtype=np.uint8), np.array(depth, dtype=np.float32)
+                depth.append(env.render_depth())
+        return np.array(rgb, dtype=np.uint8), depth
 
     def _render_view(self, episode: Episode, env, old: BasePose, new: BasePose) -> dict[str, np.ndarray] | str:
         """The re-rendered, re-expressed frames at base pose `new`, or the reason it was dropped."""
         cfg = self.config
         f = episode.frames
+        with_depth = cfg.depth or DEPTH_KEY in f  # an input's depth is re-rendered too
         state = np.asarray(f["observation.state"], dtype=np.float64)
         rel = rotation_z(old.yaw - new.yaw)  # old base axes in the new base frame
         tcp = new.to_base(old.to_world(state[:, STATE_POS]))
@@ -273,13 +302,13 @@ class Multiview(Stage):
         camera = env.camera_metadata()[CAMERA_NAME]
         h, w = camera["intrinsics"]["height"], camera["intrinsics"]["width"]
         for q, v in zip(qpos, qvel, strict=True):
-            env.set_sim_state(q, v)
+            _place(physics, q, v)
             u, v_px, depth_m = _project(self._object_points(physics), camera["extrinsics"], camera["intrinsics"]).T
             if not np.all((depth_m > 0) & (u >= 0) & (u <= w - 1) & (v_px >= 0) & (v_px <= h - 1)):
                 return "out_of_view"
             rgb.append(env.render_rgb())
-            if cfg.depth:
-                depth.append(env.render_depth()[..., None])
+            if with_depth:
+                depth.append(env.render_depth())
             env_state.append(physics.object_state())
         new_state = state.copy()
         new_state[:, STATE_POS] = tcp
@@ -297,8 +326,8 @@ class Multiview(Stage):
         }
         if "observation.environment_state" in f:
             out["observation.environment_state"] = np.array(env_state, dtype=f["observation.environment_state"].dtype)
-        if cfg.depth:
-            out[DEPTH_KEY] = np.array(depth, dtype=np.float32)
+        if with_depth:
+            out[DEPTH_KEY] = self._depth_frames(depth, episode)
         return out
 
     @staticmethod
