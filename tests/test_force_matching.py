@@ -134,6 +134,7 @@ def test_position_mode_is_the_family_position_replay(kinesthetic):
         ep.frames["observation.ee_pose"],
         ep.frames["action"][:, -1],
         ep.meta["recording_start_step"],
+        settle_steps=0,  # the stage holds the last pose only with `hold_steps`, 0 here
     )
     # the same physics (to rounding): poses, door and contact state, actions; the sensor's noise
     # stream differs, since this stage also draws the raw reading of every replayed frame
