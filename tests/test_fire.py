@@ -20,6 +20,7 @@ from shiftkit.envs import families, make
 from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
+from tests.helpers import lerobot_train_two_steps
 
 # a task per family whose tiny BC policy both fails and succeeds (families not listed: their first task)
 TASK = {"panda-play": "lift"}
@@ -246,36 +247,7 @@ def test_shiftkit_train_bc_on_the_aggregated_dataset_by_id(fire_run, tmp_path, m
 @pytest.mark.slow
 def test_lerobot_train_act_on_the_aggregated_dataset(fire_run, tmp_path):
     _, ds_root = fire_run
-    exe = Path(sys.executable).with_name("lerobot-train")
-    out = subprocess.run(
-        [
-            str(exe),
-            "--policy.type=act",
-            "--dataset.repo_id=test/fire-agg",
-            f"--dataset.root={ds_root}",
-            "--steps=2",
-            "--batch_size=2",
-            "--num_workers=0",
-            "--policy.device=cpu",
-            "--policy.push_to_hub=false",
-            "--policy.pretrained_backbone_weights=null",
-            "--wandb.enable=false",
-            "--save_checkpoint=false",
-            "--eval_freq=0",
-            "--log_freq=1",
-            "--policy.chunk_size=4",
-            "--policy.n_action_steps=4",
-            "--policy.dim_model=64",
-            "--policy.dim_feedforward=128",
-            f"--output_dir={tmp_path / 'train'}",
-        ],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
-        timeout=600,
-    )
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "step:2" in out.stdout + out.stderr
+    lerobot_train_two_steps("test/fire-agg", ds_root, tmp_path / "train")
 
 
 def _comparable(lines: list[dict]) -> list[dict]:

@@ -12,6 +12,7 @@ from shiftkit.transforms.force_matching import (
     median_filter,
     quat_xyzw_to_matrix,
 )
+from tests.helpers import lerobot_train_two_steps
 
 
 def linear_calibration(offset: float = 0.0) -> Calibration:
@@ -201,9 +202,6 @@ def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):
 def test_docs_pipelines_run_with_two_workers_and_train_act(kinesthetic, tmp_path):
     """docs/pipelines/{force_matched,position_replay}.toml run with 2 workers; the outputs load in
     LeRobotDataset (action with `sts_mode`, one STS image) and lerobot-train (ACT) trains 2 steps."""
-    import os
-    import subprocess
-    import sys
     from pathlib import Path
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -224,36 +222,7 @@ def test_docs_pipelines_run_with_two_workers_and_train_act(kinesthetic, tmp_path
         assert ds.features["action"]["names"][-1] == "sts_mode"
         assert "observation.images.sts" in ds.features and "observation.images.sts_visual" not in ds.features
         roots[name] = tmp_path / name
-    exe = Path(sys.executable).with_name("lerobot-train")
-    out = subprocess.run(
-        [
-            str(exe),
-            "--policy.type=act",
-            "--dataset.repo_id=local/door_force_matched",
-            f"--dataset.root={roots['force_matched']}",
-            "--steps=2",
-            "--batch_size=2",
-            "--num_workers=0",
-            "--policy.device=cpu",
-            "--policy.push_to_hub=false",
-            "--policy.pretrained_backbone_weights=null",
-            "--wandb.enable=false",
-            "--save_checkpoint=false",
-            "--eval_freq=0",
-            "--log_freq=1",
-            "--policy.chunk_size=4",
-            "--policy.n_action_steps=4",
-            "--policy.dim_model=64",
-            "--policy.dim_feedforward=128",
-            f"--output_dir={tmp_path / 'train'}",
-        ],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
-        timeout=600,
-    )
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "step:2" in out.stdout + out.stderr
+    lerobot_train_two_steps("local/door_force_matched", roots["force_matched"], tmp_path / "train")
 
 
 def test_damping_feed_forward_moves_targets_along_the_velocity(tmp_path):

@@ -8,13 +8,12 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from shiftkit.pipelines.cli import main
-from tests.helpers import tree_hashes
+from tests.helpers import lerobot_train_two_steps, tree_hashes
 
 PIPELINE = """
 seed = 1
@@ -196,36 +195,7 @@ def test_lerobot_train_act_on_pipeline_output(tmp_path, synthetic_raw):
     """lerobot's own trainer (ACT, CPU, offline, 2 steps) trains on a shiftkit dataset."""
     config = write_config(tmp_path, synthetic_raw, tmp_path / "ds")
     assert main(["run", str(config), "--no-progress"]) == 0
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    exe = Path(sys.executable).with_name("lerobot-train")
-    out = subprocess.run(
-        [
-            str(exe),
-            "--policy.type=act",
-            "--dataset.repo_id=test/pipe",
-            f"--dataset.root={tmp_path / 'ds'}",
-            "--steps=2",
-            "--batch_size=2",
-            "--num_workers=0",
-            "--policy.device=cpu",
-            "--policy.push_to_hub=false",
-            "--wandb.enable=false",
-            "--save_checkpoint=false",
-            "--eval_freq=0",
-            "--log_freq=1",
-            "--policy.chunk_size=4",
-            "--policy.n_action_steps=4",
-            "--policy.dim_model=64",
-            "--policy.dim_feedforward=128",
-            f"--output_dir={tmp_path / 'train'}",
-        ],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=600,
-    )
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "step:2" in out.stdout + out.stderr
+    lerobot_train_two_steps("test/pipe", tmp_path / "ds", tmp_path / "train")
 
 
 def test_validate_reports_broken_datasets(tmp_path, synthetic_raw, capsys):

@@ -5,11 +5,7 @@ as images; both load in lerobot, pass `shiftkit validate` and train in `lerobot-
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +16,7 @@ from shiftkit.pipelines.dataset_check import validate_dataset
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
+from tests.helpers import lerobot_train_two_steps
 
 SIZE = 32
 INTRINSICS = {"fx": 30.0, "fy": 30.0, "cx": 15.5, "cy": 15.5, "width": SIZE, "height": SIZE}
@@ -130,31 +127,14 @@ def test_stages_run_on_video_sources(outputs, lerobot_video, variant):
 @pytest.mark.parametrize("variant", ["video", "image"])
 def test_lerobot_train_diffusion_on_outputs(outputs, variant, tmp_path):
     """lerobot's own trainer (diffusion, CPU, offline, 2 steps, a small U-Net) on both outputs."""
-    exe = Path(sys.executable).with_name("lerobot-train")
-    args = [
+    diffusion = (
         "--policy.type=diffusion",
-        f"--dataset.repo_id=test/{variant}",
-        f"--dataset.root={outputs[variant]}",
-        "--dataset.video_backend=pyav",
-        "--steps=2",
-        "--batch_size=2",
-        "--num_workers=0",
-        "--policy.device=cpu",
-        "--policy.push_to_hub=false",
         "--policy.crop_shape=null",
         "--policy.down_dims=[32,64]",
         "--policy.horizon=8",
         "--policy.n_action_steps=4",
-        "--wandb.enable=false",
-        "--save_checkpoint=false",
-        "--eval_freq=0",
-        "--log_freq=1",
-        f"--output_dir={tmp_path / 'train'}",
-    ]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    out = subprocess.run([str(exe), *args], capture_output=True, text=True, env=env, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "step:2" in out.stdout + out.stderr
+    )
+    lerobot_train_two_steps(f"test/{variant}", outputs[variant], tmp_path / "train", diffusion)
 
 
 def test_collect_writes_videos(tmp_path):
