@@ -89,3 +89,30 @@ def camera_extrinsics(model: mujoco.MjModel, data: mujoco.MjData, camera: str) -
     y up, looking along -z)."""
     cam = model.cam(camera).id
     return {"position": data.cam_xpos[cam].tolist(), "rotation": data.cam_xmat[cam].reshape(3, 3).tolist()}
+
+
+class SceneRendering:
+    """Rendering for a scene's gymnasium env (mixed in before `gym.Env`): the env provides
+    `physics.model` / `physics.data`, `camera` (the default), `width`, `height`, `render_quality` and
+    `render_mode`; one `CameraRenderer`, built on first use, serves every camera."""
+
+    _renderer: CameraRenderer | None = None
+
+    def _get_renderer(self) -> CameraRenderer:
+        if self._renderer is None:
+            self._renderer = CameraRenderer(self.physics.model, self.width, self.height, self.render_quality)
+        return self._renderer
+
+    def render_rgb(self, camera: str | None = None) -> np.ndarray:
+        return self._get_renderer().rgb(self.physics.data, camera or self.camera)
+
+    def render_depth(self, camera: str | None = None) -> np.ndarray:
+        return self._get_renderer().depth(self.physics.data, camera or self.camera)
+
+    def render(self):
+        return self.render_depth() if self.render_mode == "depth_array" else self.render_rgb()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

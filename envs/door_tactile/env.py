@@ -23,7 +23,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from shiftkit.envs.cameras import CameraRenderer
+from shiftkit.envs.cameras import SceneRendering
 from shiftkit.envs.door_tactile.physics import CAMERAS, DoorTactilePhysics, yaw_rotation
 from shiftkit.envs.door_tactile.tasks import (
     SLAM_SPEED,
@@ -78,7 +78,7 @@ def rotation_from_vector(vec: np.ndarray) -> np.ndarray:
     return mat.reshape(3, 3)
 
 
-class DoorTactileEnv(gym.Env):
+class DoorTactileEnv(SceneRendering, gym.Env):
     """Franka Panda with an STS finger, a spring-hinged cabinet door; one task from `tasks.TASKS`."""
 
     metadata = {"render_modes": ["rgb_array", "depth_array"], "render_fps": 10}
@@ -109,7 +109,6 @@ class DoorTactileEnv(gym.Env):
         self.max_episode_steps = int(round(max_episode_seconds * control_hz))
         self.render_mode, self.camera = render_mode, camera
         self.width, self.height, self.render_quality = width, height, render_quality
-        self._renderer: CameraRenderer | None = None
         self.observation_names = OBSERVATION_NAMES
         self.action_names = ACTION_NAMES
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (OBS_DIM,), dtype=np.float32)
@@ -178,15 +177,8 @@ class DoorTactileEnv(gym.Env):
         truncated = self._steps >= self.max_episode_steps
         return self._observation(), float(info["is_success"]), False, truncated, info
 
-    def render(self):
-        if self.render_mode == "depth_array":
-            return self.render_depth()
-        return self.render_rgb()
-
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        super().close()
         self.sensor.close()
 
     # ----------------------------------------------------------------- extras
@@ -231,19 +223,11 @@ class DoorTactileEnv(gym.Env):
             return self._tactile
         return self.sensor.visual_image(self.physics.data)
 
-    def _get_renderer(self) -> CameraRenderer:
-        if self._renderer is None:
-            self._renderer = CameraRenderer(self.physics.model, self.width, self.height, self.render_quality)
-        return self._renderer
-
     def render_rgb(self, camera: str | None = None) -> np.ndarray:
         """RGB of a camera; "sts" gives the STS image of the active mode (what datasets record)."""
         if (camera or self.camera) == "sts":
             return self.sts_image()
-        return self._get_renderer().rgb(self.physics.data, camera or self.camera)
-
-    def render_depth(self, camera: str | None = None) -> np.ndarray:
-        return self._get_renderer().depth(self.physics.data, camera or self.camera)
+        return super().render_rgb(camera)
 
     def set_sim_state(self, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
         """Restore a recorded simulator state; returns the observation at that state (poses relative

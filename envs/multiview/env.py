@@ -18,14 +18,14 @@ import gymnasium as gym
 import numpy as np
 
 from shiftkit.envs.base_pose import BasePose
-from shiftkit.envs.cameras import CameraRenderer, camera_extrinsics, camera_intrinsics
+from shiftkit.envs.cameras import SceneRendering, camera_extrinsics, camera_intrinsics
 from shiftkit.envs.multiview.physics import CAMERA_NAME, CONTROL_HZ, SAMPLER, MultiviewPhysics
 from shiftkit.envs.multiview.tasks import STATE_NAMES, get_task
 
 VIEWS = ("multiview", "fixed")
 
 
-class MultiviewEnv(gym.Env):
+class MultiviewEnv(SceneRendering, gym.Env):
     """Panda on a mobile base with a base-mounted RGB-D camera; one task from `tasks.TASKS`."""
 
     metadata = {"render_modes": ["rgb_array", "depth_array"], "render_fps": CONTROL_HZ}
@@ -57,7 +57,6 @@ class MultiviewEnv(gym.Env):
         self.max_episode_steps = int(round((max_episode_seconds or self.task.max_episode_seconds) * control_hz))
         self.render_mode, self.camera = render_mode, camera
         self.width, self.height, self.render_quality = width, height, render_quality
-        self._renderer: CameraRenderer | None = None
         self.observation_names = STATE_NAMES + self.task.environment_names
         self.action_names = self.task.action_names
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (len(self.observation_names),), dtype=np.float32)
@@ -99,14 +98,6 @@ class MultiviewEnv(gym.Env):
         truncated = self._steps >= self.max_episode_steps
         return self._observation(), float(success), False, truncated, self._info(success, now)
 
-    def render(self):
-        return self.render_depth() if self.render_mode == "depth_array" else self.render_rgb()
-
-    def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
     # ----------------------------------------------------------------- extras
     def _observation(self) -> np.ndarray:
         p = self.physics
@@ -137,17 +128,6 @@ class MultiviewEnv(gym.Env):
                 "base_pose": self.physics.base_pose.as_dict(),
             }
         }
-
-    def _get_renderer(self) -> CameraRenderer:
-        if self._renderer is None:
-            self._renderer = CameraRenderer(self.physics.model, self.width, self.height, self.render_quality)
-        return self._renderer
-
-    def render_rgb(self, camera: str | None = None) -> np.ndarray:
-        return self._get_renderer().rgb(self.physics.data, camera or self.camera)
-
-    def render_depth(self, camera: str | None = None) -> np.ndarray:
-        return self._get_renderer().depth(self.physics.data, camera or self.camera)
 
     def set_base_pose(self, pose: BasePose) -> None:
         """Move the base (the world around it) to `pose`; call `set_sim_state` after it."""

@@ -16,12 +16,12 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from shiftkit.envs.cameras import CameraRenderer
+from shiftkit.envs.cameras import SceneRendering
 from shiftkit.envs.panda_play.physics import ACTION_NAMES, CAMERAS, OBS_DIM, OBSERVATION_NAMES, PandaPlayPhysics
 from shiftkit.envs.panda_play.tasks import TASKS, HoldTimer, SceneFacts, get_task
 
 
-class PandaPlayEnv(gym.Env):
+class PandaPlayEnv(SceneRendering, gym.Env):
     """Franka Panda, tray, blue and green blocks; one task from `tasks.TASKS`."""
 
     metadata = {"render_modes": ["rgb_array", "depth_array"], "render_fps": 20}
@@ -49,7 +49,6 @@ class PandaPlayEnv(gym.Env):
         self.render_mode = render_mode
         self.camera = camera
         self.width, self.height, self.render_quality = width, height, render_quality
-        self._renderer: CameraRenderer | None = None
         self.observation_names = OBSERVATION_NAMES
         self.action_names = ACTION_NAMES
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (OBS_DIM,), dtype=np.float32)
@@ -83,16 +82,6 @@ class PandaPlayEnv(gym.Env):
         truncated = self._steps >= self.max_episode_steps
         return self.physics.observation(), float(success), False, truncated, self._info(success, now)
 
-    def render(self):
-        if self.render_mode == "depth_array":
-            return self.render_depth()
-        return self.render_rgb()
-
-    def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
     # ----------------------------------------------------------------- extras
     def _info(self, success: bool, now: bool) -> dict[str, Any]:
         d = self.physics.data
@@ -116,17 +105,6 @@ class PandaPlayEnv(gym.Env):
         step; used to label play episodes)."""
         f = self.facts()
         return {name: self._timers[name].update(t.predicate(f)) for name, t in TASKS.items()}
-
-    def _get_renderer(self) -> CameraRenderer:
-        if self._renderer is None:
-            self._renderer = CameraRenderer(self.physics.model, self.width, self.height, self.render_quality)
-        return self._renderer
-
-    def render_rgb(self, camera: str | None = None) -> np.ndarray:
-        return self._get_renderer().rgb(self.physics.data, camera or self.camera)
-
-    def render_depth(self, camera: str | None = None) -> np.ndarray:
-        return self._get_renderer().depth(self.physics.data, camera or self.camera)
 
     def set_sim_state(self, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
         """Restore a recorded simulator state; returns the observation at that state."""
