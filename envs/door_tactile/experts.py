@@ -30,7 +30,7 @@ from shiftkit.envs.controllers import rotation_vector
 from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, DoorTactileEnv
 from shiftkit.envs.door_tactile.physics import HANDLE_RADIUS, DoorTactilePhysics
 from shiftkit.envs.door_tactile.tasks import CLOSED_ANGLE, OPEN_ANGLE
-from shiftkit.envs.rollout import Rollout
+from shiftkit.envs.rollout import Rollout, RolloutRecorder
 
 PRE_CONTACT = 0.012  # m before the handle face at the end of the approach
 PRESS_ACTION = 0.9  # scripted press: targets 2.25 cm inside the handle (about 12 N)
@@ -65,41 +65,12 @@ def _done(env: DoorTactileEnv) -> bool:
     return angle >= OPEN_ANGLE + 0.05 if env.task.opening else angle <= CLOSED_ANGLE / 3
 
 
-class _Recorder:
-    """Frames of one episode: observation before each action, images, simulator state."""
-
-    def __init__(self, env: DoorTactileEnv, cameras: tuple[str, ...], depth: bool) -> None:
-        self.cameras = tuple(c for c in cameras if c != "sts")  # "sts" is always recorded
-        self.env, self.depth_cameras = env, self.cameras if depth else ()
-        self.obs, self.actions, self.success, self.qpos, self.qvel = [], [], [], [], []
-        self.images: dict[str, list[np.ndarray]] = {c: [] for c in (*self.cameras, "sts")}
-        self.depth: dict[str, list[np.ndarray]] = {c: [] for c in self.depth_cameras}
-
-    def frame(self, obs: np.ndarray, info: dict[str, Any], sts: np.ndarray | None = None) -> None:
-        self.obs.append(obs)
-        self.qpos.append(info["qpos"])
-        self.qvel.append(info["qvel"])
-        for cam in self.cameras:
-            self.images[cam].append(self.env.render_rgb(cam))
-        for cam in self.depth_cameras:
-            self.depth[cam].append(self.env.render_depth(cam))
-        self.images["sts"].append(self.env.sts_image() if sts is None else sts)
-
-    def done(self, **extra: Any) -> Rollout:
-        n = len(self.actions)
-        return Rollout(
-            observations=np.array(self.obs[:n], dtype=np.float32),
-            actions=np.array(self.actions, dtype=np.float32),
-            success=np.array(self.success, dtype=bool),
-            qpos=np.array(self.qpos[:n]),
-            qvel=np.array(self.qvel[:n]),
-            images={k: np.array(v[:n], dtype=np.uint8) for k, v in self.images.items()},
-            depth={k: np.array(v[:n], dtype=np.float32) for k, v in self.depth.items()},
-            **extra,
-        )
+def _recorder(env: DoorTactileEnv, cameras: tuple[str, ...], depth: bool) -> RolloutRecorder:
+    """The STS image of the active mode is recorded every frame, whatever the cameras."""
+    return RolloutRecorder(env, cameras, depth, sensors={"sts": env.sts_image})
 
 
-def _run_until_done(rec: _Recorder, step: Callable[[], tuple], extra_steps: int, sts=None) -> None:
+def _run_until_done(rec: RolloutRecorder, step: Callable[[], tuple], extra_steps: int, sts=None) -> None:
     """Step until success has held for `extra_steps` more steps or the episode is truncated."""
     left = None
     while True:
@@ -111,7 +82,7 @@ def _run_until_done(rec: _Recorder, step: Callable[[], tuple], extra_steps: int,
             break
         if left is not None:
             left -= 1
-        rec.frame(obs, info, None if sts is None else sts())
+        rec.frame(obs, info, **({} if sts is None else {"sts": sts()}))
 
 
 # ----------------------------------------------------------------------------- scripted policy
@@ -157,7 +128,7 @@ def rollout(
     """One scripted-expert episode from `reset(seed=seed)`; frame t holds the observation before
     action t, `success[t]` the env's success after it. Images: the requested cameras and "sts"
     (the active mode's STS image)."""
-    rec = _Recorder(env, cameras, depth)
+    rec = _recorder(env, cameras, depth)
     obs, info = env.reset(seed=seed)
     rec.frame(obs, info)
     expert = ScriptedDoorExpert(env)
@@ -345,7 +316,7 @@ def replay_positions(
         mujoco.mju_quat2Mat(rots[i], np.array([q[3], q[0], q[1], q[2]]))
     rots = rots.reshape(-1, 3, 3)
     targets = [*range(1, len(poses)), *[len(poses) - 1] * settle_steps]
-    rec = _Recorder(env, cameras, depth)
+    rec = _recorder(env, cameras, depth)
     obs, info = env.reset(seed=seed)
     for _ in range(warmup_steps):
         obs, _, _, _, info = env.step_pose(poses[0, :3], rots[0], "visual")

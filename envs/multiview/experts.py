@@ -23,7 +23,7 @@ from shiftkit.envs.multiview.physics import (
     MultiviewPhysics,
 )
 from shiftkit.envs.multiview.tasks import BLOCK_REST_Z, LIFT_HEIGHT, hole_centre
-from shiftkit.envs.rollout import Rollout
+from shiftkit.envs.rollout import Rollout, expert_rollout
 
 STEP = MAX_TCP_SPEED / 10  # metres per 10 Hz step at |action| = 1
 ROT_STEP = MAX_TCP_ROT_SPEED / 10
@@ -204,39 +204,8 @@ def rollout(
     extra_steps: int = 0,
 ) -> Rollout:
     """Run the task expert from `reset(seed=seed)` until success has held (plus `extra_steps`) or
-    the episode is truncated. Frame t holds the observation before action t, `success[t]` the env's
-    `is_success` after it; `meta["cameras"]` carries intrinsics, extrinsics and the base pose."""
-    obs, info = env.reset(seed=seed)
-    expert = MultiviewExpert(env)
-    frames: dict[str, list[Any]] = {"obs": [], "qpos": [], "qvel": [], "action": [], "success": []}
-    images: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
-    depths: dict[str, list[np.ndarray]] = {c: [] for c in cameras} if depth else {}
-    left = None
-    while True:
-        frames["obs"].append(obs)
-        frames["qpos"].append(info["qpos"])
-        frames["qvel"].append(info["qvel"])
-        for c in cameras:
-            images[c].append(env.render_rgb(c))
-            if depth:
-                depths[c].append(env.render_depth(c))
-        action = expert.act()
-        obs, _, _, truncated, info = env.step(action)
-        frames["action"].append(action)
-        frames["success"].append(info["is_success"])
-        if info["is_success"] and left is None:
-            left = extra_steps
-        if truncated or (left is not None and left <= 0):
-            break
-        if left is not None:
-            left -= 1
-    return Rollout(
-        observations=np.array(frames["obs"], dtype=np.float32),
-        actions=np.array(frames["action"], dtype=np.float32),
-        success=np.array(frames["success"], dtype=bool),
-        qpos=np.array(frames["qpos"]),
-        qvel=np.array(frames["qvel"]),
-        images={c: np.array(v) for c, v in images.items()},
-        depth={c: np.array(v, dtype=np.float32) for c, v in depths.items()},
-        meta={"cameras": env.camera_metadata(), "view": env.view},
-    )
+    the episode is truncated (`envs.rollout.expert_rollout`); `meta["cameras"]` carries intrinsics,
+    extrinsics and the base pose."""
+    r = expert_rollout(env, seed, MultiviewExpert, cameras, depth, extra_steps)
+    r.meta = {"cameras": env.camera_metadata(), "view": env.view}
+    return r

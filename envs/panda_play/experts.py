@@ -25,7 +25,7 @@ from shiftkit.envs.panda_play.physics import (
     ZONE_XY,
 )
 from shiftkit.envs.panda_play.tasks import INSERT_THRESHOLD, TASKS
-from shiftkit.envs.rollout import Rollout
+from shiftkit.envs.rollout import Rollout, RolloutRecorder, expert_rollout
 
 CARRY_Z = 0.23
 ABOVE = 0.05
@@ -344,39 +344,6 @@ def _free_spot(avoid: np.ndarray) -> np.ndarray:
     return FREE_SPOTS[np.argmax(clearance)]
 
 
-class _Recorder:
-    def __init__(self, env: PandaPlayEnv, cameras: tuple[str, ...], depth: bool) -> None:
-        self.env, self.cameras, self.with_depth = env, cameras, depth
-        self.obs: list[np.ndarray] = []
-        self.actions: list[np.ndarray] = []
-        self.success: list[bool] = []
-        self.qpos: list[np.ndarray] = []
-        self.qvel: list[np.ndarray] = []
-        self.images: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
-        self.depth: dict[str, list[np.ndarray]] = {c: [] for c in cameras} if depth else {}
-
-    def frame(self, obs: np.ndarray, info: dict[str, Any]) -> None:
-        self.obs.append(obs)
-        self.qpos.append(info["qpos"])
-        self.qvel.append(info["qvel"])
-        for c in self.cameras:
-            self.images[c].append(self.env.render_rgb(c))
-            if self.with_depth:
-                self.depth[c].append(self.env.render_depth(c))
-
-    def done(self, segments: list[dict[str, Any]]) -> Rollout:
-        return Rollout(
-            observations=np.array(self.obs[: len(self.actions)], dtype=np.float32),
-            actions=np.array(self.actions, dtype=np.float32),
-            success=np.array(self.success, dtype=bool),
-            qpos=np.array(self.qpos[: len(self.actions)]),
-            qvel=np.array(self.qvel[: len(self.actions)]),
-            segments=segments,
-            images={c: np.array(v[: len(self.actions)]) for c, v in self.images.items()},
-            depth={c: np.array(v[: len(self.actions)], dtype=np.float32) for c, v in self.depth.items()},
-        )
-
-
 def rollout(
     env: PandaPlayEnv,
     seed: int,
@@ -385,26 +352,8 @@ def rollout(
     extra_steps: int = 0,
 ) -> Rollout:
     """Run the env's task expert from `reset(seed=seed)` until success has held (plus `extra_steps`)
-    or the episode is truncated. Frame t holds the observation before action t and `success[t]`
-    the env's `is_success` after it (LeRobot's `next.success`)."""
-    rec = _Recorder(env, cameras, depth)
-    obs, info = env.reset(seed=seed)
-    expert = PandaPlayExpert(env)
-    rec.frame(obs, info)
-    left = None
-    while True:
-        action = expert.act()
-        obs, _, _, truncated, info = env.step(action)
-        rec.actions.append(action)
-        rec.success.append(info["is_success"])
-        if info["is_success"] and left is None:
-            left = extra_steps
-        if truncated or (left is not None and left <= 0):
-            break
-        if left is not None:
-            left -= 1
-        rec.frame(obs, info)
-    return rec.done([])
+    or the episode is truncated (`envs.rollout.expert_rollout`)."""
+    return expert_rollout(env, seed, PandaPlayExpert, cameras, depth, extra_steps)
 
 
 def play_rollout(
@@ -421,7 +370,7 @@ def play_rollout(
     unknown = [t for t in sequence if t not in TASKS]
     if unknown:
         raise ValueError(f"unknown play task(s) {unknown}; known: {', '.join(TASKS)}")
-    rec = _Recorder(env, cameras, depth)
+    rec = RolloutRecorder(env, cameras, depth)
     obs, info = env.reset(seed=seed)
     rec.frame(obs, info)
     segments: list[dict[str, Any]] = []
@@ -443,4 +392,4 @@ def play_rollout(
         segments.append({"task": task, "start": start, "end": len(rec.actions), "success": bool(ok)})
         if truncated:
             break
-    return rec.done(segments)
+    return rec.done(segments=segments)
