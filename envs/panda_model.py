@@ -21,9 +21,11 @@ def franka_assets_dir() -> str:
     return os.path.join(os.path.dirname(spec.origin), "envs", "assets", "kitchen_franka", "franka_assets")
 
 
-def panda_spec(model_name: str) -> mujoco.MjSpec:
+def panda_spec(model_name: str, timestep: float = 0.002, impratio: float = 10.0) -> mujoco.MjSpec:
     """An `MjSpec` named `model_name` holding the Panda arm (bodies `panda0_*`, joints
-    `robot:panda0_joint1..7`, fingers `robot:panda0_finger_joint1/2`) at the world origin."""
+    `robot:panda0_joint1..7`, fingers `robot:panda0_finger_joint1/2`) at the world origin, with the
+    physics every scene here uses (implicit-fast integration, elliptic friction cones; `impratio`
+    stiffens friction so held objects do not creep) and a 640x480 offscreen buffer."""
     root = franka_assets_dir()
     xml = (
         f'<mujoco model="{model_name}"><include file="{root}/assets.xml"/>'
@@ -33,4 +35,10 @@ def panda_spec(model_name: str) -> mujoco.MjSpec:
     spec.meshdir = ""
     for mesh in spec.meshes:  # the include resolved them beside franka_assets/, not in meshes/
         mesh.file = os.path.join(root, "meshes", os.path.relpath(mesh.file, root))
+    spec.option.timestep = timestep
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.impratio = impratio
+    spec.visual.global_.offwidth = 640
+    spec.visual.global_.offheight = 480
     return spec

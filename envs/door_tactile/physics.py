@@ -117,15 +117,9 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     """Compose the scene: Panda with the STS finger + cabinet door with the given handle."""
     if variant not in VARIANTS:
         raise ValueError(f"door variant must be one of {VARIANTS}, got {variant!r}")
-    spec = panda_spec(SIM_MODEL_ID)
-    spec.option.timestep = PHYSICS_DT
-    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
     # stiff friction: without it the soft gel contact creeps along the handle far inside the friction
     # cone (measured: 2.5 cm of creep over 10 s at impratio 5, 2 mm at 100)
-    spec.option.impratio = 100.0
-    spec.visual.global_.offwidth = 640
-    spec.visual.global_.offheight = 480
+    spec = panda_spec(SIM_MODEL_ID, timestep=PHYSICS_DT, impratio=100.0)
     # the STS camera sees a handle a few millimetres away: near plane at 0.1% of the model extent
     spec.visual.map.znear = 0.001
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]

@@ -216,13 +216,7 @@ def _add_objects(spec: mujoco.MjSpec, names: tuple[str, ...]) -> None:
 
 
 def build_spec(model_id: str, task: str, objects: tuple[str, ...]) -> mujoco.MjSpec:
-    spec = panda_spec(model_id)
-    spec.option.timestep = PHYSICS_DT
-    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
-    spec.option.impratio = 10.0
-    spec.visual.global_.offwidth = 640
-    spec.visual.global_.offheight = 480
+    spec = panda_spec(model_id, timestep=PHYSICS_DT, impratio=10.0)
     spec.visual.quality.numslices = 10
     spec.visual.quality.numstacks = 4
     light = spec.worldbody.add_light()

@@ -166,13 +166,8 @@ def _add_box(body, name, half, pos, rgba, quat=None, collide=True):
 
 def build_spec() -> mujoco.MjSpec:
     """Compose the scene: gymnasium-robotics Panda + tray with slots + two blocks + cameras."""
-    spec = panda_spec(SIM_MODEL_ID)
-    spec.option.timestep = PHYSICS_DT
-    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
-    spec.option.impratio = 10.0  # stiffer friction: grasped blocks do not creep out of the fingers
-    spec.visual.global_.offwidth = 640
-    spec.visual.global_.offheight = 480
+    # stiffer friction: grasped blocks do not creep out of the fingers
+    spec = panda_spec(SIM_MODEL_ID, timestep=PHYSICS_DT, impratio=10.0)
     # the finger collision shapes are 24 capsules: coarse tessellation keeps 64x48 renders cheap
     spec.visual.quality.numslices = 10
     spec.visual.quality.numstacks = 4
