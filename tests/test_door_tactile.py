@@ -172,3 +172,11 @@ def test_position_replay_tracks_poses_but_loses_the_force():
     # ... but presses far less than the demonstration did (F = K (x_d - x) with x_d = x_raw)
     assert replay.observations[:, 23].max() < 0.5 * demo.observations[:, 23].max()
     env.close()
+
+
+@pytest.mark.parametrize(("label", "mode"), [(0.0, "visual"), (0.3, "visual"), (0.7, "tactile"), (1.0, "tactile")])
+def test_sts_mode_action_switches_half_way_between_the_labels(env_open, label, mode):
+    """Datasets label the mode 1 (tactile) / 0 (visual): a policy regressing it switches at 0.5."""
+    env_open.reset(seed=3)
+    env_open.step(np.array([0, 0, 0, 0, 0, 0, label]))
+    assert env_open.sensor.mode == mode

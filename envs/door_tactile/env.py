@@ -4,8 +4,8 @@ marker-based wrench estimate (`shiftkit.envs.tactile_estimation`) and one task (
 Action: Box(-1, 1, (7,)) at 10 Hz: a relative pose change in the end-effector (sensor) frame,
 translation (1 = `MAX_TRANSLATION` m) and rotation vector (1 = `MAX_ROTATION` rad), applied to the
 current pose to give the impedance controller's target (so a target inside an object becomes a
-contact force of 550 N/m x depth), plus the STS mode (> 0 tactile, else visual; datasets label it
-1 / 0).
+contact force of 550 N/m x depth), plus the STS mode (> 0.5 tactile, else visual: datasets label it
+1 / 0, so a policy regressing the label switches where it crosses half way).
 Observation (flat, `observation_names`): the sensor pose relative to the episode's initial pose
 (position in the initial sensor frame, quaternion xyzw; thesis §4.4.1) now and one step before, the
 STS wrench estimate from the marker image (pixels, unscaled; zero in visual mode, when the markers
@@ -57,6 +57,7 @@ OBS_DIM = len(OBSERVATION_NAMES)
 STATE_INDICES = np.r_[0:19]
 ENVIRONMENT_STATE_INDICES = np.r_[19:OBS_DIM]
 ACTION_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz", "sts_mode")
+MODE_THRESHOLD = 0.5  # sts_mode above it selects the tactile mode (labels: 1 tactile, 0 visual)
 
 
 def _quat_xyzw(rot: np.ndarray) -> np.ndarray:
@@ -145,7 +146,9 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         a = a.clip(-1.0, 1.0)
         pos, rot = self.physics.ee_pos(), self.physics.ee_rot()
         target_rot = rot @ rotation_from_vector(a[3:6] * MAX_ROTATION)
-        return self.step_pose(pos + rot @ (a[:3] * MAX_TRANSLATION), target_rot, "tactile" if a[6] > 0 else "visual")
+        return self.step_pose(
+            pos + rot @ (a[:3] * MAX_TRANSLATION), target_rot, "tactile" if a[6] > MODE_THRESHOLD else "visual"
+        )
 
     def step_pose(self, target_pos: np.ndarray, target_rot: np.ndarray, mode: str = "tactile"):
         """One control period towards an absolute sensor pose target (base frame) under the impedance
