@@ -46,7 +46,8 @@ def readme_section() -> str:
   shapes, NaN/inf, random JSON values) for the raw episode reader, the LeRobot reader and the
   pipeline config parser: a clean result or a one-line error, never another exception.
 * {c["faults"]} faults injected: SIGKILL of `shiftkit run` at seeded random points (the resumed run
-  writes the clean run's bytes and no pool worker outlives its parent), a second run on the same
+  writes the clean run's bytes and no pool worker outlives its parent), SIGKILL of a Ray run (every
+  process of its Ray cluster exits), a second run on the same
   destination, a stale lock, a full disk, a run that can never resume, a killed `collect` and an
   evaluation of an unfinished training run.
 * {c["integrity"]} checks against silent wrong results: stale parts after the source changed,

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from shiftkit.pipelines.synthetic import write_synthetic_raw
 from tests.helpers import tree_hashes
@@ -93,6 +94,46 @@ def test_sigkill_then_resume(tmp_path):
         assert _data(tmp_path / dest) == _data(tmp_path / "clean"), f"seed {seed}: resumed output differs"
         assert not list(tmp_path.glob(f".{dest}*")), "work directory or lock left behind"
     assert injected >= 1, "no kill landed inside a run"
+
+
+@pytest.mark.slow
+def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
+    """SIGKILL `shiftkit run --executor ray` while its Ray workers transform episodes: every process
+    the run started (its local Ray cluster, rank workers, agents) exits. Ray tears its cluster down
+    with the driver; its agents notice the dead raylet within about a minute (measured ~70 s)."""
+    import psutil
+
+    from shiftkit.pipelines.runner import work_dir_for
+
+    raw = write_synthetic_raw(tmp_path / "raw", episodes=40, length=20, seed=5, camera=(16, 24))
+    config = _config(tmp_path, raw, "ray_out")
+    parts_dir = work_dir_for(tmp_path / "ray_out") / "parts"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "shiftkit.pipelines.cli", "run", str(config), "--no-progress", "--executor", "ray"]
+        + ["--workers", str(WORKERS)],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    started: set[int] = set()
+    deadline = time.monotonic() + 180
+    while proc.poll() is None and time.monotonic() < deadline:
+        try:
+            started |= {c.pid for c in psutil.Process(proc.pid).children(recursive=True)}
+        except psutil.NoSuchProcess:
+            break
+        if parts_dir.is_dir() and len(list(parts_dir.glob("*.pkl"))) >= 2:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before its workers wrote two parts: nothing to kill"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    gone_by = time.monotonic() + 150
+    while any(_alive(p) for p in started) and time.monotonic() < gone_by:
+        time.sleep(1.0)
+    assert len(started) > WORKERS, "the Ray processes were not seen"
+    assert not [p for p in started if _alive(p)], "Ray processes outlived the killed run"
 
 
 def test_second_run_on_same_destination_is_refused(tmp_path, rel_raw):
