@@ -85,13 +85,13 @@ def expert_rollout(
     cameras: tuple[str, ...] = (),
     depth: bool = False,
     extra_steps: int = 0,
-    **extra: Any,
+    sensors: dict[str, Any] | None = None,
 ) -> Rollout:
     """Run `make_expert(env).act()` from `reset(seed=seed)` until success has held (plus
     `extra_steps`) or the episode is truncated. Frame t holds the observation before action t and
-    `success[t]` the env's `is_success` after it (LeRobot's `next.success`); `extra` goes to the
-    Rollout (e.g. `meta`)."""
-    rec = RolloutRecorder(env, cameras, depth)
+    `success[t]` the env's `is_success` after it (LeRobot's `next.success`); `sensors` as for
+    `RolloutRecorder`."""
+    rec = RolloutRecorder(env, cameras, depth, sensors)
     obs, info = env.reset(seed=seed)
     expert = make_expert(env)
     rec.frame(obs, info)
@@ -108,4 +108,4 @@ def expert_rollout(
         if left is not None:
             left -= 1
         rec.frame(obs, info)
-    return rec.done(**extra)
+    return rec.done()

@@ -20,7 +20,6 @@ what matters is the pressing force.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import mujoco
@@ -30,7 +29,7 @@ from shiftkit.envs.controllers import rotation_vector
 from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, DoorTactileEnv
 from shiftkit.envs.door_tactile.physics import HANDLE_RADIUS, DoorTactilePhysics
 from shiftkit.envs.door_tactile.tasks import CLOSED_ANGLE, OPEN_ANGLE
-from shiftkit.envs.rollout import Rollout, RolloutRecorder
+from shiftkit.envs.rollout import Rollout, RolloutRecorder, expert_rollout
 
 PRE_CONTACT = 0.012  # m before the handle face at the end of the approach
 PRESS_ACTION = 0.9  # scripted press: targets 2.25 cm inside the handle (about 12 N)
@@ -68,21 +67,6 @@ def _done(env: DoorTactileEnv) -> bool:
 def _recorder(env: DoorTactileEnv, cameras: tuple[str, ...], depth: bool) -> RolloutRecorder:
     """The STS image of the active mode is recorded every frame, whatever the cameras."""
     return RolloutRecorder(env, cameras, depth, sensors={"sts": env.sts_image})
-
-
-def _run_until_done(rec: RolloutRecorder, step: Callable[[], tuple], extra_steps: int, sts=None) -> None:
-    """Step until success has held for `extra_steps` more steps or the episode is truncated."""
-    left = None
-    while True:
-        obs, _, _, truncated, info = step()
-        rec.success.append(info["is_success"])
-        if info["is_success"] and left is None:
-            left = extra_steps
-        if truncated or (left is not None and left <= 0):
-            break
-        if left is not None:
-            left -= 1
-        rec.frame(obs, info, **({} if sts is None else {"sts": sts()}))
 
 
 # ----------------------------------------------------------------------------- scripted policy
@@ -128,18 +112,7 @@ def rollout(
     """One scripted-expert episode from `reset(seed=seed)`; frame t holds the observation before
     action t, `success[t]` the env's success after it. Images: the requested cameras and "sts"
     (the active mode's STS image)."""
-    rec = _recorder(env, cameras, depth)
-    obs, info = env.reset(seed=seed)
-    rec.frame(obs, info)
-    expert = ScriptedDoorExpert(env)
-
-    def step():
-        action = expert.act()
-        rec.actions.append(action)
-        return env.step(action)
-
-    _run_until_done(rec, step, extra_steps)
-    return rec.done()
+    return expert_rollout(env, seed, ScriptedDoorExpert, cameras, depth, extra_steps, sensors={"sts": env.sts_image})
 
 
 # ----------------------------------------------------------------------------- kinesthetic teacher

@@ -33,12 +33,12 @@ import numpy as np
 from shiftkit.envs.cameras import look_at
 from shiftkit.envs.controllers import CartesianImpedance, rotation_vector
 from shiftkit.envs.panda_model import panda_spec
+from shiftkit.envs.scene import SCENE_GROUP, add_box, add_light_and_ground
 
 SIM_MODEL_ID = "door-tactile-v1"
 VARIANTS = ("flat", "knob")
 
 PHYSICS_DT = 0.002
-SCENE_GROUP = 1
 # impedance gains (thesis §4.4.1: Polymetis default Cartesian impedance on a Franka Panda)
 STIFFNESS = (550.0, 30.0)
 TORQUE_LIMIT = np.array([87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0])
@@ -95,18 +95,6 @@ def door_handle_local(variant: str) -> np.ndarray:
     return np.array([HANDLE_RADIUS, -DOOR_THICK / 2 - stand_off, HANDLE_Z - DOOR_BOTTOM - DOOR_HEIGHT / 2])
 
 
-def _box(body, name, half, pos, rgba, group=SCENE_GROUP, collide=True):
-    g = body.add_geom()
-    g.name = name
-    g.type = mujoco.mjtGeom.mjGEOM_BOX
-    g.size = list(half)
-    g.pos = list(pos)
-    g.rgba = list(rgba)
-    g.group = group
-    g.contype = g.conaffinity = 1 if collide else 0
-    return g
-
-
 def _mat_quat(mat: np.ndarray) -> list[float]:
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(mat, dtype=np.float64).ravel())
@@ -151,13 +139,13 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     finger.name = "sts_finger"
     finger.pos = [0.0, 0.0, FINGER_BASE]
     finger.gravcomp = 1.0
-    g = _box(finger, "finger", FINGER_HALF, (0, 0, FINGER_HALF[2]), (0.25, 0.25, 0.28, 1.0), group=3)
+    g = add_box(finger, "finger", FINGER_HALF, (0, 0, FINGER_HALF[2]), (0.25, 0.25, 0.28, 1.0), group=3)
     g.mass = 0.15
     # the same box for the full-quality view
-    _box(finger, "finger_visual", FINGER_HALF, (0, 0, FINGER_HALF[2]), (0.25, 0.25, 0.28, 1.0), 0, False)
+    add_box(finger, "finger_visual", FINGER_HALF, (0, 0, FINGER_HALF[2]), (0.25, 0.25, 0.28, 1.0), 0, False)
     pad_x = FINGER_HALF[0] + PAD_HALF[0]
     for group, name in ((3, "sts_pad"), (0, "sts_pad_visual")):
-        pad = _box(finger, name, PAD_HALF, (pad_x, 0, PAD_CENTER_Z), (0.85, 0.85, 0.8, 1.0), group, group == 3)
+        pad = add_box(finger, name, PAD_HALF, (pad_x, 0, PAD_CENTER_Z), (0.85, 0.85, 0.8, 1.0), group, group == 3)
         pad.mass = 0.01
         if group == 3:
             pad.solref = list(PAD_SOLREF)
@@ -185,18 +173,7 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     wrist.fovy = 70.0
 
     world = spec.worldbody
-    light = world.add_light()
-    light.pos = [0.0, 0.0, 1.5]
-    light.dir = [0.0, 0.3, -1.0]
-    light.diffuse = [0.8, 0.8, 0.8]
-    light.castshadow = False
-    floor = world.add_geom()
-    floor.name = "ground"
-    floor.type = mujoco.mjtGeom.mjGEOM_PLANE
-    floor.size = [2.0, 2.0, 0.1]
-    floor.rgba = [0.35, 0.35, 0.38, 1.0]
-    floor.group = SCENE_GROUP
-    floor.contype = floor.conaffinity = 0
+    add_light_and_ground(world, [0.0, 0.0, 1.5], [0.0, 0.3, -1.0])
 
     # cabinet carcass behind the door plane: seen, not collided with (the hinge range is the door stop)
     cabinet = world.add_body()
@@ -204,12 +181,12 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     cabinet.pos = [HINGE_XY[0] + DOOR_WIDTH / 2, HINGE_XY[1] + 0.2, DOOR_BOTTOM + DOOR_HEIGHT / 2]
     wood = (0.55, 0.42, 0.3, 1.0)
     w, h, t = DOOR_WIDTH / 2 + 0.02, DOOR_HEIGHT / 2 + 0.02, 0.01
-    _box(cabinet, "cabinet_back", (w, t, h), (0, 0.19, 0), wood, collide=False)
-    _box(cabinet, "cabinet_left", (t, 0.2, h), (-w, 0, 0), wood, collide=False)
-    _box(cabinet, "cabinet_right", (t, 0.2, h), (w, 0, 0), wood, collide=False)
-    _box(cabinet, "cabinet_top", (w, 0.2, t), (0, 0, h), wood, collide=False)
-    _box(cabinet, "cabinet_bottom", (w, 0.2, t), (0, 0, -h), wood, collide=False)
-    _box(cabinet, "cabinet_shelf", (w - t, 0.18, 0.005), (0, 0.01, 0), (0.6, 0.5, 0.4, 1.0), collide=False)
+    add_box(cabinet, "cabinet_back", (w, t, h), (0, 0.19, 0), wood, collide=False)
+    add_box(cabinet, "cabinet_left", (t, 0.2, h), (-w, 0, 0), wood, collide=False)
+    add_box(cabinet, "cabinet_right", (t, 0.2, h), (w, 0, 0), wood, collide=False)
+    add_box(cabinet, "cabinet_top", (w, 0.2, t), (0, 0, h), wood, collide=False)
+    add_box(cabinet, "cabinet_bottom", (w, 0.2, t), (0, 0, -h), wood, collide=False)
+    add_box(cabinet, "cabinet_shelf", (w - t, 0.18, 0.005), (0, 0.01, 0), (0.6, 0.5, 0.4, 1.0), collide=False)
 
     door = world.add_body()
     door.name = "door"
@@ -222,12 +199,12 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     hinge.limited = True
     hinge.frictionloss = HINGE_FRICTION
     hinge.damping = [HINGE_DAMPING, 0.0, 0.0]
-    panel = _box(door, "door_panel", (DOOR_WIDTH / 2, DOOR_THICK / 2, DOOR_HEIGHT / 2), (DOOR_WIDTH / 2, 0, 0), wood)
+    panel = add_box(door, "door_panel", (DOOR_WIDTH / 2, DOOR_THICK / 2, DOOR_HEIGHT / 2), (DOOR_WIDTH / 2, 0, 0), wood)
     panel.mass = DOOR_MASS
     handle = door_handle_local(variant)
     metal = (0.75, 0.75, 0.78, 1.0)
     if variant == "flat":
-        g = _box(door, "handle", FIN_HALF, handle, metal)
+        g = add_box(door, "handle", FIN_HALF, handle, metal)
     else:
         stem = door.add_geom()
         stem.name = "knob_stem"

@@ -24,6 +24,7 @@ from shiftkit.envs.base_pose import BasePose, BasePoseSampler
 from shiftkit.envs.cameras import look_at
 from shiftkit.envs.controllers import FixedOrientationIK
 from shiftkit.envs.panda_model import panda_spec
+from shiftkit.envs.scene import SCENE_GROUP, add_box, add_light_and_ground
 
 PHYSICS_DT = 0.002
 TICK_SUBSTEPS = 25  # the Cartesian controller's 50 ms tick
@@ -59,7 +60,6 @@ SAMPLER = BasePoseSampler(
 )
 
 # geom groups: robot visual meshes 0, scene 1, robot collision 3 (the fast render mode shows 1 and 3)
-SCENE_GROUP = 1
 
 BLOCK_HALF = 0.02
 CYLINDER_RADIUS = 0.015
@@ -82,18 +82,6 @@ _OBJECTS = {
         kind="cylinder", size=(CYLINDER_RADIUS, CYLINDER_HALF_LENGTH, 0), rgba=(0.9, 0.6, 0.1, 1.0), mass=0.05
     ),
 }
-
-
-def _box(body, name, half, pos, rgba, collide=True):
-    g = body.add_geom()
-    g.name = name
-    g.type = mujoco.mjtGeom.mjGEOM_BOX
-    g.size = list(half)
-    g.pos = list(pos)
-    g.rgba = list(rgba)
-    g.group = SCENE_GROUP
-    g.contype = g.conaffinity = 1 if collide else 0
-    return g
 
 
 def _add_robot_and_camera(spec: mujoco.MjSpec) -> None:
@@ -120,7 +108,7 @@ def _add_robot_and_camera(spec: mujoco.MjSpec) -> None:
     tcp.group = 5
     world = spec.worldbody
     # the mobile base platform (visual only)
-    _box(world, "base_platform", (0.25, 0.3, 0.02), (0.1, -0.1, 0.02), (0.2, 0.2, 0.22, 1.0), collide=False)
+    add_box(world, "base_platform", (0.25, 0.3, 0.02), (0.1, -0.1, 0.02), (0.2, 0.2, 0.22, 1.0), collide=False)
     camera = world.add_camera()
     camera.name = CAMERA_NAME
     camera.pos = list(CAMERA_POS)
@@ -134,9 +122,11 @@ def _add_task_frame(spec: mujoco.MjSpec, task: str) -> None:
     frame = spec.worldbody.add_body()
     frame.name = "task_frame"
     # table: top at TABLE_Z, with a pattern so the view change shows in the images
-    _box(frame, "table", (TABLE_HALF, TABLE_HALF, TABLE_Z / 2), (0, 0, TABLE_Z / 2), (0.55, 0.45, 0.35, 1.0))
+    add_box(frame, "table", (TABLE_HALF, TABLE_HALF, TABLE_Z / 2), (0, 0, TABLE_Z / 2), (0.55, 0.45, 0.35, 1.0))
     for i, (x, y) in enumerate(((-0.2, 0.2), (0.2, 0.2), (-0.2, -0.2), (0.2, -0.2))):
-        _box(frame, f"table_mark{i}", (0.03, 0.03, 0.0005), (x, y, TABLE_Z + 0.0006), (0.1, 0.1, 0.1, 1.0), False)
+        add_box(
+            frame, f"table_mark{i}", (0.03, 0.03, 0.0005), (x, y, TABLE_Z + 0.0006), (0.1, 0.1, 0.1, 1.0), collide=False
+        )
     if task == "pick-insert":
         inner = CYLINDER_RADIUS + HOLE_CLEARANCE
         wall = 0.03
@@ -149,12 +139,14 @@ def _add_task_frame(spec: mujoco.MjSpec, task: str) -> None:
             ("e", (wall / 2, inner, HOLE_DEPTH / 2), (inner + wall / 2, 0)),
             ("w", (wall / 2, inner, HOLE_DEPTH / 2), (-inner - wall / 2, 0)),
         ):
-            _box(frame, f"hole_{name}", half, (hx + off[0], hy + off[1], z), grey)
+            add_box(frame, f"hole_{name}", half, (hx + off[0], hy + off[1], z), grey)
     if task == "door":
         # a frame post at the hinge, and a door panel on a damped, sprung vertical hinge
         post_h = DOOR_HEIGHT + 0.04
         hx, hy = DOOR_HINGE_XY
-        _box(frame, "door_post", (0.01, 0.03, post_h / 2), (hx + 0.025, hy, TABLE_Z + post_h / 2), (0.3, 0.3, 0.3, 1))
+        add_box(
+            frame, "door_post", (0.01, 0.03, post_h / 2), (hx + 0.025, hy, TABLE_Z + post_h / 2), (0.3, 0.3, 0.3, 1)
+        )
         door = frame.add_body()
         door.name = "door"
         door.pos = [hx, hy, TABLE_Z + 0.002]
@@ -167,7 +159,7 @@ def _add_task_frame(spec: mujoco.MjSpec, task: str) -> None:
         hinge.damping = [0.5, 0, 0]
         hinge.stiffness = [0.1, 0, 0]  # a weak spring closing the door
         hinge.frictionloss = 0.02
-        panel = _box(
+        panel = add_box(
             door,
             "door_panel",
             (DOOR_WIDTH / 2, 0.008, DOOR_HEIGHT / 2),
@@ -186,7 +178,7 @@ def _add_task_frame(spec: mujoco.MjSpec, task: str) -> None:
         handle.condim = 3  # the post may turn inside a closed grasp as the door swings
         handle.mass = 0.05
         # arm from the panel to the post
-        _box(
+        add_box(
             door,
             "door_handle_arm",
             (0.01, abs(HANDLE_OFFSET[1]) / 2, 0.01),
@@ -219,18 +211,7 @@ def build_spec(model_id: str, task: str, objects: tuple[str, ...]) -> mujoco.MjS
     spec = panda_spec(model_id, timestep=PHYSICS_DT, impratio=10.0)
     spec.visual.quality.numslices = 10
     spec.visual.quality.numstacks = 4
-    light = spec.worldbody.add_light()
-    light.pos = [0.0, 0.4, 1.5]
-    light.dir = [0.0, 0.0, -1.0]
-    light.diffuse = [0.8, 0.8, 0.8]
-    light.castshadow = False
-    floor = spec.worldbody.add_geom()
-    floor.name = "ground"
-    floor.type = mujoco.mjtGeom.mjGEOM_PLANE
-    floor.size = [3.0, 3.0, 0.1]
-    floor.rgba = [0.35, 0.35, 0.38, 1.0]
-    floor.group = SCENE_GROUP
-    floor.contype = floor.conaffinity = 0
+    add_light_and_ground(spec.worldbody, [0.0, 0.4, 1.5], [0.0, 0.0, -1.0], ground_half=3.0)
     _add_robot_and_camera(spec)
     _add_task_frame(spec, task)
     _add_objects(spec, objects)

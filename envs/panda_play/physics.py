@@ -26,6 +26,7 @@ import numpy as np
 from shiftkit.envs.cameras import look_at
 from shiftkit.envs.controllers import FixedOrientationIK
 from shiftkit.envs.panda_model import panda_spec
+from shiftkit.envs.scene import add_box, add_light_and_ground
 
 SIM_MODEL_ID = "panda-play-v1"
 
@@ -137,8 +138,6 @@ ENVIRONMENT_STATE_INDICES = np.r_[12:53]
 # `vpace_compat`)
 ACTION_NAMES = ("delta_x", "delta_y", "delta_z", "gripper_open")
 
-# geom groups: robot visual meshes 0, scene 1, robot collision 3 (the fast render mode shows 1 and 3)
-SCENE_GROUP = 1
 FINGER_FRICTION = 0.3
 BLOCK_FRICTION = 0.5
 
@@ -148,20 +147,6 @@ CAMERAS = {
     "front": dict(pos=(0.0, 1.05, 0.5), target=(0.0, 0.48, 0.13), fovy=55.0),
     "overhead": dict(pos=(0.0, 0.62, 0.75), target=(0.0, 0.5, 0.125), fovy=45.0),
 }
-
-
-def _add_box(body, name, half, pos, rgba, quat=None, collide=True):
-    g = body.add_geom()
-    g.name = name
-    g.type = mujoco.mjtGeom.mjGEOM_BOX
-    g.size = list(half)
-    g.pos = list(pos)
-    if quat is not None:
-        g.quat = list(quat)
-    g.rgba = list(rgba)
-    g.group = SCENE_GROUP
-    g.contype = g.conaffinity = 1 if collide else 0
-    return g
 
 
 def build_spec() -> mujoco.MjSpec:
@@ -200,25 +185,14 @@ def build_spec() -> mujoco.MjSpec:
     tcp.group = 5
 
     world = spec.worldbody
-    light = world.add_light()
-    light.pos = [0.0, 0.6, 1.5]
-    light.dir = [0.0, -0.2, -1.0]
-    light.diffuse = [0.8, 0.8, 0.8]
-    light.castshadow = False
-    floor = world.add_geom()
-    floor.name = "ground"
-    floor.type = mujoco.mjtGeom.mjGEOM_PLANE
-    floor.size = [2.0, 2.0, 0.1]
-    floor.rgba = [0.35, 0.35, 0.38, 1.0]
-    floor.group = SCENE_GROUP
-    floor.contype = floor.conaffinity = 0
+    add_light_and_ground(world, [0.0, 0.6, 1.5], [0.0, -0.2, -1.0])
 
     tray = world.add_body()
     tray.name = "tray"
     tray.pos = [TRAY_CENTER[0], TRAY_CENTER[1], 0.0]
     grey = (0.55, 0.55, 0.58, 1.0)
     base_top = TRAY_FLOOR_Z - SLOT_DEPTH
-    _add_box(
+    add_box(
         tray,
         "tray_pedestal",
         (TRAY_HALF + SLOPE_WIDTH, TRAY_HALF + SLOPE_WIDTH, base_top / 2),
@@ -229,14 +203,14 @@ def build_spec() -> mujoco.MjSpec:
     h = SLOT_DEPTH / 2
     z = base_top + h
     band = (TRAY_HALF - SLOT_HALF) / 2
-    _add_box(tray, "tray_floor_near", (TRAY_HALF, band, h), (0, -SLOT_HALF - band, z), grey)
-    _add_box(tray, "tray_floor_far", (TRAY_HALF, band, h), (0, SLOT_HALF + band, z), grey)
+    add_box(tray, "tray_floor_near", (TRAY_HALF, band, h), (0, -SLOT_HALF - band, z), grey)
+    add_box(tray, "tray_floor_far", (TRAY_HALF, band, h), (0, SLOT_HALF + band, z), grey)
     zx = ZONE_XY[0, 0]
     outer = (TRAY_HALF - zx - SLOT_HALF) / 2
     inner = zx - SLOT_HALF
-    _add_box(tray, "tray_floor_mid", (inner, SLOT_HALF, h), (0, 0, z), grey)
-    _add_box(tray, "tray_floor_pos", (outer, SLOT_HALF, h), (zx + SLOT_HALF + outer, 0, z), grey)
-    _add_box(tray, "tray_floor_neg", (outer, SLOT_HALF, h), (-zx - SLOT_HALF - outer, 0, z), grey)
+    add_box(tray, "tray_floor_mid", (inner, SLOT_HALF, h), (0, 0, z), grey)
+    add_box(tray, "tray_floor_pos", (outer, SLOT_HALF, h), (zx + SLOT_HALF + outer, 0, z), grey)
+    add_box(tray, "tray_floor_neg", (outer, SLOT_HALF, h), (-zx - SLOT_HALF - outer, 0, z), grey)
     # 45-degree slopes rising from the floor edges
     t = 0.005
     length = SLOPE_WIDTH * np.sqrt(2.0)
@@ -251,11 +225,11 @@ def build_spec() -> mujoco.MjSpec:
         ("tray_slope_right", (c, 0, zc), (k, 0, -s, 0), (length / 2, long_half, t)),
         ("tray_slope_left", (-c, 0, zc), (k, 0, s, 0), (length / 2, long_half, t)),
     ):
-        _add_box(tray, name, half, pos, (0.6, 0.6, 0.63, 1.0), quat=quat)
+        add_box(tray, name, half, pos, (0.6, 0.6, 0.63, 1.0), quat=quat)
     # bring zones: thin visual squares on the floor (no collision)
     for i, rgba in enumerate(((0, 0, 1, 0.25), (0, 1, 0, 0.25))):
         dx = ZONE_XY[i, 0] - TRAY_CENTER[0]
-        _add_box(
+        add_box(
             tray,
             f"zone_{'blue' if i == 0 else 'green'}",
             (ZONE_HALF, ZONE_HALF, 0.0005),
@@ -270,7 +244,7 @@ def build_spec() -> mujoco.MjSpec:
         block.pos = [0.0, 0.5, 0.5]
         joint = block.add_freejoint()
         joint.name = f"{name}_free"
-        g = _add_box(block, f"{name}_geom", (BLOCK_HALF,) * 3, (0, 0, 0), rgba)
+        g = add_box(block, f"{name}_geom", (BLOCK_HALF,) * 3, (0, 0, 0), rgba)
         g.mass = BLOCK_MASS
         g.friction = [BLOCK_FRICTION, 0.005, 0.0001]
         g.condim = 4
