@@ -141,3 +141,13 @@ def key_value(text: str) -> tuple[str, object]:
         return key, json.loads(value)
     except json.JSONDecodeError:
         return key, value
+
+
+def csv_list(text: str | None) -> list[str]:
+    """A comma-separated command-line list (`front,wrist`), blanks dropped."""
+    return [x.strip() for x in (text or "").split(",") if x.strip()]
+
+
+def int_list(text: str) -> list[int]:
+    """A comma-separated list of integers (`256,256`), as an argparse `type`."""
+    return [int(x) for x in csv_list(text)]

@@ -10,7 +10,7 @@ import argparse
 import dataclasses
 import typing
 
-from shiftkit.pipelines.dataclass_config import key_value
+from shiftkit.pipelines.dataclass_config import csv_list, key_value
 
 # Fields with a hand-made flag (lists, dicts, renamed or preset-only ones); the rest are generated.
 _SPECIAL = {
@@ -29,10 +29,6 @@ _SPECIAL = {
 }
 
 
-def _csv(text: str) -> list[str]:
-    return [x.strip() for x in text.split(",") if x.strip()]
-
-
 def _scalar_type(tp: object) -> type:
     """int / float / str behind `X` or `X | None` annotations."""
     args = [a for a in typing.get_args(tp) if a is not type(None)]
@@ -49,13 +45,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = parser
     p.add_argument(
         "--examples",
-        type=_csv,
+        type=csv_list,
         required=True,
         help="example dataset ID(s) or local folder(s), comma-separated; frames' `task` names the task",
     )
     p.add_argument("--env", default=None, help=f"{docs['env']} (default: panda-play)")
     p.add_argument("--main-task", required=True, help=docs["main_task"])
-    p.add_argument("--aux-tasks", type=_csv, default=None, help=docs["aux_tasks"] + " Comma-separated.")
+    p.add_argument("--aux-tasks", type=csv_list, default=None, help=docs["aux_tasks"] + " Comma-separated.")
     p.add_argument("--output", required=True, help=docs["output_dir"])
     p.add_argument(
         "--variant",
@@ -80,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--hidden",
-        type=lambda s: tuple(int(x) for x in _csv(s)),
+        type=lambda s: tuple(int(x) for x in csv_list(s)),
         default=None,
         help="hidden widths, comma-separated (default: 256,256)",
     )
@@ -155,9 +151,9 @@ def run_plot(args: argparse.Namespace) -> int:
     curves = []
     for group in args.groups:
         label, sep, runs = group.partition("=")
-        if not sep or not label or not _csv(runs):
+        if not sep or not label or not csv_list(runs):
             raise ConfigError(f"expected LABEL=RUN[,RUN...], got {group!r}")
-        curves.append(aggregate(label, [Path(r) for r in _csv(runs)], args.reps, args.seed))
+        curves.append(aggregate(label, [Path(r) for r in csv_list(runs)], args.reps, args.seed))
     out = plot_curves(curves, Path(args.out), args.title)
     for c in curves:
         print(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.dataclass_config import key_value
+from shiftkit.pipelines.dataclass_config import csv_list, key_value
 
 HELP = "record scripted-expert episodes from a simulated env (raw episodes or a LeRobot dataset)"
 
@@ -46,7 +46,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
-    split = lambda s: tuple(x.strip() for x in (s or "").split(",") if x.strip())  # noqa: E731
     config = CollectConfig(
         env=args.env,
         task=args.task,
@@ -57,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         root=args.root,
         play=args.play,
         control_hz=args.control_hz,
-        cameras=split(args.cameras),
+        cameras=tuple(csv_list(args.cameras)),
         depth=args.depth,
         video=args.video,
         width=args.width,
@@ -65,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         render_quality=args.render_quality,
         extra_steps=args.extra_steps,
         only_successful=args.only_successful,
-        sequence=split(args.sequence),
+        sequence=tuple(csv_list(args.sequence)),
         env_kwargs=dict(args.env_kwarg),
         expert="kinesthetic" if args.kinesthetic else args.expert,
     )

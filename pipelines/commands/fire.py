@@ -4,13 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.dataclass_config import key_value
+from shiftkit.pipelines.dataclass_config import int_list, key_value
 
 HELP = "FIRE: run a BC policy with failure prediction and simulated expert interventions; aggregate the data"
-
-
-def _ints(text: str) -> list[int]:
-    return [int(x) for x in text.split(",") if x.strip()]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,11 +30,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bc-regime", choices=("early-stop", "fixed"), default="early-stop", help="initial BC regime")
     p.add_argument("--bc-steps", type=int, help="initial BC steps (fixed regime; a bound for early-stop)")
     p.add_argument("--ensemble", type=int, default=5, help="BC ensemble members (default: 5)")
-    p.add_argument("--hidden", type=_ints, default=[256, 256], help="BC widths, comma-separated (default: 256,256)")
+    p.add_argument("--hidden", type=int_list, default=[256, 256], help="BC widths, comma-separated (default: 256,256)")
     p.add_argument("--batch-size", type=int, default=64, help="BC batch per member (default: 64)")
     p.add_argument("--retrain-every", type=int, default=500, help="d: full BC retraining every d expert samples")
     p.add_argument("--d-start", type=int, default=10000, help="policy samples before D trains (default: 10000)")
-    p.add_argument("--d-hidden", type=_ints, default=[256, 256], help="D widths, comma-separated (default: 256,256)")
+    p.add_argument("--d-hidden", type=int_list, default=[256, 256], help="D widths, comma-separated (default: 256,256)")
     p.add_argument("--beta", type=int, default=20, help="initial beta of the beta rule (default: 20)")
     p.add_argument("--gamma", type=float, default=0.5, help="initial GDA posterior threshold (default: 0.5)")
     p.add_argument("--doubt-threshold", type=float, help="initial doubt threshold (default: max over the demos)")

@@ -5,14 +5,12 @@ from __future__ import annotations
 import argparse
 import importlib.util
 
+from shiftkit.pipelines.dataclass_config import csv_list
+
 HELP = "train a policy (bc, vpace, lfgp) from LeRobot dataset IDs"
 
 # `train vpace` / `train lfgp` come from the VPACE trainer's own CLI module when it is installed
 VPACE_CLI = "shiftkit.policies.vpace_cli"
-
-
-def _csv(text: str) -> list[str]:
-    return [x.strip() for x in text.split(",") if x.strip()]
 
 
 def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,13 +37,13 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weight-decay", type=float, help="AdamW weight decay (default: 0 early-stop, 0.1 fixed)")
     p.add_argument("--val-fraction", type=float, help="held-out episode share (default: 0.2 early-stop, 0 fixed)")
     p.add_argument("--ensemble", type=int, default=5, help="ensemble members (default: 5)")
-    p.add_argument("--inputs", type=_csv, help="observation features to use, comma-separated (default: all)")
+    p.add_argument("--inputs", type=csv_list, help="observation features to use, comma-separated (default: all)")
     p.add_argument("--encoder", choices=("cnn", "resnet18"), default="cnn", help="image encoder (default: cnn)")
     p.add_argument("--encoder-weights", help="local ResNet-18 state-dict file (nothing is downloaded)")
     p.add_argument("--keypoints", type=int, default=32, help="spatial soft-argmax keypoints per camera")
     p.add_argument(
         "--hidden",
-        type=lambda s: [int(x) for x in _csv(s)],
+        type=lambda s: [int(x) for x in csv_list(s)],
         default=[512, 512],
         help="fully connected widths, comma-separated (default: 512,512)",
     )
@@ -70,7 +68,7 @@ def _run_bc(args: argparse.Namespace) -> int:
         print(f"early-stop: {bound}; ends sooner once every member has not improved for {args.patience} epochs")
     metrics = train(
         BCArgs(
-            datasets=_csv(args.dataset),
+            datasets=csv_list(args.dataset),
             output_dir=args.output,
             root=args.root,
             regime=args.regime,
