@@ -440,9 +440,14 @@ def calibrate_env(
     push = push or PushConfig()
     try:
         family = env_family(env_name)
-        env = make(env_name, task)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if task not in family.tasks:
+        raise ConfigError(
+            f"env {env_name!r} has no task {task!r}: calibration pushes against the object of a tactile env's "
+            "task (e.g. --env door-tactile --task knob-open)"
+        )
+    env = make(env_name, task)
     if not hasattr(env, "sensor") or not hasattr(env.physics, "grasp_pose"):
         env.close()
         raise ConfigError(f"env {env_name!r} has no tactile sensor and calibration object to push against")

@@ -150,7 +150,7 @@ def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> 
             height=config.height,
             render_quality=config.render_quality,
         )
-    except TypeError as exc:  # a keyword the env's constructor does not take
+    except (TypeError, ValueError) as exc:  # a keyword the constructor does not take, or a bad value
         raise ConfigError(f"--env-kwarg for {config.env}: {exc}") from None
     names = {
         "state": [family.observation_names[i] for i in state_idx],

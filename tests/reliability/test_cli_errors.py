@@ -115,6 +115,26 @@ CASES = {
         ],
         2,
     ),
+    "collect bad env kwarg value": (
+        lambda t, r, d: [
+            "collect",
+            "--env",
+            "mv-lift",
+            "--task",
+            "lift",
+            "--env-kwarg",
+            "view=sideways",
+            "--episodes",
+            "1",
+            "--out",
+            str(t / "o"),
+        ],
+        2,
+    ),
+    "calibrate env without the task": (
+        lambda t, r, d: ["calibrate", "--env", "panda-play", "--out", str(t / "cal.json")],
+        2,
+    ),
     "collect episodes not a number": (
         lambda t, r, d: ["collect", "--task", "lift", "--episodes", "x", "--out", "o"],
         2,
