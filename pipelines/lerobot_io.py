@@ -631,23 +631,3 @@ def resolve_dataset(ref: str, root: str | Path | None = None, revision: str | No
 
     path = hub.pull_dataset(ref, revision=revision, root=lerobot_home() / ref)
     return ResolvedDataset(ref, path, revision, fingerprint(path))
-
-
-def write_raw_as_lerobot(
-    raw_dir: str | Path,
-    repo_id: str,
-    root: str | Path,
-    workers: int = 1,
-    progress: bool = False,
-    video: bool = False,
-) -> Path:
-    """Convert a raw-episode directory into a LeRobot dataset at `root` (a pipeline with no stages)."""
-    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
-    from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
-
-    config = PipelineConfig(
-        sources=[SourceConfig(path=str(Path(raw_dir).resolve()))],
-        destination=DestinationConfig(root=str(Path(root).resolve()), repo_id=repo_id, video=video),
-    )
-    return run_pipeline(config, workers=workers, progress=progress)

@@ -54,3 +54,16 @@ def lerobot_train_two_steps(repo_id: str, root: Path, output_dir: Path, policy_a
     out = subprocess.run([str(exe), *args], capture_output=True, text=True, env=env, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "step:2" in out.stdout + out.stderr
+
+
+def write_raw_as_lerobot(raw_dir: Path, repo_id: str, root: Path) -> Path:
+    """A raw-episode directory as a LeRobot dataset at `root` (a pipeline with no stages)."""
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(Path(raw_dir).resolve()))],
+        destination=DestinationConfig(root=str(Path(root).resolve()), repo_id=repo_id),
+    )
+    return run_pipeline(config, progress=False)

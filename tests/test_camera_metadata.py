@@ -11,8 +11,9 @@ import pytest
 from shiftkit.pipelines.camera_meta import episode_cameras, factor_cameras
 from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset, write_raw_as_lerobot
+from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
+from tests.helpers import write_raw_as_lerobot
 
 INTRINSICS = {"fx": 57.9, "fy": 57.9, "cx": 31.5, "cy": 23.5, "width": 64, "height": 48}
 ROTATION = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]

@@ -11,8 +11,9 @@ import pytest
 from shiftkit.pipelines.dataset_check import validate_dataset
 from shiftkit.pipelines.depth import DEFAULT_ENCODING, decode_depth, encode_depth
 from shiftkit.pipelines.features import DEFAULT_KEYS
-from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, write_raw_as_lerobot
+from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.sources.raw import open_raw_dataset
+from tests.helpers import write_raw_as_lerobot
 
 STEP = (DEFAULT_ENCODING["far"] - DEFAULT_ENCODING["near"]) / 255
 

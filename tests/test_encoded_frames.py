@@ -11,9 +11,10 @@ import pyarrow.parquet as pq
 
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
 from shiftkit.pipelines.encoded_frames import EncodedFrames, source_png
-from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, write_raw_as_lerobot
+from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
+from tests.helpers import write_raw_as_lerobot
 
 KEY = "observation.images.front"
 

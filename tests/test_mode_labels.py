@@ -141,7 +141,7 @@ def test_dataset_timing_report(tmp_path):
     run(raw, tmp_path / "out", {"source": "contact"})
     table = dataset_timing_report(tmp_path / "out", tmp_path / "h.png")
     assert "| flat-handle-open | 2 | 100% | +0.00 |" in table
-    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+    from tests.helpers import write_raw_as_lerobot
 
     plain = write_raw_as_lerobot(raw, "test/plain", tmp_path / "plain")
     with pytest.raises(DatasetError, match="no episode has mode labels"):

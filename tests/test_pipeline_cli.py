@@ -117,7 +117,7 @@ def test_sigkill_then_resume(tmp_path):
 
 
 def _corrupt_parquet(tmp_path, raw):
-    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+    from tests.helpers import write_raw_as_lerobot
 
     ds = write_raw_as_lerobot(raw, "test/c", tmp_path / "lr")
     data = ds / "data" / "chunk-000" / "file-000.parquet"
@@ -199,7 +199,7 @@ def test_lerobot_train_act_on_pipeline_output(tmp_path, synthetic_raw):
 
 
 def test_validate_reports_broken_datasets(tmp_path, synthetic_raw, capsys):
-    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+    from tests.helpers import write_raw_as_lerobot
 
     ds = write_raw_as_lerobot(synthetic_raw, "test/v", tmp_path / "ds")
     assert main(["validate", str(ds)]) == 0

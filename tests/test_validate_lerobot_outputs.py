@@ -12,7 +12,7 @@ import pytest
 from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.dataset_check import validate_dataset
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+from tests.helpers import write_raw_as_lerobot
 
 
 @pytest.fixture

@@ -16,6 +16,6 @@ def rel_raw(tmp_path_factory):
 @pytest.fixture(scope="session")
 def rel_ds(rel_raw):
     """LeRobot dataset `me/lift` converted from `rel_raw`."""
-    from shiftkit.pipelines.lerobot_io import write_raw_as_lerobot
+    from tests.helpers import write_raw_as_lerobot
 
     return write_raw_as_lerobot(rel_raw, "me/lift", rel_raw.parent / "ds")
