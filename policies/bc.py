@@ -279,6 +279,11 @@ class BCPolicy(nn.Module):
         (`||diag Cov||_2`, Menda et al. 2019; thesis 5.4); 0 for a single member."""
         return ensemble_doubt(self.member_outputs(batch))
 
+    @property
+    def action_names(self) -> list[str] | None:
+        """Names of the action's dims (the training dataset's), for matching the env's action."""
+        return self.spec.action.get("names")
+
     @torch.no_grad()
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """One unbatched observation (feature -> array) -> one action (float32)."""

@@ -4,12 +4,18 @@ per-episode results (JSON) and optional videos. Shared by every trainer.
 A policy is any object with
 * `features`: the dataset features it consumes, `{key: {"dtype", "shape", "names"}}`,
 * `act(obs: dict[str, np.ndarray]) -> np.ndarray`: one unbatched observation -> one action, and
-  optionally `reset()`, called before every episode (for policies with memory).
+  optionally `reset()`, called before every episode (for policies with memory), and
+  `action_names`, the names of its action's dims (a BC policy's are its dataset's).
+The policy's action must be the env's: when both name their dims (`env.action_names`) the names
+must be identical, else the dims must at least match in number (a one-line ConfigError, not a shape
+error from inside the env).
 `ObservationMap` builds that observation from the environment: numeric features by their
 per-dimension `names` looked up in `env.observation_names` (so any split of the env's vector into
 `observation.state` / `observation.environment_state` works), cameras `observation.images.<cam>`
 from `env.render_rgb(cam)` and `observation.depth.<cam>` from `env.render_depth(cam)`.
 Episode `i` is reset with seed `seed + i`; it counts as a success once `info["is_success"]` holds.
+An env with `episode_extras()` (e.g. door-tactile: the STS modes the policy drove) adds that dict to
+each episode's result.
 `yaw_sweep` evaluates a multiview policy per base-yaw bin (SPEC §5.1: 12 bins [-0.8, -0.7] ...
 [0.3, 0.4] rad) and `write_yaw_sweep` saves its JSON and a PNG of success per bin.
 """
@@ -61,6 +67,23 @@ def camera_size(features: dict[str, dict]) -> tuple[int, int] | None:
     return sizes.pop() if sizes else None
 
 
+def dim_names(names: Any) -> list[str] | None:
+    """A feature's per-dimension names as a list (lerobot's older `{"motors": [...]}` form unwrapped)."""
+    if isinstance(names, dict):
+        names = next(iter(names.values()), None)
+    return None if names is None else list(names)
+
+
+def check_action(policy: Policy, env: Any) -> None:
+    """The policy's action dims must be the env's, by name when both name them (ConfigError)."""
+    ours, theirs = dim_names(getattr(policy, "action_names", None)), getattr(env, "action_names", None)
+    if ours is not None and theirs is not None and ours != list(theirs):
+        raise ConfigError(
+            f"the policy's action {ours} is not the env's action {list(theirs)} "
+            "(an --env-kwarg may select another action, e.g. door-tactile sensor_mode=visual for one without sts_mode)"
+        )
+
+
 class ObservationMap:
     """Env observation -> the policy's feature dict (see the module docstring)."""
 
@@ -75,9 +98,7 @@ class ObservationMap:
             elif key.startswith("observation.depth."):
                 self.cameras[key] = ("depth", key.removeprefix("observation.depth."))
             else:
-                names = ft.get("names")
-                if isinstance(names, dict):  # lerobot's older {"motors": [...]} form
-                    names = next(iter(names.values()))
+                names = dim_names(ft.get("names"))
                 missing = [n for n in names or [None] if n not in index]
                 if missing:
                     raise ConfigError(
@@ -108,6 +129,9 @@ class EpisodeResult:
     """Steps run (the episode stops at the first success)."""
     reward: float
     video: str | None = None
+    extras: dict[str, Any] | None = None
+    """What the env reports about the episode besides success (`env.episode_extras()`), e.g.
+    door-tactile's `tactile_steps` and `first_tactile_step`; None for envs without it."""
 
 
 @dataclass
@@ -193,6 +217,7 @@ def run_episodes(
     """Run `episodes` episodes of `policy` in `env` (reset with seeds `seed`, `seed + 1`, ... and
     `reset_options(i)` if given); each stops at its first success or when the env ends it."""
     obs_map = ObservationMap(policy.features, list(env.observation_names))
+    check_action(policy, env)
     videos = Path(video_dir) if video_dir is not None else None
     if videos is not None:
         videos.mkdir(parents=True, exist_ok=True)
@@ -206,6 +231,8 @@ def run_episodes(
         done = success
         while not done:
             action = np.asarray(policy.act(obs_map(env, obs)), dtype=np.float32)
+            if action.shape != env.action_space.shape:
+                raise ConfigError(f"the policy outputs {action.shape} actions, the env takes {env.action_space.shape}")
             if not np.all(np.isfinite(action)):
                 raise ShiftkitError(f"policy produced a non-finite action {action} (episode {i}, step {steps})")
             obs, r, terminated, truncated, info = env.step(action)
@@ -215,6 +242,8 @@ def run_episodes(
             if videos is not None:
                 frames.append(env.render_rgb())
         result = EpisodeResult(episode=i, seed=seed + i, success=success, steps=steps, reward=reward)
+        if hasattr(env, "episode_extras"):
+            result.extras = env.episode_extras()
         if videos is not None:
             result.video = str(videos / f"episode_{i:04d}.mp4")
             _write_video(Path(result.video), frames, int(env.metadata.get("render_fps", 20)))

@@ -582,8 +582,10 @@ class MainIntentionPolicy:
     """A trained agent's main intention acting with its mean action (SPEC 6.2), in the policy
     interface of `shiftkit eval`: one `observation.state` input named like the env's observation."""
 
-    def __init__(self, agent: Agent, task: int, observation_names: list[str]) -> None:
-        self.agent, self.task = agent, task
+    def __init__(
+        self, agent: Agent, task: int, observation_names: list[str], action_names: list[str] | None = None
+    ) -> None:
+        self.agent, self.task, self.action_names = agent, task, action_names
         self.features = {"observation.state": {"shape": (len(observation_names),), "names": list(observation_names)}}
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -609,10 +611,13 @@ def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
     if names is None:
         raise ConfigError(f"environment {args.env!r} does not name its observation dimensions")
     agent = Agent(args, flat_obs(env.observation_space.sample()).shape[0], env.action_space, torch_device(device))
+    action_names = getattr(env.unwrapped, "action_names", None)
     env.close()
     state = load_checkpoint(checkpoint, device)
     try:
         agent.intentions.load_state_dict(state["agent"]["intentions"])
     except (KeyError, TypeError, RuntimeError) as exc:
         raise DatasetError(f"{checkpoint}: not a checkpoint of this run's agent ({type(exc).__name__})") from None
-    return MainIntentionPolicy(agent, args.tasks.index(args.main_task), list(names))
+    return MainIntentionPolicy(
+        agent, args.tasks.index(args.main_task), list(names), None if action_names is None else list(action_names)
+    )

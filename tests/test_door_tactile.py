@@ -180,3 +180,33 @@ def test_sts_mode_action_switches_half_way_between_the_labels(env_open, label, m
     env_open.reset(seed=3)
     env_open.step(np.array([0, 0, 0, 0, 0, 0, label]))
     assert env_open.sensor.mode == mode
+
+
+@pytest.mark.parametrize("fixed", ["visual", "tactile"])
+def test_fixed_sensor_mode_holds_for_the_whole_episode(fixed):
+    """The fixed-mode baselines (thesis Fig. 4.13): 6-dim actions without `sts_mode`, the sensor
+    in that mode from the reset on whatever replay asks, and the observation showing it."""
+    env = envs.make("door-tactile", "flat-handle-open", sensor_mode=fixed, max_episode_seconds=0.5)
+    assert env.action_names == ("dx", "dy", "dz", "drx", "dry", "drz") and env.action_space.shape == (6,)
+    obs, info = env.reset(seed=0)
+    value = float(fixed == "tactile")
+    observed = [obs[18]]
+    for _ in range(3):
+        obs, _, _, _, info = env.step(np.array([0, 0, 0.3, 0, 0, 0]))
+        observed.append(obs[18])
+        assert env.sensor.mode == info["sts_mode"] == fixed
+    other = "visual" if fixed == "tactile" else "tactile"
+    env.step_pose(env.physics.ee_pos(), env.physics.ee_rot(), other)  # a fixed mode wins over replay's
+    assert env.sensor.mode == fixed and observed == [value] * 4
+    if fixed == "visual":
+        assert (obs[14:18] == 0).all()  # the markers are dark: no wrench estimate
+    assert env.episode_extras() == {
+        "sensor_mode": fixed,
+        "tactile_steps": 4 * int(fixed == "tactile"),
+        "first_tactile_step": 0 if fixed == "tactile" else None,
+    }
+    with pytest.raises(ValueError, match="action must be 6 finite numbers"):
+        env.step(np.zeros(7))  # no mode dim to switch with
+    with pytest.raises(ValueError, match="sensor_mode must be one of policy, visual, tactile"):
+        envs.make("door-tactile", "flat-handle-open", sensor_mode="both")
+    env.close()

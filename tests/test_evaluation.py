@@ -145,3 +145,97 @@ def test_load_policy_errors(tmp_path):
         load_policy(run / "checkpoints" / "step-00000001.pt")
     with pytest.raises(ConfigError, match="unknown device 'gpu0'"):
         load_policy(run, device="gpu0")
+
+
+class ConstantDoorPolicy:
+    """A policy that holds still and asks for one STS mode (the Policy protocol, no training)."""
+
+    def __init__(self, sts_mode: float | None, names: bool = True) -> None:
+        from shiftkit.envs.door_tactile.env import ACTION_NAMES, OBSERVATION_NAMES
+
+        self.features = {"observation.state": {"shape": [19], "names": list(OBSERVATION_NAMES[:19])}}
+        self.action = np.zeros(6 if sts_mode is None else 7, np.float32)
+        if sts_mode is not None:
+            self.action[6] = sts_mode
+        if names:
+            self.action_names = list(ACTION_NAMES[: len(self.action)])
+
+    def act(self, obs):
+        return self.action
+
+
+@pytest.mark.parametrize(("sts_mode", "tactile_steps", "first"), [(1.0, 5, 0), (0.0, 0, None)])
+def test_policy_driven_sts_mode_is_in_the_episode_results(sts_mode, tactile_steps, first):
+    from shiftkit.envs import make
+
+    env = make("door-tactile", "flat-handle-open", max_episode_seconds=0.5)
+    results = run_episodes(ConstantDoorPolicy(sts_mode), env, episodes=1, seed=0)
+    assert results[0].steps == 5
+    extras = {"sensor_mode": "policy", "tactile_steps": tactile_steps, "first_tactile_step": first}
+    assert results[0].extras == extras
+    report = EvalReport(env="door-tactile", task="flat-handle-open", policy="constant", seed=0, episodes=results)
+    assert json.loads(report.to_json())["results"][0]["extras"] == extras
+    env.close()
+
+
+def test_policy_action_must_be_the_envs():
+    """Named dims are matched by name, unnamed ones by count: a one-line ConfigError either way."""
+    from shiftkit.envs import make
+
+    env = make("door-tactile", "flat-handle-open", sensor_mode="visual", max_episode_seconds=0.3)
+    with pytest.raises(ConfigError, match=r"'drz', 'sts_mode'\] is not the env's action \[.*'drz'\]") as info:
+        run_episodes(ConstantDoorPolicy(1.0), env, episodes=1, seed=0)
+    assert "\n" not in str(info.value)
+    with pytest.raises(ConfigError, match=r"outputs \(7,\) actions, the env takes \(6,\)"):
+        run_episodes(ConstantDoorPolicy(1.0, names=False), env, episodes=1, seed=0)
+    # with a fixed mode, a policy without the mode dim drives the env, which never switches
+    assert run_episodes(ConstantDoorPolicy(None), env, episodes=1, seed=0)[0].extras == {
+        "sensor_mode": "visual",
+        "tactile_steps": 0,
+        "first_tactile_step": None,
+    }
+    env.close()
+
+
+def test_eval_cli_fixed_mode_baseline_from_a_mode_label_dataset(tmp_path, capsys):
+    """A BC policy trained on a `mode_label` source="visual" dataset (6-dim action) evaluates with
+    `--env-kwarg sensor_mode=visual`; on the mode-switching env (7 dims) it is a one-line error."""
+    from shiftkit.envs.door_tactile.env import ACTION_NAMES, OBSERVATION_NAMES
+    from shiftkit.pipelines.cli import main
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+
+    rng = np.random.default_rng(0)
+    names = {"state": list(OBSERVATION_NAMES[:19]), "action": list(ACTION_NAMES)}
+    with RawDatasetWriter(tmp_path / "raw", fps=10, robot="franka_panda", env="door-tactile", names=names) as w:
+        for _ in range(2):
+            w.add_episode(
+                arrays={
+                    "timestamp": np.arange(12) / 10.0,
+                    "state": rng.normal(0, 0.1, (12, 19)).astype(np.float32),
+                    "action": rng.uniform(-0.5, 0.5, (12, 7)).astype(np.float32),
+                },
+                meta={"task": "flat-handle-open"},
+            )
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(tmp_path / "raw"))],
+        destination=DestinationConfig(root=str(tmp_path / "visual")),
+        stages=[StageSpec(name="mode_label", params={"source": "visual"})],
+    )
+    run_pipeline(config, progress=False)
+    run = tmp_path / "run"
+    train = ["train", "bc", "--dataset", str(tmp_path / "visual"), "--output", str(run), "--regime", "fixed"]
+    assert main([*train, "--steps", "10", "--hidden", "16", "--checkpoint-every", "10", "--threads", "1"]) == 0
+    capsys.readouterr()
+    short = ["--env-kwarg", "max_episode_seconds=0.3", "--episodes", "1", "--seed", "7"]
+    evaluate = ["eval", "--policy", str(run), "--env", "door-tactile", "--task", "flat-handle-open", *short]
+    assert main(evaluate) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "'drz'] is not the env's action [" in err and "'sts_mode']" in err
+    assert main([*evaluate, "--env-kwarg", "sensor_mode=visual"]) == 0
+    assert "tactile_steps 0" in capsys.readouterr().out
+    result = json.loads((run / "eval" / "door-tactile-flat-handle-open-seed7.json").read_text())
+    assert result["results"][0]["steps"] == 3
+    assert result["results"][0]["extras"] == {"sensor_mode": "visual", "tactile_steps": 0, "first_tactile_step": None}

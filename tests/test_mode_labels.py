@@ -146,3 +146,49 @@ def test_dataset_timing_report(tmp_path):
     plain = write_raw_as_lerobot(raw, "test/plain", tmp_path / "plain")
     with pytest.raises(DatasetError, match="no episode has mode labels"):
         dataset_timing_report(plain)
+
+
+@pytest.mark.parametrize("fixed", ["visual", "tactile"])
+def test_fixed_sources_make_the_fixed_mode_baselines(tmp_path, fixed):
+    """source "visual" / "tactile" (thesis Fig. 4.13 baselines): that mode's image on every frame,
+    no `sts_mode` action dim, the state as the door env shows it in that fixed mode."""
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
+
+    rng = np.random.default_rng(3)
+    state_names = ["rel_x", "sts_fx", "sts_fy", "sts_fz", "sts_tau_z", "sts_mode", "door_angle"]
+    names = {"action": ["dx", "dy", "dz", "drx", "dry", "drz", "sts_mode"], "state": state_names}
+    with RawDatasetWriter(tmp_path / "raw", fps=10, names=names) as w:
+        for length in (9, 12):
+            mode = (np.arange(length) >= 4).astype(np.float32)  # the recording switched at frame 4
+            state = rng.normal(0, 1, (length, 7)).astype(np.float32)
+            state[:, 1:5] *= mode[:, None]
+            state[:, 5] = mode
+            action = np.concatenate([rng.normal(0, 0.3, (length, 6)), mode[:, None]], axis=1).astype(np.float32)
+            w.add_episode(
+                arrays={"timestamp": np.arange(length) / 10.0, "action": action, "state": state},
+                images={
+                    "sts_visual": np.full((length, 8, 8, 3), VISUAL, np.uint8),
+                    "sts_tactile": np.full((length, 8, 8, 3), TACTILE, np.uint8),
+                },
+                meta={"task": "knob-open", "first_contact_step": 4},
+            )
+    plan, _ = run(tmp_path / "raw", tmp_path / "out", {"source": fixed, **IMAGES})
+    assert plan.features["action"]["names"] == ["dx", "dy", "dz", "drx", "dry", "drz"]
+    assert tuple(plan.features["action"]["shape"]) == (6,)
+    assert "observation.images.sts" in plan.features and "observation.images.sts_tactile" not in plan.features
+    raw_episodes = list(open_raw_dataset(tmp_path / "raw").iter_episodes())
+    out_episodes = list(open_lerobot_dataset(tmp_path / "out").iter_episodes())
+    assert len(out_episodes) == 2
+    tactile = fixed == "tactile"
+    for before, after in zip(raw_episodes, out_episodes, strict=True):
+        grey = after.frames["observation.images.sts"][:, 0, 0, 0]
+        assert (grey == (TACTILE if tactile else VISUAL)).all()
+        np.testing.assert_array_equal(after.frames["action"], before.frames["action"][:, :6])
+        state, recorded = after.frames["observation.state"], before.frames["observation.state"]
+        assert (state[:, 5] == float(tactile)).all()
+        np.testing.assert_array_equal(state[:, [0, 6]], recorded[:, [0, 6]])
+        # visual mode shows no marker wrench estimate; tactile keeps the recorded one
+        np.testing.assert_array_equal(state[:, 1:5], recorded[:, 1:5] if tactile else 0.0)
+        assert after.meta["sts_mode_switch_step"] == (0 if tactile else None)
+        assert after.meta["sts_mode_switch_minus_contact"] is None  # no label timing for a fixed mode
+        assert after.meta["sts_mode_source"] == fixed

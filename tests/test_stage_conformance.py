@@ -44,6 +44,15 @@ STAGE_INPUTS = {"multiview": "mv_lift_raw", "force_match": "kinesthetic_raw"}
 
 # Every stage shiftkit ships (tests may register their own stages; those are not covered here).
 STAGES = sorted(name for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit."))
+# Further parameter sets that change a stage's schema another way: id -> (stage, params, fixture).
+VARIANTS = {
+    # a fixed-mode baseline: the door recording's action loses sts_mode, its state shows visual mode
+    "mode_label-visual": ("mode_label", {"source": "visual"}, "kinesthetic_raw"),
+}
+CASES = [
+    *(pytest.param(n, EXAMPLE_PARAMS[n], STAGE_INPUTS.get(n, "synthetic_raw_images"), id=n) for n in STAGES),
+    *(pytest.param(*case, id=case_id) for case_id, case in VARIANTS.items()),
+]
 
 
 def config_for(raw, dest, name, params, seed=0):
@@ -80,12 +89,12 @@ def mv_lift_raw(tmp_path):
     return out
 
 
-@pytest.mark.parametrize("name", STAGES)
-def test_stage_conformance(name, request, tmp_path):
-    raw = request.getfixturevalue(STAGE_INPUTS.get(name, "synthetic_raw_images"))
+@pytest.mark.parametrize(("name", "params", "fixture"), CASES)
+def test_stage_conformance(name, params, fixture, request, tmp_path):
+    raw = request.getfixturevalue(fixture)
     before = tree_hashes(raw)
     dest = tmp_path / "out"
-    config = config_for(raw, dest, name, EXAMPLE_PARAMS[name], seed=7)
+    config = config_for(raw, dest, name, params, seed=7)
     plan = plan_pipeline(config)
     run_pipeline(config, progress=False)
 

@@ -10,6 +10,12 @@ hysteresis (tactile once it reaches `on_threshold`, visual again once it falls b
 already has one). With both STS image features given, they are replaced by one image feature that
 holds the visual image on visual frames and the tactile image on tactile frames.
 
+The fixed sources "visual" and "tactile" make the datasets of the fixed-mode baselines (thesis Fig.
+4.13; the door env's `sensor_mode="visual"` / `"tactile"`): every frame is in that mode, so the
+image feature holds that mode's image throughout, `action` loses its `sts_mode` dim (the env in a
+fixed mode takes none), and the state shows what the env shows in that mode: its mode dim set, and
+in visual mode the dims that read zero there (the door's marker wrench estimate) zeroed.
+
 Each output episode records when the label first switches to tactile (`sts_mode_switch_step`)
 and, when the raw episode knows the true first contact, the difference in steps
 (`sts_mode_switch_minus_contact`); `timing_report` turns those into the thesis' Fig. 4.15
@@ -34,13 +40,15 @@ from shiftkit.pipelines.stage import Stage, register_stage
 MODE_DIM = "sts_mode"
 SWITCH_STEP = "sts_mode_switch_step"
 SWITCH_MINUS_CONTACT = "sts_mode_switch_minus_contact"
+FIXED_SOURCES = ("visual", "tactile")
 
 
 @dataclass
 class ModeLabelConfig:
-    source: Literal["contact", "operator"] = "contact"
+    source: Literal["contact", "operator", "visual", "tactile"] = "contact"
     """Where labels come from: "contact" (the tactile signal, with hysteresis) or "operator" (the
-    mode-switch presses in the episode's `labels`)."""
+    mode-switch presses in the episode's `labels`); "visual" / "tactile": that mode on every frame,
+    for a fixed-mode baseline (no `sts_mode` action dim: it is removed if present)."""
     signal: str = "observation.wrench"
     """Feature holding the tactile contact signal (the raw unscaled wrench F~)."""
     signal_dims: list[str] = field(default_factory=lambda: ["Fz"])
@@ -63,6 +71,14 @@ class ModeLabelConfig:
     """STS tactile-mode image feature (e.g. "observation.images.sts_tactile"); None = no images."""
     image: str = "observation.images.sts"
     """Name of the image feature that keeps the active mode's image (replaces the two above)."""
+    state: str = "observation.state"
+    """Feature with the env's state that a fixed source makes show the fixed mode (if present)."""
+    state_mode_dim: str = MODE_DIM
+    """Dim of `state` holding the active mode (1 tactile / 0 visual): a fixed source sets it, if the
+    state has it."""
+    visual_zero_dims: list[str] = field(default_factory=lambda: ["sts_fx", "sts_fy", "sts_fz", "sts_tau_z"])
+    """Dims of `state` that read zero in visual mode (the door env's marker wrench estimate: the
+    markers are dark): source "visual" zeroes those the state has."""
 
     def __post_init__(self) -> None:
         if self.off_threshold > self.on_threshold:
@@ -89,7 +105,12 @@ class ModeLabel(Stage):
         out = dict(features)
         names = list(action.get("names") or [f"action_{i}" for i in range(action["shape"][0])])
         self._mode_index = names.index(MODE_DIM) if MODE_DIM in names else None
-        if self._mode_index is None:
+        if c.source in FIXED_SOURCES:
+            if self._mode_index is not None:
+                kept = [n for n in names if n != MODE_DIM]
+                out["action"] = {**copy.deepcopy(action), "shape": (len(kept),), "names": kept}
+            self._state_values = self._fixed_state(features.get(c.state))
+        elif self._mode_index is None:
             out["action"] = {**copy.deepcopy(action), "shape": (len(names) + 1,), "names": [*names, MODE_DIM]}
         if c.source == "contact":
             sig = features.get(c.signal)
@@ -114,11 +135,22 @@ class ModeLabel(Stage):
             out[c.image] = merged
         return out
 
+    def _fixed_state(self, state: dict | None) -> dict[int, float]:
+        """State dim index -> the value a fixed source writes there."""
+        c = self.config
+        names = list(state.get("names") or []) if state is not None and len(state["shape"]) == 1 else []
+        values = {names.index(d): 0.0 for d in c.visual_zero_dims if d in names} if c.source == "visual" else {}
+        if c.state_mode_dim in names:
+            values[names.index(c.state_mode_dim)] = float(c.source == "tactile")
+        return values
+
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         c = self.config
         n = len(episode)
         where = f"mode_label: episode {episode.meta.get('source_episode_index', '?')}"
-        if c.source == "operator":
+        if c.source in FIXED_SOURCES:
+            mode = np.full(n, float(c.source == "tactile"), dtype=np.float32)
+        elif c.source == "operator":
             meta = episode.meta
             mode = operator_modes((meta.get("labels") or {}).get(c.press_label, meta.get(c.press_label)), n, where)
         else:
@@ -126,7 +158,15 @@ class ModeLabel(Stage):
             mode = contact_modes(signal, c.baseline_frames, c.on_threshold, c.off_threshold)
         frames = dict(episode.frames)
         action = np.asarray(episode.frames["action"])
-        if self._mode_index is None:
+        if c.source in FIXED_SOURCES:
+            if self._mode_index is not None:
+                frames["action"] = np.delete(action, self._mode_index, axis=1)
+            if self._state_values:
+                state = np.array(episode.frames[c.state])
+                for index, value in self._state_values.items():
+                    state[:, index] = value
+                frames[c.state] = state
+        elif self._mode_index is None:
             frames["action"] = np.concatenate([action, mode[:, None].astype(action.dtype)], axis=1)
         else:
             frames["action"] = action.copy()
@@ -139,7 +179,7 @@ class ModeLabel(Stage):
         meta = dict(episode.meta)
         switches = np.flatnonzero(mode > 0)
         meta[SWITCH_STEP] = int(switches[0]) if len(switches) else None
-        contact = meta.get(c.first_contact_key)
+        contact = None if c.source in FIXED_SOURCES else meta.get(c.first_contact_key)  # no label timing
         meta[SWITCH_MINUS_CONTACT] = (
             meta[SWITCH_STEP] - int(contact) if contact is not None and meta[SWITCH_STEP] is not None else None
         )

@@ -5,14 +5,17 @@ Action: Box(-1, 1, (7,)) at 10 Hz: a relative pose change in the end-effector (s
 translation (1 = `MAX_TRANSLATION` m) and rotation vector (1 = `MAX_ROTATION` rad), applied to the
 current pose to give the impedance controller's target (so a target inside an object becomes a
 contact force of 550 N/m x depth), plus the STS mode (> 0.5 tactile, else visual: datasets label it
-1 / 0, so a policy regressing the label switches where it crosses half way).
+1 / 0, so a policy regressing the label switches where it crosses half way). With
+`sensor_mode="visual"` or `"tactile"` (the fixed-mode baselines of thesis Fig. 4.13) the sensor stays
+in that mode for the whole episode and the action has 6 dims, without `sts_mode` (`action_names`).
 Observation (flat, `observation_names`): the sensor pose relative to the episode's initial pose
 (position in the initial sensor frame, quaternion xyzw; thesis §4.4.1) now and one step before, the
 STS wrench estimate from the marker image (pixels, unscaled; zero in visual mode, when the markers
 are dark) and the mode; then privileged state: door angle and speed and the true contact wrench on
 the pad (sensor frame). Images: `render_rgb("wrist")` (the wrist camera) and `sts_image()` (= `render_rgb("sts")`, the STS
 image of the active mode), both `height` x `width`.
-`info` every step: `is_success`, `qpos`, `qvel`, `door_angle`, `slammed`, `handle_contact`.
+`info` every step: `is_success`, `qpos`, `qvel`, `door_angle`, `slammed`, `handle_contact`,
+`sts_mode` (the active mode); `episode_extras()` sums up the modes driven since the reset.
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ STATE_INDICES = np.r_[0:19]
 ENVIRONMENT_STATE_INDICES = np.r_[19:OBS_DIM]
 ACTION_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz", "sts_mode")
 MODE_THRESHOLD = 0.5  # sts_mode above it selects the tactile mode (labels: 1 tactile, 0 visual)
+SENSOR_MODES = ("policy", "visual", "tactile")  # "policy": the action's last dim drives the mode
 
 
 def _quat_xyzw(rot: np.ndarray) -> np.ndarray:
@@ -94,8 +98,11 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         width: int = 64,
         height: int = 48,
         render_quality: str = "fast",
+        sensor_mode: str = "policy",
     ) -> None:
         self.task = get_task(task)
+        if sensor_mode not in SENSOR_MODES:
+            raise ValueError(f"sensor_mode must be one of {', '.join(SENSOR_MODES)}, got {sensor_mode!r}")
         if control_hz != 10:
             raise ValueError(f"control_hz must be 10 for door-tactile, got {control_hz}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -111,15 +118,18 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         self.render_mode, self.camera = render_mode, camera
         self.width, self.height, self.render_quality = width, height, render_quality
         self.observation_names = OBSERVATION_NAMES
-        self.action_names = ACTION_NAMES
+        self.sensor_mode = sensor_mode
+        self.fixed_mode = None if sensor_mode == "policy" else sensor_mode
+        self.action_names = ACTION_NAMES if self.fixed_mode is None else ACTION_NAMES[:-1]
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (OBS_DIM,), dtype=np.float32)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (len(ACTION_NAMES),), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (len(self.action_names),), dtype=np.float32)
         self._init_pos, self._init_rot = np.zeros(3), np.eye(3)
         self._prev_rel = np.zeros(7)
         self._estimate = np.zeros(4)
         self._tactile: np.ndarray | None = None
         self.slammed = False
         self._steps = 0
+        self._tactile_steps, self._first_tactile_step = 0, None
 
     # ----------------------------------------------------------------- gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -129,7 +139,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         pos, rot = p.grasp_pose(angle)
         nominal = pos + rot[:, 2] * START_OFFSET_ALONG_NORMAL + p.door_outward(angle) * START_OFFSET_BACK
         p.reset(nominal + offset, yaw_rotation(yaw) @ rot, angle)
-        self.sensor.reset(int(self.np_random.integers(2**31)), mode="visual")
+        self.sensor.reset(int(self.np_random.integers(2**31)), mode=self.fixed_mode or "visual")
         self.estimator.reset(self.sensor.tactile_image(p.data))
         self._init_pos, self._init_rot = p.ee_pos(), p.ee_rot()
         self._prev_rel = self._relative_pose()
@@ -137,22 +147,23 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         self._tactile = None
         self.slammed = False
         self._steps = 0
+        self._tactile_steps, self._first_tactile_step = 0, None
         return self._observation(), self._info()
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
-        if a.shape != (len(ACTION_NAMES),) or not np.isfinite(a).all():
-            raise ValueError(f"action must be {len(ACTION_NAMES)} finite numbers, got {action!r}")
+        if a.shape != (len(self.action_names),) or not np.isfinite(a).all():
+            raise ValueError(f"action must be {len(self.action_names)} finite numbers, got {action!r}")
         a = a.clip(-1.0, 1.0)
         pos, rot = self.physics.ee_pos(), self.physics.ee_rot()
         target_rot = rot @ rotation_from_vector(a[3:6] * MAX_ROTATION)
-        return self.step_pose(
-            pos + rot @ (a[:3] * MAX_TRANSLATION), target_rot, "tactile" if a[6] > MODE_THRESHOLD else "visual"
-        )
+        mode = self.fixed_mode or ("tactile" if a[6] > MODE_THRESHOLD else "visual")
+        return self.step_pose(pos + rot @ (a[:3] * MAX_TRANSLATION), target_rot, mode)
 
     def step_pose(self, target_pos: np.ndarray, target_rot: np.ndarray, mode: str = "tactile"):
         """One control period towards an absolute sensor pose target (base frame) under the impedance
-        controller, e.g. replaying recorded poses; returns what `step` returns."""
+        controller, e.g. replaying recorded poses; returns what `step` returns. A fixed
+        `sensor_mode` overrides `mode` (as in `step_freedrive`)."""
         p = self.physics
         p.target_pos, p.target_rot = np.asarray(target_pos, float).copy(), np.asarray(target_rot, float).copy()
         return self._advance(lambda: p.simulate(p.n_substeps), mode)
@@ -165,8 +176,13 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         return self._advance(lambda: p.simulate(p.n_substeps, stiffness_scale=0.0, teacher=teacher), mode)
 
     def _advance(self, simulate, mode: str):
+        mode = self.fixed_mode or mode
         self._prev_rel = self._relative_pose()
         self.sensor.set_mode(mode)
+        if mode == "tactile":
+            self._tactile_steps += 1
+            if self._first_tactile_step is None:
+                self._first_tactile_step = self._steps
         free_closing = simulate()
         self.slammed = self.slammed or free_closing > SLAM_SPEED
         self._steps += 1
@@ -212,6 +228,16 @@ class DoorTactileEnv(SceneRendering, gym.Env):
             "door_angle": p.door_angle(),
             "slammed": self.slammed,
             "handle_contact": p.handle_contact(),
+            "sts_mode": self.sensor.mode,
+        }
+
+    def episode_extras(self) -> dict[str, Any]:
+        """The STS modes driven since the reset (what `shiftkit eval` records per episode): the
+        sensor-mode setting, the steps run in tactile mode and the first of them (None: never)."""
+        return {
+            "sensor_mode": self.sensor_mode,
+            "tactile_steps": self._tactile_steps,
+            "first_tactile_step": self._first_tactile_step,
         }
 
     def ee_pose(self) -> np.ndarray:

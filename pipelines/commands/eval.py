@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         env_kwargs=env_kwargs,
         on_episode=lambda r: print(
             f"episode {r.episode} (seed {r.seed}): {'success' if r.success else 'failure'} after {r.steps} steps"
+            + ("".join(f", {k} {v}" for k, v in r.extras.items()) if r.extras else "")
         ),
     )
     out = record_evaluation(report, args.policy, args.out)
