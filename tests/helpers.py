@@ -3,6 +3,12 @@
 from __future__ import annotations
 
 import hashlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -29,10 +35,6 @@ SMALL_ACT = (
 def lerobot_train_two_steps(repo_id: str, root: Path, output_dir: Path, policy_args=SMALL_ACT) -> None:
     """Run lerobot's own trainer (`lerobot-train` beside this Python) for 2 steps on the dataset at
     `root` and check it got there."""
-    import os
-    import subprocess
-    import sys
-
     exe = Path(sys.executable).with_name("lerobot-train")
     args = [
         *policy_args,
@@ -67,3 +69,71 @@ def write_raw_as_lerobot(raw_dir: Path, repo_id: str, root: Path) -> Path:
         destination=DestinationConfig(root=str(Path(root).resolve()), repo_id=repo_id),
     )
     return run_pipeline(config, progress=False)
+
+
+# ----------------------------------------------------------------------------- killing runs
+def shiftkit_process(*args: str, cwd: Path) -> subprocess.Popen:
+    """`shiftkit ARGS` in a child process with its own session (process group), so that killing it
+    does not take the test down."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "shiftkit.pipelines.cli", *args],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
+
+
+def child_pids(pid: int) -> set[int]:
+    """The direct children of `pid` (read from /proc: cheap enough to poll every few ms)."""
+    import psutil
+
+    try:
+        return {c.pid for c in psutil.Process(pid).children()}
+    except psutil.NoSuchProcess:
+        return set()
+
+
+def alive(pid: int) -> bool:
+    """Whether a process exists and is not a zombie."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = Path(f"/proc/{pid}/stat")
+    return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
+
+
+def survivors(pids: set[int], within: float = 15.0, poll: float = 0.2) -> list[int]:
+    """The processes of `pids` still alive after waiting up to `within` seconds for them to end."""
+    deadline = time.monotonic() + within
+    while any(alive(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(poll)
+    return sorted(p for p in pids if alive(p))
+
+
+def sigkill_when(proc: subprocess.Popen, ready: Callable[[], bool], group: bool = False) -> set[int] | None:
+    """SIGKILL `proc` (its whole process group with `group`) as soon as `ready()` holds while it
+    runs; returns the pids of the children seen until then, or None if it ended first."""
+    workers: set[int] = set()
+    while proc.poll() is None:
+        workers |= child_pids(proc.pid)
+        if ready():
+            (os.killpg if group else os.kill)(proc.pid, signal.SIGKILL)
+            proc.wait()
+            return workers
+        time.sleep(0.005)
+    return None
+
+
+def finished_parts(destination: Path) -> int:
+    """Episodes a run on `destination` has transformed so far (its work directory's parts)."""
+    from shiftkit.pipelines.runner import work_dir_for
+
+    parts = work_dir_for(Path(destination)) / "parts"
+    return len(list(parts.glob("*.pkl"))) if parts.is_dir() else 0
+
+
+def dataset_bytes(root: Path) -> dict[str, str]:
+    """`tree_hashes` of a dataset without the files that name how it was run (provenance, card)."""
+    return {k: v for k, v in tree_hashes(root).items() if k not in ("meta/shiftkit_provenance.json", "README.md")}

@@ -210,3 +210,43 @@ def test_fixed_sensor_mode_holds_for_the_whole_episode(fixed):
     with pytest.raises(ValueError, match="sensor_mode must be one of policy, visual, tactile"):
         envs.make("door-tactile", "flat-handle-open", sensor_mode="both")
     env.close()
+
+
+@pytest.mark.parametrize(("expert", "fixed"), [("scripted", "visual"), ("kinesthetic", "tactile")])
+def test_collect_in_a_fixed_sensor_mode(tmp_path, expert, fixed):
+    """`collect --env-kwarg sensor_mode=...` records the fixed-mode env: 6-dim actions named as the
+    env names them, every frame in that mode (state and STS image)."""
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    kwargs = {"sensor_mode": fixed}
+    out, _ = collect(
+        CollectConfig(
+            env="door-tactile",
+            task="knob-close",
+            episodes=1,
+            expert=expert,
+            env_kwargs=kwargs,
+            out=str(tmp_path / "raw"),
+        )
+    )
+    dataset = open_raw_dataset(out)
+    assert dataset.index["names"]["action"] == ["dx", "dy", "dz", "drx", "dry", "drz"]
+    ep = dataset.read_episode(0)
+    assert ep.frames["action"].shape[1] == 6 and ep.meta["outcome"] == "success"
+    state = ep.frames["observation.state"]
+    assert (state[:, 18] == float(fixed == "tactile")).all()
+    # every STS frame is the fixed mode's image of the recorded state (tactile: up to the marker
+    # estimator's low-pass and pixel noise), far from the other mode's
+    env = envs.make("door-tactile", "knob-close")
+    env.reset(seed=0)
+    other = "visual" if fixed == "tactile" else "tactile"
+    for t in range(0, len(ep), 5):
+        env.set_sim_state(ep.frames["sim.qpos"][t], ep.frames["sim.qvel"][t])
+        frame = ep.frames["observation.images.sts"][t].astype(float)
+        render = {
+            "visual": env.sensor.visual_image(env.physics.data),
+            "tactile": env.sensor.tactile_image(env.physics.data),
+        }
+        assert np.abs(frame - render[fixed]).mean() < 0.3 * np.abs(frame - render[other]).mean()
+    env.close()

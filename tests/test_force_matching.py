@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -198,25 +200,49 @@ def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):
         replayed(s, type(ep)(ep.frames, {**ep.meta, "seed": None}))
 
 
+REPO = Path(__file__).resolve().parents[1]
+
+
+CALIBRATION = REPO / "docs" / "force_matching_calibration.json"
+
+
+def docs_pipeline(name: str, raw: Path, out: Path, config: Path, calibration: Path = CALIBRATION) -> Path:
+    """docs/pipelines/NAME.toml written to `config`, reading `raw` and writing `out`."""
+    text = (REPO / "docs" / "pipelines" / f"{name}.toml").read_text()
+    text = text.replace("../../data/door_kinesthetic", str(raw)).replace(f"../../out/door_{name}", str(out))
+    text = text.replace("docs/force_matching_calibration.json", str(calibration))
+    config.write_text(text)
+    return config
+
+
+@pytest.mark.parametrize("fixed", ["visual", "tactile"])
+def test_docs_fixed_mode_pipelines_plan_the_baseline_datasets(kinesthetic, tmp_path, fixed):
+    """docs/pipelines/force_matched_{visual,tactile}.toml: force-matched replay, one STS image, a
+    6-dim action without sts_mode (the env's action in that fixed sensor mode)."""
+    from shiftkit.envs import make
+    from shiftkit.pipelines.config import load_pipeline_config
+    from shiftkit.pipelines.planner import plan_pipeline
+
+    name = f"force_matched_{fixed}"
+    plan = plan_pipeline(load_pipeline_config(docs_pipeline(name, kinesthetic, tmp_path / "out", tmp_path / "p.toml")))
+    env = make("door-tactile", "flat-handle-open", sensor_mode=fixed)
+    assert plan.features["action"]["names"] == list(env.action_names)
+    assert "observation.images.sts" in plan.features and "observation.images.sts_visual" not in plan.features
+    env.close()
+
+
 @pytest.mark.slow
 def test_docs_pipelines_run_with_two_workers_and_train_act(kinesthetic, tmp_path):
     """docs/pipelines/{force_matched,position_replay}.toml run with 2 workers; the outputs load in
     LeRobotDataset (action with `sts_mode`, one STS image) and lerobot-train (ACT) trains 2 steps."""
-    from pathlib import Path
-
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from shiftkit.pipelines.cli import main
 
-    repo = Path(__file__).resolve().parents[1]
     roots = {}
     for name in ("force_matched", "position_replay"):
-        text = (repo / "docs" / "pipelines" / f"{name}.toml").read_text()
-        text = text.replace("../../data/door_kinesthetic", str(kinesthetic))
-        text = text.replace(f"../../out/door_{name}", str(tmp_path / name))
-        text = text.replace("docs/force_matching_calibration.json", str(repo / "docs/force_matching_calibration.json"))
-        (tmp_path / f"{name}.toml").write_text(text)
-        assert main(["run", str(tmp_path / f"{name}.toml"), "--workers", "2", "--no-progress"]) == 0
+        config = docs_pipeline(name, kinesthetic, tmp_path / name, tmp_path / f"{name}.toml")
+        assert main(["run", str(config), "--workers", "2", "--no-progress"]) == 0
         ds = LeRobotDataset(f"local/door_{name}", root=tmp_path / name)
         assert ds.meta.total_episodes == 2
         assert ds.features["action"]["names"][-1] == "sts_mode"
@@ -252,3 +278,56 @@ def test_damping_feed_forward_moves_targets_along_the_velocity(tmp_path):
     # 0.15 s x 0.1 m/s (the last recorded frame's velocity sees the still closing pose)
     assert fed[:5, :3] - plain[:5, :3] == pytest.approx(np.tile([0.015, 0.0, 0.0], (5, 1)), abs=1e-12)
     assert np.array_equal(fed[:, 3:], plain[:, 3:])
+
+
+@pytest.mark.slow
+def test_docs_pipelines_resume_after_sigkill(tmp_path, caplog):
+    """SIGKILL of `shiftkit run --workers 2` (its whole process group) once some episodes are
+    replayed: the re-run resumes them and writes the uninterrupted run's bytes, for both docs
+    pipelines; a calibration re-made before the re-run discards the interrupted work (nothing stale
+    is mixed in)."""
+    import json
+    import shutil
+
+    from shiftkit.pipelines.cli import main
+    from shiftkit.pipelines.config import load_pipeline_config
+    from shiftkit.pipelines.runner import run_pipeline, work_dir_for
+    from tests.helpers import dataset_bytes, finished_parts, shiftkit_process, sigkill_when, survivors
+
+    raw, episodes = tmp_path / "raw", 4
+    collect = ["collect", "--env", "door-tactile", "--task", "flat-handle-open", "--expert", "kinesthetic"]
+    tiny = ["--width", "32", "--height", "24", "--env-kwarg", "max_episode_seconds=2", "--no-progress"]
+    assert main([*collect, "--episodes", str(episodes), "--cameras", "wrist", *tiny, "--out", str(raw)]) == 0
+    calibration = Path(shutil.copy(CALIBRATION, tmp_path / "calib.json"))
+
+    def run(name: str, dest: Path, kill: bool = False) -> str:
+        """Run (in this process) or start and SIGKILL a run; returns the resume line if any."""
+        config = docs_pipeline(name, raw, dest, tmp_path / f"{dest.name}.toml", calibration)
+        if kill:
+            proc = shiftkit_process("run", str(config), "--no-progress", "--workers", "2", cwd=tmp_path)
+            workers = sigkill_when(proc, lambda: finished_parts(dest) >= 1, group=True)
+            assert workers is not None, f"{name}: the run ended before it could be killed"
+            assert not survivors(workers) and not dest.exists()
+            assert 1 <= finished_parts(dest) < episodes
+            return ""
+        caplog.clear()
+        run_pipeline(load_pipeline_config(config), progress=False)  # any worker count gives the same bytes
+        assert not work_dir_for(dest).exists()
+        return next((r.getMessage() for r in caplog.records if r.getMessage().startswith("resuming")), "")
+
+    for name in ("force_matched", "position_replay"):
+        run(name, tmp_path / f"clean_{name}")
+        run(name, tmp_path / name, kill=True)
+        done = finished_parts(tmp_path / name)
+        assert run(name, tmp_path / name) == f"resuming: {done} of {episodes} source episodes were already transformed"
+        assert dataset_bytes(tmp_path / name) == dataset_bytes(tmp_path / f"clean_{name}"), f"{name}: resumed differs"
+
+    # interrupted, then the calibration is re-made at the same path: the old parts are not reused
+    run("force_matched", tmp_path / "recalibrated", kill=True)
+    fit = json.loads(calibration.read_text())
+    fit["axes"]["Fz"]["slopes"] = [1.2 * k for k in fit["axes"]["Fz"]["slopes"]]
+    calibration.write_text(json.dumps(fit))
+    assert run("force_matched", tmp_path / "recalibrated") == ""
+    run("force_matched", tmp_path / "clean_recalibrated")
+    assert dataset_bytes(tmp_path / "recalibrated") == dataset_bytes(tmp_path / "clean_recalibrated")
+    assert dataset_bytes(tmp_path / "recalibrated") != dataset_bytes(tmp_path / "clean_force_matched")

@@ -15,9 +15,11 @@ from shiftkit.pipelines.stats import (
     QUANTILE_KEYS,
     QUANTILES,
     RunningStats,
+    downsample_chw,
     feature_stats,
     image_stats,
     numeric_stats,
+    sample_indices,
 )
 
 
@@ -120,6 +122,15 @@ def test_image_stats_equal_lerobot(shape):
     assert_same(image_stats(frames), lerobot_image_stats(frames))
     dark = np.zeros(shape, np.uint8)
     assert_same(image_stats(dark), lerobot_image_stats(dark))
+
+
+def test_image_sampling_is_lerobots():
+    """The frame sampling and downscaling restated from lerobot (so that workers need not import it)."""
+    for n in (1, 2, 3, 99, 100, 101, 467, 500, 1000, 4999, 12345, 100_000, 300_000):
+        assert sample_indices(n).tolist() == lerobot_stats.sample_indices(n), n
+    for h, w in ((4, 4), (299, 10), (10, 299), (300, 300), (301, 150), (480, 640), (640, 480), (1080, 1920)):
+        image = np.arange(3 * h * w, dtype=np.int64).reshape(3, h, w)
+        np.testing.assert_array_equal(downsample_chw(image), lerobot_stats.auto_downsample_height_width(image))
 
 
 def test_running_stats_equal_lerobots_pairwise_aggregation():

@@ -16,8 +16,10 @@ calibration without offset) it is exactly position replay.
 from __future__ import annotations
 
 import copy
+import hashlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import mujoco
@@ -277,6 +279,15 @@ class ForceMatch(Stage):
                 out[key] = copy.deepcopy(features[STS_IMAGE])
         if self.config.mode == "force_matched":
             load_calibration(self.config.calibration, sensor_id(family.sim_model_id))
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        """The parameters and the calibration file's content digest: a calibration re-made at the
+        same path is another job (an interrupted run's parts are not resumed with it) and the
+        provenance records which calibration made the dataset."""
+        out = super().describe()
+        if self.config.mode == "force_matched":
+            out["calibration_sha256"] = hashlib.sha256(Path(self.config.calibration).read_bytes()).hexdigest()[:16]
         return out
 
     def setup(self) -> None:

@@ -72,7 +72,8 @@ def _recorder(env: DoorTactileEnv, cameras: tuple[str, ...], depth: bool) -> Rol
 # ----------------------------------------------------------------------------- scripted policy
 class ScriptedDoorExpert:
     """Approach the hinge side of the handle, switch the STS to tactile, press until in contact for
-    `SCRIPTED_PRESS_STEPS` steps, then drag along the arc; back to the approach if the handle is lost."""
+    `SCRIPTED_PRESS_STEPS` steps, then drag along the arc; back to the approach if the handle is lost.
+    An env with a fixed sensor mode takes the action without its mode dim."""
 
     def __init__(self, env: DoorTactileEnv) -> None:
         self.env = env
@@ -80,6 +81,9 @@ class ScriptedDoorExpert:
         self.pressed = 0
 
     def act(self) -> np.ndarray:
+        return self._act()[: len(self.env.action_names)]
+
+    def _act(self) -> np.ndarray:
         p = self.env.physics
         pos, rot = p.ee_pos(), p.ee_rot()
         g_pos, g_rot = p.grasp_pose(p.door_angle())
@@ -185,7 +189,8 @@ def kinesthetic_rollout(
     """One simulated kinesthetic demonstration (see the module docstring). Arrays: `ee_pose` (x_raw,
     position + quaternion xyzw, base frame) and `wrench_raw` (F~_raw); actions are the relative
     pose changes between recorded frames plus the operator's mode label (1 tactile / 0 visual);
-    meta: `first_contact_step`, `mode_switch_step` (frame indices), `recording_start_step`."""
+    meta: `first_contact_step`, `mode_switch_step` (frame indices), `recording_start_step`. In an env
+    with a fixed sensor mode every frame is in that mode and the actions have no mode dim."""
     cameras = tuple(c for c in cameras if c != "sts")  # "sts" is always recorded
     obs, info = env.reset(seed=seed)
     teacher = KinestheticTeacher(env)
@@ -234,6 +239,8 @@ def kinesthetic_rollout(
     jitter = int(np.clip(np.round(rng.normal(0.0, SWITCH_JITTER)), -SWITCH_JITTER_MAX, SWITCH_JITTER_MAX))
     switch = int(np.clip(first_contact + jitter, 0, n - 1))
     mode = (np.arange(n) >= switch).astype(np.float32)
+    if env.fixed_mode is not None:
+        mode[:] = float(env.fixed_mode == "tactile")
     actions = np.zeros((n, 7), dtype=np.float32)
     for t in range(n):
         a, b = frames[t], frames[t + 1]
@@ -242,7 +249,7 @@ def kinesthetic_rollout(
     body = frames[:n]
     return Rollout(
         observations=np.array([f["obs"] for f in body], dtype=np.float32),
-        actions=actions,
+        actions=actions[:, : len(env.action_names)],
         success=np.array(success, dtype=bool),
         qpos=np.array([f["info"]["qpos"] for f in body]),
         qvel=np.array([f["info"]["qvel"] for f in body]),

@@ -155,7 +155,7 @@ def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> 
     names = {
         "state": [family.observation_names[i] for i in state_idx],
         "environment_state": [family.observation_names[i] for i in env_idx],
-        "action": list(family.action_names),
+        "action": list(env.action_names),  # an --env-kwarg may change the action (door-tactile sensor_mode)
     }
     info = {
         "observation_layout": family.observation_layout,

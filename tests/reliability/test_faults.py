@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from shiftkit.pipelines.synthetic import write_synthetic_raw
-from tests.helpers import tree_hashes
+from tests.helpers import dataset_bytes, finished_parts, shiftkit_process, sigkill_when, survivors
 from tests.reliability.harness import cli
 
 KILL_SEEDS = (0, 1, 2)  # one SIGKILL at a random point of the run per seed
@@ -29,40 +29,12 @@ def _config(tmp: Path, raw: Path, dest: str, stages: str = "") -> Path:
     return path
 
 
-def _children(pid: int) -> set[int]:
-    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True).stdout
-    return {int(x) for x in out.split()}
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    stat = Path(f"/proc/{pid}/stat")
-    return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
-
-
-def _shiftkit(*args: str, cwd: Path) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "shiftkit.pipelines.cli", *args],
-        cwd=cwd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        start_new_session=True,  # killing it must not take the test down
-    )
-
-
-def _data(root: Path) -> dict[str, str]:
-    return {k: v for k, v in tree_hashes(root).items() if k != "meta/shiftkit_provenance.json" and k != "README.md"}
-
-
 def test_sigkill_then_resume(tmp_path):
     """SIGKILL the main process at a seeded random point (after k finished parts, or while the
     dataset is being written) while its pool works; every worker exits with it; the re-run
     resumes and writes the clean run's bytes."""
     from shiftkit.pipelines.config import load_pipeline_config
-    from shiftkit.pipelines.runner import run_pipeline, work_dir_for
+    from shiftkit.pipelines.runner import run_pipeline
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=10, length=20, seed=5, camera=(16, 24))
     stages = '[[stages]]\nname = "subsample"\nparams = { every = 2 }'
@@ -72,26 +44,22 @@ def test_sigkill_then_resume(tmp_path):
         rng = np.random.default_rng(seed)
         dest = f"killed{seed}"
         config = _config(tmp_path, raw, dest, stages)
-        parts_dir = work_dir_for(tmp_path / dest) / "parts"
         at_parts = int(rng.integers(1, 10)) if rng.random() < 0.75 else None  # else: while writing
-        proc = _shiftkit("run", str(config), "--no-progress", "--workers", str(WORKERS), cwd=tmp_path)
-        workers: set[int] = set()
-        while proc.poll() is None:
-            workers |= _children(proc.pid)
-            done = len(list(parts_dir.glob("*.pkl"))) if parts_dir.is_dir() else 0
-            writing = any(tmp_path.glob(f".{dest}.partial-*"))
-            if (at_parts is not None and done >= at_parts) or (at_parts is None and writing):
-                os.kill(proc.pid, signal.SIGKILL)
-                injected += 1
-                break
-            time.sleep(0.005)
-        proc.wait()
-        gone_by = time.monotonic() + 15
-        while any(_alive(w) for w in workers) and time.monotonic() < gone_by:
-            time.sleep(0.2)
-        assert not [w for w in workers if _alive(w)], f"seed {seed}: workers outlived their killed parent"
+
+        def ready(dest=dest, at_parts=at_parts) -> bool:
+            if at_parts is None:
+                return any(tmp_path.glob(f".{dest}.partial-*"))
+            return finished_parts(tmp_path / dest) >= at_parts
+
+        proc = shiftkit_process("run", str(config), "--no-progress", "--workers", str(WORKERS), cwd=tmp_path)
+        seen = sigkill_when(proc, ready)
+        injected += seen is not None
+        workers = seen or set()
+        assert not survivors(workers), f"seed {seed}: workers outlived their killed parent"
         run_pipeline(load_pipeline_config(config), progress=False)  # resume (any executor gives the same bytes)
-        assert _data(tmp_path / dest) == _data(tmp_path / "clean"), f"seed {seed}: resumed output differs"
+        assert dataset_bytes(tmp_path / dest) == dataset_bytes(tmp_path / "clean"), (
+            f"seed {seed}: resumed output differs"
+        )
         assert not list(tmp_path.glob(f".{dest}*")), "work directory or lock left behind"
     assert injected >= 1, "no kill landed inside a run"
 
@@ -129,11 +97,9 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
     assert proc.poll() is None, "the run ended before its workers wrote two parts: nothing to kill"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    gone_by = time.monotonic() + 150
-    while any(_alive(p) for p in started) and time.monotonic() < gone_by:
-        time.sleep(1.0)
+    left = survivors(started, within=150, poll=1.0)
     assert len(started) > WORKERS, "the Ray processes were not seen"
-    assert not [p for p in started if _alive(p)], "Ray processes outlived the killed run"
+    assert not left, "Ray processes outlived the killed run"
 
 
 def test_second_run_on_same_destination_is_refused(tmp_path, rel_raw):
@@ -226,7 +192,4 @@ def test_watchdog_ends_a_worker_whose_parent_was_killed():
     child = int(parent.stdout.readline())
     os.kill(parent.pid, signal.SIGKILL)
     parent.wait()
-    deadline = time.monotonic() + 10
-    while _alive(child) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not _alive(child)
+    assert not survivors({child}, within=10, poll=0.1)
