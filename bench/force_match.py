@@ -107,6 +107,9 @@ def run_pipeline_timed(raw: Path, dest: Path, workers: int) -> dict[str, float]:
 def throughput(quick: bool, episodes: int | None = None) -> dict:
     episodes = episodes or (4 if quick else 8)
     loads = [os.getloadavg()[0]]
+    # the dataset writer's one-time import of lerobot (and torch) is not part of either run
+    import lerobot.datasets.lerobot_dataset  # noqa: F401
+
     with tempfile.TemporaryDirectory() as tmp:
         raw = record(Path(tmp) / "raw", "knob-open", episodes, cameras=("wrist",))
         times = {}
