@@ -198,6 +198,33 @@ def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):
     s = stage(features, mode="position", sts_images=False)
     with pytest.raises(DatasetError, match="no simulator 'seed'"):
         replayed(s, type(ep)(ep.frames, {**ep.meta, "seed": None}))
+    wide = {**features, "action": {**features["action"], "shape": (4,)}}
+    with pytest.raises(ConfigError, match=r"'action' has 4 dims, not door-tactile's \('dx'"):
+        stage(wide, mode="position")
+
+
+def test_a_fixed_mode_recording_replays_without_the_mode_dim(tmp_path):
+    """A demonstration recorded with `sensor_mode=visual` (6-dim actions, no wrist camera) replays
+    into 6-dim actions at the recording's STS image size."""
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    out, _ = collect(
+        CollectConfig(
+            env="door-tactile",
+            task="knob-close",
+            episodes=1,
+            expert="kinesthetic",
+            env_kwargs={"sensor_mode": "visual", "max_episode_seconds": 1.5},
+            width=32,
+            height=24,
+            out=str(tmp_path / "raw"),
+        )
+    )
+    features, (ep,) = episodes(out)
+    assert features["action"]["shape"] == (6,)
+    replay = replayed(stage(features, mode="position"), ep)
+    assert replay.frames["action"].shape == (len(ep) + 10, 6)
+    assert replay.frames["observation.images.sts_visual"].shape[1:] == (24, 32, 3)
 
 
 REPO = Path(__file__).resolve().parents[1]

@@ -263,6 +263,10 @@ class ForceMatch(Stage):
         for key in ("observation.ee_pose", "observation.wrench"):
             if key not in features:
                 raise ConfigError(f"force_match: needs the kinesthetic recording's {key!r} feature")
+        dims = features.get("action", {}).get("shape", (0,))[0]
+        # the family's action, or without its mode dim (recorded in a fixed sensor mode)
+        if dims not in (len(family.action_names), len(family.action_names) - 1):
+            raise ConfigError(f"force_match: 'action' has {dims} dims, not {self.config.env}'s {family.action_names}")
         cameras = []
         for key in features:
             cam = key[len(CAMERA_PREFIX) :] if key.startswith(CAMERA_PREFIX) else None
@@ -336,7 +340,8 @@ class ForceMatch(Stage):
         if meta.get("sim_model") not in (None, family.sim_model_id):
             raise DatasetError(f"{where}: recorded in {meta.get('sim_model')!r}, not {family.sim_model_id!r}")
         task = str(meta.get("task") or episode.frames["task"][0])
-        shape = next((episode.frames[CAMERA_PREFIX + c].shape[1:] for c in self._cameras), None)
+        images = [k for k in (*(CAMERA_PREFIX + c for c in self._cameras), STS_IMAGE) if k in episode.frames]
+        shape = episode.frames[images[0]].shape[1:] if images else None  # the recording's one image size
         env = self._env(task, shape)
         action = np.asarray(episode.frames["action"])
         # the operator's mode labels of the recording (the family's last action dim), else tactile
@@ -357,6 +362,7 @@ class ForceMatch(Stage):
             return
         n = len(replay.frames["action"])
         frames = {k: replay.frames[k].astype(episode.frames[k].dtype) for k in episode.frames if k in replay.frames}
+        frames["action"] = frames["action"][:, : action.shape[1]]  # a fixed-mode recording has no mode dim
         if self._sts == "both":
             frames[STS_VISUAL], frames[STS_TACTILE] = replay.frames[STS_VISUAL], replay.frames[STS_TACTILE]
         frames["timestamp"] = np.arange(n, dtype=np.float64) / self.context.fps
