@@ -55,8 +55,8 @@ def _atomic_pickle(path: Path, obj: Any) -> None:
 class PartStore:
     """Finished per-source-episode outputs in `<dest>/../.<name>.shiftkit-work/parts`.
 
-    One file per source episode holds its output episodes and their position-independent
-    statistics, computed by the worker so the writer does not have to. Parts are private to one
+    One file per source episode holds its output episodes, with their images' PNG bytes, and their
+    position-independent statistics, computed by the worker so the writer does not have to. Parts are private to one
     run of one pipeline (the work directory is keyed by `run_key`), so they are plain pickles.
     A second, small file per source episode in `metas/` holds just the output metas and the
     stages' event counts for that episode (`Stage.report`; kept even when it has no outputs).
@@ -76,9 +76,9 @@ class PartStore:
     def write(
         self, source: int, episode: int, outputs: list[Episode], features: dict, report: list[dict[str, int]]
     ) -> None:
-        from shiftkit.pipelines.lerobot_io import episode_stats
+        from shiftkit.pipelines.lerobot_io import encode_images, episode_stats
 
-        records = [(ep.frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
+        records = [(encode_images(ep, features).frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
         for folder in (self.dir, self.meta_path(source, episode).parent):
             folder.mkdir(parents=True, exist_ok=True)
         # The metas alone first: a dataset-level `select` reads them without loading frames, and the

@@ -146,14 +146,32 @@ def numeric_stats(columns: dict[str, np.ndarray]) -> dict[str, Stats]:
     return {key: stats[key] for key in columns}
 
 
+# lerobot 0.4.4's image sampling (`compute_stats.sample_indices`, `auto_downsample_height_width`;
+# tests/test_stats.py checks they agree). Here, not imported: importing lerobot's compute_stats
+# imports torch and torchvision, seconds in every pipeline worker that only computes statistics.
+_SAMPLES_MIN, _SAMPLES_MAX, _SAMPLES_POWER = 100, 10_000, 0.75
+_DOWNSAMPLE_TARGET, _DOWNSAMPLE_ABOVE = 150, 300
+
+
+def sample_indices(n: int) -> list[int]:
+    """The frames lerobot samples for image statistics: about n ** 0.75 of n, at least 100 (or n)."""
+    count = max(min(_SAMPLES_MIN, n), min(int(n**_SAMPLES_POWER), _SAMPLES_MAX))
+    return np.round(np.linspace(0, n - 1, count)).astype(int).tolist()
+
+
+def downsample(image: np.ndarray) -> np.ndarray:
+    """A (C, H, W) image strided down as lerobot does before image statistics (large images only)."""
+    height, width = image.shape[1:]
+    if max(height, width) < _DOWNSAMPLE_ABOVE:
+        return image
+    step = int(max(height, width) / _DOWNSAMPLE_TARGET)
+    return image[:, ::step, ::step]
+
+
 def image_stats(frames: np.ndarray) -> Stats:
     """lerobot's image statistics (`sample_images` + `get_feature_stats` over (0, 2, 3), divided
     by 255) from in-memory (frames, H, W, C) uint8 frames: sampled and downscaled as lerobot does."""
-    from lerobot.datasets.compute_stats import auto_downsample_height_width, sample_indices
-
-    sampled = np.stack(
-        [auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))]
-    )
+    sampled = np.stack([downsample(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))])
     pixels = sampled.transpose(0, 2, 3, 1).reshape(-1, sampled.shape[1])
     if pixels.shape[0] < 2:
         stats = _lerobot_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)

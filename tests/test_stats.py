@@ -15,9 +15,11 @@ from shiftkit.pipelines.stats import (
     QUANTILE_KEYS,
     QUANTILES,
     RunningStats,
+    downsample,
     feature_stats,
     image_stats,
     numeric_stats,
+    sample_indices,
 )
 
 
@@ -111,6 +113,16 @@ def test_feature_stats_equal_lerobot_property(n, dim, dtype, levels, seed):
     rng = np.random.default_rng(seed)
     data = (rng.integers(0, levels, size=(n, dim)) * rng.normal()).astype(dtype)
     assert_same(feature_stats(data), lerobot_feature_stats(data))
+
+
+def test_image_sampling_is_lerobots():
+    """The frames sampled and the downscaling, which image_stats does without importing lerobot."""
+    for n in (1, 2, 5, 99, 100, 101, 499, 500, 501, 1000, 5000, 20_000, 250_000):
+        assert sample_indices(n) == lerobot_stats.sample_indices(n), n
+    for h, w in ((4, 4), (48, 64), (299, 299), (300, 200), (200, 300), (480, 640), (640, 480), (1080, 1920)):
+        image = np.random.default_rng(h * w).integers(0, 255, size=(3, h, w), dtype=np.uint8)
+        ours, theirs = downsample(image), lerobot_stats.auto_downsample_height_width(image)
+        assert ours.shape == theirs.shape and np.array_equal(ours, theirs), (h, w)
 
 
 @pytest.mark.parametrize("shape", [(1, 4, 4, 3), (7, 6, 8, 3), (40, 48, 64, 3), (3, 320, 240, 3)])
