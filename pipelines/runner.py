@@ -56,8 +56,9 @@ class PartStore:
     """Finished per-source-episode outputs in `<dest>/../.<name>.shiftkit-work/parts`.
 
     One file per source episode holds its output episodes, with their images' PNG bytes, and their
-    position-independent statistics, computed by the worker so the writer does not have to. Parts are private to one
-    run of one pipeline (the work directory is keyed by `run_key`), so they are plain pickles.
+    position-independent statistics, computed by the worker so the writer does not have to. Parts
+    are private to one run of one pipeline (the work directory is keyed by `run_key`), so they are
+    plain pickles.
     A second, small file per source episode in `metas/` holds just the output metas and the
     stages' event counts for that episode (`Stage.report`; kept even when it has no outputs).
     """

@@ -18,10 +18,11 @@ pose:
 
 A view is dropped when IK misses the recorded tool pose (`max_ik_error`, `max_ik_rotation`) or an
 object leaves the image; each drop is logged and counted in each output episode's
-`meta["multiview"]`, and the stage reports (`Stage.report`) views kept, views dropped per reason and
-source episodes left without any view, for the run summary and the provenance. `matched = true` emits exactly one view per episode (the first
-of up to `num_views` sampled poses that works), so a multiview dataset built from the same
-demonstrations has the same episodes and frames as the fixed-view one (docs/multiview.md).
+`meta["multiview"]`, and the stage reports (`Stage.report`) views kept, views dropped per reason
+and source episodes left without any view, for the run summary and the provenance. `matched =
+true` emits exactly one view per episode (the first of up to `num_views` sampled poses that
+works), so a multiview dataset built from the same demonstrations has the same episodes and frames
+as the fixed-view one (docs/multiview.md).
 """
 
 from __future__ import annotations
