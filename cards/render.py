@@ -69,6 +69,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
     stages = (
         "\n".join(
             f"{i + 1}. `{s['name']}` v{s['version']}: `{json.dumps(s['params'], sort_keys=True)}`"
+            + ("; counted: " + ", ".join(f"{k} {v}" for k, v in s["report"].items()) if s.get("report") else "")
             for i, s in enumerate(provenance.get("stages", []))
         )
         or "(none: the sources were converted unchanged)"

@@ -11,6 +11,7 @@ import numpy as np
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, open_lerobot_dataset
+from shiftkit.pipelines.provenance import format_report
 
 
 def summarize(root: str | Path) -> dict[str, Any]:
@@ -68,6 +69,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             lines.append("  source: " + ", ".join(f"{k}={v}" for k, v in src.items() if v not in (None, "")))
         for stage in prov.get("stages", []):
             lines.append(f"  stage: {stage['name']} v{stage['version']} {json.dumps(stage['params'], sort_keys=True)}")
+            if stage.get("report"):
+                lines.append(f"    report: {format_report(stage['report'])}")
     else:
         lines.append("provenance: none (not made by shiftkit)")
     return "\n".join(lines)

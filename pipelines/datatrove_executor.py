@@ -267,7 +267,7 @@ class DatatroveExecutor:
         roots = [store.dataset(s.index) for s in shards if store.dataset(s.index).is_dir()]
         if not roots:
             raise DatasetError(f"no episodes to write to {plan.destination} (every episode was filtered out)")
-        path = merge_shards(plan, roots, self.describe())
+        path = merge_shards(plan, roots, self.describe(), runner.run_report(plan, parts))
         bar.update(plan.num_source_episodes)
         return path
 
@@ -538,7 +538,7 @@ SLURM_README = """# SLURM job for {dest}
 """
 
 
-def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any]) -> Path:
+def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any], report: list[dict[str, int]]) -> Path:
     """Aggregate the shard datasets (in order) into the destination, atomically."""
     from lerobot.datasets.aggregate import aggregate_datasets
 
@@ -552,7 +552,7 @@ def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any]) ->
         with _quiet_progress_bars():
             aggregate_datasets([plan.repo_id] * len(roots), plan.repo_id, roots=roots, aggr_root=tmp)
         num_episodes, num_frames = fix_position_stats(tmp)
-        provenance = build_provenance(plan, executor_info, num_episodes, num_frames)
+        provenance = build_provenance(plan, executor_info, num_episodes, num_frames, report)
         # lerobot's aggregation does not know meta/cameras.json: concatenate the shards' own.
         cameras = camera_meta.provenance_entry(camera_meta.concat_cameras_files(roots, tmp))
         write_provenance(tmp, {**provenance, "cameras": cameras} if cameras else provenance)

@@ -1,16 +1,18 @@
 """Decoded camera frames that remember the PNG bytes they came from, so an unchanged frame is not
 encoded again when it is written.
 
-PNG encoding at lerobot's compression level (PIL, level 6) is the largest cost of writing an
-image dataset (~10 ms per 96x96 frame here, more than reading, statistics and parquet together).
-Most stages pass frames through unchanged (filter, trim, subsample, rename, ...). The reader
-returns image features as `EncodedFrames`: a plain uint8 array plus a map from each frame's
-content (a CRC-32 key, confirmed by comparing the pixels with a copy of the decoded frame) to its
-source PNG bytes. The writer reuses the bytes only when a frame's pixels equal the decoded ones,
-so a frame that a stage changed, in place or not, is always encoded afresh. The map survives slicing, pickling (the runner's parts) and `Episode.select`;
-arrays built anew by a stage are plain arrays and simply get encoded. PNG decoding is lossless,
-so the written pixels are the same either way; for sources written by lerobot or shiftkit (PIL at
-level 6, deterministic) the bytes are the same too.
+PNG encoding at lerobot's compression level (PIL, level 6) is the largest cost of writing an image
+dataset (~10 ms per 96x96 frame here, more than reading, statistics and parquet together). Most
+stages pass frames through unchanged (filter, trim, subsample, rename, ...). The reader returns
+image features as `EncodedFrames`: a plain uint8 array plus a map from each frame's content (a
+CRC-32 key, confirmed by comparing the pixels with a copy of the decoded frame) to its source PNG
+bytes. The writer reuses the bytes only when a frame's pixels equal the decoded ones, so a frame
+that a stage changed, in place or not, is always encoded afresh. The map survives slicing, pickling
+(the runner's parts) and `Episode.select`; arrays built anew by a stage are plain arrays, which the
+pipeline's workers encode and wrap before they store a part (`lerobot_io.encode_images`), so the one
+writer only copies bytes. PNG decoding is lossless, so the written pixels are the same either way;
+for sources written by lerobot or shiftkit (PIL at level 6, deterministic) the bytes are the same
+too.
 """
 
 from __future__ import annotations
@@ -41,12 +43,19 @@ class EncodedFrames(np.ndarray):
         self.png = getattr(obj, "png", None)
 
     def __reduce__(self) -> tuple:
+        # Only the bytes of this array's own frames travel, checked now; the decoded copies that
+        # confirm a hit are the frames themselves again after unpickling (a part holds no second
+        # copy of the pixels).
         constructor, args, state = super().__reduce__()
-        return constructor, args, (state, self.png)
+        encoded = [source_png(f, self) for f in self] if self.png and self.ndim == 4 else None
+        return constructor, args, (state, encoded)
 
     def __setstate__(self, state: tuple) -> None:
-        array_state, self.png = state
+        array_state, encoded = state
         super().__setstate__(array_state)
+        self.png = None
+        if encoded is not None:
+            self.png = {_key(f): (np.array(f), b) for f, b in zip(self, encoded, strict=True) if b is not None}
 
 
 def source_png(frame: np.ndarray, frames: np.ndarray) -> bytes | None:

@@ -8,8 +8,11 @@ writer pass; it is the default. `datatrove-local`, `ray` and `slurm` run on data
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import multiprocessing
 import os
+import threading
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any, Protocol
@@ -52,25 +55,38 @@ class LocalExecutor:
             for unit in units:
                 bar.update(runner.process_unit(unit))
             return True
+        # The main process only waits for the pool: meanwhile it imports what the writer needs
+        # (lerobot and torch, seconds), which would otherwise come after the last episode.
+        imports = threading.Thread(target=_import_writer, name="shiftkit-writer-imports")
+        imports.start()
         # spawn, not fork: stages may hold threads (torch, EGL) that do not survive a fork.
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(
-            self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config, os.getpid())
-        ) as pool:
-            futures = [pool.submit(runner.process_unit, unit) for unit in units]
-            try:
-                for future in as_completed(futures):
-                    bar.update(future.result())
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+        try:
+            with ProcessPoolExecutor(
+                self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config, os.getpid())
+            ) as pool:
+                futures = [pool.submit(runner.process_unit, unit) for unit in units]
+                try:
+                    for future in as_completed(futures):
+                        bar.update(future.result())
+                except BaseException:
+                    for f in futures:
+                        f.cancel()
+                    raise
+        finally:
+            imports.join()
         return True
 
     def assemble(self, plan: Any, parts: Any, bar: Any) -> Path:
         from shiftkit.pipelines.runner import write_dataset
 
         return write_dataset(plan, parts, self.describe(), bar)
+
+
+def _import_writer() -> None:
+    # A failure here is left to the writer's own import, which reports it.
+    with contextlib.suppress(Exception):
+        importlib.import_module("lerobot.datasets.lerobot_dataset")
 
 
 def _datatrove(name: str) -> Any:

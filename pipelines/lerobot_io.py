@@ -89,6 +89,22 @@ def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, n
     return stats
 
 
+def encode_images(episode: Episode, features: Features) -> Episode:
+    """`episode` with every `image` feature as `EncodedFrames` holding each frame's PNG bytes (a
+    frame's source bytes where it is unchanged), so that the writer reuses them. Pipeline workers
+    call this, so that PNG encoding, the largest cost of writing images, runs in parallel rather
+    than in the one writer."""
+    keys = [k for k, ft in features.items() if ft["dtype"] == "image"]
+    return episode.with_frames(
+        **{
+            k: EncodedFrames.wrap(
+                episode.frames[k], [source_png(f, episode.frames[k]) or _png_bytes(f) for f in episode.frames[k]]
+            )
+            for k in keys
+        }
+    )
+
+
 class DatasetWriter:
     """Writes episodes into a new LeRobot v3.0 dataset at `root`, atomically.
 

@@ -23,16 +23,37 @@ def versions() -> dict[str, str]:
     return out
 
 
-def build_provenance(plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int) -> dict[str, Any]:
+def build_provenance(
+    plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int, report: list[dict[str, int]]
+) -> dict[str, Any]:
+    """`report`: per stage, the run's totals of the events it counted (`Stage.report`), stored as
+    the stage entry's "report" when it counted any."""
     return {
         "provenance_version": PROVENANCE_VERSION,
         "tool": "shiftkit",
         "versions": versions(),
         "sources": [s.describe() for s in plan.sources],
-        "stages": [s.describe() for s in plan.stages],
+        "stages": [
+            {**s.describe(), "report": counts} if counts else s.describe()
+            for s, counts in zip(plan.stages, report, strict=True)
+        ],
         "seed": plan.config.seed,
         "executor": executor,
         "output": {"repo_id": plan.repo_id, "fps": plan.fps, "episodes": num_episodes, "frames": num_frames},
         # The pipeline config itself: `shiftkit run` accepts this object saved as a .json file.
         "pipeline": asdict(plan.config),
     }
+
+
+def format_report(counts: dict[str, int]) -> str:
+    """A stage's event counts on one line: `views_dropped_ik 3, views_kept 12`."""
+    return ", ".join(f"{event} {n}" for event, n in counts.items())
+
+
+def report_lines(provenance: dict[str, Any]) -> list[str]:
+    """The run summary's counts: one line per stage that counted events."""
+    return [
+        f"stage {k} {stage['name']}: {format_report(stage['report'])}"
+        for k, stage in enumerate(provenance.get("stages", []), start=1)
+        if stage.get("report")
+    ]

@@ -55,11 +55,15 @@ def _atomic_pickle(path: Path, obj: Any) -> None:
 class PartStore:
     """Finished per-source-episode outputs in `<dest>/../.<name>.shiftkit-work/parts`.
 
-    One file per source episode holds its output episodes and their position-independent
-    statistics, computed by the worker so the writer does not have to. Parts are private to one
-    run of one pipeline (the work directory is keyed by `run_key`), so they are plain pickles.
-    A second, small file per source episode in `metas/` holds just the output metas.
+    One file per source episode holds its output episodes, with their images' PNG bytes, and their
+    position-independent statistics, computed by the worker so the writer does not have to. Parts
+    are private to one run of one pipeline (the work directory is keyed by `run_key`), so they are
+    plain pickles.
+    A second, small file per source episode in `metas/` holds just the output metas and the
+    stages' event counts for that episode (`Stage.report`; kept even when it has no outputs).
     """
+
+    FORMAT = 2  # of the files; part of `run_key`, so a work dir in another format is not resumed
 
     def __init__(self, work_dir: Path) -> None:
         self.dir = work_dir / "parts"
@@ -70,24 +74,33 @@ class PartStore:
     def done(self, source: int, episode: int) -> bool:
         return self.path(source, episode).is_file()
 
-    def write(self, source: int, episode: int, outputs: list[Episode], features: dict) -> None:
-        from shiftkit.pipelines.lerobot_io import episode_stats
+    def write(
+        self, source: int, episode: int, outputs: list[Episode], features: dict, report: list[dict[str, int]]
+    ) -> None:
+        from shiftkit.pipelines.lerobot_io import encode_images, episode_stats
 
-        records = [(ep.frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
+        records = [(encode_images(ep, features).frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
         for folder in (self.dir, self.meta_path(source, episode).parent):
             folder.mkdir(parents=True, exist_ok=True)
         # The metas alone first: a dataset-level `select` reads them without loading frames, and the
         # part file (whose presence marks the episode done) only appears once both are complete.
-        _atomic_pickle(self.meta_path(source, episode), [ep.meta for ep in outputs])
+        _atomic_pickle(self.meta_path(source, episode), {"metas": [ep.meta for ep in outputs], "report": report})
         _atomic_pickle(self.path(source, episode), records)
 
     def meta_path(self, source: int, episode: int) -> Path:
         return self.dir.parent / "metas" / self.path(source, episode).name
 
-    def metas(self, source: int, episode: int) -> list[dict[str, Any]]:
-        """The metas of one source episode's outputs, without their frames."""
+    def _small(self, source: int, episode: int) -> dict[str, Any]:
         with open(self.meta_path(source, episode), "rb") as f:
             return pickle.load(f)
+
+    def metas(self, source: int, episode: int) -> list[dict[str, Any]]:
+        """The metas of one source episode's outputs, without their frames."""
+        return self._small(source, episode)["metas"]
+
+    def report(self, source: int, episode: int) -> list[dict[str, int]]:
+        """Per stage, the events it counted while processing this source episode."""
+        return self._small(source, episode)["report"]
 
     def read(self, source: int, episode: int) -> Iterator[tuple[Episode, dict]]:
         with open(self.path(source, episode), "rb") as f:
@@ -131,6 +144,7 @@ def run_key(plan: Plan) -> str:
         "sources": [{**s.describe(), "files": _files_of(s)} for s in plan.sources],
         "stages": [s.describe() for s in plan.stages],
         "versions": versions(),
+        "parts_format": PartStore.FORMAT,
     }
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -140,20 +154,35 @@ def episode_rng(seed: int, source: int, episode: int, stage: int) -> np.random.G
     return np.random.default_rng([seed, source, episode, stage])
 
 
-def transform_episode(plan: Plan, source: int, episode: Episode) -> list[Episode]:
-    """Run every stage on one source episode and check the outputs against the predicted schema."""
+def transform_episode(plan: Plan, source: int, episode: Episode) -> tuple[list[Episode], list[dict[str, int]]]:
+    """Run every stage on one source episode and check the outputs against the predicted schema.
+    Returns the outputs and, per stage, the events it counted (`Stage.report`) on the way."""
     index = int(episode.meta["source_episode_index"])
     current = [episode]
+    report = []
     for j, stage in enumerate(plan.stages):
         rng = episode_rng(plan.config.seed, source, index, j)
         current = [out for ep in current for out in stage.process(ep, rng)]
+        report.append(stage.take_report())
     where = f"source {source} episode {index}"
     for out in current:
         check_episode(out, plan.features, plan.fps, where)
         out.meta.setdefault("source_episode_index", index)
         if len(plan.sources) > 1:
             out.meta["source_index"] = source
-    return current
+    return current, report
+
+
+def run_report(plan: Plan, parts: PartStore) -> list[dict[str, int]]:
+    """Per stage, the totals of the events it counted over every source episode of the run (read
+    from the parts, so episodes done by other workers or before a resume count exactly once)."""
+    totals: list[dict[str, int]] = [{} for _ in plan.stages]
+    for s, source in enumerate(plan.sources):
+        for i in range(source.num_episodes):
+            for total, counts in zip(totals, parts.report(s, i), strict=True):
+                for event, n in counts.items():
+                    total[event] = total.get(event, 0) + n
+    return [dict(sorted(t.items())) for t in totals]
 
 
 def exit_with_parent(main_pid: int | None, period: float = 1.0) -> None:
@@ -194,7 +223,8 @@ def process_unit(unit: WorkUnit) -> int:
     todo = [i for i in unit.episodes if not parts.done(unit.source, i)]
     for episode in plan.sources[unit.source].iter_episodes(todo):
         index = int(episode.meta["source_episode_index"])
-        parts.write(unit.source, index, transform_episode(plan, unit.source, episode), plan.features)
+        outputs, report = transform_episode(plan, unit.source, episode)
+        parts.write(unit.source, index, outputs, plan.features, report)
     return len(todo)
 
 
@@ -309,7 +339,9 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
         for k, (episode, stats) in enumerate(outputs()):
             if keep is None or keep[k]:
                 writer.add_episode(episode, stats)
-        provenance = build_provenance(plan, executor_info, writer.num_episodes, writer.num_frames)
+        provenance = build_provenance(
+            plan, executor_info, writer.num_episodes, writer.num_frames, run_report(plan, parts)
+        )
         writer.close(provenance=provenance)
     return plan.destination
 

@@ -8,6 +8,11 @@ about executors: the same object runs in-process, in a process pool or on a Ray 
 
 Randomness comes only from the `rng` handed to `process`, seeded from the pipeline seed, the
 stage's position and the source episode, so output does not depend on worker count or order.
+
+A stage may count named events while it processes an episode (`report`, e.g. episodes it drops
+and why, also for an episode that yields nothing); the runner keeps the counts with that source
+episode's part, so their totals over a run do not depend on the executor, the worker count or
+resumes, and puts them into the run summary and the provenance.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ class Stage(ABC):
     def __init__(self, config: Any, context: StageContext) -> None:
         self.config = config
         self.context = context
+        self._report: dict[str, int] = {}
 
     def setup(self) -> None:  # noqa: B027 (an optional hook: most stages need no setup)
         """Load simulators/models once per worker before the first episode."""
@@ -65,6 +71,18 @@ class Stage(ABC):
         default) keeps all. Only metadata is seen, so a choice made from values that `process`
         drew from its `rng` (e.g. a random key per episode) does not depend on workers or order."""
         return None
+
+    def report(self, event: str, count: int = 1) -> None:
+        """Count `count` occurrences of a named event (e.g. "episodes_dropped") in the episode being
+        processed. The run's totals appear in the run summary and under this stage in the
+        provenance; counting 0 makes an event appear even when its total is 0."""
+        self._report[event] = self._report.get(event, 0) + int(count)
+
+    def take_report(self) -> dict[str, int]:
+        """The counts reported since the last call, and reset them (the runner calls this after
+        each source episode)."""
+        counts, self._report = self._report, {}
+        return counts
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "version": self.version, "params": to_dict(self.config)}

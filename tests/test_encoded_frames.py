@@ -70,3 +70,35 @@ def test_changed_frames_are_encoded_afresh(synthetic_raw_images, tmp_path):
     with DatasetWriter("test/out", tmp_path / "out", reader.fps, reader.features) as writer:
         writer.add_episode(episode)
     np.testing.assert_array_equal(next(open_lerobot_dataset(tmp_path / "out").iter_episodes()).frames[KEY], frames)
+
+
+def test_new_frames_are_encoded_by_the_workers_not_the_writer(synthetic_raw_images, tmp_path, monkeypatch):
+    """Frames a source or stage made anew are PNG-encoded where the stages run (in parallel with
+    several workers); the one writer copies the bytes."""
+    from shiftkit.pipelines import lerobot_io
+
+    real_png, real_init = lerobot_io._png_bytes, DatasetWriter.__init__
+    seen = {"writer": False, "encoded_by_writer": 0}
+
+    def png(frame):
+        seen["encoded_by_writer"] += seen["writer"]
+        return real_png(frame)
+
+    def init(self, *args, **kwargs):
+        seen["writer"] = True
+        real_init(self, *args, **kwargs)
+
+    monkeypatch.setattr(lerobot_io, "_png_bytes", png)
+    monkeypatch.setattr(DatasetWriter, "__init__", init)
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(synthetic_raw_images))],
+        destination=DestinationConfig(root=str(tmp_path / "out")),
+        stages=[StageSpec("trim", {"head": 1})],
+    )
+    out = run_pipeline(config, progress=False)  # one worker: in this process, before the writer
+    assert seen == {"writer": True, "encoded_by_writer": 0}
+    episode = next(open_lerobot_dataset(out).iter_episodes())
+    frames = episode.frames[KEY]
+    # a part holds the pixels and the PNG bytes once each (the copies that confirm a hit are rebuilt)
+    encoded = sum(len(source_png(f, frames)) for f in frames)
+    assert len(pickle.dumps(frames)) < frames.nbytes + encoded + 4096

@@ -98,31 +98,38 @@ def local_ray():
     ray.shutdown()
 
 
+# A stage that drops episodes and counts them (`Stage.report`): the counts come back from every
+# executor's workers into the provenance.
+FILTER = '[[stages]]\nname = "filter"\nparams = { keep_fraction = 0.6 }'
+
+
 def test_ray_and_datatrove_local_match_the_local_executor(tmp_path, raw, local_ray):
-    local = run_pipeline(config_for(tmp_path, raw, "local"), progress=False)
+    local = run_pipeline(config_for(tmp_path, raw, "local", FILTER), progress=False)
     ray_out = run_pipeline(
-        config_for(tmp_path, raw, "ray"),
+        config_for(tmp_path, raw, "ray", FILTER),
         workers=2,
         executor="ray",
         executor_options={"shard_episodes": 2},
         progress=False,
     )
     dt = run_pipeline(
-        config_for(tmp_path, raw, "dt"),
-        workers=1,
+        config_for(tmp_path, raw, "dt", FILTER),
+        workers=2,
         executor="datatrove-local",
         executor_options={"shard_episodes": 4},
         progress=False,
     )
     for other in (ray_out, dt):
-        assert_same_content(local, other)
+        assert_same_content(local, other)  # provenance included
         assert not work_dir_for(other).exists()
     prov = json.loads((ray_out / "meta/shiftkit_provenance.json").read_text())
     assert prov["executor"] == {"name": "ray", "workers": 2, "address": None}
+    kept = prov["output"]["episodes"]
+    assert 0 < kept < 6 and prov["stages"][1]["report"] == {"episodes_dropped": 6 - kept}
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset("test/executors", root=ray_out)
-    assert ds.num_episodes == 6 and int(ds[len(ds) - 1]["index"]) == len(ds) - 1
+    assert ds.num_episodes == kept and int(ds[len(ds) - 1]["index"]) == len(ds) - 1
 
 
 def _state_file(raw: Path, i: int) -> Path:

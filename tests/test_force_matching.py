@@ -175,9 +175,13 @@ def test_force_matching_restores_the_demonstrated_press(kinesthetic, calibration
 
 def test_drop_failed_and_outcome(kinesthetic):
     features, (ep, _) = episodes(kinesthetic)
-    kept = replayed(stage(features, mode="position", sts_images=False), ep)
+    keeping = stage(features, mode="position", sts_images=False)
+    kept = replayed(keeping, ep)
     assert kept.meta["replay_success"] is False and kept.meta["outcome"] == "failure"
-    assert replayed(stage(features, mode="position", sts_images=False, drop_failed=True), ep) is None
+    assert keeping.take_report() == {"replays_failed": 1, "episodes_dropped": 0}
+    dropping = stage(features, mode="position", sts_images=False, drop_failed=True)
+    assert replayed(dropping, ep) is None
+    assert dropping.take_report() == {"replays_failed": 1, "episodes_dropped": 1}  # run summary, provenance
 
 
 def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):

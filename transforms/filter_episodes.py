@@ -47,13 +47,14 @@ class FilterEpisodes(Stage):
         c = self.config
         # Draw first so the decision for one episode never depends on the other criteria.
         draw = rng.random()
-        if c.indices is not None and episode.meta.get("source_episode_index") not in c.indices:
-            return
-        if c.tasks is not None and not set(episode.tasks) & set(c.tasks):
-            return
-        if c.outcomes is not None and episode.meta.get("outcome") not in c.outcomes:
-            return
-        if len(episode) < c.min_length or (c.max_length is not None and len(episode) > c.max_length):
-            return
-        if draw < c.keep_fraction:
+        keep = (
+            (c.indices is None or episode.meta.get("source_episode_index") in c.indices)
+            and (c.tasks is None or bool(set(episode.tasks) & set(c.tasks)))
+            and (c.outcomes is None or episode.meta.get("outcome") in c.outcomes)
+            and c.min_length <= len(episode)
+            and (c.max_length is None or len(episode) <= c.max_length)
+            and draw < c.keep_fraction
+        )
+        self.report("episodes_dropped", int(not keep))
+        if keep:
             yield episode

@@ -358,7 +358,10 @@ class ForceMatch(Stage):
             self._sts,
             self.config.hold_steps,
         )
-        if self.config.drop_failed and not replay.success:
+        drop = self.config.drop_failed and not replay.success
+        self.report("replays_failed", int(not replay.success))
+        self.report("episodes_dropped", int(drop))
+        if drop:
             return
         n = len(replay.frames["action"])
         frames = {k: replay.frames[k].astype(episode.frames[k].dtype) for k in episode.frames if k in replay.frames}

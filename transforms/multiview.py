@@ -17,10 +17,12 @@ pose:
    contract; intrinsics and camera-in-base extrinsics do not change).
 
 A view is dropped when IK misses the recorded tool pose (`max_ik_error`, `max_ik_rotation`) or an
-object leaves the image; drops are counted in each output episode's `meta["multiview"]` and logged,
-and `select` logs the run's totals. `matched = true` emits exactly one view per episode (the first
-of up to `num_views` sampled poses that works), so a multiview dataset built from the same
-demonstrations has the same episodes and frames as the fixed-view one (docs/multiview.md).
+object leaves the image; each drop is logged and counted in each output episode's
+`meta["multiview"]`, and the stage reports (`Stage.report`) views kept, views dropped per reason
+and source episodes left without any view, for the run summary and the provenance. `matched =
+true` emits exactly one view per episode (the first of up to `num_views` sampled poses that
+works), so a multiview dataset built from the same demonstrations has the same episodes and frames
+as the fixed-view one (docs/multiview.md).
 """
 
 from __future__ import annotations
@@ -236,6 +238,10 @@ class Multiview(Stage):
             made.append((pose, result))
             if self.config.matched:
                 break
+        self.report("views_kept", len(made))
+        for reason, n in dropped.items():
+            self.report(f"views_dropped_{reason}", n)
+        self.report("episodes_without_views", int(not made))
         for k, (pose, frames) in enumerate(made):
             out_meta = dict(meta)
             out_meta["cameras"] = self._camera_meta(
@@ -337,18 +343,3 @@ class Multiview(Stage):
         if physics.door_qpos is not None:
             points.append(physics.handle_pos())
         return np.array(points)
-
-    def select(self, metas: list[dict[str, Any]]) -> list[bool] | None:
-        # per source episode once: its views all carry the same drop counts
-        per_source = {m.get("source_episode_index"): m.get("multiview", {}).get("dropped_views") for m in metas}
-        totals = {"ik": 0, "out_of_view": 0}
-        for counts in per_source.values():
-            for k in totals:
-                totals[k] += (counts or {}).get(k, 0)
-        log.warning(
-            "multiview: %d episodes written; views dropped: %d (IK), %d (object out of view)",
-            len(metas),
-            totals["ik"],
-            totals["out_of_view"],
-        )
-        return None

@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.config import load_pipeline_config
+    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.provenance import report_lines
     from shiftkit.pipelines.runner import run_pipeline
 
     config = load_pipeline_config(args.config)
@@ -57,4 +60,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{config.destination.root} not written yet: run this command again when the job has finished")
         return 0
     print(f"wrote {path}")
+    # The summary's counts are the provenance's, read back from what was written.
+    for line in report_lines(read_json_file(path / PROVENANCE_PATH, "provenance")):
+        print(line)
     return 0
