@@ -15,11 +15,7 @@ from shiftkit.pipelines.stats import (
     QUANTILE_KEYS,
     QUANTILES,
     RunningStats,
-<<<<<<< HEAD
     downsample_chw,
-=======
-    downsample,
->>>>>>> h-mvreport
     feature_stats,
     image_stats,
     numeric_stats,
