@@ -146,17 +146,26 @@ def numeric_stats(columns: dict[str, np.ndarray]) -> dict[str, Stats]:
     return {key: stats[key] for key in columns}
 
 
+def _image_samples(frames: np.ndarray) -> np.ndarray:
+    """The frames lerobot's `sample_images` reads for image statistics, (samples, H', W', C): up to
+    `length ** 0.75` frames (at least 100 or all, at most 10 000) evenly spaced, and frames of 300
+    pixels or more on their longer side downscaled by striding, towards 150 on that side
+    (`estimate_num_samples`, `sample_indices`, `auto_downsample_height_width`). Written here in numpy
+    because importing lerobot's module loads torch: seconds, and hundreds of MB, in every worker."""
+    length, height, width = frames.shape[:3]
+    count = max(min(100, length), min(int(length**0.75), 10_000))
+    indices = np.round(np.linspace(0, length - 1, count)).astype(int)
+    step = 1 if max(height, width) < 300 else int(max(height, width) / 150)
+    return frames[indices, ::step, ::step]
+
+
 def image_stats(frames: np.ndarray) -> Stats:
     """lerobot's image statistics (`sample_images` + `get_feature_stats` over (0, 2, 3), divided
     by 255) from in-memory (frames, H, W, C) uint8 frames: sampled and downscaled as lerobot does."""
-    from lerobot.datasets.compute_stats import auto_downsample_height_width, sample_indices
-
-    sampled = np.stack(
-        [auto_downsample_height_width(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))]
-    )
-    pixels = sampled.transpose(0, 2, 3, 1).reshape(-1, sampled.shape[1])
+    sampled = _image_samples(frames)
+    pixels = sampled.reshape(-1, sampled.shape[-1])
     if pixels.shape[0] < 2:
-        stats = _lerobot_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)
+        stats = _lerobot_feature_stats(sampled.transpose(0, 3, 1, 2), axis=(0, 2, 3), keepdims=True)
     else:
         stats = _batch_stats([pixels], [sampled.shape[0]])[0]
         stats = {k: v if k == "count" else v.reshape(1, -1, 1, 1) for k, v in stats.items()}

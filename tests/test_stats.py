@@ -113,7 +113,18 @@ def test_feature_stats_equal_lerobot_property(n, dim, dtype, levels, seed):
     assert_same(feature_stats(data), lerobot_feature_stats(data))
 
 
-@pytest.mark.parametrize("shape", [(1, 4, 4, 3), (7, 6, 8, 3), (40, 48, 64, 3), (3, 320, 240, 3)])
+@pytest.mark.parametrize(
+    "shape",
+    [
+        (1, 4, 4, 3),
+        (7, 6, 8, 3),
+        (40, 48, 64, 3),
+        (3, 320, 240, 3),
+        (1500, 2, 3, 3),
+        (2, 299, 300, 1),
+        (2, 480, 640, 3),
+    ],
+)
 def test_image_stats_equal_lerobot(shape):
     """Sampled and downscaled frames as lerobot does (shape (3, 1, 1), divided by 255)."""
     frames = np.random.default_rng(0).integers(0, 255, size=shape, dtype=np.uint8)
@@ -141,3 +152,26 @@ def test_running_stats_equal_lerobots_pairwise_aggregation():
         assert set(ours) == set(ref), k
         for key in ref:
             assert_same(ours[key], ref[key])
+
+
+def test_image_stats_sample_like_lerobot_without_importing_it():
+    """The frames sampled for statistics are lerobot's (evenly spaced, large frames downscaled), and a
+    worker computing them does not load lerobot's module (which imports torch)."""
+    import subprocess
+    import sys
+
+    from shiftkit.pipelines.stats import _image_samples
+
+    for length in (1, 2, 99, 100, 101, 500, 1000, 5000, 20_000):
+        expected = lerobot_stats.sample_indices(length)
+        frames = np.arange(length).reshape(length, 1, 1, 1).astype(np.int64)
+        assert _image_samples(frames)[:, 0, 0, 0].tolist() == expected, length
+    for height, width in [(299, 299), (300, 300), (299, 450), (451, 300), (480, 640), (1080, 1920), (640, 480)]:
+        frame = np.zeros((1, height, width, 1), np.uint8)
+        channels_first = lerobot_stats.auto_downsample_height_width(frame[0].transpose(2, 0, 1))
+        assert _image_samples(frame).shape[1:3] == channels_first.shape[1:]
+    code = (
+        "import sys, numpy as np; from shiftkit.pipelines.stats import image_stats; "
+        "image_stats(np.zeros((5, 4, 4, 3), np.uint8)); print('torch' in sys.modules)"
+    )
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
