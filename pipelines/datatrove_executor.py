@@ -157,6 +157,8 @@ class ShardStep(PipelineStep):
                 try:
                     if plan is None:  # set up once per rank, and again after a failure
                         plan = runner.init_worker(self.config)
+                        if self.write:  # the shard writer's lerobot modules load torch: part of set-up
+                            import lerobot.datasets.lerobot_dataset  # noqa: F401
                     for unit in shard.units:
                         self.stat_update("episodes", value=runner.process_unit(unit))
                     if self.write:
