@@ -166,6 +166,9 @@ def main() -> None:
             num_cpus=2,
             include_dashboard=False,
             logging_level="WARNING",
+            # Workers at the bench's priority, like the local executor's and the Ray executor's own
+            # local instance (Ray's default is 15 nice levels lower).
+            _system_config={"worker_niceness": 0},
             runtime_env={
                 "env_vars": {
                     k: os.environ[k]
