@@ -194,7 +194,8 @@ def main() -> None:
     print(f"5 intentions one after another: {t_loop * 1e3:.2f} ms/update -> batched/loop {t5 / t_loop:.2f}")
     print(
         f"5 intentions: {flops / 1e9:.2f} GFLOP of matmuls per update; at this machine's batched matmul rate "
-        f"({rate / 1e9:.0f} GFLOP/s) that alone takes {floor * 1e3:.1f} ms, {floor / loop_cost:.2f} of the loop's {'CPU ' if cpu else ''}time"
+        f"({rate / 1e9:.0f} GFLOP/s) that alone takes {floor * 1e3:.1f} ms, "
+        f"{floor / loop_cost:.2f} of the loop's {'CPU ' if cpu else ''}time"
     )
     print(
         json.dumps(

@@ -253,9 +253,12 @@ class Agent:
         self.target_entropy = -float(act_dim)
         self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
         # One fused kernel per parameter instead of a dozen element-wise passes: the default (for-loop)
-        # AdamW on CPU took ~10 % of an update; fused is the same rule.
+        # AdamW on CPU took about 8 % of a profiled update; fused is the same rule.
         fused = device.type in ("cpu", "cuda")
-        adamw = lambda params: torch.optim.AdamW(params, args.lr, weight_decay=args.weight_decay, fused=fused)  # noqa: E731
+
+        def adamw(params: Any) -> torch.optim.AdamW:
+            return torch.optim.AdamW(params, args.lr, weight_decay=args.weight_decay, fused=fused)
+
         self.actor_opt = adamw(self.intentions.actor.parameters())
         self.critic_opt = adamw(self.intentions.critic.parameters())
         self.alpha_opt = torch.optim.Adam([self.intentions.log_alpha], args.lr, fused=fused)
