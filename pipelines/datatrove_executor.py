@@ -157,6 +157,8 @@ class ShardStep(PipelineStep):
                 try:
                     if plan is None:  # set up once per rank, and again after a failure
                         plan = runner.init_worker(self.config)
+                        if self.write:  # the shard writer's lerobot modules load torch: part of set-up
+                            import lerobot.datasets.lerobot_dataset  # noqa: F401
                     for unit in shard.units:
                         self.stat_update("episodes", value=runner.process_unit(unit))
                     if self.write:
@@ -399,11 +401,15 @@ class RayExecutor(DatatroveExecutor):
         started = not ray.is_initialized()
         if started:  # join the cluster at `address`, or start a local instance
             env = {k: os.environ[k] for k in self.FORWARDED_ENV if k in os.environ}
+            # A local instance's workers run at this process's priority, as the local executor's do
+            # (Ray's default lowers them by 15 nice levels: on a shared machine they got scraps).
+            system = None if self.address else {"worker_niceness": 0}
             ray.init(
                 address=self.address,
                 include_dashboard=False,
                 logging_level=logging.WARNING,
                 runtime_env={"env_vars": env},
+                _system_config=system,
             )
         try:
             # datatrove resubmits tasks whose Ray worker died (up to 3 times); errors raised by

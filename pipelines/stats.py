@@ -146,31 +146,26 @@ def numeric_stats(columns: dict[str, np.ndarray]) -> dict[str, Stats]:
     return {key: stats[key] for key in columns}
 
 
-def sample_indices(n: int) -> np.ndarray:
-    """The frames lerobot 0.4.4 samples for image statistics (`compute_stats.sample_indices`):
-    100 (or all, if fewer) to 10000, growing as n ** 0.75, evenly spaced and rounded. Restated here
-    because importing lerobot's module pulls in torch, seconds per pipeline worker."""
-    count = max(min(100, n), min(int(n**0.75), 10_000))
-    return np.round(np.linspace(0, n - 1, count)).astype(int)
-
-
-def downsample_chw(image: np.ndarray) -> np.ndarray:
-    """lerobot 0.4.4's `auto_downsample_height_width` of a (C, H, W) image: one whose longer side
-    reaches 300 px is strided by int(longer side / 150) in both directions."""
-    longer = max(image.shape[1:])
-    if longer < 300:
-        return image
-    step = int(longer / 150)
-    return image[:, ::step, ::step]
+def _image_samples(frames: np.ndarray) -> np.ndarray:
+    """The frames lerobot's `sample_images` reads for image statistics, (samples, H', W', C): up to
+    `length ** 0.75` frames (at least 100 or all, at most 10 000) evenly spaced, and frames of 300
+    pixels or more on their longer side downscaled by striding, towards 150 on that side
+    (`estimate_num_samples`, `sample_indices`, `auto_downsample_height_width`). Written here in numpy
+    because importing lerobot's module loads torch: seconds, and hundreds of MB, in every worker."""
+    length, height, width = frames.shape[:3]
+    count = max(min(100, length), min(int(length**0.75), 10_000))
+    indices = np.round(np.linspace(0, length - 1, count)).astype(int)
+    step = 1 if max(height, width) < 300 else int(max(height, width) / 150)
+    return frames[indices, ::step, ::step]
 
 
 def image_stats(frames: np.ndarray) -> Stats:
     """lerobot's image statistics (`sample_images` + `get_feature_stats` over (0, 2, 3), divided
     by 255) from in-memory (frames, H, W, C) uint8 frames: sampled and downscaled as lerobot does."""
-    sampled = np.stack([downsample_chw(frames[i].transpose(2, 0, 1)) for i in sample_indices(len(frames))])
-    pixels = sampled.transpose(0, 2, 3, 1).reshape(-1, sampled.shape[1])
+    sampled = _image_samples(frames)
+    pixels = sampled.reshape(-1, sampled.shape[-1])
     if pixels.shape[0] < 2:
-        stats = _lerobot_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)
+        stats = _lerobot_feature_stats(sampled.transpose(0, 3, 1, 2), axis=(0, 2, 3), keepdims=True)
     else:
         stats = _batch_stats([pixels], [sampled.shape[0]])[0]
         stats = {k: v if k == "count" else v.reshape(1, -1, 1, 1) for k, v in stats.items()}

@@ -252,15 +252,20 @@ class Agent:
         self.action_low, self.action_high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
         self.target_entropy = -float(act_dim)
         self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
-        self.actor_opt = torch.optim.AdamW(self.intentions.actor.parameters(), args.lr, weight_decay=args.weight_decay)
-        self.critic_opt = torch.optim.AdamW(
-            self.intentions.critic.parameters(), args.lr, weight_decay=args.weight_decay
-        )
-        self.alpha_opt = torch.optim.Adam([self.intentions.log_alpha], args.lr)
+        # One fused kernel per parameter instead of a dozen element-wise passes: the default (for-loop)
+        # AdamW on CPU took about 8 % of a profiled update; fused is the same rule.
+        fused = device.type in ("cpu", "cuda")
+
+        def adamw(params: Any) -> torch.optim.AdamW:
+            return torch.optim.AdamW(params, args.lr, weight_decay=args.weight_decay, fused=fused)
+
+        self.actor_opt = adamw(self.intentions.actor.parameters())
+        self.critic_opt = adamw(self.intentions.critic.parameters())
+        self.alpha_opt = torch.optim.Adam([self.intentions.log_alpha], args.lr, fused=fused)
         if args.reward_model == "dac":
             in_dim = obs_dim + (act_dim if args.full_trajectories else 0)
             self.reward = DACReward(self.num_tasks, in_dim, args.hidden, args.gradient_penalty).to(device)
-            self.reward_opt = torch.optim.AdamW(self.reward.parameters(), args.lr, weight_decay=args.weight_decay)
+            self.reward_opt = adamw(self.reward.parameters())
         else:
             self.reward = SQILReward()
         self.bounds = ValueBounds(self.num_tasks, args.reward_scale, args.gamma, args.vp_filter_size)
@@ -318,24 +323,29 @@ class Agent:
         bootstrap_discount = a.gamma ** steps.float()  # (B,)
         use_examples = not a.full_trajectories  # LfGP's critic learns from the buffer only (DAC)
 
-        # Critic targets: buffer rows bootstrap from s'; examples transition to themselves.
+        # Critic targets: buffer rows bootstrap from s'; examples transition to themselves. Buffer and
+        # example rows go through each network in one pass (one batched matmul per layer, not two).
         alpha = self.intentions.alpha.detach().unsqueeze(-1)  # (T, 1)
+        rows = [obs.shape[1], ex_obs.shape[1]]
         with torch.no_grad():
-            next_act, next_logp = self.intentions.sample(next_obs)
-            next_q = self.intentions.q(next_obs, next_act, target=True).min(0).values
-            ex_act, _ = self.intentions.sample(ex_obs)  # a* ~ pi(s*)
+            next_and_ex_obs = torch.cat([next_obs, ex_obs], 1)
+            next_and_ex_act, next_and_ex_logp = self.intentions.sample(next_and_ex_obs)
+            next_act, ex_act = next_and_ex_act.split(rows, 1)  # ex_act: a* ~ pi(s*)
+            next_logp = next_and_ex_logp[:, : rows[0]]
+            if use_examples:
+                target_q = self.intentions.q(next_and_ex_obs, next_and_ex_act, target=True).min(0).values
+                next_q, ex_next_q = target_q.split(rows, -1)
+            else:
+                next_q = self.intentions.q(next_obs, next_act, target=True).min(0).values
             if a.reward_model == "rce":
                 target, weight = rce_targets(torch.sigmoid(next_q), a.gamma)
             else:
                 target = buffer_reward + bootstrap_discount * (next_q - alpha * next_logp)
             if use_examples:
                 ex_reward = self.reward.example_reward(ex_obs)
-                ex_target = (
-                    a.reward_scale * ex_reward + a.gamma * self.intentions.q(ex_obs, ex_act, target=True).min(0).values
-                )
+                ex_target = a.reward_scale * ex_reward + a.gamma * ex_next_q
 
-        q = self.intentions.q(obs, act)  # (2, T, B)
-        q_ex = self.intentions.q(ex_obs, ex_act)  # (2, T, B*)
+        q, q_ex = self.intentions.q(torch.cat([obs, ex_obs], 1), torch.cat([act, ex_act], 1)).split(rows, -1)
         if a.reward_model == "rce":
             critic_loss = rce_loss(q, q_ex, target, weight, a.gamma)
         else:

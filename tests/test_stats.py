@@ -15,11 +15,9 @@ from shiftkit.pipelines.stats import (
     QUANTILE_KEYS,
     QUANTILES,
     RunningStats,
-    downsample_chw,
     feature_stats,
     image_stats,
     numeric_stats,
-    sample_indices,
 )
 
 
@@ -115,22 +113,24 @@ def test_feature_stats_equal_lerobot_property(n, dim, dtype, levels, seed):
     assert_same(feature_stats(data), lerobot_feature_stats(data))
 
 
-@pytest.mark.parametrize("shape", [(1, 4, 4, 3), (7, 6, 8, 3), (40, 48, 64, 3), (3, 320, 240, 3)])
+@pytest.mark.parametrize(
+    "shape",
+    [
+        (1, 4, 4, 3),
+        (7, 6, 8, 3),
+        (40, 48, 64, 3),
+        (3, 320, 240, 3),
+        (1500, 2, 3, 3),
+        (2, 299, 300, 1),
+        (2, 480, 640, 3),
+    ],
+)
 def test_image_stats_equal_lerobot(shape):
     """Sampled and downscaled frames as lerobot does (shape (3, 1, 1), divided by 255)."""
     frames = np.random.default_rng(0).integers(0, 255, size=shape, dtype=np.uint8)
     assert_same(image_stats(frames), lerobot_image_stats(frames))
     dark = np.zeros(shape, np.uint8)
     assert_same(image_stats(dark), lerobot_image_stats(dark))
-
-
-def test_image_sampling_is_lerobots():
-    """The frame sampling and downscaling restated from lerobot (so that workers need not import it)."""
-    for n in (1, 2, 3, 99, 100, 101, 467, 500, 1000, 4999, 12345, 100_000, 300_000):
-        assert sample_indices(n).tolist() == lerobot_stats.sample_indices(n), n
-    for h, w in ((4, 4), (299, 10), (10, 299), (300, 300), (301, 150), (480, 640), (640, 480), (1080, 1920)):
-        image = np.arange(3 * h * w, dtype=np.int64).reshape(3, h, w)
-        np.testing.assert_array_equal(downsample_chw(image), lerobot_stats.auto_downsample_height_width(image))
 
 
 def test_running_stats_equal_lerobots_pairwise_aggregation():
@@ -152,3 +152,26 @@ def test_running_stats_equal_lerobots_pairwise_aggregation():
         assert set(ours) == set(ref), k
         for key in ref:
             assert_same(ours[key], ref[key])
+
+
+def test_image_stats_sample_like_lerobot_without_importing_it():
+    """The frames sampled for statistics are lerobot's (evenly spaced, large frames downscaled), and a
+    worker computing them does not load lerobot's module (which imports torch)."""
+    import subprocess
+    import sys
+
+    from shiftkit.pipelines.stats import _image_samples
+
+    for length in (1, 2, 99, 100, 101, 500, 1000, 5000, 20_000):
+        expected = lerobot_stats.sample_indices(length)
+        frames = np.arange(length).reshape(length, 1, 1, 1).astype(np.int64)
+        assert _image_samples(frames)[:, 0, 0, 0].tolist() == expected, length
+    for height, width in [(299, 299), (300, 300), (299, 450), (451, 300), (480, 640), (1080, 1920), (640, 480)]:
+        frame = np.arange(height * width * 3, dtype=np.int64).reshape(1, height, width, 3)
+        channels_first = lerobot_stats.auto_downsample_height_width(frame[0].transpose(2, 0, 1))
+        np.testing.assert_array_equal(_image_samples(frame)[0].transpose(2, 0, 1), channels_first)
+    code = (
+        "import sys, numpy as np; from shiftkit.pipelines.stats import image_stats; "
+        "image_stats(np.zeros((5, 4, 4, 3), np.uint8)); print('torch' in sys.modules)"
+    )
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
