@@ -128,6 +128,14 @@ def _check(value: Any, tp: Any, where: str) -> Any:
     raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
 
 
+def add_env_kwarg(parser: Any, example: str = "view=fixed", **options: Any) -> None:
+    """The `--env-kwarg KEY=VALUE` option every command that builds an env shares (repeatable; a list
+    of (key, value) pairs, `[]` unless `options` say otherwise, e.g. `dest` or `default=None`)."""
+    settings = {"action": "append", "default": [], "type": key_value, "metavar": "KEY=VALUE"}
+    settings["help"] = f"env constructor argument (JSON value), repeatable, e.g. {example}"
+    parser.add_argument("--env-kwarg", **{**settings, **options})
+
+
 def key_value(text: str) -> tuple[str, object]:
     """`KEY=VALUE` from the command line (an argparse `type`): VALUE as JSON if it parses, else the
     string (`view=multiview`, `control_hz=5`, `noise=[0.1, 0.2]`)."""

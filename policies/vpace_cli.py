@@ -10,7 +10,7 @@ import argparse
 import dataclasses
 import typing
 
-from shiftkit.pipelines.dataclass_config import csv_list, key_value
+from shiftkit.pipelines.dataclass_config import add_env_kwarg, csv_list
 
 # Fields with a hand-made flag (lists, dicts, renamed or preset-only ones); the rest are generated.
 _SPECIAL = {
@@ -80,15 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="hidden widths, comma-separated (default: 256,256)",
     )
-    p.add_argument(
-        "--env-kwarg",
-        dest="env_kwargs",
-        action="append",
-        type=key_value,
-        default=None,
-        metavar="KEY=VALUE",
-        help="environment constructor argument (JSON value); repeatable",
-    )
+    add_env_kwarg(p, "control_hz=5", dest="env_kwargs", default=None)
     p.add_argument("--threads", dest="torch_threads", type=int, default=None, help=docs["torch_threads"])
     p.add_argument("--resume", action="store_true", help=docs["resume"])
     p.add_argument("--frames-as-examples", action="store_true", default=None, help=docs["frames_as_examples"])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.dataclass_config import csv_list, key_value
+from shiftkit.pipelines.dataclass_config import add_env_kwarg, csv_list
 
 HELP = "record scripted-expert episodes from a simulated env (raw episodes or a LeRobot dataset)"
 
@@ -20,14 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--play", action="store_true", help="record play episodes with task-segment labels")
     parser.add_argument("--sequence", help="comma-separated play sequence (default: the task's)")
     parser.add_argument("--control-hz", type=int, help="control rate in Hz (default: the env's, panda-play 20)")
-    parser.add_argument(
-        "--env-kwarg",
-        action="append",
-        default=[],
-        type=key_value,
-        metavar="KEY=VALUE",
-        help="env constructor argument (JSON value), repeatable, e.g. view=multiview",
-    )
+    add_env_kwarg(parser, "view=multiview")
     parser.add_argument(
         "--expert", default="scripted", help="how episodes are recorded: scripted (default) or an env's other recorder"
     )

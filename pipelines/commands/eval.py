@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.dataclass_config import key_value
+from shiftkit.pipelines.dataclass_config import add_env_kwarg
 
 HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
 
@@ -19,14 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--videos", help="folder for one MP4 per episode (default: none)")
     parser.add_argument("--control-hz", type=int, choices=(5, 20), help="env control rate (default: the env's)")
     parser.add_argument("--device", default="cpu", help="torch device for the policy (default: cpu)")
-    parser.add_argument(
-        "--env-kwarg",
-        action="append",
-        default=[],
-        type=key_value,
-        metavar="KEY=VALUE",
-        help="env constructor argument (JSON value), repeatable, e.g. view=fixed",
-    )
+    add_env_kwarg(parser, "view=fixed")
     parser.add_argument(
         "--yaw-sweep",
         action="store_true",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.dataclass_config import int_list, key_value
+from shiftkit.pipelines.dataclass_config import add_env_kwarg, int_list
 
 HELP = "FIRE: run a BC policy with failure prediction and simulated expert interventions; aggregate the data"
 
@@ -24,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", required=True, help="run folder (config, metrics, checkpoints, policy, episodes)")
     p.add_argument("--repo-id", help="repo ID of the aggregated dataset (default: local/<output folder name>)")
     p.add_argument("--dataset-root", help="folder of the aggregated dataset (default: $HF_LEROBOT_HOME/<repo-id>)")
-    p.add_argument("--env-kwarg", action="append", default=[], type=key_value, metavar="KEY=VALUE", help="env argument")
+    add_env_kwarg(p, "control_hz=10")
     p.add_argument("--seed", type=int, default=0, help="seed of BC, D, sampling (default: 0)")
     p.add_argument("--env-seed", type=int, default=10000, help="episode i resets with ENV_SEED+i (default: 10000)")
     p.add_argument("--bc-regime", choices=("early-stop", "fixed"), default="early-stop", help="initial BC regime")
