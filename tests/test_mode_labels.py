@@ -93,6 +93,25 @@ def test_labels_action_dim_and_active_image(tmp_path, source):
     assert [m["sts_mode_switch_step"] for m in stored] == [m["sts_mode_switch_step"] for m in metas]
 
 
+@pytest.mark.parametrize("lead", [2, -1])
+def test_lead_steps_shift_the_switch_before_or_after_contact(tmp_path, lead):
+    """The demonstrator's choice (thesis 4.3.7): with lead_steps the label, and the image it selects,
+    switch that many frames before (positive) or after (negative) the contact signal does."""
+    raw = write_tactile_raw(tmp_path / "raw")
+    run(raw, tmp_path / "at", {"source": "contact", **IMAGES})
+    run(raw, tmp_path / "lead", {"source": "contact", "lead_steps": lead, **IMAGES})
+    at = list(open_lerobot_dataset(tmp_path / "at").iter_episodes())
+    led = list(open_lerobot_dataset(tmp_path / "lead").iter_episodes())
+    for a, b in zip(at, led, strict=True):
+        assert b.meta["sts_mode_switch_step"] == a.meta["sts_mode_switch_step"] - lead
+        assert b.meta["sts_mode_switch_minus_contact"] == -lead
+        mode = b.frames["action"][:, -1]
+        assert mode.sum() == a.frames["action"][:, -1].sum() + lead  # the episodes end in contact
+        grey = b.frames["observation.images.sts"][:, 0, 0, 0]
+        assert (grey == np.where(mode > 0, TACTILE, VISUAL)).all()
+        np.testing.assert_array_equal(b.frames["action"][:, :-1], a.frames["action"][:, :-1])
+
+
 def test_existing_mode_dim_is_overwritten(tmp_path):
     raw = tmp_path / "raw"
     names = {"action": ["dx", "sts_mode"], "wrench_raw": ["Fx", "Fy", "Fz", "tau_z"]}

@@ -6,7 +6,8 @@ toggles the mode, starting visual; `shiftkit collect --expert kinesthetic` recor
 `mode_switch_step`) or automatically from a tactile contact signal: the distance of
 a feature's chosen dims from their no-contact baseline (the median of the first frames), with
 hysteresis (tactile once it reaches `on_threshold`, visual again once it falls below
-`off_threshold`). `action` gains a dim named `sts_mode` (or that dim is overwritten when the action
+`off_threshold`). `lead_steps` shifts either kind of label earlier (or later): the
+demonstrator's choice of switching before, at or after contact (thesis §4.3.7). `action` gains a dim named `sts_mode` (or that dim is overwritten when the action
 already has one). With both STS image features given, they are replaced by one image feature that
 holds the visual image on visual frames and the tactile image on tactile frames.
 
@@ -63,6 +64,11 @@ class ModeLabelConfig:
     press_label: str = "mode_switch_step"
     """Episode metadata key (in `labels` or at the top level) holding the frame(s) of the operator's
     mode-switch presses."""
+    lead_steps: int = 0
+    """Frames by which the label leads the presses or contact signal: the label at frame t is the
+    mode detected at frame t + lead_steps (the last frame's beyond the end). Positive switches
+    before contact, so that policies see the approach's last visual frames labelled tactile (at 0,
+    a switch at contact leaves one such frame per episode); negative switches after it."""
     first_contact_key: str = "first_contact_step"
     """Episode metadata key of the true first-contact step (for the timing report); absent = unknown."""
     visual_image: str | None = None
@@ -94,7 +100,7 @@ class ModeLabelConfig:
 @register_stage
 class ModeLabel(Stage):
     name = "mode_label"
-    version = 1
+    version = 2
     Config = ModeLabelConfig
 
     def transform_features(self, features: Features) -> Features:
@@ -156,6 +162,8 @@ class ModeLabel(Stage):
         else:
             signal = np.asarray(episode.frames[c.signal], dtype=np.float64).reshape(n, -1)[:, self._signal_index]
             mode = contact_modes(signal, c.baseline_frames, c.on_threshold, c.off_threshold)
+        if c.source not in FIXED_SOURCES and c.lead_steps:
+            mode = mode[np.clip(np.arange(n) + c.lead_steps, 0, n - 1)]
         frames = dict(episode.frames)
         action = np.asarray(episode.frames["action"])
         if c.source in FIXED_SOURCES:
