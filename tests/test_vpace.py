@@ -4,6 +4,8 @@ reward-model signs, example loading and augmentation."""
 from __future__ import annotations
 
 import json
+import resource
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -225,6 +227,25 @@ def test_intentions_are_independent_per_task():
     norms = clip_grad_norm_per_member(net.critic.parameters(), max_norm=1e-3)
     after = torch.stack([p.grad.flatten(1).square().sum(1) for p in net.critic.parameters()]).sum(0).sqrt()
     assert torch.allclose(after[[1, 4]], torch.full((2,), 1e-3), rtol=1e-3) and norms[0] == 0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings")
+def test_cpu_update_keeps_its_memory_instead_of_faulting_it_in_again():
+    # A 5-intention update frees and reallocates megabyte tensors every step; handed back to the
+    # kernel they cost about 1300 page faults (and 2-4 ms) per update (docs/vpace.md).
+    args = VPACEArgs.for_variant("vpace", main_task="m", aux_tasks=["a", "b", "c", "d"])
+    agent = Agent(args, 59, gym.spaces.Box(-1.0, 1.0, (4,), np.float32), torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    replay = ReplayBuffer(1000, 59, 4)
+    for _ in range(1000):
+        replay.add(rng.standard_normal(59), rng.uniform(-1, 1, 4), rng.standard_normal(59), False)
+    batches = [(replay.sample(rng, 128), rng.standard_normal((5, 128, 59), np.float32)) for _ in range(3)]
+    for batch, examples in batches * 2:  # the heap grows to the update's peak
+        agent.update(batch, examples, None)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for batch, examples in batches * 2:
+        agent.update(batch, examples, None)
+    assert (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 6 < 300
 
 
 def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
