@@ -24,6 +24,33 @@ LOG_STD_EPS = 1e-7  # softplus(x) + eps keeps the policy std away from 0 (thesis
 NARROW_OUT = 32  # layers with fewer outputs than this compute their transposed product (BatchedLinear)
 
 
+class NarrowProduct(torch.autograd.Function):
+    """`x @ weight + bias` for a layer with few outputs (Q's 1, the policy's 2 x action dims), each
+    product in the layout this CPU's GEMM runs fast. MKL's batched GEMM with few output columns, and
+    backward the outer product with few inner dims, ran 3-20x slower than the transposed products (few
+    output rows) and, for one output, a broadcast multiply. Backward is written in differentiable ops,
+    so a gradient penalty can differentiate through it again (DAC)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(x, weight)
+        # A fresh (batch, out) tensor, not a view: a following in-place activation must not rewrite
+        # this function's output behind autograd (and it is small).
+        return torch.baddbmm(bias.mT, weight.mT, x.mT).mT.clone(memory_format=torch.contiguous_format)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        x, weight = ctx.saved_tensors
+        grad_x = grad_weight = grad_bias = None
+        if ctx.needs_input_grad[0]:
+            grad_x = grad * weight.mT if weight.shape[-1] == 1 else torch.bmm(grad, weight.mT)
+        if ctx.needs_input_grad[1]:
+            grad_weight = torch.bmm(grad.mT, x).mT
+        if ctx.needs_input_grad[2]:
+            grad_bias = grad.sum(1, keepdim=True)
+        return grad_x, grad_weight, grad_bias
+
+
 class BatchedLinear(nn.Module):
     """`members` independent linear layers applied to a (members, batch, in_dim) input."""
 
@@ -35,14 +62,8 @@ class BatchedLinear(nn.Module):
         self.bias = nn.Parameter(torch.empty(members, 1, out_dim).uniform_(-bound, bound))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out_dim = self.weight.shape[-1]
-        if out_dim == 1:
-            # A matrix-vector product: MKL's batched GEMM with one output column (and, backward, the
-            # outer product with one inner dim) ran 5-20x slower than this multiply-and-sum on this CPU.
-            return (x * self.weight.mT).sum(-1, keepdim=True) + self.bias
-        if out_dim < NARROW_OUT:
-            # Few output columns: GEMM is fast with few output rows, so compute the transpose.
-            return torch.baddbmm(self.bias.mT, self.weight.mT, x.mT).mT
+        if self.weight.shape[-1] < NARROW_OUT:
+            return NarrowProduct.apply(x, self.weight, self.bias)
         return torch.baddbmm(self.bias, x, self.weight)
 
     def forward_parts(self, *parts: torch.Tensor) -> torch.Tensor:
@@ -100,7 +121,7 @@ class Intentions(nn.Module):
     def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparameterized squashed sample and its log-probability: (T, B, A), (T, B)."""
         mean, std = self._gaussian(obs)
-        noise = torch.randn(mean.shape, dtype=mean.dtype, device=mean.device)  # row-major whatever the layout
+        noise = torch.randn_like(mean)
         pre_tanh = mean + std * noise
         # Normal(mean, std).log_prob(pre_tanh) in closed form: (pre_tanh - mean) / std is the noise.
         log_prob = -(0.5 * noise.square() + std.log()).sum(-1) - 0.5 * math.log(2.0 * math.pi) * noise.shape[-1]

@@ -17,7 +17,7 @@ from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
-from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member
+from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, clip_grad_norm_per_member
 from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.vpace import Agent, VPACEArgs, make_env, train
 
@@ -246,6 +246,23 @@ def test_cpu_update_keeps_its_memory_instead_of_faulting_it_in_again():
     for batch, examples in batches * 2:
         agent.update(batch, examples, None)
     assert (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 6 < 300
+
+
+@pytest.mark.parametrize("out_dim", [1, 8])
+def test_narrow_layers_compute_the_plain_product_and_its_gradients(out_dim):
+    # Q's single output and the policy's 8 take NarrowProduct's layouts; value, gradients and the
+    # gradients of gradients (DAC's gradient penalty) are those of x @ W + b.
+    torch.manual_seed(0)
+    x, weight, bias = (
+        torch.randn(shape, dtype=torch.float64) for shape in ((3, 7, 5), (3, 5, out_dim), (3, 1, out_dim))
+    )
+    layer = BatchedLinear(3, 5, out_dim).double()
+    with torch.no_grad():
+        layer.weight.copy_(weight), layer.bias.copy_(bias)
+    assert torch.allclose(layer(x), torch.baddbmm(bias, x, weight))
+    inputs = tuple(t.clone().requires_grad_(True) for t in (x, weight, bias))
+    assert torch.autograd.gradcheck(NarrowProduct.apply, inputs)
+    assert torch.autograd.gradgradcheck(NarrowProduct.apply, inputs)
 
 
 def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
