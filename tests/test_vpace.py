@@ -265,6 +265,23 @@ def test_narrow_layers_compute_the_plain_product_and_its_gradients(out_dim):
     assert torch.autograd.gradgradcheck(NarrowProduct.apply, inputs)
 
 
+def test_first_layer_by_parts_is_the_product_of_the_concatenated_input():
+    # The critic's first layer takes (observation, action) apart; value and gradients stay those of
+    # the concatenated input.
+    torch.manual_seed(0)
+    layer = BatchedLinear(4, 7, 40).double()
+    obs, act = torch.randn(4, 5, 5, dtype=torch.float64), torch.randn(4, 5, 2, dtype=torch.float64)
+    results = []
+    for by_parts in (True, False):
+        a = act.clone().requires_grad_(True)
+        layer.zero_grad()
+        out = layer.forward_parts(obs, a) if by_parts else layer(torch.cat([obs, a], -1))
+        out.square().sum().backward()
+        results.append((out.detach(), a.grad, layer.weight.grad.clone(), layer.bias.grad.clone()))
+    for by_parts, whole in zip(*results, strict=True):
+        assert torch.allclose(by_parts, whole)
+
+
 def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
     # Coupled L2 in Adam normalises the decay term to lr-sized steps and zeroes an idle critic within a
     # few thousand updates (it killed early Panda reach runs); decoupled decay shrinks by lr * wd per step.
