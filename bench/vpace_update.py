@@ -15,7 +15,8 @@ torch's FlopCounterMode), this machine's batched-matmul rate measured in the sam
 layer's shape, the resulting floor of the 5-intention update and `ratio_floor`, the batched/loop
 ratio if the batched update ran at that rate with no other cost. CPU time is reported beside wall
 time: with 1 thread it is what the update costs, and other jobs time-slicing the cores inflate it
-less. `--profile` prints where the time goes (torch profiler), batched and loop.
+less. `--profile` prints where the time goes (torch profiler), batched and loop. Both run in one
+process, under the same allocator settings (a CPU `Agent` keeps freed memory: policies/cpu_memory.py).
 Prints one JSON line last: {"bench": "vpace_update", "metric": "update_time_ratio_batched_vs_loop_5_intentions", ...}.
 """
 
@@ -36,6 +37,10 @@ from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.vpace import Agent, VPACEArgs
 
 OBS_DIM, ACT_DIM = 59, 4
+# operator-name prefixes of the profile's element-wise class (beside matmuls, ReLU and optimizers)
+ELEMENTWISE = (
+    "mul add sub div sum mean pow square sqrt exp log neg tanh softplus sigmoid clamp min max lerp_ fill_ linalg_"
+)
 
 
 def make_agent(num_tasks: int, reward_model: str, device: torch.device) -> Agent:
@@ -133,6 +138,8 @@ def print_profile(reward_model: str, device: torch.device, updates: int) -> None
         "matmul (bmm, baddbmm)": ("aten::bmm", "aten::baddbmm", "aten::mm", "aten::addmm"),
         "relu forward/backward": ("aten::clamp_min", "aten::threshold_backward", "aten::relu"),
         "optimizers": ("aten::_fused_adam", "aten::_fused_adamw", "Optimizer."),
+        "other element-wise": tuple(f"aten::{op}" for op in ELEMENTWISE.split()),
+        "copies (copy_, cat, clone)": ("aten::copy_", "aten::cat", "aten::clone", "aten::_to_copy"),
     }
     for loop in (False, True):
         step = make_step(5, reward_model, device, loop)

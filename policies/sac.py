@@ -21,6 +21,34 @@ import torch.nn.functional as F
 from torch import nn
 
 LOG_STD_EPS = 1e-7  # softplus(x) + eps keeps the policy std away from 0 (thesis A.6)
+NARROW_OUT = 32  # layers with fewer outputs than this compute their transposed product (BatchedLinear)
+
+
+class NarrowProduct(torch.autograd.Function):
+    """`x @ weight + bias` for a layer with few outputs (Q's 1, the policy's 2 x action dims), each
+    product in the layout this CPU's GEMM runs fast. MKL's batched GEMM with few output columns, and
+    backward the outer product with few inner dims, ran 3-20x slower than the transposed products (few
+    output rows) and, for one output, a broadcast multiply. Backward is written in differentiable ops,
+    so a gradient penalty can differentiate through it again (DAC)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(x, weight)
+        # A fresh (batch, out) tensor, not a view: a following in-place activation must not rewrite
+        # this function's output behind autograd (and it is small).
+        return torch.baddbmm(bias.mT, weight.mT, x.mT).mT.clone(memory_format=torch.contiguous_format)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        x, weight = ctx.saved_tensors
+        grad_x = grad_weight = grad_bias = None
+        if ctx.needs_input_grad[0]:
+            grad_x = grad * weight.mT if weight.shape[-1] == 1 else torch.bmm(grad, weight.mT)
+        if ctx.needs_input_grad[1]:
+            grad_weight = torch.bmm(grad.mT, x).mT
+        if ctx.needs_input_grad[2]:
+            grad_bias = grad.sum(1, keepdim=True)
+        return grad_x, grad_weight, grad_bias
 
 
 class BatchedLinear(nn.Module):
@@ -34,7 +62,20 @@ class BatchedLinear(nn.Module):
         self.bias = nn.Parameter(torch.empty(members, 1, out_dim).uniform_(-bound, bound))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.weight.shape[-1] < NARROW_OUT:
+            return NarrowProduct.apply(x, self.weight, self.bias)
         return torch.baddbmm(self.bias, x, self.weight)
+
+    def forward_parts(self, *parts: torch.Tensor) -> torch.Tensor:
+        """`forward(torch.cat(parts, -1))` without the concatenation: each part meets its own rows of
+        the weight, so backward computes input gradients only for the parts that need them (the
+        policy step differentiates Q by the action, not by the 59 observation dims)."""
+        out, start = None, 0
+        for x in parts:
+            rows = self.weight[:, start : start + x.shape[-1]]
+            out = torch.baddbmm(self.bias, x, rows) if out is None else out.baddbmm_(x, rows)
+            start += x.shape[-1]
+        return out
 
 
 def batched_mlp(
@@ -43,7 +84,8 @@ def batched_mlp(
     """`members` independent MLPs (hidden layers followed by `act`), evaluated together."""
     layers: list[nn.Module] = []
     for width in hidden:
-        layers += [BatchedLinear(members, in_dim, width), act()]
+        # In place where the activation allows it: the matmul before it does not keep its output.
+        layers += [BatchedLinear(members, in_dim, width), act(inplace=True) if act is nn.ReLU else act()]
         in_dim = width
     layers.append(BatchedLinear(members, in_dim, out_dim))
     return nn.Sequential(*layers)
@@ -93,9 +135,11 @@ class Intentions(nn.Module):
 
     def q(self, obs: torch.Tensor, act: torch.Tensor, target: bool = False) -> torch.Tensor:
         """Twin Q-values (2, T, B) of per-task (T, B, ·) observations and actions."""
-        x = torch.cat([obs, act], dim=-1)
         net = self.target_critic if target else self.critic
-        return net(torch.cat([x, x], dim=0)).view(2, self.num_tasks, -1)
+        x = net[0].forward_parts(torch.cat([obs, obs]), torch.cat([act, act]))  # both twins
+        for layer in net[1:]:
+            x = layer(x)
+        return x.view(2, self.num_tasks, -1)
 
 
 def clip_grad_norm_per_member(params: Iterable[nn.Parameter], max_norm: float) -> torch.Tensor:
@@ -104,8 +148,7 @@ def clip_grad_norm_per_member(params: Iterable[nn.Parameter], max_norm: float) -
     Returns the pre-clip norm per member. All parameters must share the same leading dim.
     """
     grads = [p.grad for p in params if p.grad is not None]
-    sq = torch.stack([g.flatten(1).square().sum(1) for g in grads]).sum(0)
-    norm = sq.sqrt()
+    norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads]), dim=0)
     scale = (max_norm / (norm + 1e-6)).clamp(max=1.0)
     for g in grads:
         g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))

@@ -34,6 +34,7 @@ import torch
 
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.example_buffer import STATE_KEYS, ExampleBuffer, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer, ReplaySample
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_loss, rce_targets
@@ -252,6 +253,8 @@ class Agent:
         self.action_low, self.action_high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
         self.target_entropy = -float(act_dim)
         self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
+        if device.type == "cpu":
+            keep_freed_memory()  # the update frees and reallocates megabyte tensors every step
         # One fused kernel per parameter instead of a dozen element-wise passes: the default (for-loop)
         # AdamW on CPU took about 8 % of a profiled update; fused is the same rule.
         fused = device.type in ("cpu", "cuda")

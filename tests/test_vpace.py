@@ -4,6 +4,8 @@ reward-model signs, example loading and augmentation."""
 from __future__ import annotations
 
 import json
+import resource
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -15,7 +17,7 @@ from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
-from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member
+from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, clip_grad_norm_per_member
 from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.vpace import Agent, VPACEArgs, make_env, train
 
@@ -225,6 +227,59 @@ def test_intentions_are_independent_per_task():
     norms = clip_grad_norm_per_member(net.critic.parameters(), max_norm=1e-3)
     after = torch.stack([p.grad.flatten(1).square().sum(1) for p in net.critic.parameters()]).sum(0).sqrt()
     assert torch.allclose(after[[1, 4]], torch.full((2,), 1e-3), rtol=1e-3) and norms[0] == 0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings")
+def test_cpu_update_keeps_its_memory_instead_of_faulting_it_in_again():
+    # A 5-intention update frees and reallocates megabyte tensors every step; handed back to the
+    # kernel they cost about 1300 page faults (and 2-4 ms) per update (docs/vpace.md).
+    args = VPACEArgs.for_variant("vpace", main_task="m", aux_tasks=["a", "b", "c", "d"])
+    agent = Agent(args, 59, gym.spaces.Box(-1.0, 1.0, (4,), np.float32), torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    replay = ReplayBuffer(1000, 59, 4)
+    for _ in range(1000):
+        replay.add(rng.standard_normal(59), rng.uniform(-1, 1, 4), rng.standard_normal(59), False)
+    batches = [(replay.sample(rng, 128), rng.standard_normal((5, 128, 59), np.float32)) for _ in range(3)]
+    for batch, examples in batches * 2:  # the heap grows to the update's peak
+        agent.update(batch, examples, None)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for batch, examples in batches * 2:
+        agent.update(batch, examples, None)
+    assert (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 6 < 300
+
+
+@pytest.mark.parametrize("out_dim", [1, 8])
+def test_narrow_layers_compute_the_plain_product_and_its_gradients(out_dim):
+    # Q's single output and the policy's 8 take NarrowProduct's layouts; value, gradients and the
+    # gradients of gradients (DAC's gradient penalty) are those of x @ W + b.
+    torch.manual_seed(0)
+    x, weight, bias = (
+        torch.randn(shape, dtype=torch.float64) for shape in ((3, 7, 5), (3, 5, out_dim), (3, 1, out_dim))
+    )
+    layer = BatchedLinear(3, 5, out_dim).double()
+    with torch.no_grad():
+        layer.weight.copy_(weight), layer.bias.copy_(bias)
+    assert torch.allclose(layer(x), torch.baddbmm(bias, x, weight))
+    inputs = tuple(t.clone().requires_grad_(True) for t in (x, weight, bias))
+    assert torch.autograd.gradcheck(NarrowProduct.apply, inputs)
+    assert torch.autograd.gradgradcheck(NarrowProduct.apply, inputs)
+
+
+def test_first_layer_by_parts_is_the_product_of_the_concatenated_input():
+    # The critic's first layer takes (observation, action) apart; value and gradients stay those of
+    # the concatenated input.
+    torch.manual_seed(0)
+    layer = BatchedLinear(4, 7, 40).double()
+    obs, act = torch.randn(4, 5, 5, dtype=torch.float64), torch.randn(4, 5, 2, dtype=torch.float64)
+    results = []
+    for by_parts in (True, False):
+        a = act.clone().requires_grad_(True)
+        layer.zero_grad()
+        out = layer.forward_parts(obs, a) if by_parts else layer(torch.cat([obs, a], -1))
+        out.square().sum().backward()
+        results.append((out.detach(), a.grad, layer.weight.grad.clone(), layer.bias.grad.clone()))
+    for by_parts, whole in zip(*results, strict=True):
+        assert torch.allclose(by_parts, whole)
 
 
 def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
