@@ -14,7 +14,7 @@ from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
 from shiftkit.pipelines.planner import plan_pipeline
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
-from shiftkit.pipelines.sources.raw import RawDatasetWriter
+from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
 from shiftkit.transforms.mode_labels import contact_modes, operator_modes, timing_report
 
 VISUAL, TACTILE = 40, 200  # grey levels of the two synthetic STS images
@@ -77,7 +77,9 @@ def test_labels_action_dim_and_active_image(tmp_path, source):
         switch = int(np.argmax(mode > 0))
         assert (mode[switch:] == 1).all() and (mode[:switch] == 0).all()
         grey = ep.frames["observation.images.sts"][:, 0, 0, 0]
-        assert (grey == np.where(mode > 0, TACTILE, VISUAL)).all()  # the active mode's image
+        observed = np.r_[0.0, mode[:-1]]  # a frame shows the mode chosen the frame before
+        assert (grey == np.where(observed > 0, TACTILE, VISUAL)).all()
+        assert grey[switch] == VISUAL and (grey[switch + 1 :] == TACTILE).all()
         assert ep.meta["sts_mode_switch_step"] == switch
         diff = ep.meta["sts_mode_switch_minus_contact"]
         assert diff == switch - ep.meta["first_contact_step"]
@@ -108,8 +110,73 @@ def test_lead_steps_shift_the_switch_before_or_after_contact(tmp_path, lead):
         mode = b.frames["action"][:, -1]
         assert mode.sum() == a.frames["action"][:, -1].sum() + lead  # the episodes end in contact
         grey = b.frames["observation.images.sts"][:, 0, 0, 0]
-        assert (grey == np.where(mode > 0, TACTILE, VISUAL)).all()
+        assert (grey == np.where(np.r_[0.0, mode[:-1]] > 0, TACTILE, VISUAL)).all()
         np.testing.assert_array_equal(b.frames["action"][:, :-1], a.frames["action"][:, :-1])
+
+
+def write_door_like_raw(path, lengths=(20, 24), contact=6, seed=3):
+    """Episodes with a door-like state (marker estimate, mode dim) recorded in tactile mode from
+    first contact on, constant-grey STS images and a raw wrench that rises at contact."""
+    rng = np.random.default_rng(seed)
+    state_names = ["rel_x", "sts_fx", "sts_fy", "sts_fz", "sts_tau_z", "sts_mode", "door_angle"]
+    names = {"action": ["dx", "dy", "dz", "drx", "dry", "drz"], "state": state_names}
+    with RawDatasetWriter(path, fps=10, names=names) as w:
+        for length in lengths:
+            recorded = (np.arange(length) > contact).astype(np.float32)  # the replay's own mode
+            state = rng.normal(0, 1, (length, 7)).astype(np.float32)
+            state[:, 1:5] *= recorded[:, None]
+            state[:, 5] = recorded
+            wrench = np.zeros((length, 4), np.float32)
+            wrench[contact:, 2] = 2.0
+            w.add_episode(
+                arrays={
+                    "timestamp": np.arange(length) / 10.0,
+                    "action": rng.normal(0, 0.3, (length, 6)).astype(np.float32),
+                    "state": state,
+                    "wrench_raw": wrench,
+                },
+                images={
+                    "sts_visual": np.full((length, 8, 8, 3), VISUAL, np.uint8),
+                    "sts_tactile": np.full((length, 8, 8, 3), TACTILE, np.uint8),
+                },
+                meta={"task": "knob-open", "first_contact_step": contact},
+            )
+    return path
+
+
+def test_state_follows_the_observed_mode_and_late_switch_frames_show_visual(tmp_path):
+    """The state's mode dim and marker estimate show the mode each frame was observed in (the
+    label of the frame before); `late_switch` frames keep a tactile label but show what a sensor
+    still in visual mode shows (visual image, mode 0, no estimate), reproducibly from the seed."""
+    raw = write_door_like_raw(tmp_path / "raw")
+    recorded = [e.frames["observation.state"] for e in open_raw_dataset(tmp_path / "raw").iter_episodes()]
+    params = {"source": "contact", "baseline_frames": 0, **IMAGES}
+    run(raw, tmp_path / "plain", params)
+    for ep, before in zip(open_lerobot_dataset(tmp_path / "plain").iter_episodes(), recorded, strict=True):
+        observed = np.r_[0.0, ep.frames["action"][:-1, -1]]
+        state = ep.frames["observation.state"]
+        np.testing.assert_array_equal(state[:, 5], observed)
+        np.testing.assert_array_equal(state[:, 1:5], np.where(observed[:, None] > 0, before[:, 1:5], 0.0))
+        np.testing.assert_array_equal(state[:, [0, 6]], before[:, [0, 6]])
+    late = {"late_switch": 0.5, **params}
+    run(raw, tmp_path / "late", late)
+    run(raw, tmp_path / "late2", late)
+    episodes = list(open_lerobot_dataset(tmp_path / "late").iter_episodes())
+    for ep, again in zip(episodes, open_lerobot_dataset(tmp_path / "late2").iter_episodes(), strict=True):
+        np.testing.assert_array_equal(ep.frames["observation.state"], again.frames["observation.state"])
+        label = ep.frames["action"][:, -1]
+        observed = np.r_[0.0, label[:-1]] > 0
+        grey = ep.frames["observation.images.sts"][:, 0, 0, 0]
+        shown_visual = observed & (grey == VISUAL)
+        assert 0 < shown_visual.sum() < observed.sum()  # some, not all, tactile frames show visual
+        assert ep.meta["sts_late_switch_frames"] == shown_visual.sum()
+        state = ep.frames["observation.state"]
+        assert (state[shown_visual, 5] == 0).all() and (state[shown_visual, 1:5] == 0).all()
+        assert (state[observed & ~shown_visual, 5] == 1).all()
+        assert (label[observed] == 1).all()  # the label stays tactile
+    for bad, message in [({"late_switch": 1.5}, "late_switch must be in"), ({"late_switch": 0.2}, "late_switch needs")]:
+        with pytest.raises(ConfigError, match=message):
+            run(raw, tmp_path / "bad", {"source": "contact", **bad})
 
 
 def test_existing_mode_dim_is_overwritten(tmp_path):
@@ -171,7 +238,6 @@ def test_dataset_timing_report(tmp_path):
 def test_fixed_sources_make_the_fixed_mode_baselines(tmp_path, fixed):
     """source "visual" / "tactile" (thesis Fig. 4.13 baselines): that mode's image on every frame,
     no `sts_mode` action dim, the state as the door env shows it in that fixed mode."""
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     rng = np.random.default_rng(3)
     state_names = ["rel_x", "sts_fx", "sts_fy", "sts_fz", "sts_tau_z", "sts_mode", "door_angle"]

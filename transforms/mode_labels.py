@@ -7,9 +7,14 @@ toggles the mode, starting visual; `shiftkit collect --expert kinesthetic` recor
 a feature's chosen dims from their no-contact baseline (the median of the first frames), with
 hysteresis (tactile once it reaches `on_threshold`, visual again once it falls below
 `off_threshold`). `lead_steps` shifts either kind of label earlier (or later): the
-demonstrator's choice of switching before, at or after contact (thesis §4.3.7). `action` gains a dim named `sts_mode` (or that dim is overwritten when the action
-already has one). With both STS image features given, they are replaced by one image feature that
-holds the visual image on visual frames and the tactile image on tactile frames.
+demonstrator's choice of switching before, at or after contact (thesis §4.3.7). `action` gains a
+dim named `sts_mode` (or that dim is overwritten when the action already has one).
+
+The label is an action: the mode chosen at frame t acts with that frame's step, so the frame is
+observed in the mode chosen at t - 1 (visual at an episode's start), as the env shows it to a
+policy. With both STS image features given, they are replaced by one image feature holding the
+image of that observed mode, and the state's mode dim and the dims that read zero in visual mode
+follow it too. A policy thus learns to switch from frames that still show the visual image.
 
 The fixed sources "visual" and "tactile" make the datasets of the fixed-mode baselines (thesis Fig.
 4.13; the door env's `sensor_mode="visual"` / `"tactile"`): every frame is in that mode, so the
@@ -84,7 +89,13 @@ class ModeLabelConfig:
     state has it."""
     visual_zero_dims: list[str] = field(default_factory=lambda: ["sts_fx", "sts_fy", "sts_fz", "sts_tau_z"])
     """Dims of `state` that read zero in visual mode (the door env's marker wrench estimate: the
-    markers are dark): source "visual" zeroes those the state has."""
+    markers are dark): source "visual" (and `late_switch`) zeroes those the state has."""
+    late_switch: float = 0.0
+    """Share of the tactile-labelled frames shown as the sensor would show them had it stayed in
+    visual mode: the visual image, and `state` with its mode dim 0 and `visual_zero_dims` zeroed,
+    while the label stays tactile. A policy that has not switched by contact sees such frames, which
+    no demonstration holds; these teach it to switch at once. Drawn per frame from the stage's seed;
+    needs both STS images (a simulated replay renders both). shiftkit's addition, not the thesis'."""
 
     def __post_init__(self) -> None:
         if self.off_threshold > self.on_threshold:
@@ -95,6 +106,10 @@ class ModeLabelConfig:
             raise ValueError("signal_dims must name at least one dim")
         if (self.visual_image is None) != (self.tactile_image is None):
             raise ValueError("give both visual_image and tactile_image, or neither")
+        if not 0.0 <= self.late_switch <= 1.0:
+            raise ValueError(f"late_switch must be in [0, 1], got {self.late_switch}")
+        if self.late_switch and (self.visual_image is None or self.source in FIXED_SOURCES):
+            raise ValueError("late_switch needs visual_image and tactile_image and a contact or operator source")
 
 
 @register_stage
@@ -115,9 +130,12 @@ class ModeLabel(Stage):
             if self._mode_index is not None:
                 kept = [n for n in names if n != MODE_DIM]
                 out["action"] = {**copy.deepcopy(action), "shape": (len(kept),), "names": kept}
-            self._state_values = self._fixed_state(features.get(c.state))
         elif self._mode_index is None:
             out["action"] = {**copy.deepcopy(action), "shape": (len(names) + 1,), "names": [*names, MODE_DIM]}
+        state = features.get(c.state)
+        state_names = list(state.get("names") or []) if state is not None and len(state["shape"]) == 1 else []
+        self._state_mode_index = state_names.index(c.state_mode_dim) if c.state_mode_dim in state_names else None
+        self._state_zero_indices = [state_names.index(d) for d in c.visual_zero_dims if d in state_names]
         if c.source == "contact":
             sig = features.get(c.signal)
             if sig is None or len(sig["shape"]) != 1:
@@ -141,15 +159,6 @@ class ModeLabel(Stage):
             out[c.image] = merged
         return out
 
-    def _fixed_state(self, state: dict | None) -> dict[int, float]:
-        """State dim index -> the value a fixed source writes there."""
-        c = self.config
-        names = list(state.get("names") or []) if state is not None and len(state["shape"]) == 1 else []
-        values = {names.index(d): 0.0 for d in c.visual_zero_dims if d in names} if c.source == "visual" else {}
-        if c.state_mode_dim in names:
-            values[names.index(c.state_mode_dim)] = float(c.source == "tactile")
-        return values
-
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         c = self.config
         n = len(episode)
@@ -169,18 +178,28 @@ class ModeLabel(Stage):
         if c.source in FIXED_SOURCES:
             if self._mode_index is not None:
                 frames["action"] = np.delete(action, self._mode_index, axis=1)
-            if self._state_values:
-                state = np.array(episode.frames[c.state])
-                for index, value in self._state_values.items():
-                    state[:, index] = value
-                frames[c.state] = state
         elif self._mode_index is None:
             frames["action"] = np.concatenate([action, mode[:, None].astype(action.dtype)], axis=1)
         else:
             frames["action"] = action.copy()
             frames["action"][:, self._mode_index] = mode
+        if c.source in FIXED_SOURCES:
+            shown = np.full(n, c.source == "tactile")  # the frames observed in tactile mode
+        else:
+            # The mode chosen at frame t acts with that frame's step, so the observation at t shows
+            # the mode chosen at t - 1 (episodes start visual), as the env shows it to a policy.
+            shown = np.concatenate([[False], mode[:-1] > 0])
+            if c.late_switch:
+                late = shown & (rng.random(n) < c.late_switch)
+                shown &= ~late
+        if c.state in frames and (self._state_mode_index is not None or self._state_zero_indices):
+            state = np.array(episode.frames[c.state])
+            if self._state_mode_index is not None:
+                state[:, self._state_mode_index] = shown
+            state[np.ix_(~shown, self._state_zero_indices)] = 0.0
+            frames[c.state] = state
         if c.visual_image is not None:
-            tactile = mode.astype(bool)[:, None, None, None]
+            tactile = shown[:, None, None, None]
             image = np.where(tactile, episode.frames[c.tactile_image], episode.frames[c.visual_image])
             del frames[c.visual_image], frames[c.tactile_image]
             frames[c.image] = image
@@ -192,6 +211,8 @@ class ModeLabel(Stage):
             meta[SWITCH_STEP] - int(contact) if contact is not None and meta[SWITCH_STEP] is not None else None
         )
         meta["sts_mode_source"] = c.source
+        if c.late_switch:
+            meta["sts_late_switch_frames"] = int(late.sum())
         yield Episode(frames, meta)
 
 
