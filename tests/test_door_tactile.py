@@ -124,6 +124,10 @@ def test_scripted_expert_closes_the_door():
     assert r.images["wrist"].shape == (len(r.actions), 48, 64, 3) and r.images["sts"].shape[1:] == (48, 64, 3)
     assert r.actions[:, 6].max() == 1.0 and r.actions[0, 6] == 0.0  # switches to tactile for contact
     assert r.observations[:, 23].max() > 5.0  # pressed on the handle
+    extras = env.episode_extras()  # what eval records: the switch and the first observed contact
+    assert extras["first_tactile_step"] == int(np.argmax(r.actions[:, 6] > 0.5))
+    contact = extras["first_contact_step"]
+    assert not r.observations[:contact, 21:25].any() and r.observations[contact, 23] > 0
     env.close()
 
 
@@ -204,6 +208,7 @@ def test_fixed_sensor_mode_holds_for_the_whole_episode(fixed):
         "sensor_mode": fixed,
         "tactile_steps": 4 * int(fixed == "tactile"),
         "first_tactile_step": 0 if fixed == "tactile" else None,
+        "first_contact_step": None,
     }
     with pytest.raises(ValueError, match="action must be 6 finite numbers"):
         env.step(np.zeros(7))  # no mode dim to switch with

@@ -171,7 +171,12 @@ def test_policy_driven_sts_mode_is_in_the_episode_results(sts_mode, tactile_step
     env = make("door-tactile", "flat-handle-open", max_episode_seconds=0.5)
     results = run_episodes(ConstantDoorPolicy(sts_mode), env, episodes=1, seed=0)
     assert results[0].steps == 5
-    extras = {"sensor_mode": "policy", "tactile_steps": tactile_steps, "first_tactile_step": first}
+    extras = {
+        "sensor_mode": "policy",
+        "tactile_steps": tactile_steps,
+        "first_tactile_step": first,
+        "first_contact_step": None,
+    }
     assert results[0].extras == extras
     report = EvalReport(env="door-tactile", task="flat-handle-open", policy="constant", seed=0, episodes=results)
     assert json.loads(report.to_json())["results"][0]["extras"] == extras
@@ -193,6 +198,7 @@ def test_policy_action_must_be_the_envs():
         "sensor_mode": "visual",
         "tactile_steps": 0,
         "first_tactile_step": None,
+        "first_contact_step": None,
     }
     env.close()
 
@@ -238,4 +244,9 @@ def test_eval_cli_fixed_mode_baseline_from_a_mode_label_dataset(tmp_path, capsys
     assert "tactile_steps 0" in capsys.readouterr().out
     result = json.loads((run / "eval" / "door-tactile-flat-handle-open-seed7.json").read_text())
     assert result["results"][0]["steps"] == 3
-    assert result["results"][0]["extras"] == {"sensor_mode": "visual", "tactile_steps": 0, "first_tactile_step": None}
+    assert result["results"][0]["extras"] == {
+        "sensor_mode": "visual",
+        "tactile_steps": 0,
+        "first_tactile_step": None,
+        "first_contact_step": None,
+    }

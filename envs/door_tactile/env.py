@@ -129,7 +129,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         self._tactile: np.ndarray | None = None
         self.slammed = False
         self._steps = 0
-        self._tactile_steps, self._first_tactile_step = 0, None
+        self._tactile_steps, self._first_tactile_step, self._first_contact_step = 0, None, None
 
     # ----------------------------------------------------------------- gymnasium API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -147,7 +147,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         self._tactile = None
         self.slammed = False
         self._steps = 0
-        self._tactile_steps, self._first_tactile_step = 0, None
+        self._tactile_steps, self._first_tactile_step, self._first_contact_step = 0, None, None
         return self._observation(), self._info()
 
     def step(self, action):
@@ -186,6 +186,8 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         free_closing = simulate()
         self.slammed = self.slammed or free_closing > SLAM_SPEED
         self._steps += 1
+        if self._first_contact_step is None and self.physics.handle_contact():
+            self._first_contact_step = self._steps  # the first observation that shows contact
         if mode == "tactile":
             self._tactile = self.sensor.tactile_image(self.physics.data)
             self._estimate = self.estimator.update(self._tactile)
@@ -233,11 +235,14 @@ class DoorTactileEnv(SceneRendering, gym.Env):
 
     def episode_extras(self) -> dict[str, Any]:
         """The STS modes driven since the reset (what `shiftkit eval` records per episode): the
-        sensor-mode setting, the steps run in tactile mode and the first of them (None: never)."""
+        sensor-mode setting, the steps run in tactile mode and the first of them, and the first
+        observation touching the handle (None: never). `first_tactile_step - first_contact_step`
+        is a policy's switch timing, in the convention of the labels' `sts_mode_switch_minus_contact`."""
         return {
             "sensor_mode": self.sensor_mode,
             "tactile_steps": self._tactile_steps,
             "first_tactile_step": self._first_tactile_step,
+            "first_contact_step": self._first_contact_step,
         }
 
     def ee_pose(self) -> np.ndarray:
