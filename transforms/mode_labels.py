@@ -83,13 +83,12 @@ class ModeLabelConfig:
     image: str = "observation.images.sts"
     """Name of the image feature that keeps the active mode's image (replaces the two above)."""
     state: str = "observation.state"
-    """Feature with the env's state that a fixed source makes show the fixed mode (if present)."""
+    """Feature with the env's state, made to show the mode each frame is observed in (if present)."""
     state_mode_dim: str = MODE_DIM
-    """Dim of `state` holding the active mode (1 tactile / 0 visual): a fixed source sets it, if the
-    state has it."""
+    """Dim of `state` holding the observed mode (1 tactile / 0 visual), set if the state has it."""
     visual_zero_dims: list[str] = field(default_factory=lambda: ["sts_fx", "sts_fy", "sts_fz", "sts_tau_z"])
     """Dims of `state` that read zero in visual mode (the door env's marker wrench estimate: the
-    markers are dark): source "visual" (and `late_switch`) zeroes those the state has."""
+    markers are dark): zeroed on the frames observed in visual mode, those the state has."""
     late_switch: float = 0.0
     """Share of the tactile-labelled frames shown as the sensor would show them had it stayed in
     visual mode: the visual image, and `state` with its mode dim 0 and `visual_zero_dims` zeroed,
