@@ -16,7 +16,7 @@ layer's shape, the resulting floor of the 5-intention update and `ratio_floor`, 
 ratio if the batched update ran at that rate with no other cost. CPU time is reported beside wall
 time: with 1 thread it is what the update costs, and other jobs time-slicing the cores inflate it
 less. `--profile` prints where the time goes (torch profiler), batched and loop. Both run in one
-process, under the same allocator settings (a CPU `Agent` keeps freed memory: policies/cpu_memory.py).
+process, under the allocator settings of `shiftkit train vpace` on CPU (policies/cpu_memory.py).
 Prints one JSON line last: {"bench": "vpace_update", "metric": "update_time_ratio_batched_vs_loop_5_intentions", ...}.
 """
 
@@ -33,6 +33,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.vpace import Agent, VPACEArgs
 
@@ -46,6 +47,8 @@ ELEMENTWISE = (
 def make_agent(num_tasks: int, reward_model: str, device: torch.device) -> Agent:
     aux = [f"aux{i}" for i in range(num_tasks - 1)]
     args = VPACEArgs.for_variant("vpace", main_task="main", aux_tasks=aux, reward_model=reward_model)
+    if device.type == "cpu":
+        keep_freed_memory()  # as training does
     return Agent(args, OBS_DIM, gym.spaces.Box(-1.0, 1.0, (ACT_DIM,), np.float32), device)
 
 

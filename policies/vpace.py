@@ -253,8 +253,6 @@ class Agent:
         self.action_low, self.action_high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
         self.target_entropy = -float(act_dim)
         self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
-        if device.type == "cpu":
-            keep_freed_memory()  # the update frees and reallocates megabyte tensors every step
         # One fused kernel per parameter instead of a dozen element-wise passes: the default (for-loop)
         # AdamW on CPU took about 8 % of a profiled update; fused is the same rule.
         fused = device.type in ("cpu", "cuda")
@@ -487,6 +485,8 @@ def train(
     # Learner, buffer, scheduler, random generators.
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
+    if device.type == "cpu":
+        keep_freed_memory()  # each update frees and reallocates megabyte tensors (process-wide setting)
     agent = Agent(args, obs_dim, env.action_space, device)
     act_dim = int(np.prod(env.action_space.shape))
     replay = ReplayBuffer(args.total_steps, obs_dim, act_dim)

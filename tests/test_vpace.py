@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from shiftkit.pipelines.errors import ConfigError
+from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
@@ -233,6 +234,7 @@ def test_intentions_are_independent_per_task():
 def test_cpu_update_keeps_its_memory_instead_of_faulting_it_in_again():
     # A 5-intention update frees and reallocates megabyte tensors every step; handed back to the
     # kernel they cost about 1300 page faults (and 2-4 ms) per update (docs/vpace.md).
+    keep_freed_memory()  # what `train` sets on CPU
     args = VPACEArgs.for_variant("vpace", main_task="m", aux_tasks=["a", "b", "c", "d"])
     agent = Agent(args, 59, gym.spaces.Box(-1.0, 1.0, (4,), np.float32), torch.device("cpu"))
     rng = np.random.default_rng(0)
