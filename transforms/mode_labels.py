@@ -175,16 +175,15 @@ class ModeLabel(Stage):
         frames = dict(episode.frames)
         action = np.asarray(episode.frames["action"])
         if c.source in FIXED_SOURCES:
+            shown = np.full(n, c.source == "tactile")  # the frames observed in tactile mode
             if self._mode_index is not None:
                 frames["action"] = np.delete(action, self._mode_index, axis=1)
-        elif self._mode_index is None:
-            frames["action"] = np.concatenate([action, mode[:, None].astype(action.dtype)], axis=1)
         else:
-            frames["action"] = action.copy()
-            frames["action"][:, self._mode_index] = mode
-        if c.source in FIXED_SOURCES:
-            shown = np.full(n, c.source == "tactile")  # the frames observed in tactile mode
-        else:
+            if self._mode_index is None:
+                frames["action"] = np.concatenate([action, mode[:, None].astype(action.dtype)], axis=1)
+            else:
+                frames["action"] = action.copy()
+                frames["action"][:, self._mode_index] = mode
             # The mode chosen at frame t acts with that frame's step, so the observation at t shows
             # the mode chosen at t - 1 (episodes start visual), as the env shows it to a policy.
             shown = np.concatenate([[False], mode[:-1] > 0])
