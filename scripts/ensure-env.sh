@@ -1,13 +1,22 @@
 #!/usr/bin/env bash
 # Create (if missing) the project's virtual environment and install this checkout into it.
-# The heavy dependencies (torch, lerobot, ray: ~8 GB) live in a venv kept outside the clone,
+# The heavy dependencies (torch, lerobot, ray: ~6 GB) live in a venv kept outside the clone,
 # keyed by a hash of the dependency pins in pyproject.toml, so a new clone with the same pins reuses
 # it while a change of pins or a fresh machine gets a correct new one (other edits, such as a new
 # subpackage, only refresh the editable install). Prints the venv path on stdout.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-python="${PYTHON:-python3.11}"
-command -v "$python" >/dev/null || python=python3
+# lerobot 0.6 needs Python >= 3.12: $PYTHON, else python3.12 / python3.13 / python3 on PATH, else pyenv's.
+is_py312() { "$1" -c 'import sys; sys.exit(not (3, 12) <= sys.version_info[:2] < (3, 14))' 2>/dev/null; }
+python=""
+for candidate in ${PYTHON:-} python3.12 python3.13 python3 \
+        "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.12*/bin/python3 "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.13*/bin/python3; do
+    if command -v "$candidate" >/dev/null && is_py312 "$candidate"; then python="$candidate"; break; fi
+done
+if [ -z "$python" ]; then
+    echo "shiftkit: no Python 3.12 or 3.13 found (tried \$PYTHON, python3.12, python3.13, python3, pyenv): install one, e.g. 'pyenv install 3.12', or set PYTHON=/path/to/python3.12" >&2
+    exit 1
+fi
 key="$("$python" - "$here/pyproject.toml" <<'PY'
 import hashlib, json, sys, tomllib
 project = tomllib.load(open(sys.argv[1], "rb"))["project"]
@@ -17,7 +26,7 @@ PY
 )"
 venv="${SHIFTKIT_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/shiftkit/venv-$key}"
 if [ ! -f "$venv/.complete" ]; then
-    echo "shiftkit: creating environment $venv (first run: ~3 min, ~8 GB)" >&2
+    echo "shiftkit: creating environment $venv (first run: ~4 min, ~6 GB)" >&2
     rm -rf "$venv"
     log="$(mktemp)"
     if ! { "$python" -m venv "$venv" &&
