@@ -545,13 +545,14 @@ SLURM_README = """# SLURM job for {dest}
 def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any], report: list[dict[str, int]]) -> Path:
     """Aggregate the shard datasets (in order) into the destination, atomically."""
     from shiftkit.pipelines import camera_meta
-    from shiftkit.pipelines.lerobot_io import aggregate_shards, write_provenance
+    from shiftkit.pipelines.lerobot_io import aggregate_shards, carry_source_metadata, lerobot_roots, write_provenance
     from shiftkit.pipelines.provenance import build_provenance
 
     dest = plan.destination
     tmp = dest.parent / f".{dest.name}.partial-{uuid.uuid4().hex[:8]}"  # removed by a later run if killed
     try:
         num_episodes, num_frames = aggregate_shards(plan.repo_id, roots, tmp)
+        carry_source_metadata(tmp, lerobot_roots(plan.sources))
         provenance = build_provenance(plan, executor_info, num_episodes, num_frames, report)
         # lerobot's aggregation does not know meta/cameras.json: concatenate the shards' own.
         cameras = camera_meta.provenance_entry(camera_meta.concat_cameras_files(roots, tmp))

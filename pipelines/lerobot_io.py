@@ -1,16 +1,34 @@
-"""LeRobot v3.0 IO: an atomic, fast episode writer on lerobot's own format code, a streaming
-per-episode reader, and dataset-ID resolution.
+"""LeRobot v3.0 IO, the one module that touches lerobot's dataset internals: an atomic, fast
+episode writer on lerobot 0.6's own format code, a streaming per-episode reader with the one image
+and video decoder of stages and trainers, the merge of shard datasets and the v2.1 conversion, and
+dataset-ID resolution. Every shiftkit producer of a dataset (pipelines under every executor,
+importers, `collect`, FIRE) writes through `DatasetWriter` or `aggregate_shards`.
 
-The writer creates the dataset with `LeRobotDataset.create` and stores each episode through
-lerobot's own pieces (lerobot's HF features and their Arrow schema, lerobot's episode statistics,
-`LeRobotDatasetMetadata.save_episode`), so the files are what lerobot writes. It skips the costs of
-the high-level path that do not apply to whole episodes held in memory: the per-frame `add_frame`
-loop, `embed_images`, a `datasets.map` over every row that re-reads PNG files from disk (here
-images are encoded straight into the row, with the same PNG bytes and file name lerobot would
-embed), and per-value Python conversion (numeric columns go to Arrow from their numpy buffers).
+The writer creates the dataset with `LeRobotDatasetMetadata.create` and stores each episode through
+lerobot's own pieces (its HF features and their Arrow schema, its episode statistics' values,
+`io_utils.write_info` / `write_stats`, its `DatasetWriter` for video files), so the files are what
+lerobot's `add_frame` / `save_episode` write (tests/test_lerobot_io.py compares them). It skips the
+costs of the high-level path that do not apply to whole episodes held in memory: the per-frame
+`add_frame` loop, `embed_images`, a `datasets.map` over every row that re-reads image files from
+disk (here images are encoded straight into the row, with the same PNG / TIFF bytes and file name
+lerobot would embed), per-value Python conversion (numeric columns go to Arrow from their numpy
+buffers), and rewriting info.json and re-aggregating all statistics after every episode.
 Statistics come from `shiftkit.pipelines.stats` (lerobot's values, vectorised), computed by the
-worker that produced the episode. Camera features are written as `image` (PNG in parquet, no codec) or,
-declared `video`, through lerobot's own video encoder (`pipelines/video.py`).
+worker that produced the episode. Cameras are `image` (PNG; depth: TIFF, `pipelines/depth.py`) or
+`video` (lerobot's encoder settings, `pipelines/video.py`).
+
+lerobot's private names still used, because its public API has no per-episode equivalent without
+those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one):
+* `LeRobotDatasetMetadata._save_episode_metadata`: appends one episode's row to the episodes
+  table; the public `save_episode` also rewrites info.json and stats.json and aggregates all
+  statistics again, per episode.
+* `LeRobotDatasetMetadata._metadata_buffer`: cleared on abort, so that finalizing does not write
+  buffered rows into the folder being removed.
+* `lerobot.datasets.dataset_writer.DatasetWriter._save_episode_video`: appends an encoded episode
+  to the current video file (rotating files at `video_files_size_in_mb`) and fills the feature's
+  `info` from the first episode; public only through `save_episode`, which encodes from image
+  files on disk.
+* `lerobot.datasets.aggregate.tqdm`: swapped to silence the per-shard bars of `aggregate_datasets`.
 """
 
 from __future__ import annotations
@@ -347,9 +365,10 @@ class DatasetWriter:
             arrays.update({key: table.column(key) for key in encoded})
         return pa.Table.from_arrays([arrays[field.name] for field in schema], schema=schema)
 
-    def close(self, provenance: dict[str, Any] | None = None) -> Path:
+    def close(self, provenance: dict[str, Any] | None = None, carry_from: list[Path] = ()) -> Path:
         """Finalize, write provenance and the dataset card rendered from it, and move the dataset
-        into place."""
+        into place. `carry_from`: source datasets whose own metadata the output keeps
+        (`carry_source_metadata`)."""
         if self._closed:
             return self.root
         if self.num_episodes == 0:
@@ -361,6 +380,7 @@ class DatasetWriter:
         self._lerobot.finalize()  # lerobot's: flushes the episodes table, closes its files
         shutil.rmtree(self.tmp / "images", ignore_errors=True)  # the video encoder's input frames
         self._write_info_and_stats()
+        carry_source_metadata(self.tmp, carry_from)
         cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
         if provenance is not None:
             write_provenance(self.tmp, {**provenance, "cameras": cameras} if cameras else provenance)
@@ -390,6 +410,47 @@ class DatasetWriter:
         self._lerobot.finalize()
         shutil.rmtree(self.tmp, ignore_errors=True)
         self._closed = True
+
+
+# What every dataset's meta/ holds, written anew for each output (lerobot's tables, shiftkit's files).
+_OWN_META = {
+    "info.json",
+    "stats.json",
+    "tasks.parquet",
+    "episodes",
+    *(Path(p).name for p in (camera_meta.CAMERAS_PATH, PROVENANCE_PATH)),
+}
+
+
+def lerobot_roots(sources: list[Any]) -> list[Path]:
+    """The folders of the pipeline sources that are LeRobot datasets (their metadata is carried)."""
+    roots = [Path(s.root) for s in sources if getattr(s, "root", None) is not None]
+    return [r for r in roots if (r / "meta" / "info.json").is_file()]
+
+
+def carry_source_metadata(dest: Path, sources: list[Path]) -> None:
+    """Keep what the source datasets carry beyond the tables a writer makes: the other files in
+    their `meta/` (e.g. lerobot's annotation outputs) and the `tools` of their info.json, the first
+    source's where several have one."""
+    from lerobot.datasets.io_utils import load_info, write_info
+
+    tools = None
+    for source in sources:
+        meta = Path(source) / "meta"
+        for entry in sorted(meta.iterdir()) if meta.is_dir() else []:
+            target = dest / "meta" / entry.name
+            if entry.name in _OWN_META or target.exists():
+                continue
+            if entry.is_dir():
+                shutil.copytree(entry, target)
+            else:
+                shutil.copy2(entry, target)
+        if tools is None and (meta / "info.json").is_file():
+            tools = read_json_file(meta / "info.json", "dataset info").get("tools")
+    if tools is not None:
+        info = load_info(dest)
+        info.tools = tools
+        write_info(info, dest)
 
 
 def _numeric_arrow_array(values: Any, arrow_type: Any) -> Any:

@@ -318,7 +318,7 @@ def _run_locked(config: PipelineConfig, plan: Plan, engine: Any, work: Path, pro
 
 
 def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], bar: Any) -> Path:
-    from shiftkit.pipelines.lerobot_io import DatasetWriter
+    from shiftkit.pipelines.lerobot_io import DatasetWriter, lerobot_roots
     from shiftkit.pipelines.provenance import build_provenance
 
     def outputs() -> Iterator[tuple[Episode, dict]]:
@@ -342,7 +342,7 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
         provenance = build_provenance(
             plan, executor_info, writer.num_episodes, writer.num_frames, run_report(plan, parts)
         )
-        writer.close(provenance=provenance)
+        writer.close(provenance=provenance, carry_from=lerobot_roots(plan.sources))
     return plan.destination
 
 

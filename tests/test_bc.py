@@ -25,12 +25,12 @@ def make_dataset(
     length: int = 25,
     image: str | None = None,
     learnable: bool = True,
-    depth: bool = False,
+    depth: str | None = None,
     seed: int = 0,
 ) -> Path:
     """A tiny LeRobot dataset written by lerobot's own writer. State-only: action = linear function
-    of the state. `image="image"|"video"`: a bright square whose position is the action (`depth`:
-    plus a float depth map of it)."""
+    of the state. `image="image"|"video"`: a bright square whose position is the action (`depth`
+    "m" or "mm": plus a lerobot depth map of it, float32 metres or uint16 millimetres)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     rng = np.random.default_rng(seed)
@@ -46,9 +46,10 @@ def make_dataset(
         }
     if depth:
         features["observation.depth.front"] = {
-            "dtype": "float32",
+            "dtype": "image",
             "shape": (48, 64, 1),
             "names": ["height", "width", "channels"],
+            "info": {"is_depth_map": True},
         }
     ds = LeRobotDataset.create("test/bc", fps=10, root=root, features=features, use_videos=image == "video")
     for _ in range(episodes):
@@ -62,7 +63,9 @@ def make_dataset(
                 img[y - 4 : y + 4, x - 4 : x + 4] = 235
                 frame["observation.images.front"] = img
                 if depth:
-                    frame["observation.depth.front"] = np.where(img[..., :1] > 100, 0.5, 1.5).astype(np.float32)
+                    metres = np.where(img[..., :1] > 100, 0.5, 1.5).astype(np.float32)
+                    mm = np.rint(metres * 1000).astype(np.uint16)
+                    frame["observation.depth.front"] = mm if depth == "mm" else metres
                 a = np.array([x / 32 - 1, y / 24 - 1], np.float32)
             frame["action"] = a
             ds.add_frame(frame)
@@ -248,8 +251,11 @@ def test_early_stopping_stops_members_and_keeps_best(tmp_path):
     assert json.loads((out / "config.json").read_text())["args"]["lr"] == 1e-3
 
 
-def test_image_policy_trains_end_to_end(tmp_path):
-    ds = make_dataset(tmp_path / "img", episodes=4, length=16, image="image", depth=True)
+@pytest.mark.parametrize("unit", ["m", "mm"])
+def test_image_policy_trains_end_to_end(tmp_path, unit):
+    """RGB + depth (float32 metres or uint16 millimetres, as lerobot records them): the trainer takes
+    depth, and its statistics, in metres."""
+    ds = make_dataset(tmp_path / "img", episodes=4, length=16, image="image", depth=unit)
     out = tmp_path / "run"
     train(
         small_args(

@@ -51,7 +51,12 @@ def _write_with_lerobot(root, kind: str) -> None:
         "observation.state": {"dtype": "float32", "shape": (2,), "names": ["t", "e"]},
         "action": {"dtype": "float32", "shape": (2,), "names": ["t", "e"]},
         "observation.images.front": {"dtype": camera, "shape": (H, W, 3), "names": NAMES},
-        "observation.depth.front": {"dtype": camera, "shape": (H, W, 1), "names": NAMES, "info": {"is_depth_map": True}},
+        "observation.depth.front": {
+            "dtype": camera,
+            "shape": (H, W, 1),
+            "names": NAMES,
+            "info": {"is_depth_map": True},
+        },
     }
     ds = LeRobotDataset.create("test/depth", 10, features, root=root, use_videos=camera == "video")
     for e in range(4):

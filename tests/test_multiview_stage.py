@@ -92,9 +92,10 @@ def test_views_carry_new_base_poses_and_the_same_world_trajectory(lift_episodes)
         assert not np.array_equal(
             out.frames["observation.images.base"][0], episode.frames["observation.images.base"][0]
         )
-        depth = out.frames["observation.depth.base"]  # grey levels in the camera's encoding
-        assert depth.dtype == np.uint8 and depth.shape == episode.frames["observation.depth.base"].shape
-        assert cams["depth"] == episode.meta["cameras"]["base"]["depth"]
+        depth = out.frames["observation.depth.base"]  # re-rendered metres, lerobot's native depth
+        assert depth.dtype == np.float32 and depth.shape == episode.frames["observation.depth.base"].shape
+        assert not np.array_equal(depth[0], episode.frames["observation.depth.base"][0])
+        assert 0.2 < float(np.median(depth)) < 3.0
     assert episode.meta["cameras"]["base"]["base_pose"] == source.as_dict()  # input untouched
 
 

@@ -26,7 +26,7 @@ EXAMPLE_PARAMS = {
     "rename": {"mapping": {"observation.environment_state": "observation.goal"}},
     "drop": {"features": ["observation.environment_state"]},
     "cast": {"dtypes": {"action": "float64"}},
-    "depth_image": {"far": 2.0},
+    "depth_image": {"unit": "mm"},
     "success_examples": {"n_per_task": 3, "states": "success"},
     # the synthetic gripper command flips from open (1) to closed (-1) near the goal: a "contact"
     # replays the recording in the simulator (position mode needs no calibration file)

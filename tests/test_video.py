@@ -138,9 +138,8 @@ def test_lerobot_train_diffusion_on_outputs(outputs, variant, tmp_path):
 
 
 def test_collect_writes_videos(tmp_path):
-    """`collect --video`: the RGB camera as a lerobot video (depth stays a lossless image, as
-    lerobot's `convert_image_to_video_dataset` leaves it), decodable and valid."""
-    from shiftkit.pipelines.depth import DEFAULT_ENCODING, decode_depth
+    """`collect --video`: the RGB camera as a lerobot video and depth through lerobot's depth
+    encoder, decodable (depth within its quantisation of the recorded metres) and valid."""
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     root, counts = collect(
@@ -156,13 +155,16 @@ def test_collect_writes_videos(tmp_path):
     )
     info = json.loads((root / "meta/info.json").read_text())
     assert info["features"]["observation.images.front"]["dtype"] == "video"
-    assert info["features"]["observation.depth.front"]["dtype"] == "image"
-    assert [p.parent.parent.name for p in (root / "videos").rglob("*.mp4")] == ["observation.images.front"]
+    depth_info = info["features"]["observation.depth.front"]
+    assert depth_info["dtype"] == "video" and depth_info["info"]["is_depth_map"]
+    assert depth_info["info"]["video.codec"] == "hevc" and depth_info["info"]["video.pix_fmt"] == "gray12le"
+    videos = sorted(p.parent.parent.name for p in (root / "videos").rglob("*.mp4"))
+    assert videos == ["observation.depth.front", "observation.images.front"]
     assert validate_dataset(root)["episodes"] == 1
     episode = next(open_lerobot_dataset(root).iter_episodes())
-    depth = decode_depth(episode.frames["observation.depth.front"])
-    assert counts["episodes"] == 1 and depth.shape == (len(episode), 48, 64)
-    assert 0.3 < float(np.median(depth)) < DEFAULT_ENCODING["far"]
+    depth = episode.frames["observation.depth.front"]
+    assert counts["episodes"] == 1 and depth.shape == (len(episode), 48, 64, 1) and depth.dtype == np.float32
+    assert 0.3 < float(np.median(depth)) < 2.5  # metres from the front camera to the scene
     assert episode.frames["observation.images.front"].shape == (len(episode), 48, 64, 3)
 
 
