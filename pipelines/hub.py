@@ -334,6 +334,10 @@ def _pull(repo_id: str, repo_type: str, revision: str, dest: Path, check) -> Pat
     with _staging(dest) as staging:
         # Pinned to the commit, so every file comes from the same revision.
         snapshot_download(repo_id, repo_type=repo_type, revision=commit, local_dir=staging)
+        # huggingface_hub's download bookkeeping serves only this one-off folder, and lerobot (0.6)
+        # takes a `$HF_LEROBOT_HOME/<id>` that holds it for a stale local_dir mirror: it would
+        # download the dataset again by ID (or fail offline) instead of loading the pulled copy.
+        shutil.rmtree(staging / ".cache", ignore_errors=True)
         if check is not None:
             check(repo_id, staging)
         if dest.exists():  # only with force: swap, then drop the old copy

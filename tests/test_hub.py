@@ -161,6 +161,10 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
             (["push", str(variant), "--repo-id", REPO, "--revision", "exp"], WRITE),
             (["pull", REPO, "--revision", "exp", "--root", str(tmp_path / "exp")], None),
             (["pull", REPO, "--force"], None),
+            (
+                f"from lerobot.datasets.lerobot_dataset import LeRobotDataset\nprint(LeRobotDataset({REPO!r}).root)",
+                None,
+            ),
         ],
         hub.endpoint,
         home,
@@ -201,6 +205,10 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
     exp = file_hashes(tmp_path / "exp")
     assert exp == {**file_hashes(variant), ".gitattributes": exp[".gitattributes"]}
     assert file_hashes(root) == remote  # re-pulled with --force: still the v3.0 tag on main
+    # lerobot loads the pulled copy by ID: huggingface_hub's download bookkeeping is not left in it,
+    # which lerobot 0.6 takes for a stale mirror and downloads again into its own hub cache.
+    assert str(root) in results[6]["stdout"].splitlines()
+    assert not (root / ".cache").exists()
 
 
 @pytest.mark.skipif(
@@ -325,3 +333,4 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
     _assert_one_line_errors(batch_results(unreachable), ["cannot reach the hub", "cannot reach the hub"])
     assert not hub.store.exists("dataset", "shiftkit-test/noauth")
     assert files_under(home / "lerobot") == files_under(home_closed / "lerobot") == []
+
