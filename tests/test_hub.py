@@ -334,3 +334,24 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
     assert not hub.store.exists("dataset", "shiftkit-test/noauth")
     assert files_under(home / "lerobot") == files_under(home_closed / "lerobot") == []
 
+
+def test_private_push_hides_the_repository(hub, dataset, tmp_path):
+    checkpoint = tmp_path / "checkpoint"
+    checkpoint.mkdir()
+    (checkpoint / "weights.bin").write_bytes(b"\x01" * 32)
+    results = shiftkit_batch(
+        [
+            (["push", str(dataset), "--repo-id", "shiftkit-test/private", "--private"], WRITE),
+            (["push", str(checkpoint), "--checkpoint", "--repo-id", "shiftkit-test/private-run", "--private"], WRITE),
+            (["pull", "shiftkit-test/private", "--root", str(tmp_path / "reader")], READ),
+            (["pull", "shiftkit-test/private", "--root", str(tmp_path / "anonymous")], None),
+        ],
+        hub.endpoint,
+        tmp_path / "home",
+    )
+    assert_ok(results[:3])
+    _assert_one_line_errors(results[3:], ["(401)"])
+    assert hub.store.meta("dataset", "shiftkit-test/private")["private"]
+    assert hub.store.meta("model", "shiftkit-test/private-run")["private"]
+    assert file_hashes(dataset).items() <= file_hashes(tmp_path / "reader").items()
+    assert not (tmp_path / "anonymous").exists()
