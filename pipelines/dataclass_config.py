@@ -9,11 +9,9 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from typing import Any, Literal, TypeVar, Union, get_args, get_origin
+from typing import Any, Literal, Union, get_args, get_origin
 
 from shiftkit.pipelines.errors import ConfigError
-
-T = TypeVar("T")
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -39,7 +37,7 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def from_dict(cls: type[T], data: Any, where: str) -> T:
+def from_dict[T](cls: type[T], data: Any, where: str) -> T:
     """Build dataclass `cls` from `data`, validating every key and type."""
     if data is None:
         data = {}

@@ -20,14 +20,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import json
 import logging
 import os
 import shutil
 import sys
 import threading
-import types
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -546,18 +544,14 @@ SLURM_README = """# SLURM job for {dest}
 
 def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any], report: list[dict[str, int]]) -> Path:
     """Aggregate the shard datasets (in order) into the destination, atomically."""
-    from lerobot.datasets.aggregate import aggregate_datasets
-
     from shiftkit.pipelines import camera_meta
-    from shiftkit.pipelines.lerobot_io import write_provenance
+    from shiftkit.pipelines.lerobot_io import aggregate_shards, write_provenance
     from shiftkit.pipelines.provenance import build_provenance
 
     dest = plan.destination
     tmp = dest.parent / f".{dest.name}.partial-{uuid.uuid4().hex[:8]}"  # removed by a later run if killed
     try:
-        with _quiet_progress_bars():
-            aggregate_datasets([plan.repo_id] * len(roots), plan.repo_id, roots=roots, aggr_root=tmp)
-        num_episodes, num_frames = fix_position_stats(tmp)
+        num_episodes, num_frames = aggregate_shards(plan.repo_id, roots, tmp)
         provenance = build_provenance(plan, executor_info, num_episodes, num_frames, report)
         # lerobot's aggregation does not know meta/cameras.json: concatenate the shards' own.
         cameras = camera_meta.provenance_entry(camera_meta.concat_cameras_files(roots, tmp))
@@ -569,63 +563,6 @@ def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any], re
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return dest
-
-
-@contextlib.contextmanager
-def _quiet_progress_bars() -> Iterator[None]:
-    """Silence the bars that lerobot's aggregation and `datasets` draw per shard (ours shows the
-    progress). lerobot re-enables `datasets` bars after each read, so the check itself is swapped."""
-    import tqdm
-    from lerobot.datasets import aggregate
-
-    hf_bars = sys.modules["datasets.utils.tqdm"]
-    disabled = hf_bars.are_progress_bars_disabled
-    hf_bars.are_progress_bars_disabled = lambda: True
-    aggregate.tqdm = types.SimpleNamespace(tqdm=functools.partial(tqdm.tqdm, disable=True))
-    try:
-        yield
-    finally:
-        aggregate.tqdm = tqdm
-        hf_bars.are_progress_bars_disabled = disabled
-
-
-def fix_position_stats(root: Path) -> tuple[int, int]:
-    """Recompute what aggregation copies from each shard although it depends on the episode's place
-    in the whole dataset: the per-episode and dataset statistics of `index`, `episode_index` and
-    `task_index`. Also rewrites meta/stats.json in feature order (lerobot aggregates statistics over
-    a `set` of keys, whose order follows the process's string-hash seed). Returns (episodes, frames)."""
-    import numpy as np
-    import pandas as pd
-    import pyarrow.parquet as pq
-    from lerobot.datasets.compute_stats import aggregate_stats
-    from lerobot.datasets.utils import load_stats, write_stats
-
-    from shiftkit.pipelines.lerobot_io import POSITION_KEYS
-    from shiftkit.pipelines.stats import numeric_stats
-
-    info = json.loads((root / "meta" / "info.json").read_text())
-    features = info["features"]
-    data = [pq.read_table(p, columns=list(POSITION_KEYS)) for p in sorted((root / "data").rglob("*.parquet"))]
-    columns = {k: np.concatenate([t.column(k).to_numpy() for t in data]) for k in POSITION_KEYS}
-    if not (columns["index"] == np.arange(len(columns["index"]))).all():
-        raise DatasetError(f"{root}: aggregated frames are not in index order")
-    episode_stats = []
-    for path in sorted((root / "meta" / "episodes").rglob("*.parquet")):
-        df = pd.read_parquet(path)
-        new: dict[str, list[Any]] = {}
-        for lo, hi in zip(df["dataset_from_index"], df["dataset_to_index"], strict=True):
-            stats = numeric_stats({k: columns[k][lo:hi] for k in POSITION_KEYS})
-            episode_stats.append(stats)
-            for key, values in stats.items():
-                for name, value in values.items():
-                    new.setdefault(f"stats/{key}/{name}", []).append(np.asarray(value))
-        for col, values in new.items():
-            df[col] = values
-        df.to_parquet(path)
-    stats = load_stats(root)
-    stats.update(aggregate_stats(episode_stats))
-    write_stats({k: stats[k] for k in features if k in stats}, root)
-    return int(info["total_episodes"]), int(info["total_frames"])
 
 
 DATATROVE_EXECUTORS: dict[str, type[DatatroveExecutor]] = {

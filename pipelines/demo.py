@@ -100,7 +100,6 @@ def write_views_figure(dataset: Path, path: Path, views: int) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from shiftkit.pipelines.depth import decode_depth, depth_encoding
     from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 
     reader = open_lerobot_dataset(dataset)
@@ -111,10 +110,7 @@ def write_views_figure(dataset: Path, path: Path, views: int) -> Path:
         title = "recorded" if k == 0 else f"re-rendered {k}"
         axes[0, k].imshow(episode.frames[f"observation.images.{CAMERA}"][0], interpolation="nearest")
         axes[0, k].set_title(f"{title}\nbase yaw {pose['yaw']:+.2f} rad", fontsize=8)
-        # grey levels back to metres (pipelines.depth), shown up to 1.5 m
-        depth = decode_depth(
-            episode.frames[f"observation.depth.{CAMERA}"][0], depth_encoding(episode.meta["cameras"], CAMERA)
-        )
+        depth = episode.frames[f"observation.depth.{CAMERA}"][0, ..., 0]  # metres, shown up to 1.5 m
         axes[1, k].imshow(depth, cmap="viridis_r", vmin=0.3, vmax=1.5)
         for ax in axes[:, k]:
             ax.set_axis_off()

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.pipelines.depth import is_depth
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 
@@ -16,13 +17,21 @@ Features = dict[str, dict[str, Any]]
 DEFAULT_KEYS = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 NUMERIC_DTYPES = {"float32", "float64", "int64", "int32", "int16", "int8", "uint8", "bool"}
 CAMERA_DTYPES = {"image", "video"}
+# Per-frame values without statistics: strings, and lerobot 0.6's language columns
+# (`language_persistent` / `language_events`: a list of message rows per frame, held as objects).
+TEXT_DTYPES = {"string", "language"}
 IMAGE_NAMES = ["height", "width", "channels"]
-VIDEO_KEY_PREFIX = "observation.image"  # lerobot's OBS_IMAGE: the camera keys it stores as videos
 
 
-def numpy_dtype(dtype: str) -> np.dtype:
-    """The numpy dtype an Episode array of a feature holds (images: uint8 HxWx3)."""
-    return np.dtype("uint8") if dtype in CAMERA_DTYPES else np.dtype(dtype)
+def numpy_dtype(feature: dict[str, Any] | str) -> np.dtype:
+    """The numpy dtype an Episode array of a feature holds: RGB cameras uint8 (H, W, 3), depth
+    cameras float32 metres (H, W, 1) (`pipelines.depth`), others their own dtype."""
+    dtype = feature if isinstance(feature, str) else feature["dtype"]
+    if dtype == "language":
+        return np.dtype(object)
+    if dtype in CAMERA_DTYPES:
+        return np.dtype("float32") if not isinstance(feature, str) and is_depth(feature) else np.dtype("uint8")
+    return np.dtype(dtype)
 
 
 def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
@@ -38,23 +47,43 @@ def image_feature(shape: tuple[int, int, int]) -> dict[str, Any]:
     return {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
 
 
-def plain_camera_features(features: Features, dtype: str | None = None) -> Features:
-    """`features` with every camera feature reduced to the keys lerobot itself declares (its writer
-    fills a video's `info`; anything else there, e.g. intrinsics of older shiftkit datasets, stops
-    `aggregate_datasets` from merging with datasets recorded elsewhere). `dtype="image"` stores
-    every camera as images; `dtype="video"` only the RGB cameras (`observation.image*`, the keys
-    lerobot's `convert_image_to_video_dataset` converts): depth stays a lossless image (AV1 smears
-    depth edges by up to a metre, docs/video_depth.md)."""
-    return {
-        key: {
-            "dtype": dtype if dtype == "image" or (dtype and key.startswith(VIDEO_KEY_PREFIX)) else ft["dtype"],
-            "shape": tuple(ft["shape"]),
-            "names": ft.get("names"),
+def _lerobot_info(info: dict[str, Any] | None, keep_video: bool) -> dict[str, Any]:
+    """What lerobot itself keeps in a camera feature's `info`: the depth marker and unit, and while
+    it stays a video, the `video.*` / `audio.*` keys its video writer records (codec, size,
+    encoder settings, the depth quantiser), which a re-encode rewrites."""
+    info = info or {}
+    depth = bool(info.get("is_depth_map") or info.get("video.is_depth_map"))
+    out = {"is_depth_map": True, "depth_unit": info.get("depth_unit") or "m"} if depth else {}
+    if keep_video:
+        out = {
+            **{
+                k: v
+                for k, v in info.items()
+                if k.startswith(("video.", "audio.")) or k in ("has_audio", "is_depth_map")
+            },
+            **out,
         }
-        if ft.get("dtype") in CAMERA_DTYPES
-        else ft
-        for key, ft in features.items()
-    }
+    return out
+
+
+def plain_camera_features(features: Features, dtype: str | None = None) -> Features:
+    """`features` with every camera feature reduced to the keys lerobot itself declares (anything
+    else in a feature, e.g. intrinsics of older shiftkit datasets, stops `aggregate_datasets` from
+    merging with datasets recorded elsewhere): dtype, shape, names and lerobot's own `info` keys
+    (depth markers; a video's `video.*` keys while it stays a video). `dtype` ("image" or "video")
+    stores every camera, RGB and depth, in that form; None keeps each camera's own."""
+    out: Features = {}
+    for key, ft in features.items():
+        if ft.get("dtype") not in CAMERA_DTYPES:
+            out[key] = ft
+            continue
+        new_dtype = dtype or ft["dtype"]
+        plain = {"dtype": new_dtype, "shape": tuple(ft["shape"]), "names": ft.get("names")}
+        info = _lerobot_info(ft.get("info"), keep_video=new_dtype == ft["dtype"] == "video")
+        if info:
+            plain["info"] = info
+        out[key] = plain
+    return out
 
 
 def user_features(features: Features) -> Features:
@@ -75,7 +104,7 @@ def check_features(features: Features, where: str = "features") -> None:
         if "/" in key:
             raise DatasetError(f"{where}: feature name {key!r} contains '/' (not allowed in LeRobot datasets)")
         dtype = ft.get("dtype")
-        if dtype not in NUMERIC_DTYPES | CAMERA_DTYPES | {"string"}:
+        if dtype not in NUMERIC_DTYPES | CAMERA_DTYPES | TEXT_DTYPES:
             raise DatasetError(f"{where}: feature {key!r} has unsupported dtype {dtype!r}")
         shape = tuple(ft.get("shape", ()))
         if not shape or any((not isinstance(n, int)) or n <= 0 for n in shape):
@@ -105,8 +134,8 @@ def check_episode(episode: Episode, features: Features, fps: int, where: str) ->
         got = arr.shape[1:]
         if got != shape and not (shape == (1,) and got == ()):
             raise DatasetError(f"{where}: feature {key!r} has per-frame shape {got}, expected {shape}")
-        if arr.dtype != numpy_dtype(ft["dtype"]):
-            raise DatasetError(f"{where}: feature {key!r} has dtype {arr.dtype}, expected {numpy_dtype(ft['dtype'])}")
+        if arr.dtype != numpy_dtype(ft):
+            raise DatasetError(f"{where}: feature {key!r} has dtype {arr.dtype}, expected {numpy_dtype(ft)}")
         if arr.dtype.kind == "f" and not np.isfinite(arr).all():
             bad = int(np.argwhere(~np.isfinite(arr.reshape(n, -1)).all(axis=1))[0][0])
             raise DatasetError(f"{where}: feature {key!r} has NaN/inf values (first at frame {bad})")

@@ -15,11 +15,15 @@ declared `video`, through lerobot's own video encoder (`pipelines/video.py`).
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
 import io
 import json
 import os
 import shutil
+import sys
+import types
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -28,12 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines import camera_meta
+from shiftkit.pipelines import camera_meta, depth
 from shiftkit.pipelines.encoded_frames import EncodedFrames, source_png
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import (
     CAMERA_DTYPES,
+    TEXT_DTYPES,
     Features,
     check_episode,
     check_features,
@@ -42,7 +47,7 @@ from shiftkit.pipelines.features import (
 )
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.stats import RunningStats, image_stats, numeric_stats
-from shiftkit.pipelines.video import decode_episode, save_episode_videos
+from shiftkit.pipelines.video import decode_episode, encode_frames
 
 _EPISODES_PER_READ = 64  # a reader holds at most this many episodes' rows of one data file
 META_COLUMN = "shiftkit/meta"  # episode-level metadata (JSON) in meta/episodes/*.parquet
@@ -58,6 +63,25 @@ def _png_bytes(frame: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def _tiff_bytes(stored: np.ndarray) -> bytes:
+    """One depth frame, (H, W, 1) float32 or uint16, as the raw TIFF lerobot's `write_image` writes
+    for depth (PIL mode F / I;16, no compression)."""
+    import PIL.Image
+
+    buf = io.BytesIO()
+    PIL.Image.fromarray(np.ascontiguousarray(stored[..., 0])).save(buf, format="TIFF", compression="raw")
+    return buf.getvalue()
+
+
+def _frame_bytes(frames: np.ndarray, ft: dict[str, Any]) -> list[bytes]:
+    """The encoded bytes of every frame of an `image` feature, a frame's source bytes where it is
+    unchanged (`encoded_frames`): PNG for RGB, TIFF in the stored unit for depth."""
+    if depth.is_depth(ft):
+        unit = depth.depth_unit(ft)
+        return [source_png(f, frames) or _tiff_bytes(depth.to_stored(f, unit)) for f in frames]
+    return [source_png(f, frames) or _png_bytes(f) for f in frames]
+
+
 # Statistics that depend on where an episode lands in the dataset; all others are a function of
 # the episode alone and can be computed in parallel workers (`episode_stats`).
 POSITION_KEYS = ("episode_index", "index", "task_index")
@@ -69,7 +93,7 @@ def _episode_columns(episode: Episode, features: Features) -> dict[str, Any]:
     columns: dict[str, Any] = {}
     for key, ft in features.items():
         arr = episode.frames[key]
-        columns[key] = arr.reshape(n) if tuple(ft["shape"]) == (1,) and ft["dtype"] != "image" else arr
+        columns[key] = arr.reshape(n) if tuple(ft["shape"]) == (1,) and ft["dtype"] not in CAMERA_DTYPES else arr
     columns["timestamp"] = episode.frames["timestamp"].astype(
         np.float64
     )  # stored as float32; stats in float64 as lerobot
@@ -82,26 +106,29 @@ def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, n
     (`compute_episode_stats`' values, computed by `shiftkit.pipelines.stats`)."""
     columns = _episode_columns(episode, features)
     # Camera features, image or video: lerobot computes both from the frames before encoding
-    # (EncodedFrames carry decoded pixels: statistics read a plain array).
-    images = {k: np.asarray(columns.pop(k)) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
-    stats = numeric_stats({k: v for k, v in columns.items() if k not in features or features[k]["dtype"] != "string"})
-    stats.update({k: image_stats(v) for k, v in images.items()})
+    # (EncodedFrames carry decoded pixels: statistics read a plain array). Depth statistics are
+    # in the stored unit, not scaled to [0, 1].
+    cameras = {k: np.asarray(columns.pop(k)) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
+    stats = numeric_stats(
+        {k: v for k, v in columns.items() if k not in features or features[k]["dtype"] not in TEXT_DTYPES}
+    )
+    for key, frames in cameras.items():
+        ft = features[key]
+        if depth.is_depth(ft):
+            stats[key] = image_stats(depth.to_stored(frames, depth.depth_unit(ft)), depth=True)
+        else:
+            stats[key] = image_stats(frames)
     return stats
 
 
 def encode_images(episode: Episode, features: Features) -> Episode:
-    """`episode` with every `image` feature as `EncodedFrames` holding each frame's PNG bytes (a
-    frame's source bytes where it is unchanged), so that the writer reuses them. Pipeline workers
-    call this, so that PNG encoding, the largest cost of writing images, runs in parallel rather
-    than in the one writer."""
+    """`episode` with every `image` feature as `EncodedFrames` holding each frame's encoded bytes
+    (a frame's source bytes where it is unchanged), so that the writer reuses them. Pipeline
+    workers call this, so that image encoding, the largest cost of writing images, runs in
+    parallel rather than in the one writer."""
     keys = [k for k, ft in features.items() if ft["dtype"] == "image"]
     return episode.with_frames(
-        **{
-            k: EncodedFrames.wrap(
-                episode.frames[k], [source_png(f, episode.frames[k]) or _png_bytes(f) for f in episode.frames[k]]
-            )
-            for k in keys
-        }
+        **{k: EncodedFrames.wrap(episode.frames[k], _frame_bytes(episode.frames[k], features[k])) for k in keys}
     )
 
 
@@ -121,8 +148,10 @@ class DatasetWriter:
         features: Features,
         robot_type: str | None = None,
     ) -> None:
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
-        from lerobot.datasets.utils import get_hf_features_from_features
+        from lerobot.configs import depth_encoder_defaults, rgb_encoder_defaults
+        from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+        from lerobot.datasets.dataset_writer import DatasetWriter as LeRobotWriter
+        from lerobot.datasets.feature_utils import get_hf_features_from_features
 
         self.root = Path(root)
         if self.root.exists():
@@ -137,13 +166,23 @@ class DatasetWriter:
             self.root.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DatasetError(f"cannot create the destination's folder {self.root.parent}: {exc.strerror}") from None
-        self._ds = LeRobotDataset.create(
-            repo_id, self.fps, dict(self.features), root=self.tmp, robot_type=robot_type, use_videos=bool(video_keys)
+        # lerobot's own metadata and writer objects: the writer appends video files and fills a
+        # video feature's `info` (`video.*`, the depth quantiser) exactly as its save_episode does.
+        self._meta = LeRobotDatasetMetadata.create(
+            repo_id, self.fps, dict(self.features), robot_type=robot_type, root=self.tmp, use_videos=bool(video_keys)
         )
-        self._meta = self._ds.meta
+        self._encoders = {"rgb": rgb_encoder_defaults(), "depth": depth_encoder_defaults()}
+        self._lerobot = LeRobotWriter(
+            self._meta,
+            self.tmp,
+            rgb_encoder=self._encoders["rgb"],
+            depth_encoder=self._encoders["depth"],
+            encoder_threads=None,
+            batch_encoding_size=1,
+        )
         self._stats = RunningStats()
         self._task_index: dict[str, int] = {}
-        self._hf_features = get_hf_features_from_features(self._ds.features)
+        self._hf_features = get_hf_features_from_features(self._meta.features)
         self._arrow_schema = self._hf_features.arrow_schema  # with datasets' feature metadata
         self._image_keys = [k for k, ft in self.features.items() if ft["dtype"] == "image"]
         self._video_keys = video_keys
@@ -172,7 +211,9 @@ class DatasetWriter:
         (index, episode_index, task_index).
         """
         import pyarrow.parquet as pq
-        from lerobot.datasets.utils import flatten_dict, get_file_size_in_mb, update_chunk_file_indices
+        from lerobot.datasets.io_utils import get_file_size_in_mb
+        from lerobot.datasets.utils import update_chunk_file_indices
+        from lerobot.utils.utils import flatten_dict
 
         where = f"episode {episode.meta.get('source_episode_index', self.num_episodes)}"
         check_episode(episode, self.features, self.fps, where)
@@ -189,9 +230,10 @@ class DatasetWriter:
         start = self.num_frames
         columns = _episode_columns(episode, self.features)
         for key in self._image_keys:
+            suffix = "tiff" if depth.is_depth(self.features[key]) else "png"  # lerobot's file names
             columns[key] = [
-                {"bytes": source_png(f, columns[key]) or _png_bytes(f), "path": f"frame-{t:06d}.png"}
-                for t, f in enumerate(columns[key])
+                {"bytes": b, "path": f"frame-{t:06d}.{suffix}"}
+                for t, b in enumerate(_frame_bytes(columns[key], self.features[key]))
             ]
         columns["episode_index"] = np.full(n, self.num_episodes, dtype=np.int64)
         columns["index"] = np.arange(start, start + n, dtype=np.int64)
@@ -201,10 +243,10 @@ class DatasetWriter:
             stats = episode_stats(episode, self.features)
         stats = {**stats, **numeric_stats({k: columns[k] for k in POSITION_KEYS})}
         # Same key order as lerobot (feature order), which fixes the episodes-parquet columns.
-        stats = {k: stats[k] for k in self._ds.features}
+        stats = {k: stats[k] for k in self._meta.features if k in stats}
 
         table = self._arrow_table(columns)
-        videos = save_episode_videos(self._ds, self.num_episodes, {k: episode.frames[k] for k in self._video_keys})
+        videos = self._save_videos({k: episode.frames[k] for k in self._video_keys})
 
         # Same file rotation rule as lerobot's writer: start a new data file when this episode
         # would push the current one past data_files_size_in_mb.
@@ -228,7 +270,8 @@ class DatasetWriter:
         self._writer.write_table(table)
 
         # What LeRobotDatasetMetadata.save_episode does, minus rewriting info.json and
-        # stats.json after every episode: the writer writes them once, in close().
+        # stats.json (and aggregating all statistics again) after every episode: the writer
+        # writes them once, in close().
         info = self._meta.info
         self._meta._save_episode_metadata(
             {
@@ -244,13 +287,32 @@ class DatasetWriter:
                 **flatten_dict({"stats": stats}),
             }
         )
-        info["total_episodes"] += 1
-        info["total_frames"] += n
-        info["total_tasks"] = len(self._meta.tasks)
-        info["splits"] = {"train": f"0:{info['total_episodes']}"}
+        info.total_episodes += 1
+        info.total_frames += n
+        info.total_tasks = len(self._meta.tasks)
+        info.splits = {"train": f"0:{info.total_episodes}"}
         self._stats.add(stats)  # lerobot's aggregate_stats([stats, episode stats]), vectorised
         self.num_episodes += 1
         self.num_frames += n
+
+    def _save_videos(self, videos: dict[str, np.ndarray]) -> dict[str, Any]:
+        """Encode this episode's video features with lerobot's encoder settings (RGB, or depth
+        through its quantiser) and append them to the dataset's video files as lerobot's writer
+        does; returns the `videos/KEY/...` episode metadata."""
+        import tempfile
+
+        metadata: dict[str, Any] = {}
+        for key, frames in videos.items():
+            is_depth = depth.is_depth(self.features[key])
+            encoder = self._encoders["depth" if is_depth else "rgb"]
+            if is_depth:  # lerobot encodes depth from its stored unit (float32 m or uint16 mm)
+                frames = depth.to_stored(frames, depth.depth_unit(self.features[key]))
+            # lerobot's layout: a temporary folder in the dataset root, removed by _save_episode_video.
+            path = Path(tempfile.mkdtemp(dir=self.tmp)) / f"{key}_{self.num_episodes:03d}.mp4"
+            encode_frames(frames, path, self.fps, encoder)
+            metadata.update(self._lerobot._save_episode_video(key, self.num_episodes, temp_path=path))
+        metadata.pop("episode_index", None)
+        return metadata
 
     def _take_cameras(self, meta: dict[str, Any], where: str) -> dict[str, Any]:
         """Keep the episode's camera metadata for meta/cameras.json; the rest of `meta` is returned
@@ -263,8 +325,8 @@ class DatasetWriter:
     def _arrow_table(self, columns: dict[str, Any]) -> Any:
         """The episode as Arrow, encoded exactly as `datasets.Dataset.from_dict` does for lerobot,
         without the Dataset object, whose fingerprinting pickles every value (~50 ms/episode).
-        Numeric columns go straight from their numpy arrays; the others (images, n-d arrays)
-        through datasets' own per-value encoding."""
+        Numeric columns go straight from their numpy arrays; the others (images, n-d arrays,
+        language) through datasets' own per-value encoding."""
         import pyarrow as pa
 
         schema = self._arrow_schema
@@ -276,7 +338,9 @@ class DatasetWriter:
 
             features = self._hf_features
             typed = {
-                key: OptimizedTypedSequence(features.encode_column(columns[key], key), type=features[key], col=key)
+                key: OptimizedTypedSequence(
+                    features.encode_column(list(columns[key]), key), type=features[key], col=key
+                )
                 for key in encoded
             }
             table = InMemoryTable.from_pydict(mapping=typed).table.cast(pa.schema([schema.field(k) for k in encoded]))
@@ -294,7 +358,7 @@ class DatasetWriter:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
-        self._meta._close_writer()
+        self._lerobot.finalize()  # lerobot's: flushes the episodes table, closes its files
         shutil.rmtree(self.tmp / "images", ignore_errors=True)  # the video encoder's input frames
         self._write_info_and_stats()
         cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
@@ -310,18 +374,20 @@ class DatasetWriter:
     def _write_info_and_stats(self) -> None:
         """info.json and stats.json, once. lerobot aggregates stats over a `set` of keys, so their
         order would follow the process's string-hash seed: write them in feature order instead."""
-        from lerobot.datasets.utils import write_info, write_stats
+        from lerobot.datasets.io_utils import write_info, write_stats
 
         write_info(self._meta.info, self.tmp)
         stats = self._meta.stats = self._stats.result()
-        write_stats({k: stats[k] for k in self._ds.features if k in stats}, self.tmp)
+        write_stats({k: stats[k] for k in self._meta.features if k in stats}, self.tmp)
 
     def abort(self) -> None:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
-        self._meta.metadata_buffer.clear()
-        self._meta._close_writer()
+        # Drop the buffered episode rows first: finalizing would write them into the folder
+        # about to be removed (and re-create it).
+        self._meta._metadata_buffer.clear()
+        self._lerobot.finalize()
         shutil.rmtree(self.tmp, ignore_errors=True)
         self._closed = True
 
@@ -351,6 +417,98 @@ def write_provenance(root: Path, provenance: dict[str, Any]) -> None:
     (root / PROVENANCE_PATH).write_text(dumps(provenance, indent=2))
     # errors=: a source path that is not UTF-8 is shown escaped rather than failing the write.
     (root / "README.md").write_text(render_dataset_card(root, provenance), errors="backslashreplace")
+
+
+# --------------------------------------------------------------------------- merging
+
+
+def aggregate_shards(repo_id: str, roots: list[Path], dest: Path) -> tuple[int, int]:
+    """Merge the datasets at `roots` (in order) into a new dataset at `dest` with lerobot's own
+    `aggregate_datasets`, then correct what it copies although it depends on an episode's place
+    (`fix_position_stats`). Returns (episodes, frames)."""
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    with _quiet_progress_bars():
+        aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=dest)
+    return fix_position_stats(dest)
+
+
+@contextlib.contextmanager
+def _quiet_progress_bars() -> Iterator[None]:
+    """Silence the bars that lerobot's aggregation and `datasets` draw per shard (ours shows the
+    progress). lerobot re-enables `datasets` bars after each read, so the check itself is swapped."""
+    import tqdm
+    from lerobot.datasets import aggregate
+
+    hf_bars = sys.modules["datasets.utils.tqdm"]
+    disabled = hf_bars.are_progress_bars_disabled
+    hf_bars.are_progress_bars_disabled = lambda: True
+    aggregate.tqdm = types.SimpleNamespace(tqdm=functools.partial(tqdm.tqdm, disable=True))
+    try:
+        yield
+    finally:
+        aggregate.tqdm = tqdm
+        hf_bars.are_progress_bars_disabled = disabled
+
+
+def fix_position_stats(root: Path) -> tuple[int, int]:
+    """Recompute what aggregation copies from each shard although it depends on the episode's place
+    in the whole dataset: the per-episode and dataset statistics of `index`, `episode_index` and
+    `task_index`. Also rewrites meta/stats.json in feature order (lerobot aggregates statistics over
+    a `set` of keys, whose order follows the process's string-hash seed). Returns (episodes, frames)."""
+    import numpy as np
+    import pandas as pd
+    import pyarrow.parquet as pq
+    from lerobot.datasets.compute_stats import aggregate_stats
+    from lerobot.datasets.io_utils import load_stats, write_stats
+
+    info = json.loads((root / "meta" / "info.json").read_text())
+    features = info["features"]
+    data = [pq.read_table(p, columns=list(POSITION_KEYS)) for p in sorted((root / "data").rglob("*.parquet"))]
+    columns = {k: np.concatenate([t.column(k).to_numpy() for t in data]) for k in POSITION_KEYS}
+    if not (columns["index"] == np.arange(len(columns["index"]))).all():
+        raise DatasetError(f"{root}: aggregated frames are not in index order")
+    episode_stats = []
+    for path in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        df = pd.read_parquet(path)
+        new: dict[str, list[Any]] = {}
+        for lo, hi in zip(df["dataset_from_index"], df["dataset_to_index"], strict=True):
+            stats = numeric_stats({k: columns[k][lo:hi] for k in POSITION_KEYS})
+            episode_stats.append(stats)
+            for key, values in stats.items():
+                for name, value in values.items():
+                    new.setdefault(f"stats/{key}/{name}", []).append(np.asarray(value))
+        for col, values in new.items():
+            df[col] = values
+        df.to_parquet(path)
+    stats = load_stats(root)
+    stats.update(aggregate_stats(episode_stats))
+    write_stats({k: stats[k] for k in features if k in stats}, root)
+    return int(info["total_episodes"]), int(info["total_frames"])
+
+
+# --------------------------------------------------------------------------- v2.1 conversion
+
+V21_CONVERTER = "lerobot.scripts.convert_dataset_v21_to_v30"
+
+
+def convert_v21(source: Path, dest: Path) -> tuple[int, int, int]:
+    """lerobot's v2.1 -> v3.0 conversion steps from `source` into a new folder `dest`: its
+    `convert_dataset` works in place (renames the source), these steps read `source` only.
+    Returns (episodes, frames, fps)."""
+    import importlib
+
+    from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+    from lerobot.datasets.utils import DEFAULT_DATA_FILE_SIZE_IN_MB, DEFAULT_VIDEO_FILE_SIZE_IN_MB
+
+    converter = importlib.import_module(V21_CONVERTER)
+    converter.convert_info(source, dest, DEFAULT_DATA_FILE_SIZE_IN_MB, DEFAULT_VIDEO_FILE_SIZE_IN_MB)
+    converter.convert_tasks(source, dest)
+    episodes = converter.convert_data(source, dest, DEFAULT_DATA_FILE_SIZE_IN_MB)
+    videos = converter.convert_videos(source, dest, DEFAULT_VIDEO_FILE_SIZE_IN_MB)
+    converter.convert_episodes_metadata(source, dest, episodes, videos)
+    meta = LeRobotDatasetMetadata(dest.name, root=dest)  # loads: info, tasks, episodes, stats
+    return meta.total_episodes, meta.total_frames, meta.fps
 
 
 # --------------------------------------------------------------------------- reading
@@ -467,7 +625,9 @@ class LeRobotDatasetReader:
             col = part.column(key)
             if ft["dtype"] == "image":
                 encoded = [v["bytes"] for v in col.to_pylist()]  # kept: unchanged frames are not re-encoded
-                frames[key] = EncodedFrames.wrap(np.stack([_decode_png(b, where) for b in encoded]), encoded)
+                frames[key] = EncodedFrames.wrap(np.stack([decode_image(b, where, ft) for b in encoded]), encoded)
+            elif ft["dtype"] == "language":
+                frames[key] = np.array(col.to_pylist() + [None], dtype=object)[:-1]  # a list per frame
             elif ft["dtype"] == "string":
                 frames[key] = np.array(col.to_pylist(), dtype=str).reshape(n, 1)
             else:
@@ -485,7 +645,8 @@ class LeRobotDatasetReader:
         chunk, file = int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])
         path = self.root / self.info["video_path"].format(video_key=key, chunk_index=chunk, file_index=file)
         offset = float(row[f"videos/{key}/from_timestamp"])
-        return decode_episode(path, offset, timestamps, f"{self.root} episode {int(row['episode_index'])} {key}")
+        where = f"{self.root} episode {int(row['episode_index'])} {key}"
+        return decode_video(path, offset, timestamps, where, self._features[key])
 
 
 def _column_to_numpy(col: Any, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
@@ -501,6 +662,18 @@ def _column_to_numpy(col: Any, shape: tuple[int, ...], dtype: np.dtype) -> np.nd
     return np.asarray(col.to_numpy(zero_copy_only=False), dtype=dtype)
 
 
+def decode_image(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
+    """One frame of an `image` feature as shiftkit holds it: RGB uint8 (H, W, 3), depth float32
+    metres (H, W, 1). The one image decoder of stages and trainers."""
+    return _decode_depth(data, where, ft) if depth.is_depth(ft) else _decode_png(data, where)
+
+
+def decode_video(path: Path, start: float, timestamps: np.ndarray, where: str, ft: dict[str, Any]) -> np.ndarray:
+    """The frames of a `video` feature at `start + timestamps` in the file at `path`, as
+    `decode_image` gives them. The one video decoder of stages and trainers."""
+    return decode_episode(path, start, timestamps, where, ft.get("info") if depth.is_depth(ft) else None)
+
+
 def _decode_png(data: bytes, where: str) -> np.ndarray:
     import cv2
 
@@ -508,6 +681,24 @@ def _decode_png(data: bytes, where: str) -> np.ndarray:
     if img is None:
         raise DatasetError(f"{where}: undecodable image bytes")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _decode_depth(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
+    """A lerobot depth image (TIFF, float32 m or uint16 mm; PNG for 16-bit writers) -> (H, W, 1) metres."""
+    import PIL.Image
+
+    try:
+        with PIL.Image.open(io.BytesIO(data)) as img:
+            arr = np.array(img)
+    except Exception as exc:  # PIL raises several types for corrupt files
+        raise DatasetError(f"{where}: undecodable depth image bytes ({type(exc).__name__})") from None
+    if arr.ndim != 2 or arr.dtype not in (np.float32, np.uint16):
+        raise DatasetError(f"{where}: depth image of shape {arr.shape} and dtype {arr.dtype} is not one lerobot writes")
+    shape = tuple(ft["shape"])
+    if arr.shape != shape[:2]:
+        raise DatasetError(f"{where}: depth image has shape {arr.shape}, expected {shape[:2]}")
+    info_unit = (ft.get("info") or {}).get("depth_unit")
+    return depth.clean_metres(depth.to_metres(arr, info_unit if info_unit else None))
 
 
 def check_info_values(info: dict[str, Any], info_path: Path) -> None:

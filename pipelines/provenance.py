@@ -23,26 +23,53 @@ def versions() -> dict[str, str]:
     return out
 
 
-def build_provenance(
-    plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int, report: list[dict[str, int]]
+def make_provenance(
+    *,
+    repo_id: str,
+    fps: int,
+    num_episodes: int,
+    num_frames: int,
+    sources: list[dict[str, Any]],
+    stages: list[dict[str, Any]] | None = None,
+    seed: int | None = None,
+    **extra: Any,
 ) -> dict[str, Any]:
-    """`report`: per stage, the run's totals of the events it counted (`Stage.report`), stored as
-    the stage entry's "report" when it counted any."""
+    """The provenance record every shiftkit dataset carries (pipelines, importers, FIRE): tool and
+    versions, the sources with their fingerprints, the stages with their parameters, the seed and
+    what was written; `extra` adds the producer's own entries (`executor`, `pipeline`,
+    `importer`, `fire`)."""
     return {
         "provenance_version": PROVENANCE_VERSION,
         "tool": "shiftkit",
         "versions": versions(),
-        "sources": [s.describe() for s in plan.sources],
-        "stages": [
+        "sources": sources,
+        "stages": stages or [],
+        "seed": seed,
+        **extra,
+        "output": {"repo_id": repo_id, "fps": fps, "episodes": num_episodes, "frames": num_frames},
+    }
+
+
+def build_provenance(
+    plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int, report: list[dict[str, int]]
+) -> dict[str, Any]:
+    """A pipeline run's provenance. `report`: per stage, the run's totals of the events it counted
+    (`Stage.report`), stored as the stage entry's "report" when it counted any."""
+    return make_provenance(
+        repo_id=plan.repo_id,
+        fps=plan.fps,
+        num_episodes=num_episodes,
+        num_frames=num_frames,
+        sources=[s.describe() for s in plan.sources],
+        stages=[
             {**s.describe(), "report": counts} if counts else s.describe()
             for s, counts in zip(plan.stages, report, strict=True)
         ],
-        "seed": plan.config.seed,
-        "executor": executor,
-        "output": {"repo_id": plan.repo_id, "fps": plan.fps, "episodes": num_episodes, "frames": num_frames},
+        seed=plan.config.seed,
+        executor=executor,
         # The pipeline config itself: `shiftkit run` accepts this object saved as a .json file.
-        "pipeline": asdict(plan.config),
-    }
+        pipeline=asdict(plan.config),
+    )
 
 
 def format_report(counts: dict[str, int]) -> str:

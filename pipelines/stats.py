@@ -1,23 +1,35 @@
 """Episode statistics with lerobot's values, computed without lerobot's per-dimension loops.
 
-lerobot 0.4.4 (`lerobot.datasets.compute_stats`) estimates quantiles from a 5000-bin histogram per
+lerobot 0.6.1 (`lerobot.datasets.compute_stats`) estimates quantiles from a 5000-bin histogram per
 dimension: one `np.histogram` (a sort) and, per quantile, a `cumsum` over all 5000 bins. Only a few
 bins matter: the one holding each quantile's target count and its left neighbour. Here each column
 is sorted once (all columns of a dtype together) and those bins' cumulative counts are found by
 binary search in the sorted column, which gives the histogram's counts exactly, so every value
 (and dtype) equals `compute_episode_stats` / `get_feature_stats`. Mean, mean of squares, min and
 max use lerobot's own numpy expressions on the same arrays, so their rounding is the same too.
+
+Since 0.6.1 lerobot's `RunningQuantileStats.update` first promotes every batch to
+`np.result_type(dtype, np.float32)` (bool, uint8, uint16, int8/16 and float16 to float32; int32,
+int64 to float64), so every statistic of a column with two rows or more, min and max included, is
+float32 or float64, and the mean of a float32 batch (RGB pixels too) is summed in float32. The
+special case of fewer than two rows (`_compute_basic_stats`) is not promoted. Both are mirrored
+here (`_promoted`, `_basic_stats`).
+
+Camera features (`image_stats`): RGB statistics are divided by 255; depth maps (lerobot 0.6.1's
+`is_depth_map` features) are not, and stay in their stored unit (float32 metres or uint16
+millimetres), as `compute_episode_stats` gives them.
+
+Nothing here imports lerobot: its module loads torch (and, since 0.6.1, lerobot.processor),
+seconds and hundreds of MB in every pipeline worker.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
-from typing import Any
 
 import numpy as np
 
-# lerobot 0.4.4's DEFAULT_QUANTILES and RunningQuantileStats' bin count (tests/test_stats.py checks).
+# lerobot 0.6.1's DEFAULT_QUANTILES and RunningQuantileStats' bin count (tests/test_stats.py checks).
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
 QUANTILE_KEYS = tuple(f"q{int(q * 100):02d}" for q in QUANTILES)
 NUM_BINS = 5000
@@ -26,19 +38,38 @@ _PAD = 1e-10  # lerobot widens the histogram range by this much on both sides
 Stats = dict[str, np.ndarray]
 
 
-def _edge_dtype(dtype: np.dtype) -> np.dtype:
-    """dtype of lerobot's bin edges for a column (`np.linspace(min - 1e-10, ...)` under NEP 50)."""
-    return np.dtype(np.float32) if dtype == np.float32 else np.dtype(np.float64)
+def _promoted(dtype: np.dtype) -> np.dtype:
+    """The dtype lerobot 0.6.1's `RunningQuantileStats.update` computes a batch in
+    (`batch.astype(np.result_type(batch.dtype, np.float32))`): float32 or float64. It is also the
+    dtype of its bin edges (`np.linspace(min - 1e-10, ...)` on a float32 or float64 min, NEP 50)."""
+    return np.result_type(dtype, np.float32)
 
 
-def _moments(rows: np.ndarray, count: int) -> Stats:
-    """min, max, mean, std and `count` exactly as RunningQuantileStats computes them from one batch."""
+def _basic_stats(rows: np.ndarray, count: int) -> Stats:
+    """lerobot's `_compute_basic_stats`, its statistics of fewer than two rows (on the rows as
+    given: this path does not promote them), quantiles set to the mean."""
+    mean = np.mean(rows, axis=0)
+    stats = {
+        "min": np.min(rows, axis=0),
+        "max": np.max(rows, axis=0),
+        "mean": mean,
+        "std": np.std(rows, axis=0),
+        "count": np.array([count]),
+    }
+    stats.update({key: mean.copy() for key in QUANTILE_KEYS})
+    return stats
+
+
+def _moments(rows: np.ndarray, count: int, extremes: bool = True) -> Stats:
+    """min, max, mean, std and `count` exactly as RunningQuantileStats computes them from one batch
+    (`rows` already promoted, laid out in memory as lerobot's: float32 means depend on it).
+    `extremes=False` leaves min and max (None) to the caller."""
     mean = np.mean(rows, axis=0)
     mean_sq = np.mean(rows**2, axis=0)
     # (lerobot's running update then adds (batch_mean - mean) * 1, a no-op: np.mean never returns -0.0.)
     return {
-        "min": np.min(rows, axis=0),
-        "max": np.max(rows, axis=0),
+        "min": np.min(rows, axis=0) if extremes else None,
+        "max": np.max(rows, axis=0) if extremes else None,
         "mean": mean,
         "std": np.sqrt(np.maximum(0, mean_sq - mean**2)),
         "count": np.array([count]),
@@ -77,14 +108,27 @@ def _edges_at_most(v: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.nda
         m = m - down + up
 
 
-def _quantiles(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """lerobot's histogram quantiles of each column of `columns` (rows, cols), in the edge dtype.
+def _sorted(columns: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Each column of `columns` (rows, cols) sorted and promoted to `dtype`: (cols, rows).
 
-    Returns the values (len(QUANTILES), cols), float64, and a mask of the entries that lerobot
-    returns as a bare bin edge (the first bin), which keep the edge dtype.
+    Promotion is monotonic (non-decreasing), so integers and bools are sorted before it, in their
+    own, narrower dtype (radix sort for 8 and 16 bits), which gives the same array."""
+    if columns.dtype.kind in "biu":
+        kind = "stable" if columns.dtype.itemsize <= 2 else None  # numpy's radix sort
+        return np.sort(columns.T, axis=1, kind=kind).astype(dtype)
+    return np.sort(columns.T.astype(dtype, copy=False), axis=1)
+
+
+def _quantiles(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """lerobot's histogram quantiles of each column of `columns` (rows, cols), computed (as lerobot
+    does) in the promoted dtype, which is also the edges' dtype.
+
+    Returns the values (len(QUANTILES), cols), float64; a mask of the entries that lerobot
+    returns as a bare bin edge (the first bin), which keep the edge dtype; and each column's
+    (promoted) minimum and maximum, (2, cols).
     """
     rows = columns.shape[0]
-    ordered = np.sort(columns.T, axis=1)  # (cols, rows)
+    ordered = _sorted(columns, _promoted(columns.dtype))  # (cols, rows)
     start, stop = ordered[:, 0] - _PAD, ordered[:, -1] + _PAD
     targets = np.array([q * rows for q in QUANTILES])
     # The first bin whose cumulative count reaches a target holds the value of rank ceil(target)
@@ -99,25 +143,33 @@ def _quantiles(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         fraction = (targets[None, :] - below) / (through - below)
     values = lo.astype(np.float64) + fraction * (hi - lo).astype(np.float64)
     values[first] = lo[first]
-    return values.T, first.T
+    return values.T, first.T, ordered[:, [0, -1]].T.copy()
 
 
 def _batch_stats(batches: list[np.ndarray], counts: list[int]) -> list[Stats]:
-    """`get_feature_stats`' statistics of each 2-D batch (RunningQuantileStats over its rows),
-    reporting `counts` as the sample counts, in lerobot's key order.
+    """`get_feature_stats`' statistics of each 2-D batch of two rows or more (RunningQuantileStats
+    over its rows), reporting `counts` as the sample counts, in lerobot's key order.
 
-    Batches with the same edge dtype and row count share one sort.
+    Batches with the same dtype and row count share one sort. The min and max of integers and
+    bools are read from it (np.min / np.max over axis 0 of a narrow array are slow loops); those of
+    floats come from np.min / np.max, which decide between -0.0 and 0.0 as lerobot's do.
     """
-    out: list[Stats] = [_moments(b, n) for b, n in zip(batches, counts, strict=True)]
+    out = [
+        _moments(b.astype(_promoted(b.dtype), copy=False), n, extremes=b.dtype.kind not in "biu")
+        for b, n in zip(batches, counts, strict=True)
+    ]
     groups: dict[tuple[np.dtype, int], list[int]] = {}
     for i, b in enumerate(batches):
-        groups.setdefault((_edge_dtype(b.dtype), b.shape[0]), []).append(i)
-    for (dtype, _), members in groups.items():
-        values, first = _quantiles(np.concatenate([batches[i].astype(dtype, copy=False) for i in members], axis=1))
+        groups.setdefault((b.dtype, b.shape[0]), []).append(i)
+    for (raw, _), members in groups.items():
+        dtype = _promoted(raw)
+        values, first, extremes = _quantiles(np.concatenate([batches[i] for i in members], axis=1))
         start = 0
         for i in members:
             width = batches[i].shape[1]
             v, f = values[:, start : start + width], first[:, start : start + width]
+            if out[i]["min"] is None:
+                out[i]["min"], out[i]["max"] = extremes[:, start : start + width]
             start += width
             for k, key in enumerate(QUANTILE_KEYS):
                 # lerobot builds each quantile with np.array(list of scalars): float32 only when
@@ -136,8 +188,9 @@ def numeric_stats(columns: dict[str, np.ndarray]) -> dict[str, Stats]:
     stats: dict[str, Stats] = {}
     keys, batches = [], []
     for key, data in columns.items():
-        if data.shape[0] < 2:  # lerobot's own special case (no histogram); rare, so delegate
-            stats[key] = _lerobot_feature_stats(data, axis=0, keepdims=data.ndim == 1)
+        if data.shape[0] < 2:  # lerobot's own special case (no histogram, no promotion)
+            # (keepdims for 1-D data reshapes the (1,) statistics to (1,): a no-op)
+            stats[key] = _basic_stats(data.reshape(-1, 1) if data.ndim == 1 else data, data.shape[0])
             continue
         keys.append(key)
         batches.append(data.reshape(-1, 1) if data.ndim == 1 else data.reshape(-1, data.shape[-1]))
@@ -159,26 +212,52 @@ def _image_samples(frames: np.ndarray) -> np.ndarray:
     return frames[indices, ::step, ::step]
 
 
-def image_stats(frames: np.ndarray) -> Stats:
-    """lerobot's image statistics (`sample_images` + `get_feature_stats` over (0, 2, 3), divided
-    by 255) from in-memory (frames, H, W, C) uint8 frames: sampled and downscaled as lerobot does."""
+DEPTH_DTYPES = (np.dtype(np.float32), np.dtype(np.uint16))  # lerobot's depth images: 'm' and 'mm'
+
+
+def image_stats(frames: np.ndarray, depth: bool = False) -> Stats:
+    """lerobot 0.6.1's `compute_episode_stats` statistics of one camera feature (`image` or
+    `video`) from its frames held in memory, (T, H, W, C): sampled and downscaled as `sample_images`
+    does, then `get_feature_stats` over (0, 2, 3), values of shape (C, 1, 1) and `count` (1,).
+
+    * `depth=False` (RGB): `frames` uint8 (T, H, W, 3), the pixels lerobot reads back from its PNG
+      frames; statistics divided by 255 (in [0, 1]).
+    * `depth=True`: a depth map, a feature whose `info` has `is_depth_map: True`. `frames` float32
+      metres (`depth_unit` 'm') or uint16 millimetres ('mm'), (T, H, W, 1) or (T, H, W): the
+      values lerobot writes to and reads back from its TIFF frames in their native dtype. Not
+      divided (lerobot divides by 1.0): statistics stay in the stored unit. With two pixels
+      sampled or more, min, max, mean and std are float32 for both units (lerobot promotes uint16
+      to float32), quantiles float64 (float32 where all are a bin's lower edge); for a single
+      sampled pixel (lerobot's unpromoted special case) everything is float32 for metres, float64
+      for millimetres. Values must be finite (lerobot's histogram of a NaN is no statistic).
+
+    `depth_stats(frames)` is `image_stats(frames, depth=True)`.
+    """
+    frames = np.asarray(frames)
+    if depth:
+        if frames.ndim == 3:
+            frames = frames[..., None]
+        if frames.ndim != 4 or frames.shape[-1] != 1 or frames.dtype not in DEPTH_DTYPES:
+            raise ValueError(
+                f"depth frames must be float32 metres or uint16 millimetres, (T, H, W, 1) or (T, H, W); "
+                f"got {frames.dtype} {frames.shape}"
+            )
+    elif frames.ndim != 4:
+        raise ValueError(f"image frames must be (T, H, W, C); got shape {frames.shape}")
     sampled = _image_samples(frames)
-    pixels = sampled.reshape(-1, sampled.shape[-1])
+    pixels = sampled.reshape(-1, sampled.shape[-1])  # lerobot's (samples * H' * W', C) rows
     if pixels.shape[0] < 2:
-        stats = _lerobot_feature_stats(sampled.transpose(0, 3, 1, 2), axis=(0, 2, 3), keepdims=True)
+        stats = _basic_stats(pixels, sampled.shape[0])
     else:
         stats = _batch_stats([pixels], [sampled.shape[0]])[0]
-        stats = {k: v if k == "count" else v.reshape(1, -1, 1, 1) for k, v in stats.items()}
-    return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
+    factor = 1.0 if depth else 255.0
+    return {k: v if k == "count" else np.squeeze(v.reshape(1, -1, 1, 1) / factor, axis=0) for k, v in stats.items()}
 
 
-def _lerobot_feature_stats(data: np.ndarray, **kwargs: Any) -> Stats:
-    from lerobot.datasets.compute_stats import get_feature_stats
-
-    with warnings.catch_warnings():
-        # lerobot's histogram code warns for every bool feature (e.g. next.success).
-        warnings.filterwarnings("ignore", message="Converting input from bool", category=RuntimeWarning)
-        return get_feature_stats(data, **kwargs)
+def depth_stats(frames: np.ndarray) -> Stats:
+    """`image_stats(frames, depth=True)`: a depth feature's statistics, float32 metres or uint16
+    millimetres (T, H, W, 1), in the stored unit, as lerobot 0.6.1's `compute_episode_stats`."""
+    return image_stats(frames, depth=True)
 
 
 class RunningStats:

@@ -29,6 +29,7 @@ from torch import nn
 from tqdm import tqdm
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.pipelines.features import numpy_dtype
 from shiftkit.policies.data import FrameTable, Prefetcher, batches_per_epoch, epoch_batches, open_datasets
 from shiftkit.policies.networks import image_encoder, mlp, orthogonal_init_
 from shiftkit.policies.run_dir import RunDir, dataset_records, load_checkpoint, torch_device, versions
@@ -182,7 +183,8 @@ class Normalizer(nn.Module):
         super().__init__()
         self.keys = [*spec.numeric_keys(), *spec.image_keys(), "action"]
         self.images = set(spec.image_keys())
-        self.uint8 = {k for k in self.images if spec.features[k]["dtype"] in ("image", "video")}
+        # RGB cameras are uint8 (scaled to [0, 1] as lerobot's image stats are); depth is metres.
+        self.uint8 = {k for k in self.images if numpy_dtype(spec.features[k]) == np.uint8}
         for i, key in enumerate(self.keys):
             mean = np.asarray(spec.stats[key]["mean"], dtype=np.float32)
             std = np.asarray(spec.stats[key]["std"], dtype=np.float32)

@@ -6,10 +6,10 @@ whole batches by global frame index, straight from the dataset's memory-mapped A
 
 * numeric features (`observation.state`, `action`, ...): one contiguous numpy array per feature,
   gathered with numpy fancy indexing;
-* image features (`dtype: image`, PNG bytes inside Arrow): only the batch's rows are taken from
-  Arrow and decoded, once per batch, with OpenCV;
-* video features: every file is decoded once, sequentially, into a uint8 frame array (random
-  seeks into AV1 video per frame would dominate training time); `max_decoded_bytes` bounds it.
+* image features (`dtype: image`, PNG or depth TIFF bytes inside Arrow): only the batch's rows are
+  taken from Arrow and decoded, once per batch, by the pipelines' decoder (depth in metres);
+* video features: every episode is decoded once, sequentially, into a frame array (random seeks
+  into video per frame would dominate training time); `max_decoded_bytes` bounds it.
 
 `Prefetcher` runs the gathering in a background thread so the training loop only waits when the
 data is slower than the model. Several datasets with the same features are read as one.
@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import ResolvedDataset, resolve_dataset
+from shiftkit.pipelines.features import numpy_dtype
+from shiftkit.pipelines.lerobot_io import ResolvedDataset, decode_image, decode_video, resolve_dataset
 
 
 def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[ResolvedDataset, object]]:
@@ -39,7 +40,8 @@ def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Resolv
     for ref in refs:
         resolved = resolve_dataset(ref, root=root)
         try:
-            ds = LeRobotDataset(resolved.repo_id, root=resolved.root)
+            # Depth (features and statistics) in metres, as shiftkit's trainers take it.
+            ds = LeRobotDataset(resolved.repo_id, root=resolved.root, depth_output_unit="m")
         except Exception as exc:  # lerobot raises many types for a bad folder
             raise DatasetError(f"cannot open LeRobot dataset {ref!r} at {resolved.root}: {exc}") from exc
         opened.append((resolved, ds))
@@ -53,65 +55,40 @@ def numeric_column(ds, key: str) -> np.ndarray:
     return np.asarray(column, dtype=np.float32).reshape(len(column), *shape)
 
 
-def _decode_video_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """All frames of one video file: (presentation times in s, uint8 frames (T, H, W, 3))."""
-    import av
-
-    times, frames = [], []
-    with av.open(str(path)) as container:
-        stream = container.streams.video[0]
-        stream.thread_type = "AUTO"
-        for frame in container.decode(stream):
-            times.append(float(frame.time))
-            frames.append(frame.to_ndarray(format="rgb24"))
-    if not frames:
-        raise DatasetError(f"video file has no frames: {path}")
-    return np.asarray(times), np.stack(frames)
-
-
 def _decode_video_feature(ds, key: str, max_bytes: int) -> np.ndarray:
-    """Every frame of a video feature, in dataset row order, as uint8 `(N, H, W, 3)`."""
-    h, w, c = ds.meta.features[key]["shape"]
-    n = len(ds.hf_dataset)
-    if n * h * w * c > max_bytes:
+    """Every frame of a video feature, in dataset row order (RGB uint8 `(N, H, W, 3)`, depth
+    float32 metres `(N, H, W, 1)`), decoded episode by episode by the pipelines' video decoder
+    (random seeks per frame would dominate training time)."""
+    ft = ds.meta.features[key]
+    dtype = numpy_dtype(ft)
+    n, shape = len(ds.hf_dataset), tuple(ft["shape"])
+    size = n * int(np.prod(shape)) * dtype.itemsize
+    if size > max_bytes:
         raise DatasetError(
-            f"decoding video feature {key!r} of {ds.repo_id} needs {n * h * w * c / 2**30:.1f} GiB "
+            f"decoding video feature {key!r} of {ds.repo_id} needs {size / 2**30:.1f} GiB "
             f"(limit {max_bytes / 2**30:.1f} GiB); raise max_decoded_bytes or use a smaller image size"
         )
     cols = ds.hf_dataset.with_format("numpy", columns=["episode_index", "timestamp"])[:]
-    out = np.empty((n, h, w, c), dtype=np.uint8)
+    out = np.empty((n, *shape), dtype=dtype)
     episodes = ds.meta.episodes
-    decoded: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
-    tolerance = 0.5 / ds.meta.fps
     for ep in np.unique(cols["episode_index"]):
         rows = np.flatnonzero(cols["episode_index"] == ep)
         path = ds.root / ds.meta.get_video_file_path(int(ep), key)
-        if path not in decoded:
-            decoded = {path: _decode_video_file(path)}  # files hold consecutive episodes: keep one
-        times, frames = decoded[path]
-        wanted = episodes[int(ep)][f"videos/{key}/from_timestamp"] + cols["timestamp"][rows]
-        nearest = np.clip(np.searchsorted(times, wanted), 1, len(times) - 1)
-        nearest -= wanted - times[nearest - 1] < times[nearest] - wanted
-        if np.any(np.abs(times[nearest] - wanted) > tolerance):
-            raise DatasetError(f"video {path} lacks frames for episode {ep} of {ds.repo_id} ({key})")
-        out[rows] = frames[nearest]
+        start = float(episodes[int(ep)][f"videos/{key}/from_timestamp"])
+        out[rows] = decode_video(path, start, cols["timestamp"][rows], f"{ds.repo_id} episode {ep} {key}", ft)
     return out
 
 
-def _decode_png_rows(column, rows: np.ndarray, channels: int) -> np.ndarray:
-    """Decode the images at `rows` of an Arrow image column (struct of bytes/path) to uint8 (B, H, W, C)."""
-    import cv2
+def _decode_image_rows(column, rows: np.ndarray, ft: dict) -> np.ndarray:
+    """Decode the images at `rows` of an Arrow image column (struct of bytes/path) with the
+    pipelines' image decoder."""
     import pyarrow as pa
 
     taken = column.take(pa.array(rows))
-    flag = cv2.IMREAD_GRAYSCALE if channels == 1 else cv2.IMREAD_COLOR
     images = []
     for item in taken.to_pylist():
         data = item["bytes"] if item["bytes"] is not None else Path(item["path"]).read_bytes()
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
-        if img is None:
-            raise DatasetError(f"undecodable image in dataset (row {len(images)} of batch)")
-        images.append(img[..., None] if channels == 1 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+        images.append(decode_image(data, f"dataset image (row {len(images)} of batch)", ft))
     return np.stack(images)
 
 
@@ -157,16 +134,16 @@ class FrameTable:
                 self._arrays[key] = np.concatenate([numeric_column(ds, key) for ds in datasets])
 
     def gather(self, rows: np.ndarray) -> dict[str, np.ndarray]:
-        """Feature arrays for the frames at global indices `rows`: numeric as float32, images as uint8
-        `(B, H, W, C)`."""
+        """Feature arrays for the frames at global indices `rows`: numeric as float32, RGB images as
+        uint8 `(B, H, W, 3)`, depth as float32 metres `(B, H, W, 1)`."""
         batch = {key: arr[rows] for key, arr in self._arrays.items()}
         for key, columns in self._png_columns.items():
-            channels = self.features[key]["shape"][-1]
+            ft = self.features[key]
             which = np.searchsorted(self._offsets, rows, side="right") - 1
-            out = np.empty((len(rows), *self.features[key]["shape"]), dtype=np.uint8)
+            out = np.empty((len(rows), *ft["shape"]), dtype=numpy_dtype(ft))
             for d in np.unique(which):
                 sel = np.flatnonzero(which == d)
-                out[sel] = _decode_png_rows(columns[d], rows[sel] - self._offsets[d], channels)
+                out[sel] = _decode_image_rows(columns[d], rows[sel] - self._offsets[d], ft)
             batch[key] = out
         return batch
 

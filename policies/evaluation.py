@@ -32,7 +32,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from shiftkit.pipelines.depth import DEPTH_PREFIX, encode_depth
+from shiftkit.pipelines.depth import clean_metres, is_legacy_depth, legacy_grey
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 
 # trainer name (config.json / checkpoint) -> module with `load_policy(path, device)`
@@ -90,7 +90,7 @@ class ObservationMap:
     def __init__(self, features: dict[str, dict], observation_names: list[str]) -> None:
         self.vectors: dict[str, np.ndarray] = {}
         self.cameras: dict[str, tuple[str, str]] = {}  # feature -> ("rgb" | "depth", camera)
-        self.depth_images = {k for k, ft in features.items() if k.startswith(DEPTH_PREFIX) and ft["dtype"] == "image"}
+        self.grey_depth = {k for k, ft in features.items() if is_legacy_depth(k, ft) and ft["dtype"] == "image"}
         index = {name: i for i, name in enumerate(observation_names)}
         for key, ft in features.items():
             if key.startswith("observation.images."):
@@ -111,10 +111,10 @@ class ObservationMap:
         for key, (kind, cam) in self.cameras.items():
             if kind == "rgb":
                 out[key] = env.render_rgb(cam)
-            elif key in self.depth_images:  # the dataset's grey-level encoding (pipelines.depth)
-                out[key] = encode_depth(env.render_depth(cam))
-            else:  # float (H, W, 1) metres: datasets written before the encoding
-                out[key] = env.render_depth(cam)[..., None].astype(np.float32)
+            elif key in self.grey_depth:  # trained on older shiftkit data: its 8-bit grey levels
+                out[key] = legacy_grey(env.render_depth(cam))
+            else:  # (H, W, 1) metres, as the dataset reader gives depth (pipelines.depth)
+                out[key] = clean_metres(env.render_depth(cam))
         return out
 
 

@@ -39,10 +39,9 @@ import torch
 
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import user_features, vector_feature
+from shiftkit.pipelines.features import numpy_dtype, user_features, vector_feature
 from shiftkit.pipelines.lerobot_io import DatasetWriter, lerobot_home, open_lerobot_dataset
-from shiftkit.pipelines.provenance import PROVENANCE_VERSION
-from shiftkit.pipelines.provenance import versions as provenance_versions
+from shiftkit.pipelines.provenance import make_provenance
 from shiftkit.policies.bc import BCArgs, BCPolicy, ensemble_doubt, load_policy, update_members
 from shiftkit.policies.bc import train as train_bc
 from shiftkit.policies.data import FrameTable, epoch_batches, open_datasets
@@ -740,34 +739,24 @@ def write_aggregated(
         for path in paths:
             frames, meta = _load_npz(path)
             n = len(frames["action"])
-            frames = {k: np.asarray(v, dtype=np.dtype(_dtype(schema[k]))) for k, v in frames.items() if k in schema}
+            frames = {k: np.asarray(v, dtype=numpy_dtype(schema[k])) for k, v in frames.items() if k in schema}
             frames["timestamp"] = (np.arange(n) / reader.fps).astype(np.float32)
             frames["task"] = np.array([task or args.task] * n)
             writer.add_episode(Episode(frames, meta))
         writer.close(
-            provenance={
-                "provenance_version": PROVENANCE_VERSION,
-                "tool": "shiftkit",
-                "versions": provenance_versions(),
-                "seed": args.seed,
-                "sources": [
+            provenance=make_provenance(
+                repo_id=args.repo_id,
+                fps=reader.fps,
+                num_episodes=writer.num_episodes,
+                num_frames=writer.num_frames,
+                sources=[
                     {"kind": "lerobot", "path": str(demo_root), "num_episodes": reader.num_episodes},
                     {"kind": "fire", "path": str(run_dir.path), "env": args.env, "num_episodes": len(paths)},
                 ],
-                "stages": [],
-                "fire": {"run": str(run_dir.path), "task": args.task, "predictor": args.predictor},
-                "output": {
-                    "repo_id": args.repo_id,
-                    "fps": reader.fps,
-                    "episodes": writer.num_episodes,
-                    "frames": writer.num_frames,
-                },
-            }
+                seed=args.seed,
+                fire={"run": str(run_dir.path), "task": args.task, "predictor": args.predictor},
+            )
         )
-
-
-def _dtype(feature: dict) -> str:
-    return {"image": "uint8", "video": "uint8"}.get(feature["dtype"], feature["dtype"])
 
 
 # --------------------------------------------------------------------------- reading runs

@@ -1,5 +1,14 @@
-"""Depth as grey-level `image` features: lerobot's own dataset tools work on a `collect --depth`
-dataset, the encoding's error stays within its bound, and float-depth datasets migrate."""
+"""Depth as lerobot 0.6 defines it, end to end.
+
+* Datasets recorded with lerobot's own writer, depth as float32 (m) images, uint16 (mm) images and
+  depth video, go through filter + trim + subsample on two workers: the outputs keep lerobot's
+  `depth_keys` and the feature's unit and `video.*` keys, their depth equals the input's within
+  lerobot's own quantisation error, and lerobot's diffusion policy trains on one.
+* `shiftkit collect --cameras front --depth` writes native depth that lerobot's dataset tools
+  (delete, split, merge, convert to video, recompute stats) process; their outputs reload and pass
+  `shiftkit validate`.
+* The `depth_image` stage migrates the 8-bit grey depth older shiftkit versions wrote.
+"""
 
 from __future__ import annotations
 
@@ -8,127 +17,240 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
 from shiftkit.pipelines.dataset_check import validate_dataset
-from shiftkit.pipelines.depth import DEFAULT_ENCODING, decode_depth, encode_depth
-from shiftkit.pipelines.features import DEFAULT_KEYS
+from shiftkit.pipelines.depth import LEGACY_DEFAULT, VIDEO_DEFAULTS, legacy_grey
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
-from shiftkit.pipelines.sources.raw import open_raw_dataset
-from tests.helpers import write_raw_as_lerobot
+from shiftkit.pipelines.runner import run_pipeline
+from shiftkit.pipelines.sources import SourceConfig
+from tests.helpers import lerobot_train_two_steps, tree_hashes
 
-STEP = (DEFAULT_ENCODING["far"] - DEFAULT_ENCODING["near"]) / 255
+H, W = 24, 32
+NAMES = ["height", "width", "channels"]
+KINDS = ("float_image", "uint16_image", "video")
+STAGES = [
+    StageSpec("filter", {"indices": [0, 2, 3]}),
+    StageSpec("trim", {"head": 1}),
+    StageSpec("subsample", {"every": 2}),
+]
+
+
+def _depth(t: int, e: int) -> np.ndarray:
+    """A plane tilting over time, 0.3-2.5 m, with a near object: (H, W, 1) float32 metres."""
+    ramp = np.linspace(0.3, 2.5, W, dtype=np.float32)[None, :, None] * np.ones((H, 1, 1), np.float32)
+    d = ramp + np.float32(0.02 * t)
+    d[4 + e : 10 + e, 8:14] = 0.45
+    return d.astype(np.float32)
+
+
+def _write_with_lerobot(root, kind: str) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    camera = "video" if kind == "video" else "image"
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (2,), "names": ["t", "e"]},
+        "action": {"dtype": "float32", "shape": (2,), "names": ["t", "e"]},
+        "observation.images.front": {"dtype": camera, "shape": (H, W, 3), "names": NAMES},
+        "observation.depth.front": {"dtype": camera, "shape": (H, W, 1), "names": NAMES, "info": {"is_depth_map": True}},
+    }
+    ds = LeRobotDataset.create("test/depth", 10, features, root=root, use_videos=camera == "video")
+    for e in range(4):
+        for t in range(16):
+            d = _depth(t, e)
+            ds.add_frame(
+                {
+                    "observation.state": np.array([t, e], np.float32),
+                    "action": np.array([t + 1, e], np.float32),
+                    "observation.images.front": np.full((H, W, 3), 8 * t, np.uint8),
+                    "observation.depth.front": np.rint(d * 1000).astype(np.uint16) if kind == "uint16_image" else d,
+                    "task": "reach",
+                }
+            )
+        ds.save_episode()
+    ds.finalize()
+
+
+def _lerobot_depth(root, unit: str = "m") -> np.ndarray:
+    """Every frame's depth as lerobot's own loader returns it, (N, H, W, 1)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("test/depth", root=root, video_backend="pyav", depth_output_unit=unit)
+    return np.stack([ds[i]["observation.depth.front"].numpy() for i in range(len(ds))]).transpose(0, 2, 3, 1)
+
+
+def _quantisation_step(depth_m: float) -> float:
+    """lerobot's 12-bit log quantiser: the width of one code at `depth_m` (m)."""
+    lo, hi, shift = VIDEO_DEFAULTS["depth_min"], VIDEO_DEFAULTS["depth_max"], VIDEO_DEFAULTS["shift"]
+    return (depth_m + shift) * (np.log(hi + shift) - np.log(lo + shift)) / 4095
+
+
+@pytest.fixture(scope="module")
+def native(tmp_path_factory):
+    """Per kind: the lerobot-written source and the pipeline's output (two workers)."""
+    out = {}
+    for kind in KINDS:
+        tmp = tmp_path_factory.mktemp(kind)
+        _write_with_lerobot(tmp / "src", kind)
+        before = tree_hashes(tmp / "src")
+        config = PipelineConfig(
+            sources=[SourceConfig(path=str(tmp / "src"))],
+            destination=DestinationConfig(root=str(tmp / "out"), repo_id="test/depth"),
+            stages=STAGES,
+        )
+        out[kind] = (tmp / "src", run_pipeline(config, workers=2, progress=False), before)
+    return out
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_lerobot_depth_survives_a_pipeline(native, kind):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    src, out, before = native[kind]
+    assert tree_hashes(src) == before, "the input is never modified"
+    src_meta, out_meta = LeRobotDatasetMetadata("test/depth", root=src), LeRobotDatasetMetadata("test/depth", root=out)
+    assert out_meta.depth_keys == src_meta.depth_keys == ["observation.depth.front"]
+    # The feature as lerobot wrote it: dtype, unit and (for video) every `video.*` key, the frame
+    # rate being the subsampled one.
+    expected = src_meta.features["observation.depth.front"]
+    if "video.fps" in expected["info"]:
+        expected = {**expected, "info": {**expected["info"], "video.fps": out_meta.fps}}
+    assert out_meta.fps == src_meta.fps // 2
+    assert out_meta.features["observation.depth.front"] == expected
+    assert out_meta.total_episodes == 3 and out_meta.total_frames == 3 * 8
+
+    ours = _lerobot_depth(out)
+    kept = [i for e in (0, 2, 3) for i in range(e * 16 + 1, e * 16 + 16, 2)]
+    source = _lerobot_depth(src)[kept]
+    truth = np.stack([_depth(i % 16, i // 16) for i in kept])
+    if kind == "video":
+        # Re-encoding quantises again: within one code of the source, and of the true depth.
+        tolerance = 1.01 * _quantisation_step(float(truth.max()))
+        assert np.abs(ours - source).max() <= tolerance
+        assert np.abs(ours - truth).max() <= 2 * tolerance
+    elif kind == "uint16_image":
+        np.testing.assert_array_equal(ours, source)  # mm stay mm: exact
+        assert np.abs(ours - truth).max() <= 0.0005 + 1e-6
+    else:
+        np.testing.assert_array_equal(ours, truth)  # float metres: exact
+    validate_dataset(out)
+
+
+def test_lerobot_stats_of_depth_are_in_its_unit(native):
+    """Depth statistics are lerobot's: in the stored unit, not scaled to [0, 1]."""
+    _, out, _ = native["uint16_image"]
+    stats = json.loads((out / "meta/stats.json").read_text())["observation.depth.front"]
+    assert 300 < np.asarray(stats["min"]).item() < np.asarray(stats["max"]).item() < 3000  # millimetres
+
+
+def test_diffusion_trains_on_depth(native, tmp_path):
+    _, out, _ = native["float_image"]
+    diffusion = (
+        "--policy.type=diffusion",
+        "--policy.pretrained_backbone_weights=null",
+        "--policy.horizon=8",
+        "--policy.n_action_steps=4",
+        "--policy.down_dims=[32,64]",
+        "--policy.crop_shape=null",
+        "--policy.num_train_timesteps=10",
+    )
+    lerobot_train_two_steps("test/depth", out, tmp_path / "train", policy_args=diffusion)
 
 
 @pytest.fixture(scope="module")
 def collected(tmp_path_factory):
-    """`shiftkit collect --cameras front --depth` (2 episodes), raw and as a LeRobot dataset."""
+    """`shiftkit collect --cameras front --depth` (2 episodes) as a LeRobot dataset."""
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
-    tmp = tmp_path_factory.mktemp("depth")
-    raw, _ = collect(CollectConfig(task="lift", episodes=2, cameras=("front",), depth=True, out=str(tmp / "raw")))
-    return raw, write_raw_as_lerobot(raw, "test/depth", tmp / "ds")
+    tmp = tmp_path_factory.mktemp("collect")
+    config = CollectConfig(task="lift", episodes=2, cameras=("front",), depth=True, out=str(tmp / "raw"))
+    raw, _ = collect(config)
+    run_pipeline(
+        PipelineConfig(
+            sources=[SourceConfig(path=str(raw))],
+            destination=DestinationConfig(root=str(tmp / "ds"), repo_id="test/collected"),
+        ),
+        workers=1,
+        progress=False,
+    )
+    return raw, tmp / "ds"
 
 
-def test_depth_is_an_image_feature_within_its_error_bound(collected):
+def test_collected_depth_is_native_and_exact(collected):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
     raw, root = collected
-    info = json.loads((root / "meta/info.json").read_text())
-    assert info["features"]["observation.depth.front"] == {
+    meta = LeRobotDatasetMetadata("test/collected", root=root)
+    assert meta.depth_keys == ["observation.depth.front"]
+    assert meta.features["observation.depth.front"] == {
         "dtype": "image",
-        "shape": [48, 64, 3],
-        "names": ["height", "width", "channels"],
+        "shape": (48, 64, 1),
+        "names": NAMES,
+        "info": {"is_depth_map": True, "depth_unit": "m"},
     }
-    cameras = json.loads((root / "meta/cameras.json").read_text())["cameras"]
-    assert cameras["front"]["depth"] == DEFAULT_ENCODING
     metres = np.load(raw / "episode_000000/depth/front.npy")
     episode = next(open_lerobot_dataset(root).iter_episodes())
-    decoded = decode_depth(episode.frames["observation.depth.front"], episode.meta["cameras"]["front"]["depth"])
-    inside = metres <= DEFAULT_ENCODING["far"]
-    assert inside.mean() > 0.5  # the table and objects are in range; the background is not
-    assert np.abs(decoded - metres)[inside].max() <= STEP / 2 + 1e-6
-    assert np.all(decoded[~inside] == np.float32(DEFAULT_ENCODING["far"]))
-
-
-def _lerobot_written_twin(root, out):
-    """A dataset of the same features, recorded with lerobot's own `add_frame` writer."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    info = json.loads((root / "meta/info.json").read_text())
-    features = {k: {**ft, "shape": tuple(ft["shape"])} for k, ft in info["features"].items() if k not in DEFAULT_KEYS}
-    ds = LeRobotDataset.create("test/twin", info["fps"], features, root=out, robot_type=info["robot_type"])
-    rng = np.random.default_rng(0)
-    for _ in range(4):
-        frame = {"task": "lift"}
-        for key, ft in features.items():
-            dtype = np.uint8 if ft["dtype"] == "image" else np.dtype(ft["dtype"])
-            frame[key] = (rng.random(ft["shape"]) * (255 if dtype == np.uint8 else 1)).astype(dtype)
-        ds.add_frame(frame)
-    ds.save_episode()
-    ds.finalize()
-    return ds.root
+    np.testing.assert_array_equal(episode.frames["observation.depth.front"][..., 0], metres)
 
 
 def test_lerobot_dataset_tools_accept_depth(collected, tmp_path):
-    from lerobot.datasets.aggregate import aggregate_datasets
-    from lerobot.datasets.dataset_tools import convert_image_to_video_dataset, delete_episodes, split_dataset
+    from lerobot.datasets.dataset_tools import (
+        convert_image_to_video_dataset,
+        delete_episodes,
+        merge_datasets,
+        recompute_stats,
+        split_dataset,
+    )
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     _, root = collected
-    ds = LeRobotDataset("test/depth", root=root)
+    before = tree_hashes(root)
+    ds = LeRobotDataset("test/collected", root=root)
+    split = split_dataset(ds, {"a": [0], "b": [1]}, output_dir=tmp_path / "split")
     results = {
         "delete": delete_episodes(ds, [0], output_dir=tmp_path / "delete", repo_id="test/delete").root,
-        "split": split_dataset(ds, {"a": [0], "b": [1]}, output_dir=tmp_path / "split")["b"].root,
+        "split": split["b"].root,
+        "merge": merge_datasets([split["a"], split["b"]], "test/merge", output_dir=tmp_path / "merge").root,
         "video": convert_image_to_video_dataset(ds, tmp_path / "video", repo_id="test/video", num_workers=1).root,
     }
-    twin = _lerobot_written_twin(root, tmp_path / "twin")
-    aggregate_datasets(["test/depth", "test/twin"], "test/both", roots=[root, twin], aggr_root=tmp_path / "aggregate")
-    results["aggregate"] = tmp_path / "aggregate"
-    for name, path in results.items():
-        loaded = LeRobotDataset(f"test/{name}", root=path, video_backend="pyav")
-        assert loaded[len(loaded) - 1]["observation.depth.front"].shape == (3, 48, 64), name
-        counts = validate_dataset(path)
-        assert counts["frames"] == loaded.meta.total_frames, name
+    recomputed = recompute_stats(LeRobotDataset("test/delete", root=results["delete"]))
+    assert tree_hashes(root) == before
+    for name, out in results.items():
+        reloaded = LeRobotDataset(f"test/{name}", root=out, video_backend="pyav")
+        assert reloaded.meta.depth_keys == ["observation.depth.front"], name
+        assert reloaded[0]["observation.depth.front"].shape == (1, 48, 64), name
+        validate_dataset(out)
+    assert recomputed.meta.stats["observation.depth.front"]["max"].max() > 0.3  # metres, not [0, 1]
 
 
-def test_float_depth_datasets_still_load_and_migrate(collected, tmp_path):
-    """A dataset with depth as float (H, W, 1) metres (how shiftkit wrote it before) is read as it
-    is, and the `depth_image` stage turns it into the image encoding."""
-    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-    from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
+def test_depth_image_migrates_older_grey_depth(collected, tmp_path):
+    """A dataset as older shiftkit wrote it (8-bit grey RGB depth, range in meta/cameras.json)
+    becomes native depth in metres within the old encoding's half step."""
+    from shiftkit.pipelines.features import image_feature
 
-    raw, _ = collected
-    raw_ds = open_raw_dataset(raw)
-    features = raw_ds.features()
-    features["observation.depth.front"] = {
-        "dtype": "float32",
-        "shape": (48, 64, 1),
-        "names": ["height", "width", "channels"],
-    }
-    metres = np.load(raw / "episode_000000/depth/front.npy")
-    with DatasetWriter("test/old", tmp_path / "old", raw_ds.fps, features) as writer:
-        episode = raw_ds.read_episode(0)
-        episode.frames["observation.depth.front"] = metres[..., None]
-        writer.add_episode(episode)
-    old = next(open_lerobot_dataset(tmp_path / "old").iter_episodes())
-    assert old.frames["observation.depth.front"].dtype == np.float32
-
+    raw, root = collected
+    reader = open_lerobot_dataset(root)
+    features = dict(reader.features)
+    features["observation.depth.front"] = image_feature((48, 64, 3))
+    with DatasetWriter("test/old", tmp_path / "old", reader.fps, features) as writer:
+        for episode in reader.iter_episodes():
+            grey = np.stack([legacy_grey(f) for f in episode.frames["observation.depth.front"]])
+            cameras = {**episode.meta.get("cameras", {})}
+            cameras["front"] = {**cameras.get("front", {}), "depth": LEGACY_DEFAULT}
+            old = episode.with_frames(**{"observation.depth.front": grey})
+            old.meta = {**old.meta, "cameras": cameras}
+            writer.add_episode(old)
     config = PipelineConfig(
         sources=[SourceConfig(path=str(tmp_path / "old"))],
         destination=DestinationConfig(root=str(tmp_path / "new")),
-        stages=[StageSpec("depth_image", {"far": 2.0})],
+        stages=[StageSpec("depth_image", {})],
     )
-    new_root = run_pipeline(config, progress=False)
-    new = next(open_lerobot_dataset(new_root).iter_episodes())
-    encoding = new.meta["cameras"]["front"]["depth"]
-    assert encoding["far"] == 2.0
-    decoded = decode_depth(new.frames["observation.depth.front"], encoding)
-    inside = metres <= 2.0
-    assert np.abs(decoded - metres)[inside].max() <= 2.0 / 255 / 2 + 1e-6
-    validate_dataset(new_root)
-
-
-def test_encoding_clips_and_rounds():
-    d = np.array([[-1.0, 0.0, 0.004, 0.006, 1.0, 2.55, 9.0, np.inf]], dtype=np.float32)
-    img = encode_depth(d)
-    assert img.shape == (1, 8, 3) and (img[..., 0] == img[..., 2]).all()
-    assert img[0, :, 0].tolist() == [0, 0, 0, 1, 100, 255, 255, 255]
-    assert decode_depth(img)[0, 4] == pytest.approx(1.0)
+    new = run_pipeline(config, workers=1, progress=False)
+    info = json.loads((new / "meta/info.json").read_text())
+    assert info["features"]["observation.depth.front"]["shape"] == [48, 64, 1]
+    assert info["features"]["observation.depth.front"]["info"] == {"is_depth_map": True, "depth_unit": "m"}
+    metres = np.load(raw / "episode_000000/depth/front.npy")
+    migrated = next(open_lerobot_dataset(new).iter_episodes()).frames["observation.depth.front"][..., 0]
+    inside = metres <= LEGACY_DEFAULT["far"]
+    assert inside.mean() > 0.5
+    assert np.abs(migrated - metres)[inside].max() <= (LEGACY_DEFAULT["far"] / 255) / 2 + 1e-6
+    assert "depth" not in json.loads((new / "meta/cameras.json").read_text())["cameras"].get("front", {})

@@ -1,4 +1,6 @@
-"""shiftkit's episode statistics equal lerobot's, value for value and dtype for dtype."""
+"""shiftkit's episode statistics equal lerobot 0.6.1's, value for value and dtype for dtype: every
+reference here is computed by lerobot's own `compute_stats` functions (camera features from the
+PNG / TIFF frames lerobot's image writer stores)."""
 
 from __future__ import annotations
 
@@ -9,12 +11,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from lerobot.datasets import compute_stats as lerobot_stats
+from lerobot.datasets.image_writer import write_image
 
 from shiftkit.pipelines.stats import (
     NUM_BINS,
     QUANTILE_KEYS,
     QUANTILES,
     RunningStats,
+    depth_stats,
     feature_stats,
     image_stats,
     numeric_stats,
@@ -38,7 +42,8 @@ def lerobot_feature_stats(data: np.ndarray) -> dict:
 
 
 def lerobot_image_stats(frames: np.ndarray) -> dict:
-    """lerobot's `sample_images` + `get_feature_stats` path, on frames held in memory."""
+    """lerobot's `sample_images` + `get_feature_stats` path for RGB, on frames held in memory
+    (any channel count; `lerobot_camera_stats` goes through files)."""
     sampled = np.stack(
         [
             lerobot_stats.auto_downsample_height_width(frames[i].transpose(2, 0, 1))
@@ -47,6 +52,37 @@ def lerobot_image_stats(frames: np.ndarray) -> dict:
     )
     stats = lerobot_stats.get_feature_stats(sampled, axis=(0, 2, 3), keepdims=True)
     return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
+
+
+def lerobot_camera_stats(frames: np.ndarray, directory, depth_unit: str | None = None, dtype: str = "image") -> dict:
+    """lerobot's `compute_episode_stats` of one camera feature: `frames` (T, H, W, C) written as its
+    writer does (PNG for RGB, raw TIFF for a depth map, `write_image`) and read back by lerobot."""
+    directory.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, frame in enumerate(frames):
+        path = directory / f"frame-{i:06d}.{'png' if depth_unit is None else 'tiff'}"
+        write_image(frame, path)
+        paths.append(str(path))
+    info = {} if depth_unit is None else {"is_depth_map": True, "depth_unit": depth_unit}
+    features = {"cam": {"dtype": dtype, "shape": frames.shape[1:], "info": info}}
+    return lerobot_stats.compute_episode_stats({"cam": paths}, features)["cam"]
+
+
+def depth_frames(n: int, height: int, width: int, unit: str, rng: np.random.Generator) -> np.ndarray:
+    """A depth camera's frames: a tilted plane 0.3-2.5 m away, an object in front moving, sensor
+    noise and a few invalid (zero) pixels; float32 metres or uint16 millimetres, (n, H, W, 1)."""
+    rows, cols = np.mgrid[0:height, 0:width]
+    plane = 2.5 - 1.6 * rows / max(height - 1, 1)
+    out = np.empty((n, height, width), np.float32)
+    for t in range(n):
+        d = plane + rng.normal(0, 0.004, size=plane.shape)
+        cx, cy = width * (0.3 + 0.4 * t / max(n, 1)), height / 2
+        d = np.where((cols - cx) ** 2 + (rows - cy) ** 2 < (min(height, width) / 4) ** 2, 0.3 + 0.2 * rows / height, d)
+        d[rng.random(d.shape) < 0.01] = 0.0  # no return
+        out[t] = np.clip(d, 0.0, 2.5)
+    if unit == "mm":
+        return np.round(out * 1000).astype(np.uint16)[..., None]
+    return out[..., None]
 
 
 def test_constants_are_lerobots():
@@ -73,6 +109,10 @@ def _cases(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         "timestamps": np.arange(n) / 20.0,
         "uint8": rng.integers(0, 255, size=(n, 5), dtype=np.uint8),
         "int32": rng.integers(0, 2, size=(n, 1)).astype(np.int32),
+        "uint16": rng.integers(0, 4000, size=(n, 2)).astype(np.uint16),
+        "int8": rng.integers(-100, 100, size=(n, 2)).astype(np.int8),
+        "float16": rng.normal(size=(n, 2)).astype(np.float16),
+        "large int64": rng.integers(-(2**62), 2**62, size=(n, 2)),
     }
 
 
@@ -102,20 +142,22 @@ def test_numeric_stats_equal_compute_episode_stats():
 @given(
     n=st.integers(2, 60),
     dim=st.integers(1, 4),
-    dtype=st.sampled_from(["float32", "float64", "int64", "bool"]),
+    dtype=st.sampled_from(["float32", "float64", "int64", "bool", "uint8", "uint16", "float16"]),
     levels=st.integers(1, 1000),
     seed=st.integers(0, 2**32 - 1),
 )
 def test_feature_stats_equal_lerobot_property(n, dim, dtype, levels, seed):
     """Random shapes, dtypes and numbers of distinct values (ties land on bin edges)."""
     rng = np.random.default_rng(seed)
-    data = (rng.integers(0, levels, size=(n, dim)) * rng.normal()).astype(dtype)
+    scale = abs(rng.normal()) if dtype.startswith("u") else rng.normal()
+    data = (rng.integers(0, levels, size=(n, dim)) * scale).astype(dtype)
     assert_same(feature_stats(data), lerobot_feature_stats(data))
 
 
 @pytest.mark.parametrize(
     "shape",
     [
+        (1, 1, 1, 3),
         (1, 4, 4, 3),
         (7, 6, 8, 3),
         (40, 48, 64, 3),
@@ -133,15 +175,63 @@ def test_image_stats_equal_lerobot(shape):
     assert_same(image_stats(dark), lerobot_image_stats(dark))
 
 
+@pytest.mark.parametrize("unit", ["m", "mm"])
+def test_depth_stats_equal_compute_episode_stats(unit, tmp_path):
+    """A depth map (`is_depth_map`, `depth_unit`): lerobot's statistics of its TIFF frames, read
+    back in their native dtype, not divided by 255; episodes shorter and longer than the 100
+    frames sampled, one frame of one pixel (lerobot's special case), large frames downscaled."""
+    rng = np.random.default_rng(11)
+    for n, height, width in [(1, 1, 1), (1, 24, 32), (2, 24, 32), (37, 24, 32), (150, 12, 16), (3, 480, 640)]:
+        frames = depth_frames(n, height, width, unit, rng)
+        ref = lerobot_camera_stats(frames, tmp_path / f"{unit}-{n}-{height}", depth_unit=unit)
+        case = f"{unit} {frames.shape}"
+        try:
+            assert_same(depth_stats(frames), ref)
+            assert_same(image_stats(frames, depth=True), ref)
+            assert_same(image_stats(frames[..., 0], depth=True), ref)  # (T, H, W) too
+        except AssertionError as exc:
+            raise AssertionError(f"{case}: {exc}") from None
+        assert ref["mean"].shape == (1, 1, 1), case
+        if height > 1:  # in the stored unit: metres or millimetres, not divided by 255
+            scale = 1000 if unit == "mm" else 1
+            assert 0.3 * scale < ref["q50"].item() < 2.5 * scale, case
+            assert ref["max"].item() == frames.max(), case
+
+
+def test_depth_video_feature_equal_compute_episode_stats(tmp_path):
+    """A depth `video` feature: lerobot computes its statistics from the same TIFF frames."""
+    frames = depth_frames(20, 30, 40, "m", np.random.default_rng(5))
+    assert_same(depth_stats(frames), lerobot_camera_stats(frames, tmp_path, depth_unit="m", dtype="video"))
+
+
+def test_depth_stats_reject_what_lerobot_cannot_store():
+    """lerobot's image writer stores single-channel float32 or uint16 only."""
+    for bad in (np.zeros((3, 4, 4, 1), np.float64), np.zeros((3, 4, 4, 3), np.float32), np.zeros((4, 4), np.uint16)):
+        with pytest.raises(ValueError, match="depth frames"):
+            depth_stats(bad)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "shape"), [("image", (1, 2, 1, 3)), ("image", (5, 20, 30, 3)), ("video", (3, 300, 200, 3))]
+)
+def test_rgb_stats_equal_compute_episode_stats(dtype, shape, tmp_path):
+    """An RGB camera: lerobot's statistics of its PNG frames, divided by 255."""
+    frames = np.random.default_rng(1).integers(0, 255, size=shape, dtype=np.uint8)
+    assert_same(image_stats(frames), lerobot_camera_stats(frames, tmp_path, dtype=dtype))
+
+
 def test_running_stats_equal_lerobots_pairwise_aggregation():
-    """The writer's dataset statistics: aggregate_stats([stats, episode]) after every episode."""
+    """The writer's dataset statistics: aggregate_stats([stats, episode]) after every episode,
+    depth maps ((1, 1, 1) statistics, in metres or millimetres) among them."""
     rng = np.random.default_rng(3)
     episodes = []
     for e in range(6):
-        n = 3 + 7 * e
-        columns = {k: v for k, v in _cases(n, rng).items() if k not in ("3-D", "uint8")}
+        n = 1 if e == 0 else 3 + 7 * e  # the first episode has lerobot's unpromoted dtypes
+        columns = {k: v for k, v in _cases(n, rng).items() if k != "3-D"}
         stats = numeric_stats(columns)
-        stats["image"] = image_stats(rng.integers(0, 255, size=(n, 6, 8, 3), dtype=np.uint8))
+        stats["observation.images.rgb"] = image_stats(rng.integers(0, 255, size=(n, 6, 8, 3), dtype=np.uint8))
+        stats["observation.images.depth"] = depth_stats(depth_frames(n, 6, 8, "m", rng))
+        stats["observation.images.depth_mm"] = depth_stats(depth_frames(n, 6, 8, "mm", rng))
         episodes.append(stats)
     running, ref = RunningStats(), None
     assert running.result() is None
@@ -171,7 +261,11 @@ def test_image_stats_sample_like_lerobot_without_importing_it():
         channels_first = lerobot_stats.auto_downsample_height_width(frame[0].transpose(2, 0, 1))
         np.testing.assert_array_equal(_image_samples(frame)[0].transpose(2, 0, 1), channels_first)
     code = (
-        "import sys, numpy as np; from shiftkit.pipelines.stats import image_stats; "
-        "image_stats(np.zeros((5, 4, 4, 3), np.uint8)); print('torch' in sys.modules)"
+        "import sys, numpy as np; from shiftkit.pipelines.stats import image_stats, depth_stats, feature_stats; "
+        "image_stats(np.zeros((5, 4, 4, 3), np.uint8)); depth_stats(np.ones((1, 1, 1, 1), np.float32)); "
+        "feature_stats(np.zeros((1, 3))); print('torch' in sys.modules, 'lerobot' in sys.modules)"
     )
-    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"
+    assert (
+        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+        == "False False\n"
+    )

@@ -1,51 +1,63 @@
-"""`depth_image`: migrate float depth maps (H, W, 1) metres, the form shiftkit wrote before, to the
-grey-level `image` encoding that lerobot's dataset tools accept (`pipelines/depth.py`). Features
-already in that form pass unchanged, so the stage can run on any dataset."""
+"""`depth_image`: migrate the depth features older shiftkit versions wrote to lerobot 0.6's native
+depth (`pipelines/depth.py`): 8-bit grey RGB images (decoded to metres through the range recorded
+in the camera metadata, `meta/cameras.json`) and (H, W, 1) float arrays both become (H, W, 1)
+depth features with `is_depth_map` and `depth_unit`, stored as lossless images (or video, with
+`[destination] video = true`). Native depth features pass unchanged, so the stage can run on any
+dataset."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from shiftkit.pipelines.depth import DEFAULT_ENCODING, DEPTH_PREFIX, encode_depth, is_float_depth
+from shiftkit.pipelines.depth import (
+    DEFAULT_UNIT,
+    DEPTH_PREFIX,
+    depth_feature,
+    is_legacy_depth,
+    legacy_depth_to_metres,
+    legacy_encoding,
+)
 from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import Features, image_feature
+from shiftkit.pipelines.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
 
 
 @dataclass
 class DepthImageConfig:
-    near: float = DEFAULT_ENCODING["near"]
-    """Depth (m) that maps to grey level 0; nearer points are clipped."""
-    far: float = DEFAULT_ENCODING["far"]
-    """Depth (m) that maps to grey level 255; farther points (and no return) read as `far`."""
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.near < self.far:
-            raise ValueError(f"need 0 <= near < far, got near={self.near}, far={self.far}")
+    unit: Literal["m", "mm"] = DEFAULT_UNIT
+    """Unit the migrated depth is stored in: "m" (float32 metres, exact) or "mm" (uint16
+    millimetres, half the size, 0.5 mm steps)."""
 
 
 @register_stage
 class DepthImage(Stage):
     name = "depth_image"
-    version = 1
+    version = 2
     Config = DepthImageConfig
 
     def transform_features(self, features: Features) -> Features:
-        out = dict(features)  # idempotent: a dataset without float depth passes unchanged
-        for key in [k for k, ft in features.items() if is_float_depth(k, ft)]:
+        out = dict(features)  # idempotent: a dataset with native depth passes unchanged
+        for key in [k for k, ft in features.items() if is_legacy_depth(k, ft)]:
             h, w = features[key]["shape"][:2]
-            out[key] = image_feature((h, w, 3))
+            dtype = "video" if features[key]["dtype"] == "video" else "image"
+            out[key] = depth_feature(h, w, dtype, self.config.unit)
         return out
 
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
-        encoding = {**DEFAULT_ENCODING, "near": float(self.config.near), "far": float(self.config.far)}
         frames, cameras = dict(episode.frames), dict(episode.meta.get("cameras") or {})
-        for key, arr in episode.frames.items():
-            if key.startswith(DEPTH_PREFIX) and arr.dtype.kind == "f":
-                frames[key] = encode_depth(arr, encoding)
-                cam = key.removeprefix(DEPTH_PREFIX)
-                cameras[cam] = {**cameras.get(cam, {}), "depth": encoding}
-        yield Episode(frames, {**episode.meta, "cameras": cameras})
+        # Older depth by its arrays (grey uint8, or float (H, W, 1) of another dtype); native depth is
+        # float32 (H, W, 1) metres already and passes unchanged.
+        legacy = [
+            k for k, a in frames.items() if k.startswith(DEPTH_PREFIX) and (a.dtype != np.float32 or a.shape[-1] != 1)
+        ]
+        for key in legacy:
+            cam = key.removeprefix(DEPTH_PREFIX)
+            frames[key] = legacy_depth_to_metres(episode.frames[key], legacy_encoding(cameras, cam))
+            if "depth" in cameras.get(cam, {}):  # the grey-level range no longer applies
+                cameras[cam] = {k: v for k, v in cameras[cam].items() if k != "depth"}
+        meta = {**episode.meta, "cameras": cameras} if cameras else dict(episode.meta)
+        yield Episode(frames, meta)

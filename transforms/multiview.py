@@ -40,7 +40,14 @@ from shiftkit.envs import make
 from shiftkit.envs.base_pose import BasePose
 from shiftkit.envs.multiview.physics import CAMERA_NAME, SAMPLER, rebase_state, rotation_z
 from shiftkit.envs.multiview.tasks import TASKS
-from shiftkit.pipelines.depth import depth_encoding, encode_depth
+from shiftkit.pipelines.depth import (
+    clean_metres,
+    depth_feature,
+    depth_unit,
+    is_depth,
+    legacy_depth_to_metres,
+    legacy_encoding,
+)
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features, image_feature
@@ -73,8 +80,8 @@ class MultiviewConfig:
     keep_source: bool = False
     """Also emit the source episode unchanged (first), before its views."""
     depth: bool = True
-    """Render depth (`observation.depth.base`) too, as grey levels (`pipelines.depth`; an input's
-    own depth feature keeps its form and encoding)."""
+    """Render depth (`observation.depth.base`) too, in metres as lerobot's native depth
+    (`pipelines.depth`; an input's own depth feature keeps its storage and unit)."""
     render_quality: Literal["fast", "full"] = "fast"
     """"fast" (collision geometry) or "full" (visual meshes)."""
     width: int = 64
@@ -162,29 +169,24 @@ class Multiview(Stage):
         shape = tuple(features[IMAGE_KEY]["shape"]) if IMAGE_KEY in features else None
         h, w = (shape[0], shape[1]) if shape else (self.config.height, self.config.width)
         out[IMAGE_KEY] = image_feature((h, w, 3))
-        if DEPTH_KEY in features:  # grey levels, or float metres in datasets older than the encoding
-            out[DEPTH_KEY] = dict(features[DEPTH_KEY])
-        elif self.config.depth:
-            out[DEPTH_KEY] = image_feature((h, w, 3))
+        source = features.get(DEPTH_KEY)
+        if source is not None and is_depth(source):  # keep the input's storage (image / video) and unit
+            out[DEPTH_KEY] = depth_feature(h, w, source["dtype"], depth_unit(source))
+        elif source is not None or self.config.depth:  # re-rendered: older shiftkit depth becomes native
+            out[DEPTH_KEY] = depth_feature(h, w)
         return out
 
-    def _depth_frames(self, metres: list[np.ndarray], episode: Episode) -> np.ndarray:
-        """Rendered depth in the form of the episode's own depth feature: float (T, H, W, 1) metres
-        for older float datasets, else grey levels in the camera's encoding."""
-        d = np.array(metres, dtype=np.float32)
-        source = episode.frames.get(DEPTH_KEY)
-        if source is not None and source.dtype.kind == "f":
-            return d[..., None]
-        return encode_depth(d, depth_encoding(episode.meta.get("cameras"), CAMERA_NAME))
+    @staticmethod
+    def _depth_frames(metres: list[np.ndarray]) -> np.ndarray:
+        """Rendered depth as shiftkit holds depth: (T, H, W, 1) float32 metres."""
+        return clean_metres(np.array(metres, dtype=np.float32))
 
-    def _camera_meta(self, episode: Episode, entries: dict[str, Any]) -> dict[str, Any]:
-        """The episode's cameras with `entries` set on the base camera (other entries kept), and the
-        depth encoding recorded when depth is written as grey levels."""
+    @staticmethod
+    def _camera_meta(episode: Episode, entries: dict[str, Any]) -> dict[str, Any]:
+        """The episode's cameras with `entries` set on the base camera (other entries kept; the
+        grey-level range of older shiftkit depth dropped, since the re-rendered depth is metres)."""
         cameras = dict(episode.meta.get("cameras") or {})
-        camera = {**cameras.get(CAMERA_NAME, {}), **entries}
-        source = episode.frames.get(DEPTH_KEY)
-        if (source is not None and source.dtype.kind != "f") or (source is None and self.config.depth):
-            camera["depth"] = depth_encoding(cameras, CAMERA_NAME)
+        camera = {k: v for k, v in {**cameras.get(CAMERA_NAME, {}), **entries}.items() if k != "depth"}
         return {**cameras, CAMERA_NAME: camera}
 
     # ----------------------------------------------------------------- per episode
@@ -257,13 +259,17 @@ class Multiview(Stage):
     def _source_copy(self, episode: Episode, env, size: tuple[int, int]) -> Episode:
         """The source episode with the camera features the output schema has (rendered if absent)."""
         frames = dict(episode.frames)
+        legacy = frames.get(DEPTH_KEY)
+        if legacy is not None and (legacy.dtype != np.float32 or legacy.shape[-1] != 1):  # older shiftkit depth
+            cameras = episode.meta.get("cameras")
+            frames[DEPTH_KEY] = legacy_depth_to_metres(legacy, legacy_encoding(cameras, CAMERA_NAME))
         if IMAGE_KEY not in frames or (self.config.depth and DEPTH_KEY not in frames):
             pose = BasePose.from_dict(episode.meta["cameras"][CAMERA_NAME]["base_pose"])
             env.set_base_pose(pose)
             rgb, depth = self._render(env, episode.frames["sim.qpos"], episode.frames["sim.qvel"])
             frames.setdefault(IMAGE_KEY, rgb)
             if self.config.depth:
-                frames.setdefault(DEPTH_KEY, self._depth_frames(depth, episode))
+                frames.setdefault(DEPTH_KEY, self._depth_frames(depth))
         meta = dict(episode.meta)
         meta["cameras"] = self._camera_meta(episode, {})
         meta["multiview"] = {"view": "source"}
@@ -333,7 +339,7 @@ class Multiview(Stage):
         if "observation.environment_state" in f:
             out["observation.environment_state"] = np.array(env_state, dtype=f["observation.environment_state"].dtype)
         if with_depth:
-            out[DEPTH_KEY] = self._depth_frames(depth, episode)
+            out[DEPTH_KEY] = self._depth_frames(depth)
         return out
 
     @staticmethod

@@ -128,27 +128,21 @@ def write_imported(
     importer's settings. Returns (episodes, frames)."""
     from shiftkit.pipelines.hub import validate_repo_id
     from shiftkit.pipelines.lerobot_io import DatasetWriter
-    from shiftkit.pipelines.provenance import PROVENANCE_VERSION, versions
+    from shiftkit.pipelines.provenance import make_provenance
 
     validate_repo_id(repo_id)
     with DatasetWriter(repo_id, root, fps, features, robot_type=robot_type) as writer:
         for episode in episodes:
             writer.add_episode(episode)
         writer.close(
-            provenance={
-                "provenance_version": PROVENANCE_VERSION,
-                "tool": "shiftkit",
-                "versions": versions(),
-                "sources": sources,
-                "stages": [],
-                "importer": importer,
-                "seed": seed,
-                "output": {
-                    "repo_id": repo_id,
-                    "fps": fps,
-                    "episodes": writer.num_episodes,
-                    "frames": writer.num_frames,
-                },
-            }
+            provenance=make_provenance(
+                repo_id=repo_id,
+                fps=fps,
+                num_episodes=writer.num_episodes,
+                num_frames=writer.num_frames,
+                sources=sources,
+                seed=seed,
+                importer=importer,
+            )
         )
     return writer.num_episodes, writer.num_frames

@@ -1,5 +1,5 @@
 """Import a LeRobot v2.1 dataset (per-episode parquet files, `meta/*.jsonl`) as a v3.0 dataset through
-lerobot's own converter (`lerobot.datasets.v30.convert_dataset_v21_to_v30`), into a new directory.
+lerobot's own converter (`lerobot.scripts.convert_dataset_v21_to_v30`), into a new directory.
 
 lerobot's `convert_dataset` works in place: it renames the source to `<name>_old` and moves the
 result to the source's name. Its steps (`convert_info`, `convert_tasks`, `convert_data`,
@@ -42,13 +42,9 @@ def _check_source(source: Path) -> dict:
 
 def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> ImportSummary:
     """Convert the v2.1 dataset at `source` into a new v3.0 dataset at `root` (the source is only read)."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.datasets.utils import DEFAULT_DATA_FILE_SIZE_IN_MB, DEFAULT_VIDEO_FILE_SIZE_IN_MB
-    from lerobot.datasets.v30 import convert_dataset_v21_to_v30 as converter
-
     from shiftkit.pipelines.hub import validate_repo_id
-    from shiftkit.pipelines.lerobot_io import fingerprint, write_provenance
-    from shiftkit.pipelines.provenance import PROVENANCE_VERSION, versions
+    from shiftkit.pipelines.lerobot_io import V21_CONVERTER, convert_v21, fingerprint, write_provenance
+    from shiftkit.pipelines.provenance import make_provenance
 
     validate_repo_id(repo_id)
     source, dest = Path(source).resolve(), Path(root).resolve()
@@ -63,25 +59,17 @@ def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> Im
     tmp = dest.parent / f".{dest.name}.partial-{uuid.uuid4().hex[:8]}"
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
-        converter.convert_info(source, tmp, DEFAULT_DATA_FILE_SIZE_IN_MB, DEFAULT_VIDEO_FILE_SIZE_IN_MB)
-        converter.convert_tasks(source, tmp)
-        episodes = converter.convert_data(source, tmp, DEFAULT_DATA_FILE_SIZE_IN_MB)
-        videos = converter.convert_videos(source, tmp, DEFAULT_VIDEO_FILE_SIZE_IN_MB)
-        converter.convert_episodes_metadata(source, tmp, episodes, videos)
-        meta = LeRobotDatasetMetadata(repo_id, root=tmp)  # loads: info, tasks, episodes, stats
-        num_episodes, num_frames, fps = meta.total_episodes, meta.total_frames, meta.fps
+        num_episodes, num_frames, fps = convert_v21(source, tmp)
         write_provenance(
             tmp,
-            {
-                "provenance_version": PROVENANCE_VERSION,
-                "tool": "shiftkit",
-                "versions": versions(),
-                "sources": [{"kind": "lerobot-v2.1", "path": str(source), "fingerprint": source_fingerprint}],
-                "stages": [],
-                "importer": {"name": "lerobot-v2.1", "converter": converter.__name__},
-                "seed": None,
-                "output": {"repo_id": repo_id, "fps": fps, "episodes": num_episodes, "frames": num_frames},
-            },
+            make_provenance(
+                repo_id=repo_id,
+                fps=fps,
+                num_episodes=num_episodes,
+                num_frames=num_frames,
+                sources=[{"kind": "lerobot-v2.1", "path": str(source), "fingerprint": source_fingerprint}],
+                importer={"name": "lerobot-v2.1", "converter": V21_CONVERTER},
+            ),
         )
         os.rename(tmp, dest)
     except DatasetError:

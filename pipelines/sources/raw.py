@@ -8,8 +8,8 @@ Layout::
     DIR/episode_000000/meta.json        task, outcome, seed, segments, labels, sim_model, ...
     DIR/episode_000000/arrays/NAME.npy  per-frame arrays, first axis = frame
     DIR/episode_000000/images/CAM/frame_000000.png   RGB frames (one PNG per frame)
-    DIR/episode_000000/depth/CAM.npy    (T, H, W) float32 metres (read as a grey-level image, see
-                                        pipelines/depth.py)
+    DIR/episode_000000/depth/CAM.npy    (T, H, W) float32 metres (read as lerobot's native depth
+                                        feature, see pipelines/depth.py)
 
 Every array and image is checked on read (lengths, dtypes, NaNs, missing frames) and a problem is
 reported as one line naming the file. `.npy` and PNG bytes are deterministic, so the same
@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from shiftkit.pipelines.camera_meta import check_cameras, merge_cameras
-from shiftkit.pipelines.depth import depth_encoding, encode_depth
+from shiftkit.pipelines.depth import clean_metres, depth_feature
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, image_feature, vector_feature
@@ -262,7 +262,9 @@ class RawDataset:
             d = _load_npy(path, mmap=True)
             if d.ndim != 3:
                 raise DatasetError(f"{path}: depth must be (T, H, W), got {d.shape}")
-            features[_depth_feature(path.stem)] = image_feature((d.shape[1], d.shape[2], 3))  # pipelines.depth
+            features[_depth_feature(path.stem)] = depth_feature(
+                d.shape[1], d.shape[2]
+            )  # metres, lerobot's native depth
         return features
 
     def read_episode(self, i: int) -> Episode:
@@ -300,10 +302,7 @@ class RawDataset:
             d = _load_npy(path).astype(np.float32)
             if d.ndim != 3 or len(d) != length:
                 raise DatasetError(f"{path}: {len(d)} depth frames for {length} frames")
-            # Metres become grey levels (what lerobot's tools accept); the encoding goes with the camera.
-            encoding = depth_encoding(cameras, path.stem)
-            frames[_depth_feature(path.stem)] = encode_depth(d, encoding)
-            cameras[path.stem] = {**cameras.get(path.stem, {}), "depth": encoding}
+            frames[_depth_feature(path.stem)] = clean_metres(d)
         frames["task"] = _frame_tasks(meta, length, where)
         episode_meta = {k: v for k, v in meta.items() if k not in ("length",)}
         episode_meta["source_episode_index"] = i
