@@ -165,6 +165,7 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
                 f"from lerobot.datasets.lerobot_dataset import LeRobotDataset\nprint(LeRobotDataset({REPO!r}).root)",
                 None,
             ),
+            ("import sys\nprint('hf_xet loaded:', 'hf_xet' in sys.modules)", None),
         ],
         hub.endpoint,
         home,
@@ -209,6 +210,9 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
     # which lerobot 0.6 takes for a stale mirror and downloads again into its own hub cache.
     assert str(root) in results[6]["stdout"].splitlines()
     assert not (root / ".cache").exists()
+    # Every file went inline in its commit and came back as a plain download: hf_xet (installed with
+    # huggingface_hub 1.x) was never needed, and the loopback hub has no xet or LFS service.
+    assert results[7]["stdout"].strip() == "hf_xet loaded: False"
 
 
 @pytest.mark.skipif(
