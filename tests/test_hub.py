@@ -290,12 +290,16 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
     _seed_untagged_and_private(hub, dataset)
     bad_card = copy_tree(dataset, tmp_path / "bad-card")
     (bad_card / "README.md").write_text("---\nlicense: [apache-2.0\n---\n# broken\n")
+    bad_info = copy_tree(dataset, tmp_path / "bad-info")  # lerobot's card needs its typed info
+    info = json.loads((bad_info / "meta" / "info.json").read_text())
+    (bad_info / "meta" / "info.json").write_text(json.dumps({**info, "fps": 0}))
     cases = [
         (["push", str(dataset), "--repo-id", "shiftkit-test/noauth"], None),
         (["push", str(dataset), "--repo-id", "shiftkit-test/noauth"], "hf_not_a_token"),
         (["push", str(dataset), "--repo-id", "shiftkit-test/noauth"], READ),
         (["push", str(dataset), "--repo-id", "shiftkit-test/bad name!"], WRITE),
         (["push", str(bad_card), "--repo-id", "shiftkit-test/noauth"], WRITE),
+        (["push", str(bad_info), "--repo-id", "shiftkit-test/noauth"], WRITE),
         (["push", str(tmp_path / "missing"), "--repo-id", "shiftkit-test/noauth"], WRITE),
         (["pull", "shiftkit-test/..bad"], None),
         (["pull", "shiftkit-test/untagged"], None),
@@ -323,6 +327,7 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
             "forbidden (403)",
             "invalid repo id",
             "invalid card metadata",
+            "info.json: fps must be positive",
             "no such dataset folder",
             "invalid repo id",
             "no codebase version tag",
