@@ -48,7 +48,7 @@ def lerobot_train_two_steps(repo_id: str, root: Path, output_dir: Path, policy_a
         "--policy.push_to_hub=false",
         "--wandb.enable=false",
         "--save_checkpoint=false",
-        "--eval_freq=0",
+        "--env_eval_freq=0",
         "--log_freq=1",
         f"--output_dir={output_dir}",
     ]

@@ -25,7 +25,7 @@ from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
 from tests.helpers import lerobot_train_two_steps, tree_hashes
 
-H, W = 24, 32
+H, W = 48, 64  # lerobot's diffusion backbone needs > 1 pixel after its stride-32 trunk
 NAMES = ["height", "width", "channels"]
 KINDS = ("float_image", "uint16_image", "video")
 STAGES = [
@@ -39,7 +39,7 @@ def _depth(t: int, e: int) -> np.ndarray:
     """A plane tilting over time, 0.3-2.5 m, with a near object: (H, W, 1) float32 metres."""
     ramp = np.linspace(0.3, 2.5, W, dtype=np.float32)[None, :, None] * np.ones((H, 1, 1), np.float32)
     d = ramp + np.float32(0.02 * t)
-    d[4 + e : 10 + e, 8:14] = 0.45
+    d[8 + e : 20 + e, 16:28] = 0.45
     return d.astype(np.float32)
 
 
@@ -143,7 +143,13 @@ def test_lerobot_stats_of_depth_are_in_its_unit(native):
 
 
 def test_diffusion_trains_on_depth(native, tmp_path):
+    """lerobot-train loads the dataset with its depth; lerobot 0.6.1's diffusion policy takes only
+    3-channel cameras of one shape, so the policy's inputs are the RGB camera and the state."""
     _, out, _ = native["float_image"]
+    inputs = {
+        "observation.state": {"type": "STATE", "shape": [2]},
+        "observation.images.front": {"type": "VISUAL", "shape": [3, H, W]},
+    }
     diffusion = (
         "--policy.type=diffusion",
         "--policy.pretrained_backbone_weights=null",
@@ -152,6 +158,7 @@ def test_diffusion_trains_on_depth(native, tmp_path):
         "--policy.down_dims=[32,64]",
         "--policy.crop_shape=null",
         "--policy.num_train_timesteps=10",
+        f"--policy.input_features={json.dumps(inputs)}",
     )
     lerobot_train_two_steps("test/depth", out, tmp_path / "train", policy_args=diffusion)
 
