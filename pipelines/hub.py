@@ -121,7 +121,7 @@ def push_dataset(
     else:
         try:  # lerobot's card renders its typed info, which checks the values it needs
             typed = DatasetInfo.from_dict(info)
-        except (TypeError, ValueError) as exc:
+        except (AttributeError, TypeError, ValueError) as exc:  # e.g. a missing field, features not a mapping
             raise DatasetError(f"{root / 'meta' / 'info.json'}: {_one_line(exc)}") from None
         card = str(create_lerobot_dataset_card(dataset_info=typed, license=license, repo_id=repo_id))
     _check_card(card, own_card)
