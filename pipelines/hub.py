@@ -104,8 +104,8 @@ def push_dataset(
     has no version tag yet, so `pull_dataset(repo_id)` and lerobot both load what was pushed.
     """
     from huggingface_hub.errors import RevisionNotFoundError
-    from lerobot.datasets.lerobot_dataset import CODEBASE_VERSION
-    from lerobot.datasets.utils import create_lerobot_dataset_card, get_repo_versions
+    from lerobot.datasets.dataset_metadata import CODEBASE_VERSION
+    from lerobot.datasets.utils import DatasetInfo, create_lerobot_dataset_card, get_repo_versions
 
     validate_repo_id(repo_id)
     root = local_dataset_root(source)
@@ -119,7 +119,11 @@ def push_dataset(
     if own_card.is_file():
         card = own_card.read_text(encoding="utf-8")
     else:
-        card = str(create_lerobot_dataset_card(dataset_info=info, license=license, repo_id=repo_id))
+        try:  # lerobot's card renders its typed info, which checks the values it needs
+            typed = DatasetInfo.from_dict(info)
+        except (AttributeError, TypeError, ValueError) as exc:  # e.g. a missing field, features not a mapping
+            raise DatasetError(f"{root / 'meta' / 'info.json'}: {_one_line(exc)}") from None
+        card = str(create_lerobot_dataset_card(dataset_info=typed, license=license, repo_id=repo_id))
     _check_card(card, own_card)
     branch = revision or DEFAULT_BRANCH
 
@@ -282,7 +286,7 @@ def _default_model_card(repo_id: str) -> str:
 def _dataset_revision(repo_id: str, revision: str | None) -> str:
     """The revision to download, resolved the way LeRobotDatasetMetadata resolves it."""
     import packaging.version
-    from lerobot.datasets.lerobot_dataset import CODEBASE_VERSION
+    from lerobot.datasets.dataset_metadata import CODEBASE_VERSION
     from lerobot.datasets.utils import get_repo_versions, get_safe_version, is_valid_version
 
     wanted = revision or CODEBASE_VERSION
@@ -303,7 +307,7 @@ def _dataset_revision(repo_id: str, revision: str | None) -> str:
 
 def _check_pulled_dataset(repo_id: str, folder: Path) -> None:
     import packaging.version
-    from lerobot.datasets.lerobot_dataset import CODEBASE_VERSION
+    from lerobot.datasets.dataset_metadata import CODEBASE_VERSION
 
     info_path = folder / "meta" / "info.json"
     if not info_path.is_file():
@@ -330,6 +334,10 @@ def _pull(repo_id: str, repo_type: str, revision: str, dest: Path, check) -> Pat
     with _staging(dest) as staging:
         # Pinned to the commit, so every file comes from the same revision.
         snapshot_download(repo_id, repo_type=repo_type, revision=commit, local_dir=staging)
+        # huggingface_hub's download bookkeeping serves only this one-off folder, and lerobot (0.6)
+        # takes a `$HF_LEROBOT_HOME/<id>` that holds it for a stale local_dir mirror: it would
+        # download the dataset again by ID (or fail offline) instead of loading the pulled copy.
+        shutil.rmtree(staging / ".cache", ignore_errors=True)
         if check is not None:
             check(repo_id, staging)
         if dest.exists():  # only with force: swap, then drop the old copy
@@ -365,7 +373,7 @@ def _staging(dest: Path) -> Iterator[Path]:
 @contextlib.contextmanager
 def _hub_errors(repo_id: str, revision: str | None) -> Iterator[None]:
     """Turn huggingface_hub / network failures into one-line ShiftkitErrors naming the problem."""
-    import requests
+    import httpx
     from huggingface_hub import constants
     from huggingface_hub.errors import (
         EntryNotFoundError,
@@ -385,12 +393,12 @@ def _hub_errors(repo_id: str, revision: str | None) -> Iterator[None]:
         raise ShiftkitError(offline) from None
     except LocalEntryNotFoundError as exc:  # a download's wrapper around a network failure
         raise ShiftkitError(offline if isinstance(exc.__cause__, OfflineModeIsEnabled) else unreachable) from None
-    except (requests.ConnectionError, requests.Timeout):
+    except httpx.TransportError:  # connection refused, DNS, timeouts, a broken answer
         raise ShiftkitError(unreachable) from None
     except RevisionNotFoundError:
         raise ShiftkitError(f"revision {revision!r} not found in {repo_id} at {endpoint}") from None
     except HfHubHTTPError as exc:
-        status = exc.response.status_code if exc.response is not None else None
+        status = exc.response.status_code
         server = _one_line(exc.server_message or "")
         if status == 401:  # the hub also answers 401 for private repositories it hides
             message = (

@@ -5,7 +5,8 @@ It is a test double for the remote service only; the client side under test is t
 huggingface_hub / lerobot code. Implemented (as the public Hub answers them, JSON bodies and the
 `X-Error-Code` / `X-Error-Message` headers the client maps to its exceptions):
 
-* `POST /api/repos/create`, `POST /api/validate-yaml`
+* `POST /api/repos/create` (`visibility` "public"/"private", or the older `private` flag),
+  `POST /api/validate-yaml`
 * `GET /api/{type}s/{repo}[/revision/{rev}]`, `GET .../refs`, `GET .../tree/{rev}[/{path}]`
 * `POST .../preupload/{rev}` (always answers `regular`: no LFS/xet), `POST .../commit/{rev}` (NDJSON)
 * `POST .../branch/{name}`, `POST .../tag/{rev}`, `DELETE .../tag/{name}`
@@ -346,13 +347,18 @@ def _handler_class(hub: LoopbackHub) -> type[BaseHTTPRequestHandler]:
             name, org = payload.get("name"), payload.get("organization")
             if not name or not org:
                 raise HubError(400, "This test hub needs an organization/namespace in the repo id")
+            # huggingface_hub 1.x sends `visibility`; older clients send the `private` flag.
+            visibility = payload.get("visibility")
+            if visibility not in (None, "public", "private"):
+                raise HubError(400, f"Invalid visibility for a {repo_type} repo: {visibility}")
+            private = visibility == "private" if visibility is not None else bool(payload.get("private"))
             repo_id = f"{org}/{name}"
             prefix = "" if repo_type == "model" else f"{repo_type}s/"
             url = f"{hub.endpoint}/{prefix}{repo_id}"
             with store.lock:
                 if store.exists(repo_type, repo_id):
                     raise HubError(409, f"You already created this {repo_type} repo", url=url)
-                store.create(repo_type, repo_id, bool(payload.get("private")))
+                store.create(repo_type, repo_id, private)
             self._json(200, {"url": url, "name": repo_id})
 
         def _validate_yaml(self, payload: dict) -> None:

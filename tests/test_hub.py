@@ -161,6 +161,11 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
             (["push", str(variant), "--repo-id", REPO, "--revision", "exp"], WRITE),
             (["pull", REPO, "--revision", "exp", "--root", str(tmp_path / "exp")], None),
             (["pull", REPO, "--force"], None),
+            (
+                f"from lerobot.datasets.lerobot_dataset import LeRobotDataset\nprint(LeRobotDataset({REPO!r}).root)",
+                None,
+            ),
+            ("import sys\nprint('hf_xet loaded:', 'hf_xet' in sys.modules)", None),
         ],
         hub.endpoint,
         home,
@@ -201,6 +206,13 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
     exp = file_hashes(tmp_path / "exp")
     assert exp == {**file_hashes(variant), ".gitattributes": exp[".gitattributes"]}
     assert file_hashes(root) == remote  # re-pulled with --force: still the v3.0 tag on main
+    # lerobot loads the pulled copy by ID: huggingface_hub's download bookkeeping is not left in it,
+    # which lerobot 0.6 takes for a stale mirror and downloads again into its own hub cache.
+    assert str(root) in results[6]["stdout"].splitlines()
+    assert not (root / ".cache").exists()
+    # Every file went inline in its commit and came back as a plain download: hf_xet (installed with
+    # huggingface_hub 1.x) was never needed, and the loopback hub has no xet or LFS service.
+    assert results[7]["stdout"].strip() == "hf_xet loaded: False"
 
 
 @pytest.mark.skipif(
@@ -278,12 +290,16 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
     _seed_untagged_and_private(hub, dataset)
     bad_card = copy_tree(dataset, tmp_path / "bad-card")
     (bad_card / "README.md").write_text("---\nlicense: [apache-2.0\n---\n# broken\n")
+    bad_info = copy_tree(dataset, tmp_path / "bad-info")  # lerobot's card needs its typed info
+    info = json.loads((bad_info / "meta" / "info.json").read_text())
+    (bad_info / "meta" / "info.json").write_text(json.dumps({**info, "fps": 0}))
     cases = [
         (["push", str(dataset), "--repo-id", "shiftkit-test/noauth"], None),
         (["push", str(dataset), "--repo-id", "shiftkit-test/noauth"], "hf_not_a_token"),
         (["push", str(dataset), "--repo-id", "shiftkit-test/noauth"], READ),
         (["push", str(dataset), "--repo-id", "shiftkit-test/bad name!"], WRITE),
         (["push", str(bad_card), "--repo-id", "shiftkit-test/noauth"], WRITE),
+        (["push", str(bad_info), "--repo-id", "shiftkit-test/noauth"], WRITE),
         (["push", str(tmp_path / "missing"), "--repo-id", "shiftkit-test/noauth"], WRITE),
         (["pull", "shiftkit-test/..bad"], None),
         (["pull", "shiftkit-test/untagged"], None),
@@ -311,6 +327,7 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
             "forbidden (403)",
             "invalid repo id",
             "invalid card metadata",
+            "info.json: fps must be positive",
             "no such dataset folder",
             "invalid repo id",
             "no codebase version tag",
@@ -325,3 +342,25 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(hub, dataset, tmp_pat
     _assert_one_line_errors(batch_results(unreachable), ["cannot reach the hub", "cannot reach the hub"])
     assert not hub.store.exists("dataset", "shiftkit-test/noauth")
     assert files_under(home / "lerobot") == files_under(home_closed / "lerobot") == []
+
+
+def test_private_push_hides_the_repository(hub, dataset, tmp_path):
+    checkpoint = tmp_path / "checkpoint"
+    checkpoint.mkdir()
+    (checkpoint / "weights.bin").write_bytes(b"\x01" * 32)
+    results = shiftkit_batch(
+        [
+            (["push", str(dataset), "--repo-id", "shiftkit-test/private", "--private"], WRITE),
+            (["push", str(checkpoint), "--checkpoint", "--repo-id", "shiftkit-test/private-run", "--private"], WRITE),
+            (["pull", "shiftkit-test/private", "--root", str(tmp_path / "reader")], READ),
+            (["pull", "shiftkit-test/private", "--root", str(tmp_path / "anonymous")], None),
+        ],
+        hub.endpoint,
+        tmp_path / "home",
+    )
+    assert_ok(results[:3])
+    _assert_one_line_errors(results[3:], ["(401)"])
+    assert hub.store.meta("dataset", "shiftkit-test/private")["private"]
+    assert hub.store.meta("model", "shiftkit-test/private-run")["private"]
+    assert file_hashes(dataset).items() <= file_hashes(tmp_path / "reader").items()
+    assert not (tmp_path / "anonymous").exists()
