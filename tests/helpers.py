@@ -32,6 +32,20 @@ SMALL_ACT = (
 )
 
 
+# A small diffusion policy (a 2-level U-Net, 10 noise steps), as offline as SMALL_ACT; group norm,
+# since batch norm fails on the 1x1 maps small test images leave after the ResNet trunk.
+SMALL_DIFFUSION = (
+    "--policy.type=diffusion",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.use_group_norm=true",
+    "--policy.crop_shape=null",
+    "--policy.down_dims=[32,64]",
+    "--policy.horizon=8",
+    "--policy.n_action_steps=4",
+    "--policy.num_train_timesteps=10",
+)
+
+
 def lerobot_train_two_steps(repo_id: str, root: Path, output_dir: Path, policy_args=SMALL_ACT) -> None:
     """Run lerobot's own trainer (`lerobot-train` beside this Python) for 2 steps on the dataset at
     `root` and check it got there."""

@@ -23,7 +23,7 @@ from shiftkit.pipelines.depth import LEGACY_DEFAULT, VIDEO_DEFAULTS, legacy_grey
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
-from tests.helpers import lerobot_train_two_steps, tree_hashes
+from tests.helpers import SMALL_DIFFUSION, lerobot_train_two_steps, tree_hashes
 
 H, W = 48, 64  # lerobot's diffusion backbone needs > 1 pixel after its stride-32 trunk
 NAMES = ["height", "width", "channels"]
@@ -155,16 +155,7 @@ def test_diffusion_trains_on_depth(native, tmp_path):
         "observation.state": {"type": "STATE", "shape": [2]},
         "observation.images.front": {"type": "VISUAL", "shape": [3, H, W]},
     }
-    diffusion = (
-        "--policy.type=diffusion",
-        "--policy.pretrained_backbone_weights=null",
-        "--policy.horizon=8",
-        "--policy.n_action_steps=4",
-        "--policy.down_dims=[32,64]",
-        "--policy.crop_shape=null",
-        "--policy.num_train_timesteps=10",
-        f"--policy.input_features={json.dumps(inputs)}",
-    )
+    diffusion = (*SMALL_DIFFUSION, f"--policy.input_features={json.dumps(inputs)}")
     lerobot_train_two_steps("test/depth", out, tmp_path / "train", policy_args=diffusion)
 
 

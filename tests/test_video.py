@@ -16,7 +16,7 @@ from shiftkit.pipelines.dataset_check import validate_dataset
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
-from tests.helpers import lerobot_train_two_steps
+from tests.helpers import SMALL_DIFFUSION, lerobot_train_two_steps
 
 SIZE = 32
 INTRINSICS = {"fx": 30.0, "fy": 30.0, "cx": 15.5, "cy": 15.5, "width": SIZE, "height": SIZE}
@@ -127,14 +127,7 @@ def test_stages_run_on_video_sources(outputs, lerobot_video, variant):
 @pytest.mark.parametrize("variant", ["video", "image"])
 def test_lerobot_train_diffusion_on_outputs(outputs, variant, tmp_path):
     """lerobot's own trainer (diffusion, CPU, offline, 2 steps, a small U-Net) on both outputs."""
-    diffusion = (
-        "--policy.type=diffusion",
-        "--policy.crop_shape=null",
-        "--policy.down_dims=[32,64]",
-        "--policy.horizon=8",
-        "--policy.n_action_steps=4",
-    )
-    lerobot_train_two_steps(f"test/{variant}", outputs[variant], tmp_path / "train", diffusion)
+    lerobot_train_two_steps(f"test/{variant}", outputs[variant], tmp_path / "train", SMALL_DIFFUSION)
 
 
 def test_collect_writes_videos(tmp_path):
@@ -178,21 +171,40 @@ def test_video_needs_lerobot_output(tmp_path):
 
 def test_in_memory_encoder_is_lerobots_encoder(tmp_path):
     """The writer encodes from memory; the file is byte for byte what lerobot's encode_video_frames
-    makes from the same frames as PNG files."""
+    makes from the same frames as PNG files (RGB) or TIFF files (depth, its depth encoder), and the
+    reader's depth dequantisation is lerobot's."""
     import PIL.Image
+    from lerobot.configs import depth_encoder_defaults, rgb_encoder_defaults
+    from lerobot.datasets.depth_utils import dequantize_depth, quantize_depth
+    from lerobot.datasets.image_writer import write_image
     from lerobot.datasets.video_utils import encode_video_frames
 
-    from shiftkit.pipelines.video import decode_episode, encode_frames
+    from shiftkit.pipelines.depth import VIDEO_DEFAULTS
+    from shiftkit.pipelines.video import decode_episode, dequantize_metres, encode_frames
 
     frames = np.stack([_frame(t, 1) for t in range(12)])
+    depth = np.stack([np.full((SIZE, SIZE, 1), 0.3 + 0.1 * t, np.float32) for t in range(12)])
+    depth[:, 4:9, 4:9] = 2.4
     (tmp_path / "png").mkdir()
-    for t, frame in enumerate(frames):
+    (tmp_path / "tiff").mkdir()
+    for t, (frame, d) in enumerate(zip(frames, depth, strict=True)):
         PIL.Image.fromarray(frame).save(tmp_path / "png" / f"frame-{t:06d}.png")
-    encode_video_frames(tmp_path / "png", tmp_path / "lerobot.mp4", 10, overwrite=True)
-    encode_frames(frames, tmp_path / "ours.mp4", 10)
-    assert (tmp_path / "ours.mp4").read_bytes() == (tmp_path / "lerobot.mp4").read_bytes()
-    decoded = decode_episode(tmp_path / "ours.mp4", 0.0, np.arange(12) / 10, "test")
+        write_image(d, tmp_path / "tiff" / f"frame-{t:06d}.tiff")
+    for kind, encoder in (("png", rgb_encoder_defaults()), ("tiff", depth_encoder_defaults())):
+        encode_video_frames(
+            tmp_path / kind, tmp_path / f"lerobot-{kind}.mp4", 10, video_encoder=encoder, overwrite=True
+        )
+        encode_frames(frames if kind == "png" else depth, tmp_path / f"ours-{kind}.mp4", 10, encoder)
+        assert (tmp_path / f"ours-{kind}.mp4").read_bytes() == (tmp_path / f"lerobot-{kind}.mp4").read_bytes(), kind
+    decoded = decode_episode(tmp_path / "ours-png.mp4", 0.0, np.arange(12) / 10, "test")
     assert decoded.shape == frames.shape and np.abs(decoded.astype(int) - frames).mean() < 6
+    info = {f"video.{k}": v for k, v in VIDEO_DEFAULTS.items()}
+    decoded = decode_episode(tmp_path / "ours-tiff.mp4", 0.0, np.arange(12) / 10, "test", info)
+    assert decoded.shape == depth.shape and np.abs(decoded - depth).max() < 2e-3  # lossless HEVC: quantiser only
+    codes = np.stack([quantize_depth(d, video_backend=None) for d in depth])
+    theirs = dequantize_depth(codes[..., None], output_unit="m", output_tensor=False, output_channel_last=True)
+    np.testing.assert_allclose(dequantize_metres(codes, info)[..., None], theirs, rtol=0, atol=1e-6)
+    assert {k: getattr(depth_encoder_defaults(), k) for k in VIDEO_DEFAULTS} == VIDEO_DEFAULTS
 
 
 def test_video_dataset_round_trips_through_the_hub(outputs, tmp_path):
