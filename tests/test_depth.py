@@ -138,6 +138,7 @@ def test_lerobot_depth_survives_a_pipeline(native, kind):
     else:
         np.testing.assert_array_equal(ours, truth)  # float metres: exact
     validate_dataset(out)
+    validate_dataset(src)  # lerobot's own depth, as recorded, is a valid input
 
 
 def test_lerobot_stats_of_depth_are_in_its_unit(native):

@@ -78,7 +78,7 @@ def _write_v21(root, video=False):
     with `video`, the camera is an AV1 video per episode (videos/chunk-000/<key>/episode_*.mp4) encoded
     with lerobot's own encoder."""
     from datasets import Dataset
-    from lerobot.datasets.utils import get_hf_features_from_features
+    from lerobot.datasets.feature_utils import get_hf_features_from_features
     from lerobot.datasets.video_utils import encode_video_frames
 
     features = {**FEATURES, "observation.images.front": VIDEO} if video else FEATURES
