@@ -151,7 +151,7 @@ def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
 @register_stage
 class Multiview(Stage):
     name = "multiview"
-    version = 1
+    version = 2  # 2: depth is native (H, W, 1) metres
     Config = MultiviewConfig
 
     def setup(self) -> None:
