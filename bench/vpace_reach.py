@@ -4,7 +4,7 @@ the main intention must reach >= 90% success.
 Steps, all through shiftkit's own entry points:
 1. one LeRobot example dataset with 200 examples per task, from either source (`--examples`):
    * `published` (default): `shiftkit import vpace` of the VPACE authors' reach and lift example files
-     (../shared/data/vpace), recorded in their own simulator; auxiliary task lift;
+     (shared/data/vpace beside the checkout, or beside a folder above it), recorded in their own simulator; auxiliary task lift;
    * `scene`: final states of scripted-expert episodes in shiftkit's Panda play scene,
      `shiftkit collect --task reach|open --control-hz 5 --only-successful` + the `success_examples`
      stage; auxiliary task open (the thesis' pairing for reach). See docs/vpace.md for how the two
@@ -75,6 +75,13 @@ def scene_examples(dest: Path, work: Path, tasks: list[str]) -> None:
     )
 
 
+def default_data() -> Path:
+    """The first `shared/data/vpace` beside the checkout or beside one of its parent folders."""
+    checkout = Path(__file__).resolve().parents[1]
+    candidates = [parent / "shared" / "data" / "vpace" for parent in checkout.parents]
+    return next((c for c in candidates if c.is_dir()), candidates[0])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: 2500 steps, 5 evaluation episodes")
@@ -92,8 +99,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument(
         "--data",
-        default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "vpace"),
-        help="folder with the published VPACE example files",
+        default=str(default_data()),
+        help="folder with the published VPACE example files (default: shared/data/vpace next to the"
+        " checkout or next to a folder above it, as for a git worktree)",
     )
     parser.add_argument("--workdir", help="keep dataset and run here (default: a temporary folder)")
     args = parser.parse_args()
