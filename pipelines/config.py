@@ -50,8 +50,9 @@ class DestinationConfig:
     private: bool = False
     """Create the hub repository as private."""
     video: bool | None = None
-    """RGB camera features (`observation.image*`) as lerobot videos (true) or PNG images (false);
-    unset: as the source has them. Depth stays a lossless image (docs/video_depth.md)."""
+    """Camera features as lerobot videos (true: RGB with lerobot's AV1 settings, depth with its
+    12-bit depth encoder) or images (false: PNG, depth lossless TIFF); unset: as the source has
+    them (docs/video_depth.md)."""
 
 
 @dataclass
