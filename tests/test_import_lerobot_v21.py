@@ -153,7 +153,7 @@ def test_v21_dataset_converts_into_a_new_directory(tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "src").iterdir()) == ["old_ds"], "nothing renamed or added beside it"
 
     ds = LeRobotDataset("me/new_ds", root=tmp_path / "out")
-    assert ds.meta.info["codebase_version"] == "v3.0"
+    assert ds.meta.info.codebase_version == "v3.0"
     assert (ds.num_episodes, len(ds), ds.fps) == (2, 7, FPS)
     assert ds.meta.robot_type == "test_arm"
     assert ds.meta.tasks.index.tolist() == ["pick", "place"]
