@@ -1,4 +1,4 @@
-"""Dropped views are counted in the run summary and the provenance (issue 20): views that IK cannot
+"""Dropped views are counted in the run summary and the provenance: views that IK cannot
 follow or that lose the object, and source episodes left without any view (which have no output
 episode to carry the count), equal to the stage's own per-pose decisions, with 1 or 2 workers and
 after a run stopped half-way is resumed."""

@@ -1,4 +1,4 @@
-"""No silent wrong results: each case once finished with exit 0 and wrong data (issue 14)."""
+"""No silent wrong results: each case once finished with exit 0 and wrong data before it was fixed."""
 
 from __future__ import annotations
 
