@@ -26,7 +26,7 @@ import numpy as np
 from shiftkit.pipelines.errors import DatasetError
 
 DEPTH_PREFIX = "observation.depth."
-UNITS = {"m": np.dtype("float32"), "mm": np.dtype("uint16")}  # lerobot's infer_depth_unit, inverted
+UNITS = ("m", "mm")  # lerobot's depth units: float32 metres, uint16 millimetres
 DEFAULT_UNIT = "m"  # float32 metres: exact for MuJoCo's float depth
 _IMAGE_NAMES = ["height", "width", "channels"]
 # The encoding older shiftkit versions wrote (grey level = round((d - near) / (far - near) * 255)).
@@ -74,7 +74,7 @@ def to_metres(stored: np.ndarray, unit: str | None = None) -> np.ndarray:
     if unit is None:
         unit = "m" if arr.dtype.kind == "f" else "mm"
     if unit == "mm":
-        return (arr.astype(np.float32) / np.float32(1000.0)).astype(np.float32)
+        return arr.astype(np.float32) / np.float32(1000.0)
     return arr.astype(np.float32, copy=False)
 
 
@@ -119,6 +119,15 @@ def legacy_grey(metres: np.ndarray, encoding: Mapping[str, Any] = LEGACY_DEFAULT
     d = np.where(np.isfinite(d), d, far)
     grey = np.rint((np.clip(d, near, far) - near) * (255.0 / (far - near))).astype(np.uint8)
     return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def as_metres(frames: np.ndarray, cameras: Mapping[str, Any] | None, camera: str) -> np.ndarray:
+    """A depth feature's frames as shiftkit holds depth: native (T, H, W, 1) float32 metres pass
+    unchanged (their source bytes kept); older shiftkit arrays (grey levels, other float dtypes)
+    are converted through the camera's legacy range."""
+    if frames.dtype == np.float32 and frames.shape[-1] == 1:
+        return frames
+    return legacy_depth_to_metres(frames, legacy_encoding(cameras, camera))
 
 
 def legacy_depth_to_metres(frames: np.ndarray, encoding: Mapping[str, Any] = LEGACY_DEFAULT) -> np.ndarray:

@@ -1,16 +1,16 @@
-"""Decoded camera frames that remember the PNG bytes they came from, so an unchanged frame is not
-encoded again when it is written.
+"""Decoded camera frames that remember the bytes they came from (PNG for RGB, TIFF for depth), so
+an unchanged frame is not encoded again when it is written.
 
 PNG encoding at lerobot's compression level (PIL, level 6) is the largest cost of writing an image
 dataset (~10 ms per 96x96 frame here, more than reading, statistics and parquet together). Most
 stages pass frames through unchanged (filter, trim, subsample, rename, ...). The reader returns
 image features as `EncodedFrames`: a plain uint8 array plus a map from each frame's content (a
-CRC-32 key, confirmed by comparing the pixels with a copy of the decoded frame) to its source PNG
+CRC-32 key, confirmed by comparing the pixels with a copy of the decoded frame) to its source
 bytes. The writer reuses the bytes only when a frame's pixels equal the decoded ones, so a frame
 that a stage changed, in place or not, is always encoded afresh. The map survives slicing, pickling
 (the runner's parts) and `Episode.select`; arrays built anew by a stage are plain arrays, which the
 pipeline's workers encode and wrap before they store a part (`lerobot_io.encode_images`), so the one
-writer only copies bytes. PNG decoding is lossless, so the written pixels are the same either way;
+writer only copies bytes. PNG and TIFF decoding are lossless, so the written pixels are the same either way;
 for sources written by lerobot or shiftkit (PIL at level 6, deterministic) the bytes are the same
 too.
 """
@@ -29,37 +29,37 @@ def _key(frame: np.ndarray) -> tuple[tuple[int, ...], int]:
 
 
 class EncodedFrames(np.ndarray):
-    """(T, H, W, C) uint8 frames with `png`: {key: (a copy of the frame as decoded, its PNG bytes)}."""
+    """(T, H, W, C) frames with `encoded`: {key: (a copy of the frame as decoded, its source bytes)}."""
 
-    png: dict[tuple, tuple[np.ndarray, bytes]] | None
+    encoded: dict[tuple, tuple[np.ndarray, bytes]] | None
 
     @classmethod
     def wrap(cls, frames: np.ndarray, encoded: list[bytes]) -> EncodedFrames:
         out = np.asarray(frames).view(cls)
-        out.png = {_key(f): (np.array(f), b) for f, b in zip(frames, encoded, strict=True)}
+        out.encoded = {_key(f): (np.array(f), b) for f, b in zip(frames, encoded, strict=True)}
         return out
 
     def __array_finalize__(self, obj: Any) -> None:
-        self.png = getattr(obj, "png", None)
+        self.encoded = getattr(obj, "encoded", None)
 
     def __reduce__(self) -> tuple:
         # Only the bytes of this array's own frames travel, checked now; the decoded copies that
         # confirm a hit are the frames themselves again after unpickling (a part holds no second
         # copy of the pixels).
         constructor, args, state = super().__reduce__()
-        encoded = [source_png(f, self) for f in self] if self.png and self.ndim == 4 else None
+        encoded = [source_bytes(f, self) for f in self] if self.encoded and self.ndim == 4 else None
         return constructor, args, (state, encoded)
 
     def __setstate__(self, state: tuple) -> None:
         array_state, encoded = state
         super().__setstate__(array_state)
-        self.png = None
+        self.encoded = None
         if encoded is not None:
-            self.png = {_key(f): (np.array(f), b) for f, b in zip(self, encoded, strict=True) if b is not None}
+            self.encoded = {_key(f): (np.array(f), b) for f, b in zip(self, encoded, strict=True) if b is not None}
 
 
-def source_png(frame: np.ndarray, frames: np.ndarray) -> bytes | None:
-    """The PNG bytes `frame` (one of `frames`) was read from, if its pixels are unchanged; else None."""
-    png = getattr(frames, "png", None)
-    hit = png.get(_key(frame)) if png else None
+def source_bytes(frame: np.ndarray, frames: np.ndarray) -> bytes | None:
+    """The bytes `frame` (one of `frames`) was read from, if its pixels are unchanged; else None."""
+    encoded = getattr(frames, "encoded", None)
+    hit = encoded.get(_key(frame)) if encoded else None
     return hit[1] if hit is not None and np.array_equal(hit[0], frame) else None

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines.depth import is_depth
+from shiftkit.pipelines.depth import depth_unit, is_depth
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 
@@ -23,15 +23,25 @@ TEXT_DTYPES = {"string", "language"}
 IMAGE_NAMES = ["height", "width", "channels"]
 
 
-def numpy_dtype(feature: dict[str, Any] | str) -> np.dtype:
+def numpy_dtype(feature: dict[str, Any]) -> np.dtype:
     """The numpy dtype an Episode array of a feature holds: RGB cameras uint8 (H, W, 3), depth
-    cameras float32 metres (H, W, 1) (`pipelines.depth`), others their own dtype."""
-    dtype = feature if isinstance(feature, str) else feature["dtype"]
+    cameras float32 metres (H, W, 1) (`pipelines.depth`), language columns objects, others their
+    own dtype."""
+    dtype = feature["dtype"]
     if dtype == "language":
         return np.dtype(object)
     if dtype in CAMERA_DTYPES:
-        return np.dtype("float32") if not isinstance(feature, str) and is_depth(feature) else np.dtype("uint8")
+        return np.dtype("float32") if is_depth(feature) else np.dtype("uint8")
     return np.dtype(dtype)
+
+
+def object_column(values: list[Any]) -> np.ndarray:
+    """One Python value per frame (e.g. a language column's list of messages) as a 1-D object
+    array; `np.array` alone would turn equal-length lists into a 2-D array."""
+    out = np.empty(len(values), dtype=object)
+    for i, value in enumerate(values):
+        out[i] = value
+    return out
 
 
 def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
@@ -47,13 +57,12 @@ def image_feature(shape: tuple[int, int, int]) -> dict[str, Any]:
     return {"dtype": "image", "shape": tuple(shape), "names": list(IMAGE_NAMES)}
 
 
-def _lerobot_info(info: dict[str, Any] | None, keep_video: bool) -> dict[str, Any]:
+def _lerobot_info(feature: dict[str, Any], keep_video: bool) -> dict[str, Any]:
     """What lerobot itself keeps in a camera feature's `info`: the depth marker and unit, and while
     it stays a video, the `video.*` / `audio.*` keys its video writer records (codec, size,
     encoder settings, the depth quantiser), which a re-encode rewrites."""
-    info = info or {}
-    depth = bool(info.get("is_depth_map") or info.get("video.is_depth_map"))
-    out = {"is_depth_map": True, "depth_unit": info.get("depth_unit") or "m"} if depth else {}
+    info = feature.get("info") or {}
+    out = {"is_depth_map": True, "depth_unit": depth_unit(feature)} if is_depth(feature) else {}
     if keep_video:
         out = {
             **{
@@ -79,7 +88,7 @@ def plain_camera_features(features: Features, dtype: str | None = None) -> Featu
             continue
         new_dtype = dtype or ft["dtype"]
         plain = {"dtype": new_dtype, "shape": tuple(ft["shape"]), "names": ft.get("names")}
-        info = _lerobot_info(ft.get("info"), keep_video=new_dtype == ft["dtype"] == "video")
+        info = _lerobot_info(ft, keep_video=new_dtype == ft["dtype"] == "video")
         if info:
             plain["info"] = info
         out[key] = plain

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from shiftkit.pipelines import camera_meta, depth
-from shiftkit.pipelines.encoded_frames import EncodedFrames, source_png
+from shiftkit.pipelines.encoded_frames import EncodedFrames, source_bytes
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import (
@@ -60,6 +60,7 @@ from shiftkit.pipelines.features import (
     Features,
     check_episode,
     check_features,
+    object_column,
     plain_camera_features,
     user_features,
 )
@@ -96,8 +97,8 @@ def _frame_bytes(frames: np.ndarray, ft: dict[str, Any]) -> list[bytes]:
     unchanged (`encoded_frames`): PNG for RGB, TIFF in the stored unit for depth."""
     if depth.is_depth(ft):
         unit = depth.depth_unit(ft)
-        return [source_png(f, frames) or _tiff_bytes(depth.to_stored(f, unit)) for f in frames]
-    return [source_png(f, frames) or _png_bytes(f) for f in frames]
+        return [source_bytes(f, frames) or _tiff_bytes(depth.to_stored(f, unit)) for f in frames]
+    return [source_bytes(f, frames) or _png_bytes(f) for f in frames]
 
 
 # Statistics that depend on where an episode lands in the dataset; all others are a function of
@@ -517,7 +518,6 @@ def fix_position_stats(root: Path) -> tuple[int, int]:
     in the whole dataset: the per-episode and dataset statistics of `index`, `episode_index` and
     `task_index`. Also rewrites meta/stats.json in feature order (lerobot aggregates statistics over
     a `set` of keys, whose order follows the process's string-hash seed). Returns (episodes, frames)."""
-    import numpy as np
     import pandas as pd
     import pyarrow.parquet as pq
     from lerobot.datasets.compute_stats import aggregate_stats
@@ -688,7 +688,7 @@ class LeRobotDatasetReader:
                 encoded = [v["bytes"] for v in col.to_pylist()]  # kept: unchanged frames are not re-encoded
                 frames[key] = EncodedFrames.wrap(np.stack([decode_image(b, where, ft) for b in encoded]), encoded)
             elif ft["dtype"] == "language":
-                frames[key] = np.array(col.to_pylist() + [None], dtype=object)[:-1]  # a list per frame
+                frames[key] = object_column(col.to_pylist())  # a list of messages per frame
             elif ft["dtype"] == "string":
                 frames[key] = np.array(col.to_pylist(), dtype=str).reshape(n, 1)
             else:
@@ -724,9 +724,12 @@ def _column_to_numpy(col: Any, shape: tuple[int, ...], dtype: np.dtype) -> np.nd
 
 
 def decode_image(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
-    """One frame of an `image` feature as shiftkit holds it: RGB uint8 (H, W, 3), depth float32
-    metres (H, W, 1). The one image decoder of stages and trainers."""
-    return _decode_depth(data, where, ft) if depth.is_depth(ft) else _decode_png(data, where)
+    """One frame of an `image` feature as shiftkit holds it: RGB uint8 (H, W, 3) (grey (H, W, 1) for
+    a one-channel camera), depth float32 metres (H, W, 1). The one image decoder of stages and
+    trainers."""
+    if depth.is_depth(ft):
+        return _decode_depth(data, where, ft)
+    return _decode_png(data, where, grey=tuple(ft["shape"])[-1] == 1)
 
 
 def decode_video(path: Path, start: float, timestamps: np.ndarray, where: str, ft: dict[str, Any]) -> np.ndarray:
@@ -735,13 +738,13 @@ def decode_video(path: Path, start: float, timestamps: np.ndarray, where: str, f
     return decode_episode(path, start, timestamps, where, ft.get("info") if depth.is_depth(ft) else None)
 
 
-def _decode_png(data: bytes, where: str) -> np.ndarray:
+def _decode_png(data: bytes, where: str, grey: bool = False) -> np.ndarray:
     import cv2
 
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
     if img is None:
         raise DatasetError(f"{where}: undecodable image bytes")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img[..., None] if grey else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def _decode_depth(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
@@ -758,8 +761,7 @@ def _decode_depth(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
     shape = tuple(ft["shape"])
     if arr.shape != shape[:2]:
         raise DatasetError(f"{where}: depth image has shape {arr.shape}, expected {shape[:2]}")
-    info_unit = (ft.get("info") or {}).get("depth_unit")
-    return depth.clean_metres(depth.to_metres(arr, info_unit if info_unit else None))
+    return depth.clean_metres(depth.to_metres(arr, (ft.get("info") or {}).get("depth_unit")))
 
 
 def check_info_values(info: dict[str, Any], info_path: Path) -> None:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.pipelines.depth import VIDEO_DEFAULTS
 from shiftkit.pipelines.errors import DatasetError
 
 TOLERANCE_S = 1e-4  # lerobot's default tolerance between a frame's timestamp and the query
@@ -66,8 +67,6 @@ def decode_episode(
 def depth_quantiser(info: dict[str, Any] | None) -> tuple[float, float, float, bool]:
     """(depth_min, depth_max, shift, use_log) in metres from a depth video feature's `info`
     (lerobot's defaults for keys it did not record)."""
-    from shiftkit.pipelines.depth import VIDEO_DEFAULTS
-
     info = info or {}
     return tuple(info.get(f"video.{k}", v) for k, v in VIDEO_DEFAULTS.items())  # type: ignore[return-value]
 

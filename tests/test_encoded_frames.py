@@ -10,7 +10,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.encoded_frames import EncodedFrames, source_png
+from shiftkit.pipelines.encoded_frames import EncodedFrames, source_bytes
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
@@ -61,11 +61,11 @@ def test_changed_frames_are_encoded_afresh(synthetic_raw_images, tmp_path):
     reader = open_lerobot_dataset(src)
     episode = next(reader.iter_episodes())
     frames = episode.frames[KEY]
-    assert isinstance(frames, EncodedFrames) and source_png(frames[2], frames) is not None
+    assert isinstance(frames, EncodedFrames) and source_bytes(frames[2], frames) is not None
     frames = pickle.loads(pickle.dumps(episode.select(slice(0, 4)).frames[KEY]))  # parts, select
-    assert source_png(frames[3], frames) is not None
+    assert source_bytes(frames[3], frames) is not None
     frames[0, :5] = 255  # in place: the stored bytes no longer match the pixels
-    assert source_png(frames[0], frames) is None
+    assert source_bytes(frames[0], frames) is None
     episode = episode.select(slice(0, 4)).with_frames(**{KEY: frames})
     with DatasetWriter("test/out", tmp_path / "out", reader.fps, reader.features) as writer:
         writer.add_episode(episode)
@@ -100,5 +100,5 @@ def test_new_frames_are_encoded_by_the_workers_not_the_writer(synthetic_raw_imag
     episode = next(open_lerobot_dataset(out).iter_episodes())
     frames = episode.frames[KEY]
     # a part holds the pixels and the PNG bytes once each (the copies that confirm a hit are rebuilt)
-    encoded = sum(len(source_png(f, frames)) for f in frames)
+    encoded = sum(len(source_bytes(f, frames)) for f in frames)
     assert len(pickle.dumps(frames)) < frames.nbytes + encoded + 4096

@@ -10,6 +10,7 @@ import pytest
 
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
 from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.features import object_column
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
@@ -55,8 +56,8 @@ def annotated(tmp_path_factory):
                     {
                         "observation.state": state,
                         "action": state + 1,
-                        "language_persistent": np.array([r[0] for r in rows] + [None], dtype=object)[:-1],
-                        "language_events": np.array([r[1] for r in rows] + [None], dtype=object)[:-1],
+                        "language_persistent": object_column([r[0] for r in rows]),
+                        "language_events": object_column([r[1] for r in rows]),
                         "timestamp": (np.arange(LENGTH) / FPS).astype(np.float32),
                         "task": np.array(["pick"] * LENGTH),
                     }

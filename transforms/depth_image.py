@@ -16,10 +16,9 @@ import numpy as np
 from shiftkit.pipelines.depth import (
     DEFAULT_UNIT,
     DEPTH_PREFIX,
+    as_metres,
     depth_feature,
     is_legacy_depth,
-    legacy_depth_to_metres,
-    legacy_encoding,
 )
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.features import Features
@@ -49,14 +48,9 @@ class DepthImage(Stage):
 
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         frames, cameras = dict(episode.frames), dict(episode.meta.get("cameras") or {})
-        # Older depth by its arrays (grey uint8, or float (H, W, 1) of another dtype); native depth is
-        # float32 (H, W, 1) metres already and passes unchanged.
-        legacy = [
-            k for k, a in frames.items() if k.startswith(DEPTH_PREFIX) and (a.dtype != np.float32 or a.shape[-1] != 1)
-        ]
-        for key in legacy:
+        for key in [k for k in frames if k.startswith(DEPTH_PREFIX)]:
             cam = key.removeprefix(DEPTH_PREFIX)
-            frames[key] = legacy_depth_to_metres(episode.frames[key], legacy_encoding(cameras, cam))
+            frames[key] = as_metres(frames[key], cameras, cam)
             if "depth" in cameras.get(cam, {}):  # the grey-level range no longer applies
                 cameras[cam] = {k: v for k, v in cameras[cam].items() if k != "depth"}
         meta = {**episode.meta, "cameras": cameras} if cameras else dict(episode.meta)

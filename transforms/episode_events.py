@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from shiftkit.pipelines.features import object_column
+
 EVENT_KEYS = ("next.success", "next.done")
 LANGUAGE_EVENTS = "language_events"  # lerobot.datasets.language.LANGUAGE_EVENTS
 
@@ -23,4 +25,4 @@ def or_events(frames: dict[str, np.ndarray], out: dict[str, np.ndarray], starts:
         # A window's messages, in order, on its frame; a repeated frame (empty window) fires none.
         events, ends = frames[LANGUAGE_EVENTS], np.r_[starts[1:], len(frames[LANGUAGE_EVENTS])]
         rows = [[row for i in range(s, e) for row in (events[i] or [])] for s, e in zip(starts, ends, strict=True)]
-        out[LANGUAGE_EVENTS] = np.array([*rows, None], dtype=object)[:-1]
+        out[LANGUAGE_EVENTS] = object_column(rows)

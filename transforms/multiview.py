@@ -41,12 +41,11 @@ from shiftkit.envs.base_pose import BasePose
 from shiftkit.envs.multiview.physics import CAMERA_NAME, SAMPLER, rebase_state, rotation_z
 from shiftkit.envs.multiview.tasks import TASKS
 from shiftkit.pipelines.depth import (
+    as_metres,
     clean_metres,
     depth_feature,
     depth_unit,
     is_depth,
-    legacy_depth_to_metres,
-    legacy_encoding,
 )
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
@@ -259,10 +258,8 @@ class Multiview(Stage):
     def _source_copy(self, episode: Episode, env, size: tuple[int, int]) -> Episode:
         """The source episode with the camera features the output schema has (rendered if absent)."""
         frames = dict(episode.frames)
-        legacy = frames.get(DEPTH_KEY)
-        if legacy is not None and (legacy.dtype != np.float32 or legacy.shape[-1] != 1):  # older shiftkit depth
-            cameras = episode.meta.get("cameras")
-            frames[DEPTH_KEY] = legacy_depth_to_metres(legacy, legacy_encoding(cameras, CAMERA_NAME))
+        if DEPTH_KEY in frames:  # older shiftkit depth becomes metres, as the views' depth is
+            frames[DEPTH_KEY] = as_metres(frames[DEPTH_KEY], episode.meta.get("cameras"), CAMERA_NAME)
         if IMAGE_KEY not in frames or (self.config.depth and DEPTH_KEY not in frames):
             pose = BasePose.from_dict(episode.meta["cameras"][CAMERA_NAME]["base_pose"])
             env.set_base_pose(pose)

@@ -262,9 +262,8 @@ class RawDataset:
             d = _load_npy(path, mmap=True)
             if d.ndim != 3:
                 raise DatasetError(f"{path}: depth must be (T, H, W), got {d.shape}")
-            features[_depth_feature(path.stem)] = depth_feature(
-                d.shape[1], d.shape[2]
-            )  # metres, lerobot's native depth
+            # metres, lerobot's native depth
+            features[_depth_feature(path.stem)] = depth_feature(d.shape[1], d.shape[2])
         return features
 
     def read_episode(self, i: int) -> Episode:
