@@ -15,10 +15,12 @@ Run folder (`run_dir.RunDir` layout, trainer "fire"):
     config.json, metrics.jsonl (one "episode" line per episode, "eval" lines), checkpoints/ (the full
     loop state after every episode: a SIGKILLed run resumes there with `resume=True`),
     bc-init/ (the initial BC run), policy/ (a BC run folder of the current policy, loadable by
-    `shiftkit eval`), episodes/episode_XXXXXX.npz (every executed episode's frames).
-At the end, the aggregated LeRobot dataset: the demonstrations and every executed episode, with the
-per-frame features `intervention`, `source` (0 demonstration, 1 policy, 2 expert correction),
-`discriminator_score` and `intervention_request`, and the outcome in each episode's metadata.
+    `shiftkit eval`), episodes/episode_XXXXXX.npz (every executed episode's frames and signals),
+    rollouts/ (at the end: the executed episodes as lerobot's DAgger strategy records them,
+    `dagger_recording`).
+The aggregated LeRobot dataset is then made from the demonstrations and rollouts/ by offline FIRE
+(`fire_aggregate`), the code `shiftkit fire aggregate` runs on a robot's recordings, with this run's
+seed and settings: the same bytes either way.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import math
 import os
 import time
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,12 +41,12 @@ import numpy as np
 import torch
 
 from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import numpy_dtype, user_features, vector_feature
-from shiftkit.pipelines.lerobot_io import DatasetWriter, lerobot_home, open_lerobot_dataset
-from shiftkit.pipelines.provenance import make_provenance
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.features import user_features
+from shiftkit.pipelines.lerobot_io import lerobot_home, open_lerobot_dataset
 from shiftkit.policies.bc import BCArgs, BCPolicy, ensemble_doubt, load_policy, update_members
 from shiftkit.policies.bc import train as train_bc
+from shiftkit.policies.dagger_recording import rollout_repo_id, write_recording
 from shiftkit.policies.data import FrameTable, epoch_batches, open_datasets
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.evaluation import ObservationMap, run_episodes, wilson_interval
@@ -55,18 +58,12 @@ from shiftkit.policies.failure_predictors import (
     OrRule,
     make_predictor,
 )
+from shiftkit.policies.fire_aggregate import SOURCE_EXPERT, SOURCE_POLICY, AggregateArgs, aggregate
+from shiftkit.policies.fire_predictor import RULES
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.oracle import SimulatedOracle, scripted_expert
 from shiftkit.policies.run_dir import RunDir, dataset_records, torch_device, versions
 
-SOURCE_DEMO, SOURCE_POLICY, SOURCE_EXPERT = 0, 1, 2
-# per-frame features FIRE adds to the aggregated dataset (`intervention`: lerobot's own name)
-FIRE_FEATURES = {
-    "intervention": vector_feature("bool", ["intervention"]),
-    "source": vector_feature("int64", ["source"]),
-    "discriminator_score": vector_feature("float32", ["discriminator_score"]),
-    "intervention_request": vector_feature("bool", ["intervention_request"]),
-}
 EVAL_SEED = 100_000
 
 
@@ -677,14 +674,47 @@ def run(args: FireArgs) -> dict:
         checkpoint()
 
     bar.close()
-    # --- the aggregated dataset: demonstrations, then every executed episode
+    # --- the rollouts as lerobot's DAgger strategy records them, then offline FIRE over them: the
+    # aggregated dataset, predictor file and ROC come from the same code a lab runs on its recordings
     summary = _summary(run_dir, counters, len(expert_set))
+    rollouts = run_dir.path / "rollouts"
     if not dataset_root.exists():
-        write_aggregated(run_dir, resolved.root, dataset_root, args, observed, disc, features, ds.meta.robot_type)
+        task = next(iter(open_lerobot_dataset(resolved.root).tasks), args.task)
+        if not rollouts.exists():  # written atomically from the finished episodes: never partial
+            write_recording(
+                rollouts,
+                rollout_repo_id(run_dir.path.name),
+                fps,
+                {**observed, "action": features["action"]},
+                recorded_episodes(episodes_dir, fps, task),
+                robot_type=ds.meta.robot_type,
+            )
+        aggregate(aggregate_args(args, [str(rollouts)], str(bc_dir)))
     summary["dataset"] = str(dataset_root)
     checkpoint(summary)
     env.close()
     return summary
+
+
+def aggregate_args(args: FireArgs, rollouts: list[str], policy: str) -> AggregateArgs:
+    """The offline aggregation of a simulated run's recordings, with the run's settings."""
+    return AggregateArgs(
+        expert=args.dataset,
+        root=args.root,
+        rollouts=rollouts,
+        out=str(Path(args.dataset_root) if args.dataset_root else lerobot_home() / args.repo_id),
+        repo_id=args.repo_id,
+        policy=policy,
+        predictor=args.predictor if args.predictor in RULES else "gda",
+        seed=args.seed,
+        d_hidden=list(args.d_hidden),
+        d_lr=args.d_lr,
+        grad_penalty=args.grad_penalty,
+        beta=args.beta,
+        gamma=args.gamma,
+        fp_cooldown=args.fp_cooldown,
+        device=args.device,
+    )
 
 
 def _summary(run_dir: RunDir, counters: dict, expert_samples: int) -> dict:
@@ -704,59 +734,14 @@ def _summary(run_dir: RunDir, counters: dict, expert_samples: int) -> dict:
     }
 
 
-def write_aggregated(
-    run_dir: RunDir,
-    demo_root: Path,
-    dataset_root: Path,
-    args: FireArgs,
-    observed: dict[str, dict],
-    disc: Discriminator,
-    features: dict[str, dict],
-    robot_type: str | None,
-) -> None:
-    """The demonstrations (source 0, scored by the final D) and every executed episode, one LeRobot
-    dataset; episodes are streamed from disk one at a time."""
-    reader = open_lerobot_dataset(demo_root)
-    user = {k: v for k, v in features.items() if k in reader.features}
-    schema = {**user, **FIRE_FEATURES}
-    paths = sorted((run_dir.path / "episodes").glob("episode_*.npz"))
-    if not paths and reader.num_episodes == 0:
-        raise DatasetError("nothing to aggregate")
-    task = None
-    with DatasetWriter(args.repo_id, dataset_root, reader.fps, schema, robot_type=robot_type) as writer:
-        for demo in reader.iter_episodes():
-            n = len(demo)
-            task = task or str(demo.frames["task"][0])
-            score = disc.score({k: demo.frames[k] for k in disc.keys})
-            demo = demo.with_frames(
-                intervention=np.zeros((n, 1), dtype=bool),
-                source=np.full((n, 1), SOURCE_DEMO, dtype=np.int64),
-                discriminator_score=score.astype(np.float32)[:, None],
-                intervention_request=np.zeros((n, 1), dtype=bool),
-            )
-            demo.meta = {**demo.meta, "fire": {"source": "demonstration"}}
-            writer.add_episode(demo)
-        for path in paths:
-            frames, meta = _load_npz(path)
-            n = len(frames["action"])
-            frames = {k: np.asarray(v, dtype=numpy_dtype(schema[k])) for k, v in frames.items() if k in schema}
-            frames["timestamp"] = (np.arange(n) / reader.fps).astype(np.float32)
-            frames["task"] = np.array([task or args.task] * n)
-            writer.add_episode(Episode(frames, meta))
-        writer.close(
-            provenance=make_provenance(
-                repo_id=args.repo_id,
-                fps=reader.fps,
-                num_episodes=writer.num_episodes,
-                num_frames=writer.num_frames,
-                sources=[
-                    {"kind": "lerobot", "path": str(demo_root), "num_episodes": reader.num_episodes},
-                    {"kind": "fire", "path": str(run_dir.path), "env": args.env, "num_episodes": len(paths)},
-                ],
-                seed=args.seed,
-                fire={"run": str(run_dir.path), "task": args.task, "predictor": args.predictor},
-            )
-        )
+def recorded_episodes(episodes_dir: Path, fps: int, task: str) -> Iterator[Episode]:
+    """The executed episodes as a DAgger recording holds them (every frame, in order)."""
+    for path in sorted(episodes_dir.glob("episode_*.npz")):
+        frames, _ = _load_npz(path)
+        n = len(frames["action"])
+        frames["timestamp"] = (np.arange(n) / fps).astype(np.float32)
+        frames["task"] = np.array([task] * n)
+        yield Episode(frames)
 
 
 # --------------------------------------------------------------------------- reading runs

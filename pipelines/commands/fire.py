@@ -6,14 +6,19 @@ import argparse
 
 from shiftkit.pipelines.dataclass_config import add_env_kwarg, int_list
 
-HELP = "FIRE: run a BC policy with failure prediction and simulated expert interventions; aggregate the data"
+HELP = (
+    "FIRE: run a BC policy with failure prediction and simulated expert interventions; "
+    "`fire aggregate`: FIRE over recorded DAgger rollouts"
+)
+# the online loop's options that `fire aggregate` does without (checked in `run`)
+REQUIRED = ("dataset", "env", "task", "output")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--dataset", required=True, help="dataset ID or local folder of the initial demonstrations")
+    p.add_argument("--dataset", help="dataset ID or local folder of the initial demonstrations (required)")
     p.add_argument("--root", help="local folder of the dataset")
-    p.add_argument("--env", required=True, help="registered environment with a scripted expert, e.g. panda-play")
-    p.add_argument("--task", required=True, help="task of the environment, e.g. stack")
+    p.add_argument("--env", help="registered environment with a scripted expert, e.g. panda-play (required)")
+    p.add_argument("--task", help="task of the environment, e.g. stack (required)")
     p.add_argument(
         "--predictor", choices=("beta", "gda", "doubt", "gda+doubt"), default="gda", help="failure predictor"
     )
@@ -21,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--budget-expert-samples", type=int, default=2000, help="stop once the expert corrected this many steps"
     )
     p.add_argument("--max-episodes", type=int, help="stop after this many episodes at the latest")
-    p.add_argument("--output", required=True, help="run folder (config, metrics, checkpoints, policy, episodes)")
+    p.add_argument("--output", help="run folder (config, metrics, checkpoints, policy, episodes) (required)")
     p.add_argument("--repo-id", help="repo ID of the aggregated dataset (default: local/<output folder name>)")
     p.add_argument("--dataset-root", help="folder of the aggregated dataset (default: $HF_LEROBOT_HOME/<repo-id>)")
     add_env_kwarg(p, "control_hz=10")
@@ -45,11 +50,78 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, help="CPU threads for torch")
     p.add_argument("--resume", action="store_true", help="continue the run in --output after its last episode")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sub = p.add_subparsers(dest="fire_action", metavar="aggregate")
+    _add_aggregate(sub.add_parser("aggregate", help=AGGREGATE_HELP, description=AGGREGATE_HELP))
+
+
+AGGREGATE_HELP = (
+    "offline FIRE over lerobot DAgger recordings: label frames, train D, fit the beta and GDA rules, "
+    "write the aggregated dataset with a failure predictor file and ROC scores"
+)
+
+
+def _add_aggregate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--expert", required=True, help="dataset ID or local folder of the expert demonstrations")
+    p.add_argument("--root", help="local folder of the expert dataset")
+    p.add_argument(
+        "--rollouts", required=True, nargs="+", metavar="ID", help="DAgger recordings (lerobot-rollout, either layout)"
+    )
+    p.add_argument("--out", required=True, help="folder of the aggregated dataset (must not exist)")
+    p.add_argument("--repo-id", required=True, help="repo ID of the aggregated dataset")
+    p.add_argument("--policy", help="BC run folder of the policy that ran the rollouts (D uses its inputs)")
+    p.add_argument("--predictor", choices=("beta", "gda"), default="gda", help="rule of the predictor file")
+    p.add_argument("--seed", type=int, default=0, help="seed of D (default: 0)")
+    p.add_argument("--d-steps", type=int, help="D gradient steps (default: one per recorded frame)")
+    p.add_argument("--d-hidden", type=int_list, default=[256, 256], help="D widths, comma-separated (default: 256,256)")
+    p.add_argument("--beta", type=int, default=20, help="initial beta of the beta rule (default: 20)")
+    p.add_argument("--gamma", type=float, default=0.5, help="initial GDA posterior threshold (default: 0.5)")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda (default: auto)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_aggregate(args: argparse.Namespace) -> int:
+    from shiftkit.policies.fire_aggregate import AggregateArgs, aggregate
+
+    summary = aggregate(
+        AggregateArgs(
+            expert=args.expert,
+            root=args.root,
+            rollouts=list(args.rollouts),
+            out=args.out,
+            repo_id=args.repo_id,
+            policy=args.policy,
+            predictor=args.predictor,
+            seed=args.seed,
+            d_steps=args.d_steps,
+            d_hidden=args.d_hidden,
+            beta=args.beta,
+            gamma=args.gamma,
+            device=args.device,
+            progress=not args.no_progress,
+        )
+    )
+    auc = ", ".join(
+        f"{k} {v:.3f}" if v is not None else f"{k} n/a (one outcome only)" for k, v in summary["auc"].items()
+    )
+    print(
+        f"FIRE aggregate: {summary['episodes']} episodes, {summary['corrections']} corrected frames, "
+        f"{summary['stretches']} policy stretches ({summary['failed_stretches']} ended in a correction); "
+        f"ROC AUC against the recorded interventions: {auc}; dataset {summary['dataset']}, "
+        f"predictor {summary['predictor']}"
+    )
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
+    from shiftkit.pipelines.errors import ConfigError
     from shiftkit.policies.fire import FireArgs
     from shiftkit.policies.fire import run as run_fire
+
+    if args.fire_action == "aggregate":
+        return _run_aggregate(args)
+    missing = [f"--{name}" for name in REQUIRED if getattr(args, name) is None]
+    if missing:
+        raise ConfigError(f"the following arguments are required: {', '.join(missing)}")
 
     summary = run_fire(
         FireArgs(

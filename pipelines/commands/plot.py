@@ -17,7 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         description="ROC curves of beta rule, GDA, ensemble doubt and GDA-or-doubt, pooled over the runs' "
         "episodes after D started; label: whether the policy's uninterrupted run failed.",
     )
-    roc.add_argument("runs", nargs="+", metavar="RUN", help="FIRE run folders")
+    roc.add_argument(
+        "runs", nargs="+", metavar="RUN", help="FIRE run folders or aggregated datasets (`fire aggregate`)"
+    )
     roc.add_argument("--out", required=True, help="PNG file to write")
     roc.add_argument("--title", default="", help="plot title")
     roc.set_defaults(_plot=_run_roc)
@@ -46,14 +48,17 @@ def _run_roc(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.policies.failure_predictors import roc_curve
     from shiftkit.policies.fire import read_episode_lines, roc_scores
+    from shiftkit.policies.fire_aggregate import ROC_FILE, read_roc
 
     pooled: dict[str, list] = {}
     labels = []
     for run in args.runs:
-        scores, failed = roc_scores(read_episode_lines(run))
+        # an aggregated dataset scores policy stretches against the recorded interventions
+        scores, failed = read_roc(run) if (Path(run) / ROC_FILE).is_file() else roc_scores(read_episode_lines(run))
         for name, values in scores.items():
             pooled.setdefault(name, []).append(values)
         labels.append(failed)
+    pooled = {name: parts for name, parts in pooled.items() if len(parts) == len(args.runs)}
     failed = np.concatenate(labels)
     if failed.all() or not failed.any():
         raise ConfigError(

@@ -1,0 +1,370 @@
+"""Offline FIRE (thesis ch. 5) over recorded human-in-the-loop rollouts: `shiftkit fire aggregate`.
+
+Inputs: the expert demonstrations and any number of lerobot DAgger recordings (`dagger_recording`:
+either layout). Every frame gets a source: demonstration (0), policy (1: `intervention` False) or
+expert correction (2: True). Each stretch of policy frames is one trajectory of the policy; the
+stretches that end in a correction are the failures the predictor should have flagged, the others
+(ending with their episode) are successes.
+
+Then, with the code of the simulated loop (`discriminator`, `failure_predictors`):
+1. D(s, a) trains on expert frames (demonstrations + corrections) against the policy's frames, for
+   as many steps as the recordings hold frames (the simulated loop's rule: one step per frame);
+2. the beta and GDA rules are fitted by replaying the policy trajectories in recording order: each
+   is scored with the statistics of the earlier ones (as the loop scores an episode before learning
+   from it), then predicts step by step, answered as the recording answers (a request in a stretch
+   that ends in a correction: agreed; otherwise refused; a correction nobody predicted: missed),
+   and then joins the statistics;
+3. the aggregated LeRobot dataset: the demonstrations and every recorded episode, with per-frame
+   `intervention` (as lerobot writes it), `source`, `discriminator_score` (final D) and
+   `intervention_request` (where the chosen rule, as fitted up to then, asked); beside it, in
+   `meta/`, the predictor file (`fire_predictor`) and each rule's ROC scores (`fire_roc.json`,
+   drawn by `shiftkit plot roc`).
+
+D is scored on the recordings it trained on, so its ROC is in-sample for D (not for the rules'
+statistics). A recording's episodes rotated mid-task by time count their last stretch as a success.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.pipelines.features import numpy_dtype, vector_feature
+from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, resolve_dataset
+from shiftkit.pipelines.provenance import make_provenance
+from shiftkit.policies.bc import BCArgs, PolicySpec, is_image_feature, load_policy
+from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
+from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
+from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule, roc_curve
+from shiftkit.policies.fire_predictor import RULES, FailurePredictor
+from shiftkit.policies.frame_buffer import FrameBuffer
+from shiftkit.policies.run_dir import torch_device
+
+SOURCE_DEMO, SOURCE_POLICY, SOURCE_EXPERT = 0, 1, 2
+# per-frame features of the aggregated dataset besides the recordings' own
+FIRE_FEATURES = {
+    INTERVENTION: INTERVENTION_FEATURE,
+    "source": vector_feature("int64", ["source"]),
+    "discriminator_score": vector_feature("float32", ["discriminator_score"]),
+    "intervention_request": vector_feature("bool", ["intervention_request"]),
+}
+PREDICTOR_FILE = "meta/failure_predictor.pt"
+ROC_FILE = "meta/fire_roc.json"
+
+
+@dataclass
+class AggregateArgs:
+    """Arguments of `shiftkit fire aggregate` (D and rule defaults: thesis 5.4.2)."""
+
+    expert: str
+    """Dataset ID or local folder of the expert demonstrations."""
+    rollouts: list[str]
+    """Dataset IDs or local folders of lerobot DAgger recordings (either `record_autonomous` layout)."""
+    out: str
+    """Folder of the aggregated dataset (must not exist)."""
+    repo_id: str
+    """Repo ID of the aggregated dataset."""
+    root: str | None = None
+    """Local folder of the expert dataset (else resolved by ID)."""
+    policy: str | None = None
+    """BC run folder or checkpoint of the policy that ran the rollouts: D reads its inputs with its
+    normalisation (default: every observation feature, the demonstrations' statistics)."""
+    predictor: str = "gda"
+    """Rule whose requests `intervention_request` marks and the predictor file uses: beta or gda."""
+    seed: int = 0
+    """Seed of D's initialisation and batches."""
+    d_steps: int | None = None
+    """D's gradient steps (default: one per recorded frame)."""
+    d_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    """Discriminator tanh MLP widths."""
+    d_lr: float = 1e-3
+    """Discriminator learning rate."""
+    grad_penalty: float = 10.0
+    """Discriminator gradient-penalty weight."""
+    beta: int = 20
+    """Initial beta of the beta rule."""
+    gamma: float = 0.5
+    """Initial posterior threshold of the GDA rule."""
+    fp_cooldown: int = 5
+    """Steps without requests after a refused one."""
+    device: str = "auto"
+    """auto, cpu or cuda."""
+    progress: bool = False
+    """Show a progress bar over D's training."""
+
+    def check(self) -> None:
+        """ConfigError (one line) for a bad value."""
+        if self.predictor not in RULES:
+            raise ConfigError(f"predictor must be one of {', '.join(RULES)}, got {self.predictor!r}")
+        if self.repo_id.count("/") != 1 or not all(self.repo_id.split("/")):
+            raise ConfigError(f"repo_id must look like ORG/NAME, got {self.repo_id!r}")
+        if self.d_steps is not None and self.d_steps <= 0:
+            raise ConfigError(f"d_steps must be positive, got {self.d_steps}")
+        if not self.d_lr > 0 or self.grad_penalty < 0 or self.beta <= 0 or self.fp_cooldown < 0:
+            raise ConfigError("d_lr and beta must be positive, grad_penalty and fp_cooldown >= 0")
+        if not 0.0 < self.gamma < 1.0:
+            raise ConfigError(f"gamma must be in (0, 1), got {self.gamma}")
+        if any(h <= 0 for h in self.d_hidden):
+            raise ConfigError("d_hidden widths must be positive")
+
+
+def _spec(args: AggregateArgs, expert_root: Path, features: dict[str, dict]) -> PolicySpec:
+    """D's inputs and normalisation: the rollout policy's, else the demonstrations' observations."""
+    if args.policy is not None:
+        spec = load_policy(args.policy).spec
+        missing = [k for k in [*spec.features, "action"] if k not in features]
+        if missing:
+            raise DatasetError(f"the recordings lack the policy input {missing[0]!r}")
+        return spec
+    keys = [k for k in features if k.startswith("observation.")]
+    if not keys:
+        raise DatasetError("the recordings have no observation.* features")
+    stats_path = expert_root / "meta" / "stats.json"
+    stats = read_json_file(stats_path, "dataset statistics") if stats_path.is_file() else {}
+    lacking = [k for k in [*keys, "action"] if "mean" not in stats.get(k, {}) or "std" not in stats.get(k, {})]
+    if lacking:
+        raise DatasetError(f"{stats_path} lacks mean/std of {lacking[0]!r}")
+    defaults = BCArgs(datasets=[], output_dir="")
+    pick = lambda ft: {f: ft.get(f) for f in ("dtype", "shape", "names")}  # noqa: E731
+    return PolicySpec(
+        features={k: pick(features[k]) for k in keys},
+        action=pick(features["action"]),
+        stats={k: {"mean": stats[k]["mean"], "std": stats[k]["std"]} for k in [*keys, "action"]},
+        encoder=defaults.encoder,
+        num_keypoints=defaults.num_keypoints,
+        hidden=defaults.hidden,
+        ensemble_size=1,
+    )
+
+
+def _d_inputs(frames: dict[str, np.ndarray], keys: list[str], spec: PolicySpec) -> dict[str, np.ndarray]:
+    out = {}
+    for k in keys:
+        ft = spec.action if k == "action" else spec.features[k]
+        out[k] = frames[k] if is_image_feature(ft) else np.asarray(frames[k], dtype=np.float32)
+    return out
+
+
+@dataclass
+class Stretch:
+    """One stretch of policy frames inside a recorded episode."""
+
+    episode: int
+    """Index among all recorded episodes (recordings in order)."""
+    start: int
+    end: int
+    failed: bool
+    """Ends in a correction."""
+
+
+def stretches(intervention: np.ndarray, episode: int) -> list[Stretch]:
+    """The policy stretches of one episode (`intervention` per frame)."""
+    parts = runs(intervention)
+    return [Stretch(episode, s, e, failed=k + 1 < len(parts)) for k, (s, e, on) in enumerate(parts) if not on]
+
+
+def replay(rule: Any, d: np.ndarray, failed: bool, cooldown: int) -> np.ndarray:
+    """Run `rule` along one policy stretch, answered by the recording; the steps where it asked."""
+    asked = np.zeros(len(d), dtype=bool)
+    rule.reset()
+    wait = 0
+    for t, d_t in enumerate(d):
+        if wait > 0:
+            wait -= 1
+            rule.predict(t, None)
+            continue
+        if rule.predict(t, float(d_t)):
+            asked[t] = True
+            rule.feedback("tp" if failed else "fp")
+            if failed:  # the operator takes over here
+                break
+            wait = cooldown
+    if failed and not asked.any():
+        rule.feedback("fn")
+    return asked
+
+
+def fit_rules(
+    traces: list[np.ndarray], failed: list[bool], args: AggregateArgs
+) -> tuple[dict[str, Any], dict[str, list[float]], list[np.ndarray]]:
+    """Fit the beta and GDA rules by replaying the policy stretches in order; returns the rules,
+    each rule's per-stretch ROC score (from earlier stretches only) and the chosen rule's requests."""
+    rules = {"beta": BetaRule(args.beta), "gda": GDARule(args.gamma)}
+    scores: dict[str, list[float]] = {"beta": [], "gda": []}
+    requests = []
+    for d, fail in zip(traces, failed, strict=True):
+        trace = EpisodeTrace(d=d, doubt=np.zeros(len(d)))
+        scores["beta"].append(BetaRule().score(trace))
+        scores["gda"].append(rules["gda"].score(trace))
+        asked = {name: replay(rule, d, fail, args.fp_cooldown) for name, rule in rules.items()}
+        requests.append(asked[args.predictor])
+        for rule in rules.values():
+            rule.update(trace, fail)
+    return rules, scores, requests
+
+
+def aggregate(args: AggregateArgs) -> dict[str, Any]:
+    """Aggregate demonstrations and DAgger recordings; returns a summary (episodes, frames, AUCs)."""
+    from tqdm import tqdm
+
+    args.check()
+    out = Path(args.out)
+    if out.exists():
+        raise ConfigError(f"aggregated dataset destination already exists: {out}")
+    device = torch_device(args.device)
+    expert_resolved = resolve_dataset(args.expert, root=args.root)
+    expert = open_lerobot_dataset(expert_resolved.root)
+    recordings = open_recordings(args.rollouts, expert.fps, expert.features)
+    features = {k: v for k, v in recordings[0].reader.features.items() if k != INTERVENTION}
+    if "action" not in features:
+        raise DatasetError(f"rollouts {recordings[0].name} have no 'action' feature")
+    spec = _spec(args, expert_resolved.root, features)
+    keys = [*spec.features, "action"]
+
+    # --- expert set (demonstrations + corrections) and policy set; stretches per recorded episode
+    expert_set, policy_set = FrameBuffer(keys), FrameBuffer(keys)
+    for demo in expert.iter_episodes():
+        expert_set.add(_d_inputs(demo.frames, keys, spec))
+    parts: list[Stretch] = []
+    index = corrections = 0
+    for rec in recordings:
+        for ep in rec.reader.iter_episodes():
+            flags = np.asarray(ep.frames[INTERVENTION], dtype=bool).reshape(-1)
+            inputs = _d_inputs(ep.frames, keys, spec)
+            expert_set.add({k: v[flags] for k, v in inputs.items()})
+            policy_set.add({k: v[~flags] for k, v in inputs.items()})
+            parts += stretches(flags, index)
+            corrections += int(flags.sum())
+            index += 1
+    if len(policy_set) == 0:
+        raise DatasetError(
+            "the recordings hold no policy frames (only corrections: record_autonomous=false); "
+            "D needs at least one recording with record_autonomous=true"
+        )
+
+    # --- D (the simulated loop's discriminator and update)
+    disc = Discriminator(
+        spec,
+        DiscriminatorConfig(hidden=list(args.d_hidden), lr=args.d_lr, grad_penalty=args.grad_penalty),
+        device,
+        seed=args.seed,
+    )
+    rng = np.random.default_rng([args.seed, 0xD15C])
+    steps = args.d_steps or len(policy_set) + corrections
+    with tqdm(total=steps, unit="D step", disable=not args.progress) as bar:
+        for done in range(0, steps, 256):
+            disc.update(expert_set, policy_set, min(256, steps - done), rng)
+            bar.update(min(256, steps - done))
+    del expert_set, policy_set
+
+    # --- D's scores of every recorded frame, the rules fitted on the policy stretches
+    scores_by_episode = []
+    for rec in recordings:
+        for ep in rec.reader.iter_episodes():
+            scores_by_episode.append(disc.score(_d_inputs(ep.frames, keys, spec)))
+    traces = [scores_by_episode[p.episode][p.start : p.end] for p in parts]
+    rules, roc, requests = fit_rules(traces, [p.failed for p in parts], args)
+    asked = [np.zeros(len(s), dtype=bool) for s in scores_by_episode]
+    for p, r in zip(parts, requests, strict=True):
+        asked[p.episode][p.start : p.end] = r
+
+    # --- the aggregated dataset, streamed episode by episode
+    schema = {**features, **FIRE_FEATURES}
+    with DatasetWriter(args.repo_id, out, expert.fps, schema, robot_type=expert.robot_type) as writer:
+        for demo in expert.iter_episodes():
+            n = len(demo)
+            frames = {k: demo.frames[k] for k in [*features, "timestamp", "task"]}
+            frames.update(
+                {
+                    INTERVENTION: np.zeros((n, 1), dtype=bool),
+                    "source": np.full((n, 1), SOURCE_DEMO, dtype=np.int64),
+                    "discriminator_score": disc.score(_d_inputs(demo.frames, keys, spec)).astype(np.float32)[:, None],
+                    "intervention_request": np.zeros((n, 1), dtype=bool),
+                }
+            )
+            writer.add_episode(Episode(frames, {"fire": {"source": "demonstration"}}))
+        index = 0
+        for rec in recordings:
+            for ep in rec.reader.iter_episodes():
+                flags = np.asarray(ep.frames[INTERVENTION], dtype=bool).reshape(-1, 1)
+                frames = {k: ep.frames[k] for k in [*features, "timestamp", "task"]}
+                frames.update(
+                    {
+                        INTERVENTION: flags,
+                        "source": np.where(flags, SOURCE_EXPERT, SOURCE_POLICY).astype(np.int64),
+                        "discriminator_score": scores_by_episode[index].astype(np.float32)[:, None],
+                        "intervention_request": asked[index][:, None],
+                    }
+                )
+                frames = {
+                    k: np.asarray(v, dtype=numpy_dtype(schema[k])) if k in schema else v for k, v in frames.items()
+                }
+                meta = {
+                    "fire": {
+                        "source": "rollout",
+                        "recording": rec.name,
+                        "episode": int(ep.meta.get("source_episode_index", 0)),
+                    }
+                }
+                writer.add_episode(Episode(frames, meta))
+                index += 1
+        predictor = FailurePredictor(disc, spec, rules, args.predictor, expert.fps)
+        predictor.save(writer.tmp / PREDICTOR_FILE)
+        labels = [p.failed for p in parts]
+        aucs = {}
+        for name, values in roc.items():
+            try:
+                aucs[name] = roc_curve(np.array(values), np.array(labels))[2]
+            except ValueError:
+                aucs[name] = None
+        (writer.tmp / ROC_FILE).write_text(
+            dumps({"failed": labels, "scores": roc, "auc": aucs, "stretches": len(parts)}) + "\n"
+        )
+        writer.close(
+            provenance=make_provenance(
+                repo_id=args.repo_id,
+                fps=expert.fps,
+                num_episodes=writer.num_episodes,
+                num_frames=writer.num_frames,
+                sources=[
+                    {"kind": "lerobot", "path": str(expert_resolved.root), "num_episodes": expert.num_episodes},
+                    *(
+                        {
+                            "kind": "dagger",
+                            "path": str(r.resolved.root),
+                            "layout": r.layout,
+                            "num_episodes": r.reader.num_episodes,
+                        }
+                        for r in recordings
+                    ),
+                ],
+                seed=args.seed,
+                fire={"predictor": args.predictor, "d_steps": steps, "policy": args.policy},
+            )
+        )
+    return {
+        "dataset": str(out),
+        "episodes": expert.num_episodes + index,
+        "stretches": len(parts),
+        "failed_stretches": int(sum(labels)),
+        "corrections": corrections,
+        "auc": aucs,
+        "predictor": str(out / PREDICTOR_FILE),
+    }
+
+
+def read_roc(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The per-stretch ROC scores and labels an aggregated dataset keeps in `meta/fire_roc.json`."""
+    data = read_json_file(Path(path) / ROC_FILE, "FIRE ROC scores")
+    try:
+        return {k: np.asarray(v, dtype=float) for k, v in data["scores"].items()}, np.asarray(
+            data["failed"], dtype=bool
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"{Path(path) / ROC_FILE}: malformed ({exc})") from None
