@@ -8,7 +8,8 @@ stretches that end in a correction are the failures the predictor should have fl
 
 Then, with the code of the simulated loop (`discriminator`, `failure_predictors`):
 1. D(s, a) trains on expert frames (demonstrations + corrections) against the policy's frames, for
-   as many steps as the recordings hold frames (the simulated loop's rule: one step per frame);
+   as many steps as the recordings hold frames (the simulated loop's rule: one step per frame); with
+   only corrections recorded, the policy's samples are its own actions at the corrected states;
 2. the beta and GDA rules are fitted by replaying the policy trajectories in recording order: each
    is scored with the statistics of the earlier ones (as the loop scores an episode before learning
    from it), then predicts step by step, answered as the recording answers (a request in a stretch
@@ -31,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
@@ -243,10 +245,22 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
             corrections += int(flags.sum())
             index += 1
     if len(policy_set) == 0:
-        raise DatasetError(
-            "the recordings hold no policy frames (only corrections: record_autonomous=false); "
-            "D needs at least one recording with record_autonomous=true"
-        )
+        # only corrections were recorded: D compares them with what the policy would have done there
+        if args.policy is None:
+            raise DatasetError(
+                "the recordings hold no policy frames (only corrections: record_autonomous=false); pass "
+                "--policy RUN (the policy that ran them) so D can compare the corrections with its actions"
+            )
+        policy = load_policy(args.policy)
+        with torch.no_grad():
+            for rec in recordings:
+                for ep in rec.reader.iter_episodes():
+                    inputs = _d_inputs(ep.frames, keys, spec)
+                    batch = {k: torch.as_tensor(inputs[k]) for k in spec.features}
+                    policy_set.add({**inputs, "action": policy(batch).numpy().astype(np.float32)})
+        own_actions = True
+    else:
+        own_actions = False
 
     # --- D (the simulated loop's discriminator and update)
     disc = Discriminator(
@@ -256,7 +270,7 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
         seed=args.seed,
     )
     rng = np.random.default_rng([args.seed, 0xD15C])
-    steps = args.d_steps or len(policy_set) + corrections
+    steps = args.d_steps or (corrections if own_actions else len(policy_set) + corrections)
     with tqdm(total=steps, unit="D step", disable=not args.progress) as bar:
         for done in range(0, steps, 256):
             disc.update(expert_set, policy_set, min(256, steps - done), rng)
@@ -345,7 +359,14 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
                     ),
                 ],
                 seed=args.seed,
-                fire={"predictor": args.predictor, "d_steps": steps, "policy": args.policy},
+                fire={
+                    "predictor": args.predictor,
+                    "d_steps": steps,
+                    "policy": args.policy,
+                    # D's policy samples: the recorded policy frames, or the policy's own actions
+                    # at the corrected states when only corrections were recorded
+                    "d_policy_samples": "policy actions at corrected states" if own_actions else "recorded",
+                },
             )
         )
     return {

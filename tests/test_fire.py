@@ -466,7 +466,7 @@ def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_p
     cases = [
         ([demo_root], "no per-frame 'intervention' feature"),
         ([other_fps], f"at {2 * rec.fps} fps but the demonstrations at {rec.fps} fps"),
-        ([only_corrections], "no policy frames"),
+        ([only_corrections], "pass --policy RUN"),
         ([tmp_path / "missing"], "missing"),
     ]
     for rollouts, message in cases:
@@ -475,6 +475,14 @@ def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_p
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0], err
         assert not (tmp_path / "out").exists()
+    # corrections only, with the policy that ran them: D compares the corrections with its own actions
+    ok = tmp_path / "ok"
+    assert (
+        main(_aggregate_cli(demo_root, [only_corrections], ok, "--policy", str(run / "bc-init"), "--d-steps", "16"))
+        == 0
+    )
+    provenance = json.loads((ok / "meta" / "shiftkit_provenance.json").read_text())
+    assert provenance["fire"]["d_policy_samples"] == "policy actions at corrected states"
     before = sorted(p.stat().st_mtime_ns for p in (run / "rollouts").rglob("*"))
     assert main(_aggregate_cli(demo_root, [run / "rollouts"], run / "rollouts")) == 2  # destination exists
     assert sorted(p.stat().st_mtime_ns for p in (run / "rollouts").rglob("*")) == before
