@@ -17,7 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=1000, help="episode i uses seed SEED+i (default: 1000)")
     parser.add_argument("--out", help="per-episode results JSON (default: <run>/eval/<env>-<task>-seed<S>.json)")
     parser.add_argument("--videos", help="folder for one MP4 per episode (default: none)")
-    parser.add_argument("--control-hz", type=int, choices=(5, 20), help="env control rate (default: the env's)")
+    parser.add_argument(
+        "--control-hz",
+        type=int,
+        choices=(5, 20),
+        help="env control rate (default: the fps of the policy's dataset; it must be that rate)",
+    )
     parser.add_argument("--device", default="cpu", help="torch device for the policy (default: cpu)")
     add_env_kwarg(parser, "view=fixed")
     parser.add_argument(
@@ -32,7 +37,14 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from shiftkit.pipelines.errors import ConfigError
-    from shiftkit.policies.evaluation import evaluate, load_policy, record_evaluation, write_yaw_sweep, yaw_sweep
+    from shiftkit.policies.evaluation import (
+        evaluate,
+        load_policy,
+        policy_rate,
+        record_evaluation,
+        write_yaw_sweep,
+        yaw_sweep,
+    )
 
     # Output paths are checked before the rollouts, which can take minutes.
     if args.out and Path(args.out).is_dir():
@@ -47,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
     _check_writable(Path(args.out).parent if args.out else run_folder(args.policy) / EVAL, "--out")
     policy = load_policy(args.policy, device=args.device)
+    rate = policy_rate(args.policy)
     _warn_if_unfinished(Path(args.policy))
     env_kwargs = {**dict(args.env_kwarg), **({"control_hz": args.control_hz} if args.control_hz else {})}
     if args.yaw_sweep:
@@ -60,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
             args.seed,
             policy_name=str(args.policy),
             env_kwargs=env_kwargs,
+            rate=rate,
             on_bin=lambda r: print(f"yaw {r['yaw']}: {r['successes']}/{r['episodes']} ({r['success_rate']:.0%})"),
         )
         default = run_folder(args.policy) / EVAL / f"{args.env}-{args.task}-yawsweep-seed{args.seed}.json"
@@ -75,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         video_dir=args.videos,
         policy_name=str(args.policy),
         env_kwargs=env_kwargs,
+        rate=rate,
         on_episode=lambda r: print(
             f"episode {r.episode} (seed {r.seed}): {'success' if r.success else 'failure'} after {r.steps} steps"
             + ("".join(f", {k} {v}" for k, v in r.extras.items()) if r.extras else "")
