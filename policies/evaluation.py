@@ -392,8 +392,10 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
     import matplotlib.pyplot as plt
 
     path = Path(path)
+    png = path.with_suffix(".png")
+    if png == path:
+        raise ConfigError(f"{path}: the sweep's JSON and PNG would be one file; give a .json path")
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(sweep, indent=2) + "\n")
     rows = sweep["bins"]
     centres = [(r["yaw"][0] + r["yaw"][1]) / 2 for r in rows]
     rates = np.array([r["success_rate"] for r in rows])
@@ -405,9 +407,9 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
     ax.set_ylim(0, 1.05)
     ax.set_title(f"{sweep['env']} / {sweep['task']}: success per base-yaw bin", fontsize=9)
     fig.tight_layout()
-    png = path.with_suffix(".png")
-    fig.savefig(png, dpi=100)
+    fig.savefig(png, dpi=100)  # the figure first: a failure leaves no JSON without its PNG
     plt.close(fig)
+    path.write_text(json.dumps(sweep, indent=2) + "\n")
     return path, png
 
 

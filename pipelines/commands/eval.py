@@ -53,6 +53,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {args.out}: a parent of it is a file, not a folder")
     if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
         raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
+    if args.yaw_sweep:
+        if args.videos:
+            raise ConfigError("--videos is not written by --yaw-sweep; evaluate without --yaw-sweep for videos")
+        if dict(args.env_kwarg).get("view") == "fixed":
+            raise ConfigError("--yaw-sweep sets the base yaw of every episode, which view=fixed would keep fixed")
+        if args.out and Path(args.out).suffix.lower() == ".png":
+            raise ConfigError(f"--out {args.out}: the sweep's JSON goes there and its PNG beside it; give a .json")
     if args.seed < 0 or args.episodes < 1:
         raise ConfigError(f"need --seed >= 0 and --episodes >= 1, got {args.seed} and {args.episodes}")
     from shiftkit.policies.run_dir import EVAL, run_folder

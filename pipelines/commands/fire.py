@@ -48,8 +48,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from shiftkit.pipelines.hub import validate_repo_id
     from shiftkit.policies.fire import FireArgs
     from shiftkit.policies.fire import run as run_fire
+
+    # the default repo id meets the rules an explicit one does, before any work
+    validate_repo_id(args.repo_id or f"local/{Path(args.output).name}")
 
     summary = run_fire(
         FireArgs(

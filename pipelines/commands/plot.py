@@ -34,6 +34,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     fire.set_defaults(_plot=_run_fire)
 
 
+def check_figure_path(out: str) -> None:
+    """`out` must name a format matplotlib writes, checked before any run is read."""
+    from pathlib import Path
+
+    from matplotlib.figure import Figure
+
+    from shiftkit.pipelines.errors import ConfigError
+
+    formats = Figure().canvas.get_supported_filetypes()
+    suffix = Path(out).suffix.lower().lstrip(".")
+    if suffix and suffix not in formats:
+        raise ConfigError(f"--out {out}: format {suffix!r} is not one matplotlib writes ({', '.join(sorted(formats))})")
+
+
 def _run_roc(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -47,6 +61,7 @@ def _run_roc(args: argparse.Namespace) -> int:
     from shiftkit.policies.failure_predictors import roc_curve
     from shiftkit.policies.fire import read_episode_lines, roc_scores
 
+    check_figure_path(args.out)
     pooled: dict[str, list] = {}
     labels = []
     for run in args.runs:
@@ -88,10 +103,15 @@ def _run_fire(args: argparse.Namespace) -> int:
 
     if args.window < 1:
         raise ConfigError(f"--window must be >= 1, got {args.window}")
+    check_figure_path(args.out)
     runs = []
     for item in args.runs:
         label, sep, path = item.partition("=")
         runs.append((label, path) if sep else (Path(item).name, item))
+    labels = [label for label, _ in runs]
+    if len(set(labels)) < len(labels):
+        twice = next(label for label in labels if labels.count(label) > 1)
+        raise ConfigError(f"label {twice!r} is given to two runs; give each run its own LABEL=RUN")
     lines = {label: read_episode_lines(path) for label, path in runs}
     out = Path(args.out)
     written = []
@@ -104,7 +124,14 @@ def _run_fire(args: argparse.Namespace) -> int:
             x, rate, low, high = success_curve(episode_lines, key, args.window)
             curves.append(Curve(label, x, rate, low, high, 1))
         path = out.with_name(f"{out.stem}-{suffix}{out.suffix or '.png'}")
-        written.append(plot_curves(curves, path, args.title, xlabel, f"policy success ({args.window}-episode window)"))
+        try:
+            written.append(
+                plot_curves(curves, path, args.title, xlabel, f"policy success ({args.window}-episode window)")
+            )
+        except BaseException:  # both figures or neither
+            for done in written:
+                done.unlink(missing_ok=True)
+            raise
     for label, episode_lines in lines.items():
         last = episode_lines[-1]
         print(

@@ -477,6 +477,28 @@ CASES = {
         lambda t, r, d: _env(HF_ENDPOINT="notaurl", HF_HUB_OFFLINE="0") + ["pull", "me/x"],
         2,
     ),
+    # outputs derived from another output, formats, labels, defaults
+    "eval yaw sweep out is the PNG": (
+        lambda t, r, d: [*_sweep(t), "--out", str(t / "sweep.png")],
+        2,
+    ),
+    "eval yaw sweep with videos": (lambda t, r, d: [*_sweep(t), "--videos", str(t / "v")], 2),
+    "eval yaw sweep with view=fixed": (lambda t, r, d: [*_sweep(t), "--env-kwarg", "view=fixed"], 2),
+    "plot fire unsupported format": (lambda t, r, d: ["plot", "fire", str(t), "--out", str(t / "f.txt")], 2),
+    "plot roc unsupported format": (lambda t, r, d: ["plot", "roc", str(t), "--out", str(t / "f.txt")], 2),
+    "plot fire duplicate labels": (
+        lambda t, r, d: ["plot", "fire", f"a={t}", f"a={a_file(t)}", "--out", str(t / "f.png")],
+        2,
+    ),
+    "fire default repo id with a space": (
+        lambda t, r, d: ["fire", "--dataset", str(d), "--env", "panda-play", "--task", "lift", "--output", "my run"],
+        2,
+    ),
+    "import non-ASCII repo id": (
+        lambda t, r, d: ["import", "lerobot-v2.1", str(d), "--repo-id", "me/donn\u00e9es", "--root", str(t / "o")],
+        2,
+    ),
+    "run destination inside its source": (lambda t, r, d: ["run", pipeline(t, r, dest=str(r / "out"))], 2),
 }
 
 
@@ -536,6 +558,10 @@ def _non_utf8_pipeline(t: Path, r: Path, dest: str = "out") -> str:
     folder = _mkdir(t / NON_UTF8)
     _copy(r, folder / "raw")
     return pipeline(folder, Path("raw"), dest)
+
+
+def _sweep(t: Path) -> list[str]:
+    return ["eval", "--policy", str(t), "--env", "mv-lift", "--task", "lift", "--episodes", "1", "--yaw-sweep"]
 
 
 def _truncate(path: Path) -> None:
