@@ -108,11 +108,24 @@ def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | int
 
 
 def _atomic_write(path: Path, write) -> None:
+    """Write through a temporary file renamed into place; a failed write (a full disk: torch.save
+    reports it as a RuntimeError) leaves no temporary file and is one line."""
+    import errno
+
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+    except (OSError, RuntimeError) as exc:
+        tmp.unlink(missing_ok=True)
+        full = getattr(exc, "errno", None) == errno.ENOSPC or (
+            isinstance(exc, RuntimeError) and ("write" in str(exc).lower() or "inline_container" in str(exc))
+        )
+        if full:
+            raise ShiftkitError(f"no space left on device writing {path}") from None
+        raise
     os.replace(tmp, path)
 
 
