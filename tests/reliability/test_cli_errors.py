@@ -498,6 +498,10 @@ CASES = {
         lambda t, r, d: ["import", "lerobot-v2.1", str(d), "--repo-id", "me/donn\u00e9es", "--root", str(t / "o")],
         2,
     ),
+    "validate truncated provenance": (
+        lambda t, r, d: ["validate", str(raw_with(t, d, lambda c: _truncate(c / "meta/shiftkit_provenance.json")))],
+        2,
+    ),
     "run destination inside its source": (lambda t, r, d: ["run", pipeline(t, r, dest=str(r / "out"))], 2),
 }
 
@@ -657,3 +661,8 @@ def test_os_errors_are_one_line(exc, tmp_path, rel_raw, monkeypatch):
     outcome = cli(["run", pipeline(tmp_path, rel_raw), "--no-progress"])
     assert outcome.clean and outcome.code == 2, outcome
     assert exc.strerror in outcome.error_line and exc.filename in outcome.error_line
+
+
+def test_plain_validate_says_statistics_are_not_recomputed(rel_ds):
+    outcome = cli(["validate", str(rel_ds)])
+    assert outcome.code == 0 and "statistics not recomputed from the data (--deep does)" in outcome.stdout, outcome
