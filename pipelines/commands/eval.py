@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from shiftkit.pipelines.dataclass_config import add_env_kwarg
+from shiftkit.pipelines.option_values import non_negative_int, positive_int
 
 HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
 
@@ -13,8 +14,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", required=True, help="run folder or checkpoint file of a trained policy")
     parser.add_argument("--env", default="panda-play", help="environment name (default: panda-play)")
     parser.add_argument("--task", required=True, help="task, e.g. lift")
-    parser.add_argument("--episodes", type=int, default=50, help="number of episodes (default: 50)")
-    parser.add_argument("--seed", type=int, default=1000, help="episode i uses seed SEED+i (default: 1000)")
+    parser.add_argument("--episodes", type=positive_int, default=50, help="number of episodes (default: 50)")
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=1000, help="episode i uses seed SEED+i (default: 1000)"
+    )
     parser.add_argument("--out", help="per-episode results JSON (default: <run>/eval/<env>-<task>-seed<S>.json)")
     parser.add_argument("--videos", help="folder for one MP4 per episode (default: none)")
     parser.add_argument(
@@ -53,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {args.out}: a parent of it is a file, not a folder")
     if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
         raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
+    from shiftkit.pipelines.option_values import check_env_kwargs
+
+    check_env_kwargs(args.env, dict(args.env_kwarg))
     if args.yaw_sweep:
         if args.videos:
             raise ConfigError("--videos is not written by --yaw-sweep; evaluate without --yaw-sweep for videos")

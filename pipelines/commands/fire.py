@@ -51,11 +51,13 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from shiftkit.pipelines.hub import validate_repo_id
+    from shiftkit.pipelines.option_values import check_env_kwargs
     from shiftkit.policies.fire import FireArgs
     from shiftkit.policies.fire import run as run_fire
 
     # the default repo id meets the rules an explicit one does, before any work
     validate_repo_id(args.repo_id or f"local/{Path(args.output).name}")
+    check_env_kwargs(args.env, dict(args.env_kwarg))
 
     summary = run_fire(
         FireArgs(

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from shiftkit.pipelines.option_values import positive_int
+
 HELP = "plot FIRE runs: ROC curves of the failure predictors (roc) or success vs expert samples and time (fire)"
 
 PREDICTOR_LABELS = {"beta": "beta rule", "gda": "GDA", "doubt": "ensemble doubt", "gda+doubt": "GDA or doubt"}
@@ -29,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help="FIRE run folders")
     fire.add_argument("--out", required=True, help="PNG path; -expert and -time are added before .png")
-    fire.add_argument("--window", type=int, default=10, help="episodes per success estimate (default: 10)")
+    fire.add_argument("--window", type=positive_int, default=10, help="episodes per success estimate (default: 10)")
     fire.add_argument("--title", default="", help="plot title")
     fire.set_defaults(_plot=_run_fire)
 

@@ -502,6 +502,50 @@ CASES = {
         lambda t, r, d: ["validate", str(raw_with(t, d, lambda c: _truncate(c / "meta/shiftkit_provenance.json")))],
         2,
     ),
+    # one rule per numeric option and env kwarg
+    "collect env kwarg max_episode_seconds 0": (
+        lambda t, r, d: [
+            "collect",
+            "--env",
+            "mv-lift",
+            "--task",
+            "lift",
+            "--env-kwarg",
+            "max_episode_seconds=0",
+            "--out",
+            str(t / "o"),
+        ],
+        2,
+    ),
+    "collect env kwarg width 1.5": (
+        lambda t, r, d: ["collect", "--task", "lift", "--env-kwarg", "width=1.5", "--out", str(t / "o")],
+        2,
+    ),
+    "eval env kwarg max_episode_seconds nan": (
+        lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--env-kwarg", "max_episode_seconds=NaN"],
+        2,
+    ),
+    "fire env kwarg control_hz -5": (
+        lambda t, r, d: [
+            "fire",
+            "--dataset",
+            str(d),
+            "--env",
+            "panda-play",
+            "--task",
+            "lift",
+            "--env-kwarg",
+            "control_hz=-5",
+            "--output",
+            str(t / "f"),
+        ],
+        2,
+    ),
+    "train bc lr inf": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "b"), "--lr", "inf"],
+        2,
+    ),
+    "plot fire window 0": (lambda t, r, d: ["plot", "fire", str(t), "--out", str(t / "f.png"), "--window", "0"], 2),
     "run destination inside its source": (lambda t, r, d: ["run", pipeline(t, r, dest=str(r / "out"))], 2),
 }
 
