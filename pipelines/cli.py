@@ -87,6 +87,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args._run(args) or 0)
     except ShiftkitError as exc:
         return _fail(args.command, str(exc))
+    except BrokenPipeError:  # the reader of stdout left (`shiftkit info ds | head -2`): not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except OSError as exc:  # a user path that cannot be read or written, or a full disk
         return _fail(args.command, os_error_text(exc))
     except UnicodeError as exc:  # a file name that is not valid in the file system's encoding

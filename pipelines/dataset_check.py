@@ -135,6 +135,11 @@ def validate_dataset(root: str | Path) -> dict[str, Any]:
             f"{root}: {reader.num_episodes} episodes, info.json says {reader.info.get('total_episodes')}"
         )
     check_lerobot_loads(root)
+    if (root / PROVENANCE_PATH).exists():  # `info` shows it: it must parse as a JSON object
+        from shiftkit.pipelines.jsonutil import read_json_file
+
+        if not isinstance(read_json_file(root / PROVENANCE_PATH, "provenance"), dict):
+            raise DatasetError(f"{root / PROVENANCE_PATH}: expected a JSON object")
     return {"episodes": reader.num_episodes, "frames": frames, "warnings": warnings}
 
 

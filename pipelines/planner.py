@@ -58,6 +58,9 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     plan = Plan(config, sources, stages, first.features, first.fps, features, fps, first.robot_type)
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
+    for i, src in enumerate(config.sources):
+        if src.path is not None and plan.destination.resolve().is_relative_to(Path(src.path).resolve()):
+            raise DatasetError(f"destination {plan.destination} lies inside sources[{i}]; choose one outside it")
     return plan
 
 

@@ -191,6 +191,33 @@ def load_policy(path: str | Path, device: str = "cpu") -> Policy:
     return module.load_policy(path, device=device)
 
 
+def policy_rate(path: str | Path) -> int | None:
+    """The control rate (Hz) a trained policy acts at: its datasets' fps (BC, FIRE), or for RL
+    trainers the rate of the env it trained in; None when the run does not say."""
+    from shiftkit.envs import env_family
+    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.policies.run_dir import RunDir, run_folder
+
+    config = RunDir(run_folder(path), resume=True).read_config() or {}
+    rates = set()
+    for record in config.get("datasets") or []:
+        fps = record.get("fps") if isinstance(record, dict) else None
+        info = Path(str(record.get("root", ""))) / "meta" / "info.json" if isinstance(record, dict) else None
+        if fps is None and info is not None and info.is_file():  # a run recorded before fps was
+            fps = read_json_file(info, "the dataset's info").get("fps")
+        if isinstance(fps, (int, float)) and fps > 0:
+            rates.add(round(fps))
+    if config.get("trainer") in ("vpace", "lfgp"):
+        kwargs = (config.get("args") or {}).get("env_kwargs") or {}
+        try:
+            rates = {int(kwargs.get("control_hz") or env_family(str(config.get("env"))).control_rates[0])}
+        except (ValueError, TypeError):  # trained in an env shiftkit does not register
+            return None
+    if len(rates) > 1:
+        raise DatasetError(f"{path} was trained on datasets of different fps {sorted(rates)}")
+    return rates.pop() if rates else None
+
+
 def _write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:
     import av
 
@@ -263,12 +290,13 @@ def evaluate(
     policy_name: str = "",
     env_kwargs: dict[str, Any] | None = None,
     on_episode: Callable[[EpisodeResult], None] | None = None,
+    rate: int | None = None,
 ) -> EvalReport:
-    """Build the registered env `env_name`/`task` (rendering at the policy's image size) and run
-    `run_episodes` in it."""
+    """Build the registered env `env_name`/`task` (rendering at the policy's image size, controlled at
+    the policy's `rate` when given: see `_make_env`) and run `run_episodes` in it."""
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
-    env = _make_env(policy, env_name, task, env_kwargs)
+    env = _make_env(policy, env_name, task, env_kwargs, rate)
     try:
         report = EvalReport(env=env_name, task=task, policy=policy_name, seed=seed)
         report.episodes = run_episodes(policy, env, episodes, seed, video_dir, on_episode)
@@ -277,17 +305,34 @@ def evaluate(
         env.close()
 
 
-def _make_env(policy: Policy, env_name: str, task: str, env_kwargs: dict[str, Any] | None) -> Any:
-    from shiftkit.envs import make
+def _make_env(
+    policy: Policy, env_name: str, task: str, env_kwargs: dict[str, Any] | None, rate: int | None = None
+) -> Any:
+    """The env, rendering at the policy's image size and, for a policy of known `rate`, stepping at that
+    rate: a policy run at another rate than its data's acts on the wrong time scale (ConfigError
+    naming both rates when the env cannot run at it)."""
+    from shiftkit.envs import env_family, make
 
     kwargs = dict(env_kwargs or {})
     size = camera_size(policy.features)
     if size is not None:
         kwargs.update(height=size[0], width=size[1])
     try:
-        return make(env_name, task, **kwargs)
+        rates = env_family(env_name).control_rates
+        if rate is not None and "control_hz" not in kwargs and rate in rates and rate != rates[0]:
+            kwargs["control_hz"] = rate
+        env = make(env_name, task, **kwargs)
     except (ValueError, TypeError) as exc:
         raise ConfigError(f"{env_name}/{task}: {exc}") from None
+    env_rate = round(getattr(env, "control_hz", rates[0]))
+    if rate is not None and env_rate != rate:
+        env.close()
+        offered = ", ".join(str(r) for r in sorted(rates))
+        raise ConfigError(
+            f"the policy's data is at {rate} fps but {env_name} would run at {env_rate} Hz "
+            f"({env_name} offers {offered} Hz): evaluate at the data's rate or retrain at one the env offers"
+        )
+    return env
 
 
 YAW_BINS: tuple[tuple[float, float], ...] = tuple(
@@ -306,12 +351,13 @@ def yaw_sweep(
     policy_name: str = "",
     env_kwargs: dict[str, Any] | None = None,
     on_bin: Callable[[dict[str, Any]], None] | None = None,
+    rate: int | None = None,
 ) -> dict[str, Any]:
     """Success per base-yaw bin: in every bin, episodes with seeds `seed + i` (the same object resets
     in every bin) at an aimed base pose with yaw uniform in the bin (env reset option `base_yaw`)."""
     if episodes_per_bin < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes_per_bin}")
-    env = _make_env(policy, env_name, task, env_kwargs)
+    env = _make_env(policy, env_name, task, env_kwargs, rate)
     try:
         if not hasattr(env, "base_pose"):
             raise ConfigError(f"{env_name} has no mobile base: a yaw sweep needs a multiview env (mv-*)")
@@ -346,8 +392,10 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
     import matplotlib.pyplot as plt
 
     path = Path(path)
+    png = path.with_suffix(".png")
+    if png == path:
+        raise ConfigError(f"{path}: the sweep's JSON and PNG would be one file; give a .json path")
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(sweep, indent=2) + "\n")
     rows = sweep["bins"]
     centres = [(r["yaw"][0] + r["yaw"][1]) / 2 for r in rows]
     rates = np.array([r["success_rate"] for r in rows])
@@ -359,9 +407,9 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
     ax.set_ylim(0, 1.05)
     ax.set_title(f"{sweep['env']} / {sweep['task']}: success per base-yaw bin", fontsize=9)
     fig.tight_layout()
-    png = path.with_suffix(".png")
-    fig.savefig(png, dpi=100)
+    fig.savefig(png, dpi=100)  # the figure first: a failure leaves no JSON without its PNG
     plt.close(fig)
+    path.write_text(json.dumps(sweep, indent=2) + "\n")
     return path, png
 
 

@@ -37,6 +37,7 @@ import torch
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import numpy_dtype, vector_feature
+from shiftkit.pipelines.hub import validate_repo_id
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, resolve_dataset
 from shiftkit.pipelines.provenance import make_provenance
@@ -104,8 +105,7 @@ class AggregateArgs:
         """ConfigError (one line) for a bad value."""
         if self.predictor not in RULES:
             raise ConfigError(f"predictor must be one of {', '.join(RULES)}, got {self.predictor!r}")
-        if self.repo_id.count("/") != 1 or not all(self.repo_id.split("/")):
-            raise ConfigError(f"repo_id must look like ORG/NAME, got {self.repo_id!r}")
+        validate_repo_id(self.repo_id)
         if self.d_steps is not None and self.d_steps <= 0:
             raise ConfigError(f"d_steps must be positive, got {self.d_steps}")
         if not self.d_lr > 0 or self.grad_penalty < 0 or self.beta <= 0 or self.fp_cooldown < 0:

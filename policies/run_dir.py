@@ -2,7 +2,7 @@
 
     OUTPUT_DIR/
       config.json        {"trainer": "bc"|"vpace"|..., "args": {...full dataclass...},
-                          "datasets": [{"id":..., "root":..., "revision":..., "fingerprint":...}], "seed": ...,
+                          "datasets": [{"id":..., "root":..., "revision":..., "fingerprint":..., "fps":...}], "seed": ...,
                           "versions": {"shiftkit":..., "lerobot":..., "torch":...}, ...}
       checkpoints/step-00001000.pt   torch.save dict (models, optimizers, rng states, "step", ...)
       checkpoints/last.txt           name of the newest complete checkpoint
@@ -92,19 +92,40 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
     return state
 
 
-def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | None]]:
-    """The `datasets` entry of config.json: what a run trained on, pinned by content fingerprint."""
+def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | int | None]]:
+    """The `datasets` entry of config.json: what a run trained on, pinned by content fingerprint, with
+    its fps (the rate `shiftkit eval` runs the policy's env at)."""
     return [
-        {"id": r.repo_id, "root": str(r.root), "revision": r.revision, "fingerprint": r.fingerprint} for r in resolved
+        {
+            "id": r.repo_id,
+            "root": str(r.root),
+            "revision": r.revision,
+            "fingerprint": r.fingerprint,
+            "fps": read_json_file(Path(r.root) / "meta" / "info.json", "the dataset's info").get("fps"),
+        }
+        for r in resolved
     ]
 
 
 def _atomic_write(path: Path, write) -> None:
+    """Write through a temporary file renamed into place; a failed write (a full disk: torch.save
+    reports it as a RuntimeError) leaves no temporary file and is one line."""
+    import errno
+
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+    except (OSError, RuntimeError) as exc:
+        tmp.unlink(missing_ok=True)
+        full = getattr(exc, "errno", None) == errno.ENOSPC or (
+            isinstance(exc, RuntimeError) and ("write" in str(exc).lower() or "inline_container" in str(exc))
+        )
+        if full:
+            raise ShiftkitError(f"no space left on device writing {path}") from None
+        raise
     os.replace(tmp, path)
 
 

@@ -113,7 +113,11 @@ def _run_aggregate(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.pipelines.hub import validate_repo_id
+    from shiftkit.pipelines.option_values import check_env_kwargs
     from shiftkit.policies.fire import FireArgs
     from shiftkit.policies.fire import run as run_fire
 
@@ -122,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
     missing = [f"--{name}" for name in REQUIRED if getattr(args, name) is None]
     if missing:
         raise ConfigError(f"the following arguments are required: {', '.join(missing)}")
+    # the default repo id meets the rules an explicit one does, before any work
+    validate_repo_id(args.repo_id or f"local/{Path(args.output).name}")
+    check_env_kwargs(args.env, dict(args.env_kwarg))
 
     summary = run_fire(
         FireArgs(

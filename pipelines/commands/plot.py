@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from shiftkit.pipelines.option_values import positive_int
+
 HELP = "plot FIRE runs: ROC curves of the failure predictors (roc) or success vs expert samples and time (fire)"
 
 PREDICTOR_LABELS = {"beta": "beta rule", "gda": "GDA", "doubt": "ensemble doubt", "gda+doubt": "GDA or doubt"}
@@ -31,9 +33,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help="FIRE run folders")
     fire.add_argument("--out", required=True, help="PNG path; -expert and -time are added before .png")
-    fire.add_argument("--window", type=int, default=10, help="episodes per success estimate (default: 10)")
+    fire.add_argument("--window", type=positive_int, default=10, help="episodes per success estimate (default: 10)")
     fire.add_argument("--title", default="", help="plot title")
     fire.set_defaults(_plot=_run_fire)
+
+
+def check_figure_path(out: str) -> None:
+    """`out` must name a format matplotlib writes, checked before any run is read."""
+    from pathlib import Path
+
+    from matplotlib.figure import Figure
+
+    from shiftkit.pipelines.errors import ConfigError
+
+    formats = Figure().canvas.get_supported_filetypes()
+    suffix = Path(out).suffix.lower().lstrip(".")
+    if suffix and suffix not in formats:
+        raise ConfigError(f"--out {out}: format {suffix!r} is not one matplotlib writes ({', '.join(sorted(formats))})")
 
 
 def _run_roc(args: argparse.Namespace) -> int:
@@ -50,6 +66,7 @@ def _run_roc(args: argparse.Namespace) -> int:
     from shiftkit.policies.fire import read_episode_lines, roc_scores
     from shiftkit.policies.fire_aggregate import ROC_FILE, read_roc
 
+    check_figure_path(args.out)
     pooled: dict[str, list] = {}
     labels = []
     for run in args.runs:
@@ -93,10 +110,15 @@ def _run_fire(args: argparse.Namespace) -> int:
 
     if args.window < 1:
         raise ConfigError(f"--window must be >= 1, got {args.window}")
+    check_figure_path(args.out)
     runs = []
     for item in args.runs:
         label, sep, path = item.partition("=")
         runs.append((label, path) if sep else (Path(item).name, item))
+    labels = [label for label, _ in runs]
+    if len(set(labels)) < len(labels):
+        twice = next(label for label in labels if labels.count(label) > 1)
+        raise ConfigError(f"label {twice!r} is given to two runs; give each run its own LABEL=RUN")
     lines = {label: read_episode_lines(path) for label, path in runs}
     out = Path(args.out)
     written = []
@@ -109,7 +131,14 @@ def _run_fire(args: argparse.Namespace) -> int:
             x, rate, low, high = success_curve(episode_lines, key, args.window)
             curves.append(Curve(label, x, rate, low, high, 1))
         path = out.with_name(f"{out.stem}-{suffix}{out.suffix or '.png'}")
-        written.append(plot_curves(curves, path, args.title, xlabel, f"policy success ({args.window}-episode window)"))
+        try:
+            written.append(
+                plot_curves(curves, path, args.title, xlabel, f"policy success ({args.window}-episode window)")
+            )
+        except BaseException:  # both figures or neither
+            for done in written:
+                done.unlink(missing_ok=True)
+            raise
     for label, episode_lines in lines.items():
         last = episode_lines[-1]
         print(

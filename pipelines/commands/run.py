@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
+from shiftkit.pipelines.option_values import positive_int
+
 HELP = "run a pipeline config; re-running after an interruption resumes it"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", help="pipeline config (.toml, .yaml or .json)")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument(
         "--executor",
         default="local",

@@ -6,6 +6,7 @@ import argparse
 import importlib.util
 
 from shiftkit.pipelines.dataclass_config import csv_list
+from shiftkit.pipelines.option_values import finite_float, non_negative_int, positive_float, positive_int
 
 HELP = "train a policy (bc, vpace, lfgp) from LeRobot dataset IDs"
 
@@ -26,32 +27,40 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--steps",
-        type=int,
+        type=positive_int,
         help="gradient steps: exactly this many with --regime fixed (default 20000); with early-stop an upper "
         "bound (default: --max-epochs epochs), training ends sooner once every member stops improving",
     )
-    p.add_argument("--max-epochs", type=int, default=200, help="early-stop: most epochs (default: 200)")
-    p.add_argument("--patience", type=int, default=30, help="early-stop: epochs without improvement (default: 30)")
-    p.add_argument("--batch-size", type=int, default=64, help="frames per step and member (default: 64)")
-    p.add_argument("--lr", type=float, help="learning rate (default: 1e-3 early-stop, 3e-4 fixed)")
-    p.add_argument("--weight-decay", type=float, help="AdamW weight decay (default: 0 early-stop, 0.1 fixed)")
-    p.add_argument("--val-fraction", type=float, help="held-out episode share (default: 0.2 early-stop, 0 fixed)")
-    p.add_argument("--ensemble", type=int, default=5, help="ensemble members (default: 5)")
+    p.add_argument("--max-epochs", type=positive_int, default=200, help="early-stop: most epochs (default: 200)")
+    p.add_argument(
+        "--patience", type=positive_int, default=30, help="early-stop: epochs without improvement (default: 30)"
+    )
+    p.add_argument("--batch-size", type=positive_int, default=64, help="frames per step and member (default: 64)")
+    p.add_argument("--lr", type=positive_float, help="learning rate (default: 1e-3 early-stop, 3e-4 fixed)")
+    p.add_argument("--weight-decay", type=finite_float, help="AdamW weight decay (default: 0 early-stop, 0.1 fixed)")
+    p.add_argument(
+        "--val-fraction", type=finite_float, help="held-out episode share (default: 0.2 early-stop, 0 fixed)"
+    )
+    p.add_argument("--ensemble", type=positive_int, default=5, help="ensemble members (default: 5)")
     p.add_argument("--inputs", type=csv_list, help="observation features to use, comma-separated (default: all)")
     p.add_argument("--encoder", choices=("cnn", "resnet18"), default="cnn", help="image encoder (default: cnn)")
     p.add_argument("--encoder-weights", help="local ResNet-18 state-dict file (nothing is downloaded)")
-    p.add_argument("--keypoints", type=int, default=32, help="spatial soft-argmax keypoints per camera")
+    p.add_argument("--keypoints", type=positive_int, default=32, help="spatial soft-argmax keypoints per camera")
     p.add_argument(
         "--hidden",
         type=lambda s: [int(x) for x in csv_list(s)],
         default=[512, 512],
         help="fully connected widths, comma-separated (default: 512,512)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of split, shuffles and init (default: 0)")
-    p.add_argument("--checkpoint-every", type=int, default=1000, help="steps between checkpoints (default: 1000)")
-    p.add_argument("--log-every", type=int, default=100, help="steps between metric lines (default: 100)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of split, shuffles and init (default: 0)")
+    p.add_argument(
+        "--checkpoint-every", type=positive_int, default=1000, help="steps between checkpoints (default: 1000)"
+    )
+    p.add_argument("--log-every", type=positive_int, default=100, help="steps between metric lines (default: 100)")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda (default: auto)")
-    p.add_argument("--threads", type=int, help="CPU threads for torch (default: torch's; 1 suits busy machines)")
+    p.add_argument(
+        "--threads", type=positive_int, help="CPU threads for torch (default: torch's; 1 suits busy machines)"
+    )
     p.add_argument("--resume", action="store_true", help="continue the run in --output from its last checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

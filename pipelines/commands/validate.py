@@ -29,6 +29,10 @@ def run(args: argparse.Namespace) -> int:
         counts["stats"] = recompute_stats(resolved.root)
     for warning in counts["warnings"]:
         print(f"warning: {warning}")
-    deep = f", statistics of {counts['stats']} features recomputed" if args.deep else ""
+    deep = (
+        f", statistics of {counts['stats']} features recomputed"
+        if args.deep
+        else "; statistics not recomputed from the data (--deep does)"
+    )
     print(f"ok: {resolved.root} ({counts['episodes']} episodes, {counts['frames']} frames{deep})")
     return 0

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -263,8 +264,13 @@ def import_robomimic(
         env_args = _json_attr(path, data, "data", "env_args")
         env_kwargs = env_args.get("env_kwargs") or {}
         all_demos = _demo_names(path, f, None)
+        for d in all_demos:  # named here, before the counts that depend on them
+            actions = data[d].get("actions")
+            if not hasattr(actions, "shape") or len(actions.shape) not in (1, 2) or actions.dtype.kind not in "fiu":
+                found = "missing" if actions is None else f"shape {getattr(actions, 'shape', None)}"
+                raise DatasetError(f"{path}: data/{d}/actions must be a numeric (frames[, dims]) array ({found})")
         if "total" in data.attrs:
-            samples = sum(int(data[d]["actions"].shape[0]) for d in all_demos if "actions" in data[d])
+            samples = sum(int(data[d]["actions"].shape[0]) for d in all_demos)
             if int(data.attrs["total"]) != samples:
                 raise DatasetError(
                     f"{path}: data attribute total is {int(data.attrs['total'])}, the demos hold {samples}"
@@ -272,7 +278,8 @@ def import_robomimic(
         demos = _demo_names(path, f, filter_key)
         control_freq = env_kwargs.get("control_freq")
         if fps is None:
-            if control_freq is None or float(control_freq) != int(control_freq) or int(control_freq) < 1:
+            numeric = isinstance(control_freq, (int, float)) and not isinstance(control_freq, bool)
+            if not numeric or not math.isfinite(control_freq) or control_freq != int(control_freq) or control_freq < 1:
                 raise DatasetError(
                     f"{path}: env_args has no integer env_kwargs.control_freq ({control_freq}); give --fps"
                 )

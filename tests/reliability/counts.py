@@ -17,7 +17,11 @@ def counts() -> dict[str, int]:
     from tests.reliability import test_cli_errors, test_faults, test_fuzz, test_integrity
 
     fuzz = (
-        test_fuzz.RAW_EXAMPLES + test_fuzz.LEROBOT_EXAMPLES + test_fuzz.CONFIG_EXAMPLES + test_fuzz.CONFIG_TEXT_EXAMPLES
+        test_fuzz.RAW_EXAMPLES
+        + test_fuzz.LEROBOT_EXAMPLES
+        + test_fuzz.CONFIG_EXAMPLES
+        + test_fuzz.CONFIG_TEXT_EXAMPLES
+        + test_fuzz.ROBOMIMIC_EXAMPLES
     )
     # SIGKILLs at seeded random points, plus one fault per other fault test (a killed parent, a
     # concurrent run, a stale lock, a full disk, an unresumable run, a killed collect, an unfinished
@@ -43,8 +47,8 @@ def readme_section() -> str:
   ends in a correct result or one line `shiftkit COMMAND: error: ...` with exit 2, and no input is
   modified.
 * {c["fuzzed"]} fuzzed files and configs (hypothesis: truncated files, garbage, wrong dtypes and
-  shapes, NaN/inf, random JSON values) for the raw episode reader, the LeRobot reader and the
-  pipeline config parser: a clean result or a one-line error, never another exception.
+  shapes, NaN/inf, random JSON values) for the raw episode reader, the LeRobot reader, the
+  pipeline config parser and the robomimic importer: a clean result or a one-line error, never another exception.
 * {c["faults"]} faults injected: SIGKILL of `shiftkit run` at seeded random points (the resumed run
   writes the clean run's bytes and no pool worker outlives its parent), SIGKILL of a Ray run (every
   process of its Ray cluster exits), a second run on the same

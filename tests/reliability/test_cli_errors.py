@@ -477,6 +477,76 @@ CASES = {
         lambda t, r, d: _env(HF_ENDPOINT="notaurl", HF_HUB_OFFLINE="0") + ["pull", "me/x"],
         2,
     ),
+    # outputs derived from another output, formats, labels, defaults
+    "eval yaw sweep out is the PNG": (
+        lambda t, r, d: [*_sweep(t), "--out", str(t / "sweep.png")],
+        2,
+    ),
+    "eval yaw sweep with videos": (lambda t, r, d: [*_sweep(t), "--videos", str(t / "v")], 2),
+    "eval yaw sweep with view=fixed": (lambda t, r, d: [*_sweep(t), "--env-kwarg", "view=fixed"], 2),
+    "plot fire unsupported format": (lambda t, r, d: ["plot", "fire", str(t), "--out", str(t / "f.txt")], 2),
+    "plot roc unsupported format": (lambda t, r, d: ["plot", "roc", str(t), "--out", str(t / "f.txt")], 2),
+    "plot fire duplicate labels": (
+        lambda t, r, d: ["plot", "fire", f"a={t}", f"a={a_file(t)}", "--out", str(t / "f.png")],
+        2,
+    ),
+    "fire default repo id with a space": (
+        lambda t, r, d: ["fire", "--dataset", str(d), "--env", "panda-play", "--task", "lift", "--output", "my run"],
+        2,
+    ),
+    "import non-ASCII repo id": (
+        lambda t, r, d: ["import", "lerobot-v2.1", str(d), "--repo-id", "me/donn\u00e9es", "--root", str(t / "o")],
+        2,
+    ),
+    "validate truncated provenance": (
+        lambda t, r, d: ["validate", str(raw_with(t, d, lambda c: _truncate(c / "meta/shiftkit_provenance.json")))],
+        2,
+    ),
+    # one rule per numeric option and env kwarg
+    "collect env kwarg max_episode_seconds 0": (
+        lambda t, r, d: [
+            "collect",
+            "--env",
+            "mv-lift",
+            "--task",
+            "lift",
+            "--env-kwarg",
+            "max_episode_seconds=0",
+            "--out",
+            str(t / "o"),
+        ],
+        2,
+    ),
+    "collect env kwarg width 1.5": (
+        lambda t, r, d: ["collect", "--task", "lift", "--env-kwarg", "width=1.5", "--out", str(t / "o")],
+        2,
+    ),
+    "eval env kwarg max_episode_seconds nan": (
+        lambda t, r, d: ["eval", "--policy", str(t), "--task", "lift", "--env-kwarg", "max_episode_seconds=NaN"],
+        2,
+    ),
+    "fire env kwarg control_hz -5": (
+        lambda t, r, d: [
+            "fire",
+            "--dataset",
+            str(d),
+            "--env",
+            "panda-play",
+            "--task",
+            "lift",
+            "--env-kwarg",
+            "control_hz=-5",
+            "--output",
+            str(t / "f"),
+        ],
+        2,
+    ),
+    "train bc lr inf": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(d), "--output", str(t / "b"), "--lr", "inf"],
+        2,
+    ),
+    "plot fire window 0": (lambda t, r, d: ["plot", "fire", str(t), "--out", str(t / "f.png"), "--window", "0"], 2),
+    "run destination inside its source": (lambda t, r, d: ["run", pipeline(t, r, dest=str(r / "out"))], 2),
 }
 
 
@@ -536,6 +606,10 @@ def _non_utf8_pipeline(t: Path, r: Path, dest: str = "out") -> str:
     folder = _mkdir(t / NON_UTF8)
     _copy(r, folder / "raw")
     return pipeline(folder, Path("raw"), dest)
+
+
+def _sweep(t: Path) -> list[str]:
+    return ["eval", "--policy", str(t), "--env", "mv-lift", "--task", "lift", "--episodes", "1", "--yaw-sweep"]
 
 
 def _truncate(path: Path) -> None:
@@ -631,3 +705,8 @@ def test_os_errors_are_one_line(exc, tmp_path, rel_raw, monkeypatch):
     outcome = cli(["run", pipeline(tmp_path, rel_raw), "--no-progress"])
     assert outcome.clean and outcome.code == 2, outcome
     assert exc.strerror in outcome.error_line and exc.filename in outcome.error_line
+
+
+def test_plain_validate_says_statistics_are_not_recomputed(rel_ds):
+    outcome = cli(["validate", str(rel_ds)])
+    assert outcome.code == 0 and "statistics not recomputed from the data (--deep does)" in outcome.stdout, outcome

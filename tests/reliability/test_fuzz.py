@@ -189,3 +189,30 @@ def test_pipeline_config_files_with_random_text(tmp_path, suffix, text, raw):
     path = tmp_path / f"p{suffix}"
     path.write_bytes(text.encode("utf-8", "surrogatepass") + raw)
     clean_or_error(lambda: load_pipeline_config(path))
+
+
+ROBOMIMIC_EXAMPLES = 8
+
+
+@settings(max_examples=ROBOMIMIC_EXAMPLES, **FUZZ)
+@given(
+    target=st.sampled_from(["data/demo_0/actions", "data/demo_0/obs/robot0_eef_pos", "data/demo_1/rewards"]),
+    array=npy_arrays,
+    control_freq=json_values,
+)
+def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, control_freq):
+    import h5py
+
+    from shiftkit.pipelines.sources.robomimic import import_robomimic
+    from tests.test_import_robomimic import _write
+
+    tmp = tmp_path_factory.mktemp("rm")
+    path = _write(tmp / "demo.hdf5")
+    with h5py.File(path, "a") as f:
+        if target in f and _array(array).dtype.kind != "U":
+            del f[target]
+            f.create_dataset(target, data=_array(array))
+        args = json.loads(f["data"].attrs["env_args"])
+        args["env_kwargs"]["control_freq"] = control_freq
+        f["data"].attrs["env_args"] = json.dumps(args)
+    clean_or_error(lambda: import_robomimic(path, "rm/fuzz", tmp / "out"))
