@@ -19,7 +19,12 @@ is the processing span's, the whole-run one is reported beside it. What keeps a 
 half the 1-worker one is broken down per run: workers starting apart, work falling unevenly on
 them, and each episode rendering slower than with 1 worker (`episode_time_2_vs_1`: cores shared
 with each other or with other jobs). The machine's load average is recorded, since other jobs share
-its cores. The last line printed is the JSON result.
+its cores.
+
+Bytes written per input byte: what each run leaves on disk (its work directory, measured just
+before the runner removes it, plus the dataset) over the size of the source folder; re-writes of a
+file in place are not counted. The JSON also says whether a CUDA device was present (the stage
+renders on the CPU either way). The last line printed is the JSON result.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import argparse
 import dataclasses
 import json
 import os
+import shutil
 import tempfile
 import time
 from collections.abc import Iterable
@@ -104,11 +110,36 @@ def make_source(root: Path, episodes: int) -> Path:
     return path
 
 
+def folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file() and not p.is_symlink())
+
+
+_REMOVED: dict[str, int] = {}  # work directory -> bytes it held when the runner removed it
+_rmtree = shutil.rmtree
+
+
+def _measuring_rmtree(path: str | os.PathLike, *args: object, **kwargs: object) -> None:
+    if str(path).endswith(".shiftkit-work") and Path(path).is_dir():
+        _REMOVED[str(path)] = folder_bytes(Path(path))
+    _rmtree(path, *args, **kwargs)
+
+
+shutil.rmtree = _measuring_rmtree  # the runner removes its work directory with shutil.rmtree
+
+
+def gpu_info() -> dict[str, object]:
+    import torch
+
+    present = torch.cuda.is_available()
+    return {"present": present, "name": torch.cuda.get_device_name(0) if present else None}
+
+
 def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episodes: int) -> dict[str, float]:
     """Seconds of the whole run, of the processing span and of the start-up (see the module doc),
     and where a span exceeds an even split of the work: how far apart the workers started
     (`start_spread`), how unevenly the episodes' rendering time fell on them (`busy_imbalance`: the
-    busiest worker's minus the mean), and the mean rendering time per episode (`episode`)."""
+    busiest worker's minus the mean), the mean rendering time per episode (`episode`), and the
+    bytes the run wrote (`bytes_written`: work directory and dataset)."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig
@@ -124,6 +155,7 @@ def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episo
     t0 = time.time()
     run_pipeline(config, workers=workers, executor=executor, executor_options=options, progress=False)
     total = time.time() - t0
+    written = _REMOVED.pop(str(dest.parent / f".{dest.name}.shiftkit-work"), 0) + folder_bytes(dest)
     stamps = np.array([json.loads(m)["bench_t"] for m in open_lerobot_dataset(dest).episodes[META_COLUMN]])
     start, end, pid = stamps[:, 0], stamps[:, 1], stamps[:, 2]
     busy = [float((end - start)[pid == p].sum()) for p in np.unique(pid)]
@@ -136,6 +168,7 @@ def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episo
         "start_spread": max(first) - min(first),
         "busy_imbalance": max(busy) - float(np.mean(busy)),
         "episode": float(np.mean(end - start)),
+        "bytes_written": written,
     }
 
 
@@ -159,6 +192,7 @@ def main() -> None:
         import lerobot.datasets.lerobot_dataset  # noqa: F401
 
         frames = sum(int(e["length"]) for e in raw.index["episodes"])  # from the index, no episode reads
+        input_bytes = folder_bytes(source)
         load_before = os.getloadavg()
         import ray
 
@@ -205,14 +239,20 @@ def main() -> None:
                 "speedup_whole_run": speedups("total"),
                 # > 1: each episode renders slower with 2 workers (cores shared with each other or other jobs).
                 "episode_time_2_vs_1": {name: round(r[2]["episode"] / r[1]["episode"], 3) for name, r in runs.items()},
+                # The dataset-writing cost: the 2-worker run of each executor.
+                "bytes_written_per_input_byte": {
+                    name: round(r[2]["bytes_written"] / input_bytes, 3) for name, r in runs.items()
+                },
+                "input_bytes": input_bytes,
                 "seconds": {
-                    name: {str(w): {k: round(v, 2) for k, v in t.items()} for w, t in r.items()}
+                    name: {str(w): {k: round(v, 2) for k, v in t.items() if k != "bytes_written"} for w, t in r.items()}
                     for name, r in runs.items()
                 },
                 "stage": "bench-rerender (MuJoCo, visual meshes, 64x48)",
                 "episodes": episodes,
                 "frames": frames,
                 "cpu_count": os.cpu_count(),
+                "gpu": gpu_info(),
                 "lp_num_threads": os.environ["LP_NUM_THREADS"],
                 "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
                 "quick": args.quick,

@@ -143,21 +143,6 @@ def read_cameras_file(root: Path) -> dict[str, Any]:
     return doc
 
 
-def concat_cameras_files(roots: list[Path], dest: Path) -> dict[str, Any] | None:
-    """Write `dest/meta/cameras.json` for the datasets at `roots` concatenated in order (what
-    lerobot's `aggregate_datasets` does with their episodes, leaving this file behind)."""
-    per_episode: dict[int, Cameras] = {}
-    offset = 0
-    for root in roots:
-        doc = read_cameras_file(root)
-        episodes = int(read_json_file(Path(root) / "meta" / "info.json", "not a LeRobot dataset")["total_episodes"])
-        for i in range(episodes):
-            if cameras := episode_cameras(doc, i):
-                per_episode[offset + i] = cameras
-        offset += episodes
-    return write_cameras_file(dest, per_episode)
-
-
 def provenance_entry(doc: Mapping[str, Any] | None) -> dict[str, Any] | None:
     """What the provenance records: the constant values and which entries vary per episode."""
     if not doc:

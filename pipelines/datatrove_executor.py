@@ -2,31 +2,29 @@
 
 The work units of a run are packed into *shards* (consecutive units, at most `shard_episodes`
 source episodes each), a grouping that does not depend on the number of workers. Each datatrove
-task (rank) takes every `world_size`-th unfinished shard; for each it transforms the episodes into
-the run's part store (so a resumed run skips finished episodes) and writes the shard as a LeRobot
-dataset with `DatasetWriter` (atomic; a finished shard is skipped entirely). A failing shard is
-retried (`attempts` in all, with freshly set-up stages); one that keeps failing leaves a failure
-record naming the episode and the reason, and the run stops with that message before anything is
-written at the destination. Assembly merges the shard datasets in shard order with lerobot's
-`aggregate_datasets` into a temporary directory beside the destination, corrects what depends on
-an episode's position in the whole dataset (the statistics of `index`, `episode_index` and
-`task_index`), adds provenance and card, and renames it into place.
+task (rank) takes every `world_size`-th unfinished shard and transforms its episodes into the
+run's part store, the same parts the local executor's workers write (so a resumed run skips
+finished episodes, whichever executor made them). A failing shard is retried (`attempts` in all,
+with freshly set-up stages); one that keeps failing leaves a failure record naming the episode and
+the reason, and the run stops with that message before anything is written at the destination.
 
-Stages with a dataset-level `select` need every episode's metadata before any shard is written:
-then a first datatrove pass only transforms, and a second one writes the selected episodes.
+When every part exists, the destination is written by the local executor's writer
+(`runner.write_dataset`): one ordered pass over the parts, each episode written once, with the
+position-dependent statistics computed as it goes. Every executor therefore writes the same bytes
+for the same pipeline and seed (apart from the provenance's `executor` fields), and a dataset-level
+`select` runs in that pass like any other.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import logging
 import os
 import shutil
+import subprocess
 import sys
 import threading
-import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,8 +34,8 @@ from datatrove.pipeline.base import PipelineStep
 
 from shiftkit.pipelines import runner
 from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.runner import PartStore, WorkUnit, plan_units
-from shiftkit.pipelines.stage import Stage, register_stage, registered_stages, select_outputs, selecting_stages
+from shiftkit.pipelines.runner import PartStore, WorkUnit
+from shiftkit.pipelines.stage import Stage, register_stage, registered_stages
 
 SHARD_EPISODES = 16
 ATTEMPTS = 3
@@ -46,17 +44,17 @@ _LOG = logging.getLogger("shiftkit")
 
 @dataclass(frozen=True)
 class Shard:
-    """Work units whose outputs become one temporary LeRobot dataset."""
+    """Consecutive work units that one task transforms (and retries) together."""
 
     index: int
     units: tuple[WorkUnit, ...]
-    keep: tuple[tuple[bool, ...], ...] | None = None
-    """Per source episode (in `episodes` order), which of its outputs a dataset-level `select`
-    kept; None keeps all."""
 
     @property
     def episodes(self) -> list[tuple[int, int]]:
         return [(u.source, i) for u in self.units for i in u.episodes]
+
+    def done(self, parts: PartStore) -> bool:
+        return all(parts.done(s, i) for s, i in self.episodes)
 
     def describe(self) -> str:
         eps = self.episodes
@@ -79,57 +77,48 @@ def plan_shards(units: list[WorkUnit], max_episodes: int) -> list[Shard]:
     return shards
 
 
-class ShardStore:
-    """Shard datasets, empty-shard markers and failure records in `<work dir>/shards`."""
+class FailureStore:
+    """The failure records of shards that kept failing, in `<work dir>/failures`."""
 
     def __init__(self, work_dir: Path) -> None:
-        self.dir = work_dir / "shards"
+        self.dir = work_dir / "failures"
 
-    def dataset(self, k: int) -> Path:
-        return self.dir / f"{k:05d}"
+    def _path(self, k: int) -> Path:
+        return self.dir / f"{k:05d}.json"
 
-    def _empty(self, k: int) -> Path:
-        return self.dir / f"{k:05d}.empty"
-
-    def _failure(self, k: int) -> Path:
-        return self.dir / f"{k:05d}.failed.json"
-
-    def done(self, k: int) -> bool:
-        return self.dataset(k).is_dir() or self._empty(k).is_file()
-
-    def mark_empty(self, k: int) -> None:
-        self._empty(k).touch()
-
-    def record_failure(self, k: int, where: str, reason: str, attempts: int) -> None:
-        tmp = self._failure(k).with_suffix(f".tmp-{os.getpid()}")
+    def record(self, k: int, where: str, reason: str, attempts: int) -> None:
+        self.dir.mkdir(parents=True, exist_ok=True)
+        tmp = self._path(k).with_suffix(f".tmp-{os.getpid()}")
         tmp.write_text(json.dumps({"where": where, "reason": reason, "attempts": attempts}))
-        os.rename(tmp, self._failure(k))
+        os.rename(tmp, self._path(k))
 
-    def clear_failure(self, k: int) -> None:
-        self._failure(k).unlink(missing_ok=True)
+    def clear(self, k: int) -> None:
+        self._path(k).unlink(missing_ok=True)
 
-    def failure(self, k: int) -> dict[str, Any] | None:
-        path = self._failure(k)
+    def get(self, k: int) -> dict[str, Any] | None:
+        path = self._path(k)
         return json.loads(path.read_text()) if path.is_file() else None
 
     def clean(self) -> None:
-        """Remove what killed writers and earlier failed attempts left (never a finished shard)."""
-        self.dir.mkdir(parents=True, exist_ok=True)
-        for stale in self.dir.glob(".*.partial-*"):
-            shutil.rmtree(stale, ignore_errors=True)
-        for stale in self.dir.glob("*.failed.json"):
-            stale.unlink()
+        """Forget the failures of earlier attempts: a new attempt starts."""
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+    def message(self, shards: list[Shard]) -> str | None:
+        """One line naming the failed episodes of `shards` and why, or None when none failed."""
+        failures = [f for f in (self.get(s.index) for s in shards) if f is not None]
+        if not failures:
+            return None
+        what = "; ".join(f"{f['where']}: {f['reason']}" for f in failures)
+        return f"{len(failures)} of {len(shards)} shards failed {failures[0]['attempts']} times: {what}"
 
 
 class ShardStep(PipelineStep):
-    """The datatrove pipeline step: transforms (and writes) the shards of its rank."""
+    """The datatrove pipeline step: transforms the unfinished shards of its rank into parts."""
 
     name = "shiftkit shards"
     type = "🤖 - SHIFTKIT"
 
-    def __init__(
-        self, config: Any, shards: list[Shard], attempts: int, stage_classes: list[type[Stage]], write: bool
-    ) -> None:
+    def __init__(self, config: Any, shards: list[Shard], attempts: int, stage_classes: list[type[Stage]]) -> None:
         super().__init__()
         self.config = config
         self.shards = shards
@@ -137,7 +126,6 @@ class ShardStep(PipelineStep):
         # The stage classes travel with the step, so stages registered outside shiftkit's own
         # packages (a plugin, a script's __main__) exist on Ray workers too.
         self.stage_classes = stage_classes
-        self.write = write
         self.main_pid = os.getpid()  # workers of a local pool exit when this process dies
 
     def run(self, data: Any = None, rank: int = 0, world_size: int = 1) -> Any:
@@ -147,60 +135,40 @@ class ShardStep(PipelineStep):
             if cls.name not in known:
                 register_stage(cls)
         work = runner.work_dir_for(Path(self.config.destination.root))
-        parts, store = PartStore(work), ShardStore(work)
+        parts, failures = PartStore(work), FailureStore(work)
         plan = None
         failed = []
         for shard in self.shards[rank::world_size]:
+            if shard.done(parts):  # finished by an earlier, killed or cancelled, run of this task
+                continue
             for attempt in range(1, self.attempts + 1):
                 try:
                     if plan is None:  # set up once per rank, and again after a failure
                         plan = runner.init_worker(self.config)
-                        if self.write:  # the shard writer's lerobot modules load torch: part of set-up
-                            import lerobot.datasets.lerobot_dataset  # noqa: F401
                     for unit in shard.units:
                         self.stat_update("episodes", value=runner.process_unit(unit))
-                    if self.write:
-                        _write_shard(plan, shard, parts, store)
-                    store.clear_failure(shard.index)
+                    failures.clear(shard.index)
                     self.stat_update("shards")
                     break
                 except Exception as exc:
                     plan = None
-                    where = next(
-                        (f"source {s} episode {i}" for s, i in shard.episodes if not parts.done(s, i)),
-                        f"writing {shard.describe()}",
-                    )
+                    where = next((f"source {s} episode {i}" for s, i in shard.episodes if not parts.done(s, i)), "?")
                     reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
                     _LOG.warning(
                         "%s, attempt %d/%d failed at %s: %s", shard.describe(), attempt, self.attempts, where, reason
                     )
                     self.stat_update("failed_attempts")
                     if attempt == self.attempts:
-                        store.record_failure(shard.index, where, reason, attempt)
+                        failures.record(shard.index, where, reason, attempt)
                         failed.append(shard.index)
         if failed:
-            raise DatasetError(f"shards {failed} failed {self.attempts} times (records in {store.dir})")
+            raise DatasetError(f"shards {failed} failed {self.attempts} times (records in {failures.dir})")
         return data
 
 
-def _write_shard(plan: Any, shard: Shard, parts: PartStore, store: ShardStore) -> None:
-    from shiftkit.pipelines.lerobot_io import DatasetWriter
-
-    writer = DatasetWriter(
-        plan.repo_id, store.dataset(shard.index), plan.fps, plan.features, robot_type=plan.robot_type
-    )
-    with writer:
-        for e, (s, i) in enumerate(shard.episodes):
-            for j, (episode, stats) in enumerate(parts.read(s, i)):
-                if shard.keep is None or shard.keep[e][j]:
-                    writer.add_episode(episode, stats)
-        if writer.num_episodes == 0:  # every output was filtered out: nothing to merge
-            writer.abort()
-            store.mark_empty(shard.index)
-
-
 class DatatroveExecutor:
-    """Shared driver side: shard planning, datatrove passes, failure reports, assembly."""
+    """Shared driver side: shard planning, the datatrove pass, failure reports; the dataset is
+    written by the local executor's writer (`runner.write_dataset`)."""
 
     name: ClassVar[str]
     schedules: ClassVar[bool] = False  # True: the work is handed to a scheduler, not run here
@@ -218,105 +186,50 @@ class DatatroveExecutor:
         return {"name": self.name, "workers": self.workers}
 
     def run(self, plan: Any, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
-        shards = plan_shards(units, self.shard_episodes)
-        store = ShardStore(parts.dir.parent)
-        if selecting_stages(plan.stages):
-            if self.schedules:
-                raise ConfigError(
-                    f"executor {self.name!r} cannot run stages with a dataset-level select; "
-                    "use local, datatrove-local or ray"
-                )
-            if not self._pass(plan, shards, parts, store, bar, write=False):
-                return False
-            shards = _with_selection(plan, shards, parts)
-        return self._pass(plan, shards, parts, store, bar, write=True)
-
-    def _pass(self, plan: Any, shards: list[Shard], parts: PartStore, store: ShardStore, bar: Any, write: bool) -> bool:
-        if write:
-            todo = [s for s in shards if not store.done(s.index)]
-        else:
-            todo = [s for s in shards if not all(parts.done(src, i) for src, i in s.episodes)]
+        todo = [s for s in plan_shards(units, self.shard_episodes) if not s.done(parts)]
         if not todo:
             return True
-        step = ShardStep(plan.config, todo, self.attempts, [type(s) for s in plan.stages], write)
+        step = ShardStep(plan.config, todo, self.attempts, [type(s) for s in plan.stages])
         tasks = min(self.workers, len(todo))
         logdir = parts.dir.parent / "datatrove" / self.name
+        failures = FailureStore(parts.dir.parent)
         if self.schedules:
-            return self._schedule(plan, step, tasks, logdir, store, todo)
-        store.clean()
+            return self._schedule(plan, step, tasks, logdir, failures, todo, parts)
+        failures.clean()
         with _PartsProgress(parts, bar):
             try:
                 self._execute(step, tasks, logdir)
                 error = None
             except Exception as exc:  # reported below through the shards' own records
                 error = exc
-        _check_shards(plan, todo, parts, store, write, logdir, error)
+        if message := failures.message(todo):
+            raise DatasetError(f"{message}; nothing written to {plan.destination}")
+        missing = [s for s in todo if not s.done(parts)]
+        if missing:
+            why = f"{type(error).__name__}: {error}".splitlines()[0] if error else "the executor stopped"
+            raise DatasetError(
+                f"{len(missing)} of {len(todo)} shards did not finish ({missing[0].describe()}, ...): "
+                f"{why}; logs in {logdir}"
+            )
         return True
 
     def _execute(self, step: ShardStep, tasks: int, logdir: Path) -> None:
         raise NotImplementedError
 
     def _schedule(
-        self, plan: Any, step: ShardStep, tasks: int, logdir: Path, store: ShardStore, todo: list[Shard]
+        self,
+        plan: Any,
+        step: ShardStep,
+        tasks: int,
+        logdir: Path,
+        failures: FailureStore,
+        todo: list[Shard],
+        parts: PartStore,
     ) -> bool:
         raise NotImplementedError
 
     def assemble(self, plan: Any, parts: PartStore, bar: Any) -> Path:
-        store = ShardStore(parts.dir.parent)
-        shards = plan_shards(plan_units(plan), self.shard_episodes)
-        roots = [store.dataset(s.index) for s in shards if store.dataset(s.index).is_dir()]
-        if not roots:
-            raise DatasetError(f"no episodes to write to {plan.destination} (every episode was filtered out)")
-        path = merge_shards(plan, roots, self.describe(), runner.run_report(plan, parts))
-        bar.update(plan.num_source_episodes)
-        return path
-
-
-def _with_selection(plan: Any, shards: list[Shard], parts: PartStore) -> list[Shard]:
-    """The shards with the keep-flags of the stages' dataset-level `select` over all outputs."""
-    owners: list[tuple[int, int]] = []
-
-    def read_metas() -> list[dict[str, Any]]:
-        metas = []
-        for shard in shards:
-            for s, i in shard.episodes:
-                for meta in parts.metas(s, i):
-                    owners.append((s, i))
-                    metas.append(meta)
-        return metas
-
-    keep = select_outputs(plan.stages, read_metas)
-    flags: dict[tuple[int, int], list[bool]] = {}
-    for owner, flag in zip(owners, keep or [], strict=True):
-        flags.setdefault(owner, []).append(flag)
-    return [dataclasses.replace(s, keep=tuple(tuple(flags.get(e, ())) for e in s.episodes)) for s in shards]
-
-
-def _check_shards(
-    plan: Any,
-    todo: list[Shard],
-    parts: PartStore,
-    store: ShardStore,
-    write: bool,
-    logdir: Path,
-    error: Exception | None,
-) -> None:
-    """One-line error naming the failed episodes and why; the destination stays untouched."""
-    failures = [(s, store.failure(s.index)) for s in todo]
-    failures = [(s, f) for s, f in failures if f is not None]
-    if failures:
-        what = "; ".join(f"{f['where']}: {f['reason']}" for _, f in failures)
-        raise DatasetError(
-            f"{len(failures)} of {len(todo)} shards failed {failures[0][1]['attempts']} times, "
-            f"nothing written to {plan.destination}: {what}"
-        )
-    missing = [s for s in todo if not (store.done(s.index) if write else all(parts.done(a, i) for a, i in s.episodes))]
-    if missing:
-        why = f"{type(error).__name__}: {error}".splitlines()[0] if error else "the executor stopped"
-        raise DatasetError(
-            f"{len(missing)} of {len(todo)} shards did not finish ({missing[0].describe()}, ...): "
-            f"{why}; logs in {logdir}"
-        )
+        return runner.write_dataset(plan, parts, self.describe(), bar)
 
 
 class _PartsProgress:
@@ -385,7 +298,8 @@ class RayExecutor(DatatroveExecutor):
         self, workers: int = 1, address: str | None = None, mem_per_cpu_gb: float = 1.0, **options: Any
     ) -> None:
         super().__init__(workers, **options)
-        self.address = address
+        # RAY_ADDRESS is what `ray.init` reads itself; taken here so the provenance names the cluster.
+        self.address = address or os.environ.get("RAY_ADDRESS") or None
         self.mem_per_cpu_gb = mem_per_cpu_gb
 
     def describe(self) -> dict[str, Any]:
@@ -429,7 +343,10 @@ class RayExecutor(DatatroveExecutor):
 
 class SlurmExecutor(DatatroveExecutor):
     """Writes the SLURM job (sbatch script + pickled datatrove executor + README) into the work
-    dir and stops; re-running the same command after the job has finished assembles the dataset."""
+    dir and submits it with `sbatch` (unless `submit` is false), then stops. Re-running the same
+    command reports a job still queued or running, submits the job again when it ended with shards
+    unfinished (cancelled, timed out, a node lost: finished episodes are kept), and writes the
+    dataset once every shard is done."""
 
     name = "slurm"
     schedules = True
@@ -439,44 +356,104 @@ class SlurmExecutor(DatatroveExecutor):
         workers: int = 1,
         partition: str | None = None,
         time: str = "04:00:00",
+        cpus_per_task: int = 1,
         mem_per_cpu_gb: int = 2,
+        setup: str | None = None,
+        submit: bool = True,
         **options: Any,
     ) -> None:
         super().__init__(workers, **options)
         if not partition:
             raise ConfigError("executor 'slurm' needs --partition")
-        self.partition, self.time, self.mem_per_cpu_gb = partition, time, mem_per_cpu_gb
+        if cpus_per_task < 1 or mem_per_cpu_gb < 1:
+            raise ConfigError(f"--cpus-per-task and --mem-per-cpu must be >= 1, got {cpus_per_task}, {mem_per_cpu_gb}")
+        if submit and shutil.which("sbatch") is None:
+            raise ConfigError(
+                "executor 'slurm' submits its job with sbatch, which is not on PATH: run on a SLURM "
+                "login node, or pass --no-submit to only write the job"
+            )
+        self.partition, self.time = partition, time
+        self.cpus_per_task, self.mem_per_cpu_gb = cpus_per_task, mem_per_cpu_gb
+        self.setup, self.submit = setup, submit
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "partition": self.partition}
 
     def _schedule(
-        self, plan: Any, step: ShardStep, tasks: int, logdir: Path, store: ShardStore, todo: list[Shard]
+        self,
+        plan: Any,
+        step: ShardStep,
+        tasks: int,
+        logdir: Path,
+        failures: FailureStore,
+        todo: list[Shard],
+        parts: PartStore,
     ) -> bool:
         script = logdir / "launch_script.slurm"
-        if script.is_file():
-            failures = [f for f in (store.failure(s.index) for s in todo) if f is not None]
-            if failures:
-                what = "; ".join(f"{f['where']}: {f['reason']}" for f in failures)
-                raise DatasetError(
-                    f"{len(failures)} shards of the SLURM job failed, nothing written to "
-                    f"{plan.destination}: {what} (fix it, then `sbatch {script}` again)"
+        job_file = logdir / "job_id"
+        if not script.is_file():
+            failures.clean()
+            write_slurm_job(self, plan, step, tasks, logdir)
+            if not self.submit:
+                _LOG.warning(
+                    "SLURM job written; submit it with:\n  sbatch %s\nthen run this command again to write "
+                    "the dataset (see %s)",
+                    script,
+                    logdir / "README.md",
                 )
+                return False
+            job = submit_slurm_job(script, job_file)
             _LOG.warning(
-                "SLURM job %s: %d shards still to do; when it has finished, run this command again "
-                "to assemble the dataset",
-                script,
+                "submitted SLURM job %s (%d tasks, %d shards); run this command again when it has finished",
+                job,
+                tasks,
                 len(todo),
             )
             return False
-        write_slurm_job(self, plan, step, tasks, logdir)
+        job = job_file.read_text().strip() if job_file.is_file() else None
+        if job is not None and slurm_job_active(job):
+            _LOG.warning("SLURM job %s is still queued or running: %d shards to do", job, len(todo))
+            return False
+        if message := failures.message(todo):
+            raise DatasetError(
+                f"SLURM job: {message}; nothing written to {plan.destination} (fix it, then run this command again)"
+            )
+        if job is None:  # written with submit=False: the user submits
+            _LOG.warning(
+                "SLURM job %s: %d shards still to do; when it has finished, run this command again", script, len(todo)
+            )
+            return False
+        # The job ended with shards left: cancelled, timed out, or a node lost. The same job again
+        # skips the finished shards (and, within a shard, the finished episodes).
+        kept = sum(parts.done(s, i) for shard in todo for s, i in shard.episodes)
+        failures.clean()
+        new = submit_slurm_job(script, job_file)
         _LOG.warning(
-            "SLURM job written; submit it with:\n  sbatch %s\nthen run this command again to assemble "
-            "the dataset (see %s)",
-            script,
-            logdir / "README.md",
+            "SLURM job %s ended with %d shards unfinished; submitted again as job %s (%d of their episodes are "
+            "kept); run this command again when it has finished",
+            job,
+            len(todo),
+            new,
+            kept,
         )
         return False
+
+
+def submit_slurm_job(script: Path, job_file: Path) -> str:
+    """`sbatch script`; records and returns the job id."""
+    proc = subprocess.run(["sbatch", "--parsable", str(script)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        why = (proc.stderr.strip() or proc.stdout.strip() or f"exit code {proc.returncode}").splitlines()[-1]
+        raise DatasetError(f"sbatch {script} failed: {why}")
+    job = proc.stdout.strip().split(";")[0]
+    job_file.write_text(job + "\n")
+    return job
+
+
+def slurm_job_active(job: str) -> bool:
+    """Whether any task of job `job` is still pending or running (squeue lists it)."""
+    proc = subprocess.run(["squeue", "--noheader", "--jobs", job, "--format=%T"], capture_output=True, text=True)
+    return proc.returncode == 0 and bool(proc.stdout.strip())
 
 
 def write_slurm_job(executor: SlurmExecutor, plan: Any, step: ShardStep, tasks: int, logdir: Path) -> Path:
@@ -484,18 +461,18 @@ def write_slurm_job(executor: SlurmExecutor, plan: Any, step: ShardStep, tasks: 
     import dill
     from datatrove.executor import SlurmPipelineExecutor
 
-    ShardStore(logdir.parents[1]).clean()
     activate = Path(sys.prefix) / "bin" / "activate"
     slurm = SlurmPipelineExecutor(
         [step],
         tasks=tasks,
         time=executor.time,
         partition=executor.partition,
-        cpus_per_task=1,
+        cpus_per_task=executor.cpus_per_task,
         mem_per_cpu_gb=executor.mem_per_cpu_gb,
         job_name=f"shiftkit-{plan.destination.name}",
         qos=None,
-        venv_path=str(activate) if activate.is_file() else None,
+        env_command=executor.setup,
+        venv_path=str(activate) if activate.is_file() and not executor.setup else None,
         logging_dir=str(logdir),
         skip_completed=False,
     )
@@ -526,44 +503,19 @@ def write_slurm_job(executor: SlurmExecutor, plan: Any, step: ShardStep, tasks: 
 
 SLURM_README = """# SLURM job for {dest}
 
-`{script}` is a job array of {tasks} tasks; together they transform and write {shards} shards
-(temporary LeRobot datasets in `{work}/shards`). Each task runs
-`launch_pickled_pipeline executor.pik` (datatrove) with the shiftkit environment activated.
+`{script}` is a job array of {tasks} tasks; together they transform {shards} shards of source
+episodes into parts (`{work}/parts`). Each task runs `launch_pickled_pipeline executor.pik`
+(datatrove) with the shiftkit environment activated.
 
-1. Submit from a login node that shares this file system with the compute nodes:
-
-       sbatch {script}
-
+1. `shiftkit run ... --executor slurm` submits it with `sbatch` (with `--no-submit`, submit it
+   yourself from a login node that shares this file system with the compute nodes:
+   `sbatch {script}`).
 2. Follow it with `squeue`; task logs are in `{logs}`, SLURM's own output in `{slurm_logs}`.
-3. When every task has finished, run the same `shiftkit run ... --executor slurm` command again:
-   it merges the shards (lerobot's aggregation) and renames the dataset into place. If a shard
-   failed, that command names the episode and the reason; fix it and submit the script again
-   (finished shards are skipped).
+3. When the job has ended, run the same `shiftkit run ... --executor slurm` command again: it
+   writes the dataset and renames it into place. If the job ended with shards unfinished
+   (cancelled, timed out), that command submits it again (finished episodes are kept); if a shard
+   failed, it names the episode and the reason: fix it and run the command again.
 """
-
-
-def merge_shards(plan: Any, roots: list[Path], executor_info: dict[str, Any], report: list[dict[str, int]]) -> Path:
-    """Aggregate the shard datasets (in order) into the destination, atomically."""
-    from shiftkit.pipelines import camera_meta
-    from shiftkit.pipelines.lerobot_io import aggregate_shards, carry_source_metadata, lerobot_roots, write_provenance
-    from shiftkit.pipelines.provenance import build_provenance
-
-    dest = plan.destination
-    tmp = dest.parent / f".{dest.name}.partial-{uuid.uuid4().hex[:8]}"  # removed by a later run if killed
-    try:
-        num_episodes, num_frames = aggregate_shards(plan.repo_id, roots, tmp)
-        carry_source_metadata(tmp, lerobot_roots(plan.sources))
-        provenance = build_provenance(plan, executor_info, num_episodes, num_frames, report)
-        # lerobot's aggregation does not know meta/cameras.json: concatenate the shards' own.
-        cameras = camera_meta.provenance_entry(camera_meta.concat_cameras_files(roots, tmp))
-        write_provenance(tmp, {**provenance, "cameras": cameras} if cameras else provenance)
-        if dest.exists():
-            raise DatasetError(f"destination already exists: {dest}")
-        os.rename(tmp, dest)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return dest
 
 
 DATATROVE_EXECUTORS: dict[str, type[DatatroveExecutor]] = {

@@ -1,9 +1,11 @@
 """Executors run the work units (groups of source episodes) of a pipeline and assemble the
 finished episodes into the destination dataset; they know nothing about what a stage does.
 
-`local` is a process pool on this machine (in-process for 1 worker) followed by one ordered
-writer pass; it is the default. `datatrove-local`, `ray` and `slurm` run on datatrove
-(`shiftkit.pipelines.datatrove_executor`): shard datasets merged with lerobot's aggregation.
+`local` is a process pool on this machine (in-process for 1 worker); it is the default.
+`datatrove-local`, `ray` and `slurm` run the same transforms on datatrove
+(`shiftkit.pipelines.datatrove_executor`). Every executor's workers leave their finished episodes
+as parts, and every executor writes the dataset from them with the same ordered writer pass
+(`runner.write_dataset`), so they all write the same bytes.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """LeRobot v3.0 IO, the one module that touches lerobot's dataset internals: an atomic, fast
 episode writer on lerobot 0.6's own format code, a streaming per-episode reader with the one image
-and video decoder of stages and trainers, the merge of shard datasets and the v2.1 conversion, and
-dataset-ID resolution. Every shiftkit producer of a dataset (pipelines under every executor,
-importers, `collect`, FIRE) writes through `DatasetWriter` or `aggregate_shards`.
+and video decoder of stages and trainers, the v2.1 conversion, and dataset-ID resolution. Every
+shiftkit producer of a dataset (pipelines under every executor, importers, `collect`, FIRE) writes
+through `DatasetWriter`.
 
 The writer creates the dataset with `LeRobotDatasetMetadata.create` and stores each episode through
 lerobot's own pieces (its HF features and their Arrow schema, its episode statistics' values,
@@ -28,20 +28,15 @@ those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one
   to the current video file (rotating files at `video_files_size_in_mb`) and fills the feature's
   `info` from the first episode; public only through `save_episode`, which encodes from image
   files on disk.
-* `lerobot.datasets.aggregate.tqdm`: swapped to silence the per-shard bars of `aggregate_datasets`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import hashlib
 import io
 import json
 import os
 import shutil
-import sys
-import types
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -479,73 +474,6 @@ def write_provenance(root: Path, provenance: dict[str, Any]) -> None:
     (root / PROVENANCE_PATH).write_text(dumps(provenance, indent=2))
     # errors=: a source path that is not UTF-8 is shown escaped rather than failing the write.
     (root / "README.md").write_text(render_dataset_card(root, provenance), errors="backslashreplace")
-
-
-# --------------------------------------------------------------------------- merging
-
-
-def aggregate_shards(repo_id: str, roots: list[Path], dest: Path) -> tuple[int, int]:
-    """Merge the datasets at `roots` (in order) into a new dataset at `dest` with lerobot's own
-    `aggregate_datasets`, then correct what it copies although it depends on an episode's place
-    (`fix_position_stats`). Returns (episodes, frames)."""
-    from lerobot.datasets.aggregate import aggregate_datasets
-
-    with _quiet_progress_bars():
-        aggregate_datasets([repo_id] * len(roots), repo_id, roots=roots, aggr_root=dest)
-    return fix_position_stats(dest)
-
-
-@contextlib.contextmanager
-def _quiet_progress_bars() -> Iterator[None]:
-    """Silence the bars that lerobot's aggregation and `datasets` draw per shard (ours shows the
-    progress). lerobot re-enables `datasets` bars after each read, so the check itself is swapped."""
-    import tqdm
-    from lerobot.datasets import aggregate
-
-    hf_bars = sys.modules["datasets.utils.tqdm"]
-    disabled = hf_bars.are_progress_bars_disabled
-    hf_bars.are_progress_bars_disabled = lambda: True
-    aggregate.tqdm = types.SimpleNamespace(tqdm=functools.partial(tqdm.tqdm, disable=True))
-    try:
-        yield
-    finally:
-        aggregate.tqdm = tqdm
-        hf_bars.are_progress_bars_disabled = disabled
-
-
-def fix_position_stats(root: Path) -> tuple[int, int]:
-    """Recompute what aggregation copies from each shard although it depends on the episode's place
-    in the whole dataset: the per-episode and dataset statistics of `index`, `episode_index` and
-    `task_index`. Also rewrites meta/stats.json in feature order (lerobot aggregates statistics over
-    a `set` of keys, whose order follows the process's string-hash seed). Returns (episodes, frames)."""
-    import pandas as pd
-    import pyarrow.parquet as pq
-    from lerobot.datasets.compute_stats import aggregate_stats
-    from lerobot.datasets.io_utils import load_stats, write_stats
-
-    info = json.loads((root / "meta" / "info.json").read_text())
-    features = info["features"]
-    data = [pq.read_table(p, columns=list(POSITION_KEYS)) for p in sorted((root / "data").rglob("*.parquet"))]
-    columns = {k: np.concatenate([t.column(k).to_numpy() for t in data]) for k in POSITION_KEYS}
-    if not (columns["index"] == np.arange(len(columns["index"]))).all():
-        raise DatasetError(f"{root}: aggregated frames are not in index order")
-    episode_stats = []
-    for path in sorted((root / "meta" / "episodes").rglob("*.parquet")):
-        df = pd.read_parquet(path)
-        new: dict[str, list[Any]] = {}
-        for lo, hi in zip(df["dataset_from_index"], df["dataset_to_index"], strict=True):
-            stats = numeric_stats({k: columns[k][lo:hi] for k in POSITION_KEYS})
-            episode_stats.append(stats)
-            for key, values in stats.items():
-                for name, value in values.items():
-                    new.setdefault(f"stats/{key}/{name}", []).append(np.asarray(value))
-        for col, values in new.items():
-            df[col] = values
-        df.to_parquet(path)
-    stats = load_stats(root)
-    stats.update(aggregate_stats(episode_stats))
-    write_stats({k: stats[k] for k in features if k in stats}, root)
-    return int(info["total_episodes"]), int(info["total_frames"])
 
 
 # --------------------------------------------------------------------------- v2.1 conversion

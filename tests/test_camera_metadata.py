@@ -111,8 +111,8 @@ def test_stages_carry_each_episodes_cameras_to_its_new_index(tmp_path):
 
 
 def test_sharded_executor_keeps_the_cameras(tmp_path):
-    """The datatrove executor writes shards and merges them with lerobot's aggregation, which drops
-    meta/cameras.json: the merged dataset gets the shards' cameras, re-indexed."""
+    """The datatrove executor's workers transform shards of episodes: the dataset keeps every
+    episode's cameras, indexed by its place in the whole dataset."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig

@@ -1,6 +1,7 @@
 """Executors on datatrove (local processes, a local Ray instance, SLURM job files): the same
-pipeline gives the same dataset content as the default local executor; failing shards are retried
-and a shard that keeps failing leaves no dataset and an error naming the episode."""
+pipeline gives the same dataset bytes as the default local executor; failing shards are retried
+and a shard that keeps failing leaves no dataset and an error naming the episode. A real SLURM
+cluster and a two-node Ray cluster: tests/test_cluster_slurm.py, tests/test_cluster_ray.py."""
 
 from __future__ import annotations
 
@@ -9,15 +10,13 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 import pytest
 
 from shiftkit.pipelines.config import load_pipeline_config
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.runner import run_pipeline, work_dir_for
 from shiftkit.pipelines.stage import Stage, register_stage
+from tests.helpers import dataset_bytes
 
 PIPELINE = """
 seed = 3
@@ -47,41 +46,11 @@ def config_for(tmp_path, raw, name, extra=""):
     return load_pipeline_config(path)
 
 
-def _table(root: Path, sub: str) -> pa.Table:
-    return pa.concat_tables([pq.read_table(p) for p in sorted((root / sub).rglob("*.parquet"))])
-
-
-def assert_same_content(a: Path, b: Path) -> None:
-    """Frames, episode metadata, tasks and features equal; stats equal up to float summation
-    order (the merge sums per shard, then across shards; the ordered writer episode by episode);
-    provenance equal apart from the executor fields and the destination."""
-    da, db = _table(a, "data"), _table(b, "data")
-    assert da.column_names == db.column_names
-    for col in da.column_names:
-        assert da.column(col).to_pylist() == db.column(col).to_pylist(), col
-    ea, eb = _table(a, "meta/episodes"), _table(b, "meta/episodes")
-    assert ea.column_names == eb.column_names
-    assert "shiftkit/meta" in ea.column_names
-    for col in ea.column_names:
-        x, y = ea.column(col).to_pylist(), eb.column(col).to_pylist()
-        if col.startswith("stats/"):
-            assert np.allclose(np.asarray(x, dtype=float), np.asarray(y, dtype=float)), col
-        else:
-            assert x == y, col
-    assert pq.read_table(a / "meta/tasks.parquet").to_pylist() == pq.read_table(b / "meta/tasks.parquet").to_pylist()
-    ia, ib = (json.loads((r / "meta/info.json").read_text()) for r in (a, b))
-    assert ia["features"] == ib["features"]
-    assert (ia["total_episodes"], ia["total_frames"], ia["total_tasks"]) == (
-        ib["total_episodes"],
-        ib["total_frames"],
-        ib["total_tasks"],
-    )
-    sa, sb = (json.loads((r / "meta/stats.json").read_text()) for r in (a, b))
-    assert list(sa) == list(sb)  # feature order, not hash order
-    for key in sa:
-        assert list(sa[key]) == list(sb[key])
-        for name in sa[key]:
-            assert np.allclose(sa[key][name], sb[key][name]), (key, name)
+def assert_same_dataset(a: Path, b: Path) -> None:
+    """The same bytes in every file but the provenance and the card rendered from it, and those
+    equal apart from the executor fields and the destination (every executor writes its dataset
+    with the same ordered writer pass)."""
+    assert dataset_bytes(a) == dataset_bytes(b)
     pa_, pb = (json.loads((r / "meta/shiftkit_provenance.json").read_text()) for r in (a, b))
     for p in (pa_, pb):
         p.pop("executor")
@@ -120,7 +89,7 @@ def test_ray_and_datatrove_local_match_the_local_executor(tmp_path, raw, local_r
         progress=False,
     )
     for other in (ray_out, dt):
-        assert_same_content(local, other)  # provenance included
+        assert_same_dataset(local, other)  # provenance included
         assert not work_dir_for(other).exists()
     prov = json.loads((ray_out / "meta/shiftkit_provenance.json").read_text())
     assert prov["executor"] == {"name": "ray", "workers": 2, "address": None}
@@ -155,7 +124,7 @@ def test_a_shard_that_keeps_failing_leaves_no_dataset(tmp_path, raw, executor, r
     # Repaired input: the re-run resumes (finished parts and shards are kept) and completes.
     state.write_bytes(good)
     out = run_pipeline(config, workers=2, executor=executor, executor_options={"shard_episodes": 2}, progress=False)
-    assert_same_content(run_pipeline(config_for(tmp_path, raw, "local"), progress=False), out)
+    assert_same_dataset(run_pipeline(config_for(tmp_path, raw, "local"), progress=False), out)
 
 
 @register_stage
@@ -196,12 +165,12 @@ def test_a_failed_shard_is_retried(tmp_path, raw):
     )
     assert sorted(p.name for p in markers.iterdir()) == ["failed-1", "failed-4"]  # each failed once
     local = run_pipeline(config_for(tmp_path, raw, "plain", extra), progress=False)  # markers exist: no failure
-    assert_same_content(local, out)
+    assert_same_dataset(local, out)
 
 
 def test_slurm_writes_job_files_and_assembles_when_done(tmp_path, raw, monkeypatch):
     config = config_for(tmp_path, raw, "out")
-    options = {"partition": "cpu", "shard_episodes": 2}
+    options = {"partition": "cpu", "shard_episodes": 2, "submit": False}
     assert run_pipeline(config, workers=2, executor="slurm", executor_options=options, progress=False) is None
     job = work_dir_for(tmp_path / "out") / "datatrove" / "slurm"
     script = (job / "launch_script.slurm").read_text()
@@ -218,7 +187,7 @@ def test_slurm_writes_job_files_and_assembles_when_done(tmp_path, raw, monkeypat
         monkeypatch.setenv("SLURM_ARRAY_TASK_ID", str(task))
         dill.loads((job / "executor.pik").read_bytes()).run()
     out = run_pipeline(config, workers=2, executor="slurm", executor_options=options, progress=False)
-    assert_same_content(run_pipeline(config_for(tmp_path, raw, "local"), progress=False), out)
+    assert_same_dataset(run_pipeline(config_for(tmp_path, raw, "local"), progress=False), out)
 
 
 def test_bad_executor_options_are_config_errors(tmp_path, raw):
@@ -263,4 +232,4 @@ def test_dataset_level_selection_spans_shards(tmp_path, raw):
     )
     local = run_pipeline(config_for(tmp_path, raw, "sel-local", extra), progress=False)
     assert json.loads((out / "meta/info.json").read_text())["total_episodes"] == 3
-    assert_same_content(local, out)
+    assert_same_dataset(local, out)

@@ -36,14 +36,12 @@ def test_private_methods_exist_with_the_parameters_shiftkit_passes(name):
     assert params == [p for p in inspect.signature(method).parameters if p != "self"][: len(params)]
 
 
-def test_metadata_buffer_and_aggregation_bar(tmp_path):
-    from lerobot.datasets import aggregate
+def test_metadata_buffer(tmp_path):
     from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 
     features = {"action": {"dtype": "float32", "shape": (1,), "names": ["a"]}}
     meta = LeRobotDatasetMetadata.create("test/internals", 10, features, root=tmp_path / "ds", use_videos=False)
     assert isinstance(meta._metadata_buffer, list), "lerobot renamed LeRobotDatasetMetadata._metadata_buffer"
-    assert hasattr(aggregate, "tqdm"), "lerobot.datasets.aggregate no longer uses tqdm at module level"
 
 
 def test_only_the_io_module_uses_lerobot_private_names():

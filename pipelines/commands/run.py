@@ -18,9 +18,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="local",
         help="local (default, process pool), datatrove-local, ray or slurm (see docs/executors.md)",
     )
-    parser.add_argument("--address", help="ray: address of the cluster to join (default: start a local Ray instance)")
-    parser.add_argument("--partition", help="slurm: partition of the generated job array (required for slurm)")
+    parser.add_argument(
+        "--ray-address",
+        "--address",
+        dest="address",
+        help="ray: address of the cluster to join (default: $RAY_ADDRESS, else start a local Ray instance)",
+    )
+    parser.add_argument("--partition", help="slurm: partition of the job array (required for slurm)")
     parser.add_argument("--time", help="slurm: time limit per array task (default 04:00:00)")
+    parser.add_argument("--cpus-per-task", type=int, help="slurm: CPUs per array task (default 1)")
+    parser.add_argument("--mem-per-cpu", type=int, dest="mem_per_cpu_gb", help="slurm: GB per CPU (default 2)")
+    parser.add_argument(
+        "--setup",
+        help="slurm: shell command that prepares each task's environment, e.g. 'module load python; "
+        "source ~/venv/bin/activate' (default: activate this Python environment)",
+    )
+    parser.add_argument(
+        "--no-submit", dest="submit", action="store_false", default=None, help="slurm: write the job, do not sbatch it"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
         "--restart", action="store_true", help="discard the unfinished work of an earlier run instead of resuming it"
@@ -49,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
             revision=args.push_revision,
             private=args.private or config.destination.private,
         )
-    options = {k: v for k in ("address", "partition", "time") if (v := getattr(args, k)) is not None}
+    names = ("address", "partition", "time", "cpus_per_task", "mem_per_cpu_gb", "setup", "submit")
+    options = {k: v for k in names if (v := getattr(args, k)) is not None}
     path = run_pipeline(
         config,
         workers=args.workers,
