@@ -113,17 +113,17 @@ def _source_name(config: PipelineConfig, i: int) -> str:
     return f"sources[{i}] ({Path(src.path).name if src.path is not None else src.repo_id})"
 
 
-def _toml(value: Any) -> str:
+def toml_value(value: Any) -> str:
     """A parameter value as written in a pipeline TOML file (inline)."""
     if isinstance(value, dict):
-        return "{" + ", ".join(f"{json.dumps(k)} = {_toml(v)}" for k, v in value.items()) + "}"
+        return "{" + ", ".join(f"{json.dumps(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
     if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml(v) for v in value) + "]"
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
     return json.dumps(value)
 
 
 def _fix(where: str, name: str, params: dict[str, Any]) -> str:
-    shown = ", ".join(f"{k} = {_toml(v)}" for k, v in params.items())
+    shown = ", ".join(f"{k} = {toml_value(v)}" for k, v in params.items())
     return f"add {{name = {json.dumps(name)}, params = {{{shown}}}}} to {where}"
 
 

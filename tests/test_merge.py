@@ -170,3 +170,38 @@ def test_resize_matches_lerobot_image_resize():
     assert ours.shape == (2, 48, 64, 3) and np.abs(ours - expected).max() <= 0.5 + 1e-3
     depth = np.arange(16, dtype=np.float32).reshape(1, 4, 4, 1)
     assert nearest(depth, (2, 2))[0, :, :, 0].tolist() == [[5.0, 7.0], [13.0, 15.0]]
+
+
+def test_merge_chooses_the_per_source_stages(two_sources, tmp_path):
+    import tomllib
+
+    kin, teleop = two_sources
+    out = _cli(
+        "merge", str(kin), str(teleop), "--fps", "10", "--out", str(tmp_path / "m"), "--repo-id", "test/m", "--dry-run"
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    pipeline = tomllib.loads(out.stdout)
+    assert "stages" not in pipeline["sources"][0]
+    assert pipeline["sources"][1]["stages"] == [
+        {"name": "resample", "params": {"fps": 10}},
+        {"name": "drop", "params": {"features": ["observation.wrench"]}},
+        {"name": "select", "params": {"feature": "observation.state", "names": ["x", "y", "z", "gripper"]}},
+        {"name": "resize", "params": {"width": 64, "height": 48, "features": ["observation.images.front"]}},
+    ]
+    assert not (tmp_path / "m").exists()
+    bad = _cli(
+        "merge",
+        str(kin),
+        str(teleop),
+        "--fps",
+        "10",
+        "--out",
+        str(tmp_path / "m"),
+        "--repo-id",
+        "test/m",
+        "--size",
+        "64",
+    )
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
+        "shiftkit merge: error: --size: expected WIDTHxHEIGHT, e.g. 64x48, got '64'"
+    ]
