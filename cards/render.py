@@ -44,6 +44,35 @@ def _flatten(values: Any) -> list[Any]:
     return [values]
 
 
+def _stage_lines(stages: list[dict[str, Any]], indent: str) -> list[str]:
+    return [
+        f"{indent}{i + 1}. `{s['name']}` v{s['version']}: `{json.dumps(s['params'], sort_keys=True)}`"
+        + ("; counted: " + ", ".join(f"{k} {v}" for k, v in s["report"].items()) if s.get("report") else "")
+        for i, s in enumerate(stages)
+    ]
+
+
+def _source_lines(sources: list[dict[str, Any]]) -> list[str]:
+    """One item per source (its scalar facts), with its episode count, fps and own stages when
+    the provenance records them (pipeline runs)."""
+    lines = []
+    for src in sources:
+        facts = ", ".join(
+            f"{k}: `{v}`" for k, v in src.items() if v not in (None, "") and k not in ("stages", "episodes", "fps")
+        )
+        line = f"- {facts}"
+        if isinstance(src.get("episodes"), list):
+            first, end = src["episodes"]
+            line += (
+                f"; {end - first} episode(s) in this dataset (episodes {first} to {end - 1}) at {src.get('fps')} fps"
+            )
+        lines.append(line)
+        if src.get("stages"):
+            lines.append("  its own stages, before the common ones:")
+            lines += _stage_lines(src["stages"], "  ")
+    return lines
+
+
 def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: str = "apache-2.0") -> str:
     """Card for the dataset at `root` (meta/info.json, meta/stats.json) made as `provenance` says."""
     root = Path(root)
@@ -59,21 +88,8 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
         for k, v in stats.items()
         if isinstance(v, dict) and "mean" in v and k not in ("index", "episode_index", "frame_index", "task_index")
     )
-    sources = (
-        "\n".join(
-            "- " + ", ".join(f"{k}: `{v}`" for k, v in src.items() if v not in (None, ""))
-            for src in provenance.get("sources", [])
-        )
-        or "- (none)"
-    )
-    stages = (
-        "\n".join(
-            f"{i + 1}. `{s['name']}` v{s['version']}: `{json.dumps(s['params'], sort_keys=True)}`"
-            + ("; counted: " + ", ".join(f"{k} {v}" for k, v in s["report"].items()) if s.get("report") else "")
-            for i, s in enumerate(provenance.get("stages", []))
-        )
-        or "(none: the sources were converted unchanged)"
-    )
+    sources = "\n".join(_source_lines(provenance.get("sources", []))) or "- (none)"
+    stages = "\n".join(_stage_lines(provenance.get("stages", []), "")) or "(none: the sources were converted unchanged)"
     tasks_path = root / "meta" / "tasks.parquet"
     task_list = ""
     if tasks_path.exists():

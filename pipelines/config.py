@@ -2,6 +2,7 @@
 
 [[sources]]
 path = "raw/lift"            # or repo_id = "org/name" (+ revision)
+stages = [{ name = "resample", params = { fps = 10 } }]   # optional: this source's own stages
 
 [[stages]]
 name = "trim"
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import json
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,15 @@ class StageSpec:
     """The stage's config values; unknown keys are errors."""
     version: int | None = None
     """Pin the stage version; a mismatch with the installed stage is an error."""
+
+
+@dataclass
+class PipelineSource(SourceConfig):
+    """A pipeline input with the stages that bring it to the schema the other sources share."""
+
+    stages: list[StageSpec] = field(default_factory=list)
+    """This source's own stages, run on its episodes before the pipeline's common `stages`
+    (e.g. `resample`, `rename`, `resize`, `select` to match the other sources; docs/merging.md)."""
 
 
 @dataclass
@@ -57,12 +67,12 @@ class DestinationConfig:
 
 @dataclass
 class PipelineConfig:
-    sources: list[SourceConfig]
+    sources: list[PipelineSource]
     """Input datasets; their episodes are processed in order."""
     destination: DestinationConfig
     """Where the output LeRobot dataset goes."""
     stages: list[StageSpec] = field(default_factory=list)
-    """Stages applied in order to every episode."""
+    """Stages applied in order to every episode (after its source's own stages)."""
     seed: int = 0
     """Seed of every random choice a stage makes."""
 
@@ -71,6 +81,8 @@ class PipelineConfig:
             raise ValueError("at least one source is required")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        # A plain SourceConfig (built in code) is a source without stages of its own.
+        self.sources = [s if isinstance(s, PipelineSource) else PipelineSource(**asdict(s)) for s in self.sources]
 
 
 def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConfig:

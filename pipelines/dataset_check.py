@@ -66,7 +66,16 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"provenance: shiftkit {prov['versions'].get('shiftkit')}, lerobot {prov['versions'].get('lerobot')}, seed {prov.get('seed')}"
         )
         for src in prov.get("sources", []):
-            lines.append("  source: " + ", ".join(f"{k}={v}" for k, v in src.items() if v not in (None, "")))
+            facts = {k: v for k, v in src.items() if v not in (None, "") and k not in ("stages", "episodes")}
+            line = "  source: " + ", ".join(f"{k}={v}" for k, v in facts.items())
+            if isinstance(src.get("episodes"), list):
+                first, end = src["episodes"]
+                line += f"; output episodes {first}..{end - 1} ({end - first})"
+            lines.append(line)
+            for stage in src.get("stages", []):
+                lines.append(
+                    f"    own stage: {stage['name']} v{stage['version']} {json.dumps(stage['params'], sort_keys=True)}"
+                )
         for stage in prov.get("stages", []):
             lines.append(f"  stage: {stage['name']} v{stage['version']} {json.dumps(stage['params'], sort_keys=True)}")
             if stage.get("report"):

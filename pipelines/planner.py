@@ -1,15 +1,30 @@
-"""Validate a pipeline without running it: open sources, build stages, predict the output schema."""
+"""Validate a pipeline without running it: open sources, build stages, predict the output schema.
+
+Each source first runs its own stages (`[[sources]] stages`), which must bring every source to one
+schema (features, dtypes, shapes, dimension names, fps); the pipeline's common stages then run on
+that schema. Where the sources still differ, the plan fails with one line naming the source, the
+feature, the difference and the stage that would remove it (docs/merging.md).
+"""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from shiftkit.pipelines.config import PipelineConfig
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, check_features, plain_camera_features
+from shiftkit.pipelines.config import PipelineConfig, StageSpec
+from shiftkit.pipelines.depth import is_depth
+from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.pipelines.features import (
+    CAMERA_DTYPES,
+    NUMERIC_DTYPES,
+    Features,
+    check_features,
+    plain_camera_features,
+)
 from shiftkit.pipelines.sources import Source, open_source
-from shiftkit.pipelines.stage import Stage, StageContext, build_stage
+from shiftkit.pipelines.stage import Stage, StageContext, build_stage, selecting_stages
 
 
 @dataclass
@@ -22,6 +37,12 @@ class Plan:
     features: Features
     fps: int
     robot_type: str | None
+    source_stages: list[list[Stage]] | None = None
+    """Per source, its own stages (run before `stages`); None: no source has any."""
+
+    def __post_init__(self) -> None:
+        if self.source_stages is None:
+            self.source_stages = [[] for _ in self.sources]
 
     @property
     def destination(self) -> Path:
@@ -35,27 +56,53 @@ class Plan:
     def num_source_episodes(self) -> int:
         return sum(s.num_episodes for s in self.sources)
 
+    def chain(self, source: int) -> list[Stage]:
+        """Every stage an episode of `source` goes through: its own, then the common ones."""
+        return [*self.source_stages[source], *self.stages]
+
+
+def build_chain(specs: list[StageSpec], features: Features, fps: int, where: str) -> tuple[list[Stage], Features, int]:
+    """The stages of `specs` built on an input schema, with the schema and fps they produce."""
+    stages = []
+    for i, spec in enumerate(specs):
+        stage = build_stage(spec.name, spec.params, StageContext(fps=fps), f"{where}[{i}]", spec.version)
+        fps = stage.transform_fps(fps)
+        features = stage.transform_features(features)
+        check_features(features, where=f"output of {where}[{i}] ({spec.name})")
+        stages.append(stage)
+    return stages, features, fps
+
 
 def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Plan:
     sources = [open_source(s) for s in config.sources]
-    first = sources[0]
-    for i, src in enumerate(sources[1:], start=1):
-        if src.features != first.features or src.fps != first.fps:
-            diff = sorted(set(src.features) ^ set(first.features)) or "dtypes/shapes/names"
-            raise DatasetError(
-                f"sources[{i}] does not match sources[0] (fps {src.fps} vs {first.fps}; features: {diff})"
+    chains = []
+    for i, (spec, src) in enumerate(zip(config.sources, sources, strict=True)):
+        own, features, fps = build_chain(spec.stages, src.features, src.fps, f"sources[{i}].stages")
+        if selecting_stages(own):
+            raise ConfigError(
+                f"sources[{i}].stages: stage {selecting_stages(own)[0].name!r} selects among all of a "
+                "dataset's episodes; put it in the pipeline's common stages"
             )
-    features, fps = first.features, first.fps
-    stages = []
-    for i, spec in enumerate(config.stages):
-        stage = build_stage(spec.name, spec.params, StageContext(fps=fps), f"stages[{i}]", spec.version)
-        fps = stage.transform_fps(fps)
-        features = stage.transform_features(features)
-        check_features(features, where=f"output of stages[{i}] ({spec.name})")
-        stages.append(stage)
+        chains.append((own, features, fps))
+    _, first_features, first_fps = chains[0]
+    for i, (_, features, fps) in enumerate(chains[1:], start=1):
+        mismatch = schema_mismatch(first_features, first_fps, features, fps, config.destination.video is not None)
+        if mismatch:
+            raise DatasetError(f"{_source_name(config, i)} {mismatch}")
+    stages, features, fps = build_chain(config.stages, first_features, first_fps, "stages")
     if config.destination.video is not None:
         features = plain_camera_features(features, "video" if config.destination.video else "image")
-    plan = Plan(config, sources, stages, first.features, first.fps, features, fps, first.robot_type)
+    plan = Plan(
+        config,
+        sources,
+        stages,
+        first_features,
+        first_fps,
+        features,
+        fps,
+        sources[0].robot_type,
+        [own for own, _, _ in chains],
+    )
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
     for i, src in enumerate(config.sources):
@@ -64,8 +111,111 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     return plan
 
 
+def _source_name(config: PipelineConfig, i: int) -> str:
+    src = config.sources[i]
+    return f"sources[{i}] ({Path(src.path).name if src.path is not None else src.repo_id})"
+
+
+def toml_value(value: Any) -> str:
+    """A parameter value as written in a pipeline TOML file (inline)."""
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    return json.dumps(value)
+
+
+def _fix(where: str, name: str, params: dict[str, Any]) -> str:
+    shown = ", ".join(f"{k} = {toml_value(v)}" for k, v in params.items())
+    return f"add {{name = {json.dumps(name)}, params = {{{shown}}}}} to {where}"
+
+
+def schema_mismatch(ref: Features, ref_fps: int, features: Features, fps: int, any_camera_storage: bool) -> str | None:
+    """How a source's schema (after its stages) differs from sources[0]'s, as "what differs; the fix"
+    for the first difference (and how many more there are), or None when they match.
+    `any_camera_storage`: the destination sets the camera storage, so image vs video is no difference."""
+    problems = []
+    own, first = "its stages", "sources[0]'s stages"
+    if fps != ref_fps:
+        problems.append(f"has fps {fps}, sources[0] has {ref_fps}; {_fix(own, 'resample', {'fps': ref_fps})}")
+    missing = [k for k in ref if k not in features]
+    extra = [k for k in features if k not in ref]
+    for key in missing:
+        twins = [k for k in extra if _kind(features[k]) == _kind(ref[key])]
+        if len(twins) == 1:
+            problems.append(
+                f"lacks feature {key!r} and has {twins[0]!r} of the same kind; "
+                + _fix(own, "rename", {"mapping": {twins[0]: key}})
+            )
+            extra.remove(twins[0])
+        else:
+            problems.append(f"lacks feature {key!r} that sources[0] has; {_fix(first, 'drop', {'features': [key]})}")
+    for key in extra:
+        problems.append(f"has feature {key!r} that sources[0] lacks; {_fix(own, 'drop', {'features': [key]})}")
+    for key in (k for k in ref if k in features):
+        diff = _feature_mismatch(key, ref[key], features[key], any_camera_storage)
+        if diff:
+            problems.append(f"feature {key!r} {diff}")
+    if not problems:
+        return None
+    more = f" (and {len(problems) - 1} more difference{'s' if len(problems) > 2 else ''})" if len(problems) > 1 else ""
+    return f"does not match sources[0] after its stages: {problems[0]}{more}"
+
+
+def _kind(ft: dict[str, Any]) -> tuple:
+    """What makes two features interchangeable under a rename."""
+    if ft["dtype"] in CAMERA_DTYPES:
+        return ("camera", tuple(ft["shape"])[-1], is_depth(ft))
+    return (ft["dtype"], tuple(ft["shape"]), ft.get("names") if isinstance(ft.get("names"), list) else None)
+
+
+def _feature_mismatch(key: str, ref: dict[str, Any], ft: dict[str, Any], any_camera_storage: bool) -> str | None:
+    own = "its stages"
+    dtype, ref_dtype = ft["dtype"], ref["dtype"]
+    shape, ref_shape = tuple(ft["shape"]), tuple(ref["shape"])
+    cameras = dtype in CAMERA_DTYPES and ref_dtype in CAMERA_DTYPES
+    if dtype != ref_dtype and not (cameras and any_camera_storage):
+        if dtype in NUMERIC_DTYPES and ref_dtype in NUMERIC_DTYPES:
+            return f"has dtype {dtype}, sources[0] has {ref_dtype}; {_fix(own, 'cast', {'dtypes': {key: ref_dtype}})}"
+        if cameras:
+            return f"is stored as {dtype}, sources[0] as {ref_dtype}; set [destination] video = true or false"
+        return f"has dtype {dtype}, sources[0] has {ref_dtype}; no stage converts one to the other, drop it"
+    if cameras:
+        if is_depth(ft) != is_depth(ref):
+            return "is a depth map in one source and RGB in the other; drop or rename it"
+        if shape != ref_shape:
+            if shape[-1] != ref_shape[-1]:
+                return f"has {shape[-1]} channels, sources[0] has {ref_shape[-1]}; drop it"
+            params = {"width": ref_shape[1], "height": ref_shape[0], "features": [key]}
+            return f"has shape {shape}, sources[0] has {ref_shape}; {_fix(own, 'resize', params)}"
+        return None
+    names, ref_names = ft.get("names"), ref.get("names")
+    if len(shape) == 1 and isinstance(names, list) and isinstance(ref_names, list) and names != ref_names:
+        if set(ref_names) <= set(names):
+            return f"has names {names}, sources[0] has {ref_names}; {_fix(own, 'select', {'feature': key, 'names': ref_names})}"
+        if set(names) <= set(ref_names):
+            return f"has names {names}, sources[0] has {ref_names}; {_fix(own, 'pad', {'feature': key, 'names': ref_names})}"
+        if len(names) == len(ref_names):
+            params = {"feature": key, "names": names, "rename": dict(zip(names, ref_names, strict=True))}
+            return f"has names {names}, sources[0] has {ref_names}; {_fix(own, 'select', params)}"
+        return (
+            f"has names {names}, sources[0] has {ref_names}; pick the dimensions both have with "
+            "'select' (and 'rename' them) in both sources"
+        )
+    if shape != ref_shape:
+        return f"has shape {shape}, sources[0] has {ref_shape}; no stage reshapes it, drop it"
+    if names != ref_names and len(shape) == 1:
+        return f"has names {names}, sources[0] has {ref_names}"
+    return None
+
+
 def format_plan(plan: Plan) -> str:
     lines = [f"sources: {len(plan.sources)} ({plan.num_source_episodes} episodes, {plan.input_fps} fps)"]
+    for s, own in enumerate(plan.source_stages):
+        if own:
+            lines.append(f"  sources[{s}] ({plan.sources[s].num_episodes} episodes, {plan.sources[s].fps} fps):")
+        for i, stage in enumerate(own):
+            lines.append(f"    stages[{i}] {stage.name} v{stage.version} {stage.describe()['params']}")
     for i, stage in enumerate(plan.stages):
         lines.append(f"  stages[{i}] {stage.name} v{stage.version} {stage.describe()['params']}")
     lines.append(f"output: {plan.destination} (repo_id {plan.repo_id}, {plan.fps} fps)")

@@ -51,25 +51,42 @@ def make_provenance(
 
 
 def build_provenance(
-    plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int, report: list[dict[str, int]]
+    plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int, report: Any
 ) -> dict[str, Any]:
-    """A pipeline run's provenance. `report`: per stage, the run's totals of the events it counted
-    (`Stage.report`), stored as the stage entry's "report" when it counted any."""
+    """A pipeline run's provenance. `report` (`runner.RunReport`): the run's totals of the events
+    each stage counted (`Stage.report`), stored as the stage entry's "report" when it counted any,
+    and the output episodes per source. Each source entry records its fps, its own stages and
+    the range of output episodes it became (`episodes`: [first, end))."""
+    sources, start = [], 0
+    for s, source in enumerate(plan.sources):
+        count = report.source_episodes[s]
+        sources.append(
+            {
+                **source.describe(),
+                "fps": source.fps,
+                "stages": _stage_entries(plan.source_stages[s], report.source_stages[s]),
+                "episodes": [start, start + count],
+            }
+        )
+        start += count
     return make_provenance(
         repo_id=plan.repo_id,
         fps=plan.fps,
         num_episodes=num_episodes,
         num_frames=num_frames,
-        sources=[s.describe() for s in plan.sources],
-        stages=[
-            {**s.describe(), "report": counts} if counts else s.describe()
-            for s, counts in zip(plan.stages, report, strict=True)
-        ],
+        sources=sources,
+        stages=_stage_entries(plan.stages, report.stages),
         seed=plan.config.seed,
         executor=executor,
         # The pipeline config itself: `shiftkit run` accepts this object saved as a .json file.
         pipeline=asdict(plan.config),
     )
+
+
+def _stage_entries(stages: list[Any], report: list[dict[str, int]]) -> list[dict[str, Any]]:
+    return [
+        {**s.describe(), "report": counts} if counts else s.describe() for s, counts in zip(stages, report, strict=True)
+    ]
 
 
 def format_report(counts: dict[str, int]) -> str:
@@ -78,8 +95,15 @@ def format_report(counts: dict[str, int]) -> str:
 
 
 def report_lines(provenance: dict[str, Any]) -> list[str]:
-    """The run summary's counts: one line per stage that counted events."""
-    return [
+    """The run summary's counts: one line per stage that counted events (a source's own stages
+    first, named by their source)."""
+    own = [
+        f"sources[{s}] stage {k} {stage['name']}: {format_report(stage['report'])}"
+        for s, source in enumerate(provenance.get("sources", []))
+        for k, stage in enumerate(source.get("stages", []), start=1)
+        if stage.get("report")
+    ]
+    return own + [
         f"stage {k} {stage['name']}: {format_report(stage['report'])}"
         for k, stage in enumerate(provenance.get("stages", []), start=1)
         if stage.get("report")

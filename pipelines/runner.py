@@ -143,6 +143,7 @@ def run_key(plan: Plan) -> str:
         "pipeline": asdict(plan.config),
         "sources": [{**s.describe(), "files": _files_of(s)} for s in plan.sources],
         "stages": [s.describe() for s in plan.stages],
+        "source_stages": [[s.describe() for s in own] for own in plan.source_stages],
         "versions": versions(),
         "parts_format": PartStore.FORMAT,
     }
@@ -155,12 +156,14 @@ def episode_rng(seed: int, source: int, episode: int, stage: int) -> np.random.G
 
 
 def transform_episode(plan: Plan, source: int, episode: Episode) -> tuple[list[Episode], list[dict[str, int]]]:
-    """Run every stage on one source episode and check the outputs against the predicted schema.
-    Returns the outputs and, per stage, the events it counted (`Stage.report`) on the way."""
+    """Run the source's own stages, then the common ones, on one source episode and check the
+    outputs against the predicted schema. Returns the outputs and, per stage of that chain, the
+    events it counted (`Stage.report`) on the way."""
     index = int(episode.meta["source_episode_index"])
     current = [episode]
     report = []
-    for j, stage in enumerate(plan.stages):
+    # Stage j of the chain draws from the same stream as stage j of that chain run alone.
+    for j, stage in enumerate(plan.chain(source)):
         rng = episode_rng(plan.config.seed, source, index, j)
         current = [out for ep in current for out in stage.process(ep, rng)]
         report.append(stage.take_report())
@@ -173,16 +176,42 @@ def transform_episode(plan: Plan, source: int, episode: Episode) -> tuple[list[E
     return current, report
 
 
-def run_report(plan: Plan, parts: PartStore) -> list[dict[str, int]]:
-    """Per stage, the totals of the events it counted over every source episode of the run (read
-    from the parts, so episodes done by other workers or before a resume count exactly once)."""
+@dataclass
+class RunReport:
+    """What a run counted, read from the parts (so episodes done by other workers or before a
+    resume count exactly once): per stage, the totals of its events (`Stage.report`), and per
+    source the episodes it contributed to the output."""
+
+    stages: list[dict[str, int]]
+    """Per common stage, its event totals over every source episode."""
+    source_stages: list[list[dict[str, int]]]
+    """Per source, per stage of its own, its event totals over that source's episodes."""
+    source_episodes: list[int]
+    """Per source, how many output episodes came from it (after any dataset-level selection)."""
+
+
+def run_report(plan: Plan, parts: PartStore) -> RunReport:
+    """The run's counts (`RunReport`) from its finished parts."""
     totals: list[dict[str, int]] = [{} for _ in plan.stages]
+    own_totals: list[list[dict[str, int]]] = [[{} for _ in own] for own in plan.source_stages]
+    owners, metas = [], []
     for s, source in enumerate(plan.sources):
         for i in range(source.num_episodes):
-            for total, counts in zip(totals, parts.report(s, i), strict=True):
+            for total, counts in zip([*own_totals[s], *totals], parts.report(s, i), strict=True):
                 for event, n in counts.items():
                     total[event] = total.get(event, 0) + n
-    return [dict(sorted(t.items())) for t in totals]
+            for meta in parts.metas(s, i):
+                owners.append(s)
+                metas.append(meta)
+    keep = select_outputs(plan.stages, lambda: metas)
+    kept = [0] * len(plan.sources)
+    for k, s in enumerate(owners):
+        kept[s] += keep is None or keep[k]
+    return RunReport(
+        [dict(sorted(t.items())) for t in totals],
+        [[dict(sorted(t.items())) for t in own] for own in own_totals],
+        kept,
+    )
 
 
 def exit_with_parent(main_pid: int | None, period: float = 1.0) -> None:
@@ -209,7 +238,7 @@ _WORKER: dict[str, Any] = {}
 def init_worker(config: PipelineConfig, main_pid: int | None = None) -> Plan:
     exit_with_parent(main_pid)
     plan = plan_pipeline(config, check_destination=False)
-    for stage in plan.stages:
+    for stage in [*(s for own in plan.source_stages for s in own), *plan.stages]:
         stage.setup()
     _WORKER["plan"] = plan
     _WORKER["parts"] = PartStore(work_dir_for(plan.destination))

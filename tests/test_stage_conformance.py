@@ -38,6 +38,10 @@ EXAMPLE_PARAMS = {
         "off_threshold": 0.5,
     },
     "multiview": {"num_views": 2, "depth": True},
+    "resize": {"width": 32, "height": 24},
+    "select": {"feature": "observation.state", "names": ["gripper", "ee_x"], "rename": {"ee_x": "x"}},
+    "pad": {"feature": "observation.state", "names": ["ee_x", "ee_y", "ee_z", "ee_yaw", "gripper"], "value": 0.5},
+    "map_tasks": {"mapping": {"reach": "reach the goal"}},
 }
 # Stages that replay or re-render simulator recordings run on a recording of their kind: stage -> fixture.
 STAGE_INPUTS = {"multiview": "mv_lift_raw", "force_match": "kinesthetic_raw"}
@@ -48,6 +52,8 @@ STAGES = sorted(name for name, cls in registered_stages().items() if cls.__modul
 VARIANTS = {
     # a fixed-mode baseline: the door recording's action loses sts_mode, its state shows visual mode
     "mode_label-visual": ("mode_label", {"source": "visual"}, "kinesthetic_raw"),
+    # depth (nearest-neighbour) and intrinsics scale with RGB
+    "resize-depth": ("resize", {"width": 40, "height": 30}, "mv_lift_raw"),
 }
 CASES = [
     *(pytest.param(n, EXAMPLE_PARAMS[n], STAGE_INPUTS.get(n, "synthetic_raw_images"), id=n) for n in STAGES),

@@ -172,6 +172,13 @@ CASES = {
         2,
     ),
     "plan non-UTF-8 raw folder": (lambda t, r, d: ["plan", _non_utf8_pipeline(t, r)], 0),
+    "plan unreconciled sources": (
+        lambda t, r, d: [
+            "plan",
+            pipeline(t, d, extra=f'[[sources]]\npath = "{raw_with(t, r, _json_edit("dataset.json", fps=20))}"'),
+        ],
+        2,
+    ),
     "run non-UTF-8 raw folder": (lambda t, r, d: ["run", _non_utf8_pipeline(t, r, str(t / "out")), "--no-progress"], 0),
     "run into a non-UTF-8 folder": (lambda t, r, d: ["run", _non_utf8_pipeline(t, r), "--no-progress"], 2),
     "collect lerobot into a non-UTF-8 folder": (

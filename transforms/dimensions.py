@@ -1,0 +1,123 @@
+"""`select` and `pad`: the dimensions of a vector feature by name, so that sources that record
+other dimensions can be merged (keep `x, y, z, gripper` of a 9-dim state; add a dimension one
+source lacks as a constant, which the provenance lists under `padded`)."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from shiftkit.pipelines.episode import Episode
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.features import NUMERIC_DTYPES, Features
+from shiftkit.pipelines.stage import Stage, register_stage
+
+
+def _names(stage: str, features: Features, key: str) -> list[str]:
+    """The dimension names of vector feature `key` (a ConfigError names what is wrong)."""
+    if key not in features:
+        raise ConfigError(f"{stage}: no feature {key!r} (features: {', '.join(features)})")
+    ft = features[key]
+    names = ft.get("names")
+    if ft["dtype"] not in NUMERIC_DTYPES or len(tuple(ft["shape"])) != 1 or not isinstance(names, list):
+        raise ConfigError(f"{stage}: feature {key!r} is not a vector with dimension names")
+    return [str(n) for n in names]
+
+
+def _with_names(features: Features, key: str, names: list[str]) -> Features:
+    out = copy.deepcopy(features)
+    out[key]["shape"] = (len(names),)
+    out[key]["names"] = list(names)
+    return out
+
+
+@dataclass
+class SelectConfig:
+    feature: str
+    """The vector feature (e.g. `observation.state`)."""
+    names: list[str]
+    """Its dimensions to keep, by name, in the output order."""
+    rename: dict[str, str] = field(default_factory=dict)
+    """New names for kept dimensions (old name -> new name)."""
+
+    def __post_init__(self) -> None:
+        if not self.names:
+            raise ValueError("names must name at least one dimension")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"names lists a dimension twice: {self.names}")
+
+
+@register_stage
+class Select(Stage):
+    name = "select"
+    version = 1
+    Config = SelectConfig
+
+    def transform_features(self, features: Features) -> Features:
+        names = _names("select", features, self.config.feature)
+        missing = [n for n in self.config.names if n not in names]
+        if missing:
+            raise ConfigError(
+                f"select: feature {self.config.feature!r} has no dimension(s) {missing} (it has {names}); "
+                "use 'pad' to add a dimension"
+            )
+        stray = [n for n in self.config.rename if n not in self.config.names]
+        if stray:
+            raise ConfigError(f"select: rename names dimension(s) {stray} that are not selected")
+        out_names = [self.config.rename.get(n, n) for n in self.config.names]
+        if len(set(out_names)) != len(out_names):
+            raise ConfigError(f"select: two dimensions would get the same name ({out_names})")
+        self._index = np.array([names.index(n) for n in self.config.names], dtype=np.int64)
+        return _with_names(features, self.config.feature, out_names)
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        arr = episode.frames[self.config.feature]
+        yield episode.with_frames(**{self.config.feature: np.ascontiguousarray(arr[:, self._index])})
+
+
+@dataclass
+class PadConfig:
+    feature: str
+    """The vector feature (e.g. `observation.state`)."""
+    names: list[str]
+    """Its dimensions in the output order: every dimension it has, plus the ones to add."""
+    value: float = 0.0
+    """The constant every added dimension holds in every frame."""
+
+    def __post_init__(self) -> None:
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"names lists a dimension twice: {self.names}")
+
+
+@register_stage
+class Pad(Stage):
+    name = "pad"
+    version = 1
+    Config = PadConfig
+
+    def transform_features(self, features: Features) -> Features:
+        names = _names("pad", features, self.config.feature)
+        dropped = [n for n in names if n not in self.config.names]
+        if dropped:
+            raise ConfigError(
+                f"pad: names leaves out dimension(s) {dropped} of {self.config.feature!r}; use 'select' to drop dimensions"
+            )
+        self._padded = [n for n in self.config.names if n not in names]
+        self._index = np.array([names.index(n) if n in names else -1 for n in self.config.names], dtype=np.int64)
+        return _with_names(features, self.config.feature, self.config.names)
+
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        arr = episode.frames[self.config.feature]
+        out = np.full((len(arr), len(self._index)), self.config.value, dtype=arr.dtype)
+        have = self._index >= 0
+        out[:, have] = arr[:, self._index[have]]
+        yield episode.with_frames(**{self.config.feature: out})
+
+    def describe(self) -> dict[str, Any]:
+        # The provenance says which dimensions hold no recorded data.
+        padded = getattr(self, "_padded", None)
+        return {**super().describe(), **({"padded": padded} if padded is not None else {})}
