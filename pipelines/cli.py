@@ -31,6 +31,7 @@ COMMANDS: dict[str, str] = {
     "fire": "fire",
     "plot": "plot",
     "calibrate": "calibrate",
+    "sim-robot": "sim_robot",
 }
 
 

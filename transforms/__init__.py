@@ -9,6 +9,7 @@ from shiftkit.transforms import (  # noqa: F401
     mode_labels,
     multiview,
     rename,
+    replay_join,
     resample,
     subsample,
     success_examples,
