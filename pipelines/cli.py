@@ -32,6 +32,7 @@ COMMANDS: dict[str, str] = {
     "plot": "plot",
     "calibrate": "calibrate",
     "merge": "merge",
+    "sim-robot": "sim_robot",
 }
 
 

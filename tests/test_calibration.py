@@ -4,6 +4,7 @@ format refuses other versions and sensors with one-line errors."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -119,3 +120,63 @@ def test_calibrate_command_on_the_simulated_sensor(tmp_path, capsys):
     assert "held_out displacement RMSE" in capsys.readouterr().out
     assert main(["calibrate", "--env", "panda-play", "--task", "lift", "--out", str(tmp_path / "x.json")]) == 2
     assert "has no tactile sensor" in capsys.readouterr().err
+
+
+def test_plan_executed_by_the_simulated_robot_fits_like_the_simulated_pushes(tmp_path, capsys):
+    """`calibrate --plan` -> the door-tactile robot executes and records it (`sim-robot`) ->
+    `calibrate --from` fits every slope within 2% of `calibrate`'s simulated pushes (same seeds)."""
+    from shiftkit.pipelines.cli import main
+
+    assert main(["calibrate", "--out", str(tmp_path / "sim.json"), "--pushes", "2", "--held-out", "0"]) == 0
+    assert main(["calibrate", "--plan", str(tmp_path / "plan"), "--pushes", "2", "--held-out", "1"]) == 0
+    plan = json.loads((tmp_path / "plan" / "dataset.json").read_text())
+    assert plan["fps"] == 10 and len(plan["episodes"]) == 12  # 3 seeds x 4 kinds
+    first = np.load(tmp_path / "plan" / "episode_000000" / "arrays" / "action.npy")
+    assert np.diff(first[2::3, 2]) == pytest.approx(np.full(35, 0.001))  # 1 mm steps, 3.5 cm travel
+    assert main(["sim-robot", str(tmp_path / "plan"), "--out", str(tmp_path / "rec")]) == 0
+    assert main(["calibrate", "--from", str(tmp_path / "rec"), "--out", str(tmp_path / "rec.json")]) == 0
+    assert "held_out displacement RMSE" in capsys.readouterr().out
+    sim = load_calibration(tmp_path / "sim.json")
+    rec = load_calibration(tmp_path / "rec.json", sensor_id="door-tactile-v1:sts")
+    assert rec.provenance["fit_seeds"] == [0, 1] and rec.provenance["held_out_seeds"] == [2]
+    for axis in WRENCH_AXES:
+        assert rec.axes[axis].slopes == pytest.approx(sim.axes[axis].slopes, rel=0.02), axis
+    assert rec.residuals["held_out"]["Fz"]["relative_rmse_displacement"] < 0.15
+
+
+def test_bad_plans_and_recordings_are_one_line_errors(tmp_path, capsys):
+    from shiftkit.pipelines.cli import main
+    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+
+    assert main(["calibrate", "--plan", str(tmp_path / "plan"), "--pushes", "1", "--held-out", "0"]) == 0
+    capsys.readouterr()
+    with RawDatasetWriter(tmp_path / "other", fps=10) as writer:
+        writer.add_episode({"timestamp": np.arange(3) / 10, "action": np.zeros((3, 2))}, meta={"task": "t"})
+    ep = tmp_path / "plan" / "episode_000000" / "arrays"
+    broken = {"nowrench": tmp_path / "nowrench", "nan": tmp_path / "nan"}
+    for folder in broken.values():
+        shutil.copytree(tmp_path / "plan", folder)
+        n = len(np.load(ep / "action.npy"))
+        arrays = folder / "episode_000000" / "arrays"
+        np.save(arrays / "ee_pose.npy", np.load(ep / "action.npy"))
+        if folder.name == "nan":
+            wrench = np.zeros((n, 4))
+            wrench[5, 2] = np.nan
+            np.save(arrays / "wrench_raw.npy", wrench)
+    cases = [
+        (["sim-robot", str(tmp_path / "other"), "--out", str(tmp_path / "r1")], "not a calibration plan"),
+        (["sim-robot", str(tmp_path), "--out", str(tmp_path / "r2")], "not a plan"),
+        (["calibrate", "--from", str(tmp_path / "other"), "--out", str(tmp_path / "c.json")], "not a recorded"),
+        (
+            ["calibrate", "--from", str(broken["nowrench"]), "--out", str(tmp_path / "c.json")],
+            "no 'observation.wrench'",
+        ),
+        (["calibrate", "--from", str(broken["nan"]), "--out", str(tmp_path / "c.json")], "'wrench_raw' contains NaN"),
+        (["calibrate", "--plan", str(tmp_path / "plan")], "give a new folder"),
+        (["calibrate", "--from", str(tmp_path / "plan")], "give --out"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, (argv, err)
+    assert not (tmp_path / "c.json").exists() and not (tmp_path / "r1").exists()

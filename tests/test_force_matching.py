@@ -362,3 +362,103 @@ def test_docs_pipelines_resume_after_sigkill(tmp_path, caplog):
     run("force_matched", tmp_path / "clean_recalibrated")
     assert dataset_bytes(tmp_path / "recalibrated") == dataset_bytes(tmp_path / "clean_recalibrated")
     assert dataset_bytes(tmp_path / "recalibrated") != dataset_bytes(tmp_path / "clean_force_matched")
+
+
+# ----------------------------------------------------------------------------- replay plans for a robot
+def run_stages(source: Path, dest: Path, *stages: tuple[str, dict]) -> Path:
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.sources import SourceConfig
+
+    stages_ = [StageSpec(name=n, params=p) for n, p in stages]
+    config = PipelineConfig([SourceConfig(path=str(source))], DestinationConfig(root=str(dest)), stages_, seed=0)
+    run_pipeline(config, progress=False)
+    return dest
+
+
+@pytest.fixture(scope="module")
+def four_demos(tmp_path_factory):
+    """Four short kinesthetic door demonstrations (2 s, small images, wrist camera)."""
+    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+
+    out = tmp_path_factory.mktemp("four") / "raw"
+    config = CollectConfig(
+        env="door-tactile",
+        task="flat-handle-open",
+        episodes=4,
+        expert="kinesthetic",
+        cameras=("wrist",),
+        width=32,
+        height=24,
+        env_kwargs={"max_episode_seconds": 2.0},
+        out=str(out),
+    )
+    collect(config)
+    return out
+
+
+def test_replay_plan_executed_by_the_robot_joins_into_the_simulated_replay(four_demos, tmp_path, capsys):
+    """force_match execute="plan" -> the door-tactile robot executes and records it -> replay_join
+    gives the in-simulator force_match output: the same features, episodes and frames (to 1e-6,
+    float32 rounding of the action; the simulated robot runs the same physics, so in practice
+    exactly), the same replay outcome and first contact."""
+    from shiftkit.pipelines.cli import main
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    fm = {"calibration": str(CALIBRATION), "slowdown": 2, "damping_time": 0.25}
+    sim = run_stages(four_demos, tmp_path / "sim", ("force_match", fm))
+    plan = run_stages(four_demos, tmp_path / "plan", ("force_match", {**fm, "execute": "plan"}))
+    reader = open_lerobot_dataset(plan)
+    assert set(reader.features) == {"action"}
+    assert reader.features["action"]["names"] == ["x", "y", "z", "qx", "qy", "qz", "qw", "sts_mode"]
+    first = next(reader.iter_episodes([0]))
+    assert first.meta["replay_plan"]["warmup_steps"] == first.meta["recording_start_step"]
+    assert set(np.unique(first.frames["action"][:, 7])) == {0.0, 1.0}  # the operator's mode switch
+    assert main(["sim-robot", str(plan), "--out", str(tmp_path / "rec")]) == 0
+    assert "4 episodes" in capsys.readouterr().out
+    joined = run_stages(tmp_path / "rec", tmp_path / "joined", ("replay_join", {}))
+    a, b = open_lerobot_dataset(sim), open_lerobot_dataset(joined)
+    assert a.features == b.features and a.num_episodes == b.num_episodes == 4
+    demos = episodes(four_demos)[1]
+    for demo, ea, eb in zip(demos, a.iter_episodes([0, 1, 2, 3]), b.iter_episodes([0, 1, 2, 3]), strict=True):
+        assert sorted(ea.frames) == sorted(eb.frames)
+        assert len(ea) == len(eb) == 2 * len(demo) + 10  # slowdown 2, 10 hold steps
+        for key in ea.frames:
+            if key == "task":
+                assert list(ea.frames[key]) == list(eb.frames[key])
+            else:
+                np.testing.assert_allclose(eb.frames[key], ea.frames[key], atol=1e-6, err_msg=key)
+        for key in ("outcome", "replay_success", "first_contact_step", "mode_switch_step", "seed"):
+            assert ea.meta[key] == eb.meta[key], key
+
+
+def test_bad_replay_plans_and_recordings_are_one_line_errors(four_demos, tmp_path, capsys):
+    from shiftkit.pipelines.cli import main
+    from shiftkit.pipelines.errors import ConfigError, DatasetError
+    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+    from shiftkit.pipelines.stage import StageContext, build_stage
+
+    demos = run_stages(four_demos, tmp_path / "demos")  # a LeRobot dataset that is no plan
+    assert main(["sim-robot", str(demos), "--out", str(tmp_path / "rec")]) == 2
+    err = capsys.readouterr().err
+    assert "not a replay plan ('action' must be x, y, z" in err and err.count("\n") == 1
+    assert not (tmp_path / "rec").exists()
+    features, (ep, *_) = episodes(four_demos)
+    join = build_stage("replay_join", {}, StageContext(fps=10), "test")
+    with pytest.raises(ConfigError, match="'action' must be the replay plan's sent target"):
+        join.transform_features(features)
+    with pytest.raises(ConfigError, match='drop_failed needs execute = "sim"'):
+        stage(features, mode="position", execute="plan", drop_failed=True)
+    # a recording whose measured pose holds a NaN (raw files are checked on read; a LeRobot one here)
+    sent = np.tile([0.5, 0.0, 0.4, 0.0, 0.0, 0.0, 1.0, 1.0], (3, 1))
+    pose = sent[:, :7].copy()
+    pose[1, 0] = np.nan
+    recording = {"observation.ee_pose": {"dtype": "float64", "shape": (7,)}, "action": {"shape": (8,)}}
+    join.transform_features(recording)
+    bad = type(ep)({"action": sent, "observation.ee_pose": pose}, {"source_episode_index": 3})
+    with pytest.raises(DatasetError, match="episode 3: 'observation.ee_pose' contains NaN"):
+        list(join.process(bad, np.random.default_rng(0)))
+    with RawDatasetWriter(tmp_path / "nopose", fps=10, names={"action": list("xyzabcdm")}) as writer:
+        writer.add_episode({"timestamp": np.arange(3) / 10, "action": sent}, meta={"task": "t"})
+    with pytest.raises(ConfigError, match="needs the measured sensor pose 'observation.ee_pose'"):
+        run_stages(tmp_path / "nopose", tmp_path / "j", ("replay_join", {}))

@@ -42,9 +42,10 @@ EXAMPLE_PARAMS = {
     "select": {"feature": "observation.state", "names": ["gripper", "ee_x"], "rename": {"ee_x": "x"}},
     "pad": {"feature": "observation.state", "names": ["ee_x", "ee_y", "ee_z", "ee_yaw", "gripper"], "value": 0.5},
     "map_tasks": {"mapping": {"reach": "reach the goal"}},
+    "replay_join": {"env": "door-tactile"},
 }
 # Stages that replay or re-render simulator recordings run on a recording of their kind: stage -> fixture.
-STAGE_INPUTS = {"multiview": "mv_lift_raw", "force_match": "kinesthetic_raw"}
+STAGE_INPUTS = {"multiview": "mv_lift_raw", "force_match": "kinesthetic_raw", "replay_join": "replay_recording"}
 
 # Every stage shiftkit ships (tests may register their own stages; those are not covered here).
 STAGES = sorted(name for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit."))
@@ -54,6 +55,8 @@ VARIANTS = {
     "mode_label-visual": ("mode_label", {"source": "visual"}, "kinesthetic_raw"),
     # depth (nearest-neighbour) and intrinsics scale with RGB
     "resize-depth": ("resize", {"width": 40, "height": 30}, "mv_lift_raw"),
+    # a replay plan for a robot: target poses + STS mode only
+    "force_match-plan": ("force_match", {"mode": "position", "execute": "plan"}, "kinesthetic_raw"),
 }
 CASES = [
     *(pytest.param(n, EXAMPLE_PARAMS[n], STAGE_INPUTS.get(n, "synthetic_raw_images"), id=n) for n in STAGES),
@@ -82,6 +85,18 @@ def kinesthetic_raw(tmp_path_factory):
     out = tmp_path_factory.mktemp("kinesthetic") / "raw"
     collect(CollectConfig(env="door-tactile", task="knob-open", episodes=1, expert="kinesthetic", out=str(out)))
     return out
+
+
+@pytest.fixture(scope="module")
+def replay_recording(kinesthetic_raw, tmp_path_factory):
+    """The simulated robot's recording of the kinesthetic demonstration's replay plan."""
+    from shiftkit.transforms.replay_join import execute_replay_plan
+
+    out = tmp_path_factory.mktemp("replay")
+    plan = config_for(kinesthetic_raw, out / "plan", "force_match", {"mode": "position", "execute": "plan"})
+    run_pipeline(plan, progress=False)
+    execute_replay_plan(out / "plan", out / "recording")
+    return out / "recording"
 
 
 @pytest.fixture

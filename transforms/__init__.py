@@ -11,6 +11,7 @@ from shiftkit.transforms import (  # noqa: F401
     mode_labels,
     multiview,
     rename,
+    replay_join,
     resample,
     resize,
     subsample,

@@ -340,6 +340,9 @@ class PushConfig:
     """Control periods waited after each step before sampling."""
     contact_reading: float = 0.5
     """Rise of the raw normal reading over its start value that counts as contact."""
+    contact_depth: float = 0.0035
+    """Depth past the object's face at which a plan (`plan_push`) expects the reading to have risen
+    by `contact_reading` (m; the simulated STS behind the impedance controller: about 3.5 mm)."""
 
 
 @dataclass
@@ -361,11 +364,36 @@ def sensor_id(sim_model_id: str) -> str:
     return f"{sim_model_id}:sts"
 
 
+def pose_error(target_pos: np.ndarray, target_rot: np.ndarray, pos: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """e = x_d - x in the sensor frame of the measured pose (rot): ex, ey, ez (m), erz (rad)."""
+    from shiftkit.envs.controllers import rotation_vector
+
+    return np.append(rot.T @ (target_pos - pos), rotation_vector(rot.T @ target_rot)[2])
+
+
+MOVED_AXIS = {"shear_x": 0, "shear_y": 1, "torque": 3}
+
+
+def push_mask(kind: str, moving: np.ndarray, wrench: np.ndarray, config: PushConfig) -> np.ndarray:
+    """(n, 4) which of a push's samples inform which axis (see `Push.mask`): the samples of a
+    shear or torque move (`moving`) inform only the moved and the normal axis, and only while the
+    raw normal reading stays `contact_reading` above the push's first (resting) sample."""
+    mask = np.ones(wrench.shape, bool)
+    if kind in MOVED_AXIS:
+        moving = np.asarray(moving, bool)
+        touching = wrench[:, NORMAL] - wrench[0, NORMAL] > config.contact_reading
+        mask[moving] = False
+        for axis in (MOVED_AXIS[kind], NORMAL):
+            mask[moving, axis] = touching[moving]
+    return mask
+
+
 def simulate_push(env: Any, kind: str, seed: int, config: PushConfig) -> Push:
     """One push of the env's tactile sensor against its calibration object (the door-tactile knob or
-    handle, door shut against its stop). `env` is a door-tactile environment (`physics` with
-    `grasp_pose`, `reset`, `simulate`, the impedance targets; `sensor` with the raw reading)."""
-    from shiftkit.envs.controllers import rotation_vector
+    handle, door shut against its stop), reacting to contact as the thesis' robot does (shear and
+    torque moves start a drawn depth past the first contact). `env` is a door-tactile environment
+    (`physics` with `grasp_pose`, `reset`, `simulate`, the impedance targets; `sensor` with the raw
+    reading)."""
     from shiftkit.envs.door_tactile.env import rotation_from_vector
 
     if kind not in PUSH_KINDS:
@@ -377,21 +405,14 @@ def simulate_push(env: Any, kind: str, seed: int, config: PushConfig) -> Push:
     normal, lateral = rot[:, 2], rot[:, :2]
     start = contact_pos - normal * rng.uniform(*config.start_gap) + lateral @ rng.uniform(-1, 1, 2) * config.jitter
     p.reset(start, rot, 0.0)
-    samples_e, samples_f, masks = [], [], []
-    rest = 0.0
+    samples_e, samples_f, moving = [], [], []
 
-    def sample(axes: tuple[int, ...] | None = None) -> np.ndarray:
+    def sample(move: bool = False) -> np.ndarray:
         p.simulate(p.n_substeps * config.settle_periods)
-        x, r = p.ee_pos(), p.ee_rot()
-        e = np.append(r.T @ (p.target_pos - x), rotation_vector(r.T @ p.target_rot)[2])
         f = sensor.raw_wrench(sensor.contact_wrench(p.data))
-        mask = np.ones(4, bool)
-        if axes is not None:
-            mask[:] = False
-            mask[list(axes)] = f[NORMAL] - rest > config.contact_reading
-        samples_e.append(e)
+        samples_e.append(pose_error(p.target_pos, p.target_rot, p.ee_pos(), p.ee_rot()))
         samples_f.append(f)
-        masks.append(mask)
+        moving.append(move)
         return f
 
     rest = sample()[NORMAL]
@@ -413,14 +434,65 @@ def simulate_push(env: Any, kind: str, seed: int, config: PushConfig) -> Push:
         base = p.target_pos.copy()
         for k in range(1, int(round(config.shear / config.step)) + 1):
             p.target_pos = base + direction * config.step * k
-            sample((0 if kind == "shear_x" else 1, NORMAL))
+            sample(True)
     elif kind == "torque":
         sign = rng.choice([-1.0, 1.0])
         base = p.target_rot.copy()
         for k in range(1, int(round(config.rotation / config.rotation_step)) + 1):
             p.target_rot = base @ rotation_from_vector(np.array([0.0, 0.0, sign * config.rotation_step * k]))
-            sample((3, NORMAL))
-    return Push(kind, seed, np.array(samples_e), np.array(samples_f), np.array(masks))
+            sample(True)
+    wrench = np.array(samples_f)
+    return Push(kind, seed, np.array(samples_e), wrench, push_mask(kind, np.array(moving), wrench, config))
+
+
+def fit_pushes(
+    fit: list[Push],
+    held: list[Push],
+    sensor: str,
+    provenance: dict[str, Any],
+    breakpoints: tuple[int, ...] = DEFAULT_BREAKPOINTS,
+    max_offset: tuple[float, ...] = DEFAULT_MAX_OFFSET,
+) -> Calibration:
+    """The calibration fitted on the `fit` pushes, with the residuals on the `held` ones."""
+    stack = lambda pushes, attr: np.concatenate([getattr(q, attr) for q in pushes])  # noqa: E731
+    provenance = {
+        **provenance,
+        "samples": {"fit": int(sum(len(q.wrench) for q in fit)), "held_out": int(sum(len(q.wrench) for q in held))},
+    }
+    calibration = fit_calibration(
+        stack(fit, "displacement"),
+        stack(fit, "wrench"),
+        sensor,
+        breakpoints=breakpoints,
+        max_offset=max_offset,
+        provenance=provenance,
+        mask=stack(fit, "mask"),
+    )
+    if held:
+        calibration.residuals["held_out"] = residuals(
+            calibration, stack(held, "displacement"), stack(held, "wrench"), stack(held, "mask")
+        )
+    return calibration
+
+
+def _tactile_env(env_name: str, task: str) -> tuple[Any, Any]:
+    """The family and an env of a tactile env's task (one-line errors for any other)."""
+    from shiftkit.envs import env_family, make
+
+    try:
+        family = env_family(env_name)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    if task not in family.tasks:
+        raise ConfigError(
+            f"env {env_name!r} has no task {task!r}: calibration pushes against the object of a tactile env's "
+            "task (e.g. --env door-tactile --task knob-open)"
+        )
+    env = make(env_name, task)
+    if not hasattr(env, "sensor") or not hasattr(env.physics, "grasp_pose"):
+        env.close()
+        raise ConfigError(f"env {env_name!r} has no tactile sensor and calibration object to push against")
+    return family, env
 
 
 def calibrate_env(
@@ -435,28 +507,13 @@ def calibrate_env(
 ) -> tuple[Calibration, list[Push], list[Push]]:
     """Push (every kind, once per seed), fit on the `fit_seeds` pushes and report the residuals on
     the `held_out_seeds` pushes. Returns the calibration and both push lists."""
-    from shiftkit.envs import env_family, make
-
     push = push or PushConfig()
-    try:
-        family = env_family(env_name)
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
-    if task not in family.tasks:
-        raise ConfigError(
-            f"env {env_name!r} has no task {task!r}: calibration pushes against the object of a tactile env's "
-            "task (e.g. --env door-tactile --task knob-open)"
-        )
-    env = make(env_name, task)
-    if not hasattr(env, "sensor") or not hasattr(env.physics, "grasp_pose"):
-        env.close()
-        raise ConfigError(f"env {env_name!r} has no tactile sensor and calibration object to push against")
+    family, env = _tactile_env(env_name, task)
     try:
         fit = [simulate_push(env, k, s, push) for s in fit_seeds for k in kinds]
         held = [simulate_push(env, k, s, push) for s in held_out_seeds for k in kinds]
     finally:
         env.close()
-    stack = lambda pushes, attr: np.concatenate([getattr(q, attr) for q in pushes])  # noqa: E731
     provenance = {
         "procedure": "simulated autonomous pushes (shiftkit.transforms.force_calibration.simulate_push)",
         "env": env_name,
@@ -465,20 +522,181 @@ def calibrate_env(
         "push_kinds": list(kinds),
         "fit_seeds": list(fit_seeds),
         "held_out_seeds": list(held_out_seeds),
-        "samples": {"fit": int(sum(len(q.wrench) for q in fit)), "held_out": int(sum(len(q.wrench) for q in held))},
         "push_config": asdict(push),
     }
-    calibration = fit_calibration(
-        stack(fit, "displacement"),
-        stack(fit, "wrench"),
-        sensor_id(family.sim_model_id),
-        breakpoints=breakpoints,
-        max_offset=max_offset,
-        provenance=provenance,
-        mask=stack(fit, "mask"),
-    )
-    if held:
-        calibration.residuals["held_out"] = residuals(
-            calibration, stack(held, "displacement"), stack(held, "wrench"), stack(held, "mask")
-        )
+    calibration = fit_pushes(fit, held, sensor_id(family.sim_model_id), provenance, breakpoints, max_offset)
     return calibration, fit, held
+
+
+# ----------------------------------------------------------------------------- pushes on a real robot
+PLAN_POSE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw"]
+PLAN_KIND = "shiftkit-calibration-plan"
+
+
+def plan_push(kind: str, seed: int, config: PushConfig) -> dict[str, np.ndarray]:
+    """The open-loop commanded poses of one push, one per control period, in the sensor frame of
+    the contact pose (the pad just touching the object, normal +z into it): the push draws what
+    `simulate_push` draws for the same seed (start gap, lateral jitter, press depth, direction),
+    starts at the gap before the object, moves `travel` in `step`s along the normal (shear /
+    torque pushes stop `press` past the step where contact shows, expected `contact_depth` into
+    the object: a plan cannot watch the reading), then shears or rotates. Every step is held
+    `settle_periods` periods; `sample` marks each step's last period (its reading joins the
+    fit), `move` the periods of the shear / torque move."""
+    if kind not in PUSH_KINDS:
+        raise ConfigError(f"unknown push kind {kind!r}; known: {', '.join(PUSH_KINDS)}")
+    rng = np.random.default_rng([seed, PUSH_KINDS.index(kind)])
+    rng.integers(2**31)  # the simulated push's noise seed: the draws below stay those of simulate_push
+    gap = rng.uniform(*config.start_gap)
+    lateral = rng.uniform(-1, 1, 2) * config.jitter
+    steps = int(round(config.travel / config.step))
+    if kind != "normal":
+        contact = int(np.floor((gap + config.contact_depth) / config.step)) + 1
+        steps = min(steps, contact + int(round(rng.uniform(*config.press) / config.step)) - 1)
+    moves = [(np.array([*lateral, k * config.step - gap]), 0.0, False) for k in range(steps + 1)]
+    pressed = moves[-1][0]
+    if kind in ("shear_x", "shear_y"):
+        direction = np.eye(3)[MOVED_AXIS[kind]] * rng.choice([-1.0, 1.0])
+        for k in range(1, int(round(config.shear / config.step)) + 1):
+            moves.append((pressed + direction * config.step * k, 0.0, True))
+    elif kind == "torque":
+        sign = rng.choice([-1.0, 1.0])
+        for k in range(1, int(round(config.rotation / config.rotation_step)) + 1):
+            moves.append((pressed, sign * config.rotation_step * k, True))
+    hold = config.settle_periods
+    pose = np.array(
+        [[*pos, 0.0, 0.0, np.sin(turn / 2), np.cos(turn / 2)] for pos, turn, _ in moves for _ in range(hold)]
+    )
+    sample = np.tile(np.arange(hold) == hold - 1, len(moves))
+    move = np.repeat([m for _, _, m in moves], hold)
+    return {"action": pose, "sample": sample, "move": move}
+
+
+def write_calibration_plan(
+    out: str | Path,
+    fit_seeds: list[int],
+    held_out_seeds: list[int],
+    sensor: str,
+    control_hz: int = 10,
+    push: PushConfig | None = None,
+    kinds: tuple[str, ...] = PUSH_KINDS,
+) -> Path:
+    """The push sequence for a robot to execute, in the raw episode format (docs/raw_format.md):
+    one episode per push, `action` the commanded pose per control period (start-pose frame),
+    `sample` / `move` flags, metadata with the push kind, seed and split (fit / held_out)."""
+    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+
+    push = push or PushConfig()
+    info = {
+        "kind": PLAN_KIND,
+        "sensor_id": sensor,
+        "frame": "contact pose: the sensor frame with the pad just touching the object, normal +z into it",
+        "push_config": asdict(push),
+    }
+    names = {"action": PLAN_POSE_NAMES}
+    with RawDatasetWriter(out, fps=control_hz, robot="", env="", names=names, info=info) as writer:
+        for split, seeds in (("fit", fit_seeds), ("held_out", held_out_seeds)):
+            for seed in seeds:
+                for kind in kinds:
+                    arrays = plan_push(kind, seed, push)
+                    writer.add_episode(
+                        arrays={"timestamp": np.arange(len(arrays["action"])) / control_hz, **arrays},
+                        meta={"task": f"calibration push: {kind}", "push_kind": kind, "seed": seed, "split": split},
+                    )
+    return Path(out)
+
+
+RECORDED = {"action": "commanded pose", "observation.ee_pose": "measured pose", "observation.wrench": "raw wrench"}
+
+
+def recorded_pushes(root: str | Path, push: PushConfig | None = None) -> tuple[list[Push], list[Push], dict]:
+    """The fit and held-out pushes of a recorded calibration plan: per settled sample, e from the
+    commanded pose (`action`) and the measured pose (`ee_pose`, the same frame) and the raw reading
+    (`wrench_raw`). Returns them and the recording's `info`."""
+    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.transforms.force_matching import quat_xyzw_to_matrix
+
+    raw = open_raw_dataset(root)
+    info = raw.index.get("info", {})
+    if info.get("kind") != PLAN_KIND:
+        raise DatasetError(f"{root}: not a recorded calibration plan (dataset.json info.kind {PLAN_KIND!r} expected)")
+    push = push or PushConfig(**{**asdict(PushConfig()), **info.get("push_config", {})})
+    pushes: dict[str, list[Push]] = {"fit": [], "held_out": []}
+    for i in range(raw.num_episodes):
+        ep = raw.read_episode(i)
+        where = f"{raw.episode_dir(i)}"
+        for key, what in (*RECORDED.items(), ("sample", "settled-sample flags"), ("move", "move flags")):
+            if key not in ep.frames:
+                raise DatasetError(f"{where}: no {key!r} array ({what}); record every array of the plan and these")
+        kind, split = ep.meta.get("push_kind"), ep.meta.get("split")
+        if kind not in PUSH_KINDS or split not in pushes:
+            raise DatasetError(f"{where}/meta.json: needs the plan's 'push_kind' and 'split'")
+        shapes = {k: ep.frames[k].shape[1] for k in RECORDED}
+        if shapes != {"action": 7, "observation.ee_pose": 7, "observation.wrench": 4}:
+            raise DatasetError(f"{where}: poses need 7 values (x, y, z, qx, qy, qz, qw), the wrench 4, got {shapes}")
+        take = ep.frames["sample"][:, 0].astype(bool)
+        commanded, measured = ep.frames["action"][take], ep.frames["observation.ee_pose"][take]
+        wrench = ep.frames["observation.wrench"][take].astype(np.float64)
+        c_rot, m_rot = quat_xyzw_to_matrix(commanded[:, 3:]), quat_xyzw_to_matrix(measured[:, 3:])
+        e = np.array(
+            [pose_error(c[:3], cr, m[:3], mr) for c, cr, m, mr in zip(commanded, c_rot, measured, m_rot, strict=True)]
+        )
+        mask = push_mask(kind, ep.frames["move"][take, 0].astype(bool), wrench, push)
+        pushes[split].append(Push(kind, int(ep.meta.get("seed", i)), e, wrench, mask))
+    if not pushes["fit"]:
+        raise DatasetError(f"{root}: no push of the 'fit' split was recorded")
+    return pushes["fit"], pushes["held_out"], info
+
+
+def calibrate_recording(
+    root: str | Path,
+    sensor: str | None = None,
+    breakpoints: tuple[int, ...] = DEFAULT_BREAKPOINTS,
+    max_offset: tuple[float, ...] = DEFAULT_MAX_OFFSET,
+) -> tuple[Calibration, list[Push], list[Push]]:
+    """`calibrate_env`'s fit, file and residuals from a robot's recording of a calibration plan."""
+    fit, held, info = recorded_pushes(root)
+    sensor = sensor or info.get("sensor_id")
+    if not sensor:
+        raise ConfigError(f"{root}: the recording names no sensor; give --sensor-id")
+    provenance = {
+        "procedure": "recorded pushes of a calibration plan (shiftkit calibrate --plan, --from)",
+        "recording": str(root),
+        "push_kinds": sorted({q.kind for q in fit}),
+        "fit_seeds": sorted({q.seed for q in fit}),
+        "held_out_seeds": sorted({q.seed for q in held}),
+        "push_config": info.get("push_config"),
+    }
+    return fit_pushes(fit, held, str(sensor), provenance, breakpoints, max_offset), fit, held
+
+
+def execute_calibration_plan(plan: str | Path, out: str | Path, env_name: str, task: str) -> Path:
+    """The simulated lab: the env's arm executes a calibration plan and its logger records the
+    plan's arrays plus `ee_pose` (measured, start frame), `wrench_raw` and the simulator state."""
+    from shiftkit.envs.door_tactile.lab import execute_pushes
+    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
+
+    raw = open_raw_dataset(plan)
+    info = raw.index.get("info", {})
+    if info.get("kind") != PLAN_KIND:
+        raise DatasetError(f"{plan}: not a calibration plan (dataset.json info.kind {PLAN_KIND!r} expected)")
+    family, env = _tactile_env(env_name, task)
+    names = {**raw.index.get("names", {}), "ee_pose": PLAN_POSE_NAMES}
+    try:
+        with RawDatasetWriter(out, fps=raw.fps, robot=family.robot, env=env_name, names=names, info=info) as writer:
+            for i in range(raw.num_episodes):
+                ep_dir = raw.episode_dir(i)
+                arrays = {p.stem: np.load(p) for p in sorted((ep_dir / "arrays").glob("*.npy"))}
+                meta = raw.read_episode(i).meta
+                # the sensor noise of the simulated push with this seed
+                rng = np.random.default_rng([int(meta.get("seed", i)), PUSH_KINDS.index(meta.get("push_kind"))])
+                rec = execute_pushes(env, int(rng.integers(2**31)), arrays["action"])
+                writer.add_episode(
+                    arrays={**arrays, **rec},
+                    meta={k: v for k, v in meta.items() if k != "source_episode_index"}
+                    | {"sim_model": family.sim_model_id},
+                )
+    finally:
+        env.close()
+    return Path(out)

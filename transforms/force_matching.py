@@ -11,6 +11,13 @@ replayed pose by the displacement that the calibration says produces the recorde
 in the sensor frame (translation (ex, ey, ez), rotation erz about the pad normal as a rotation
 vector), with F~ median-filtered over time first. With a zero offset (zero force against a
 calibration without offset) it is exactly position replay.
+
+`execute = "sim"` replays the targets in the door-tactile simulator and writes the replay;
+`execute = "plan"` writes them as a replay plan for a real robot instead: per demonstration, one
+episode whose `action` at control step t is the target pose sent at that step and the STS mode
+(`PLAN_ACTION_NAMES`), and whose metadata (`replay_plan`) holds the start pose to hold first. The
+robot's recording of it becomes the training dataset through the `replay_join` stage
+(docs/real_robot.md).
 """
 
 from __future__ import annotations
@@ -22,14 +29,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import mujoco
 import numpy as np
 
+from shiftkit.envs.door_tactile.lab import (
+    CAMERA_PREFIX,
+    STS_IMAGE,
+    STS_TACTILE,
+    STS_VISUAL,
+    matrix_to_quat_xyzw,
+    quat_xyzw_to_matrix,
+    replay_targets,
+)
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.features import Features, vector_feature
 from shiftkit.pipelines.stage import Stage, register_stage
 from shiftkit.transforms.force_calibration import WRENCH_AXES, Calibration, load_calibration, sensor_id
+
+__all__ = ["matrix_to_quat_xyzw", "quat_xyzw_to_matrix"]  # the pose conversions force matching uses
+PLAN_ACTION_NAMES = ("x", "y", "z", "qx", "qy", "qz", "qw", "sts_mode")
 
 
 def median_filter(values: np.ndarray, kernel: int) -> np.ndarray:
@@ -40,24 +58,6 @@ def median_filter(values: np.ndarray, kernel: int) -> np.ndarray:
     padded = np.concatenate([np.repeat(values[:1], half, 0), values, np.repeat(values[-1:], half, 0)])
     windows = np.lib.stride_tricks.sliding_window_view(padded, kernel, axis=0)
     return np.median(windows, axis=-1)
-
-
-def quat_xyzw_to_matrix(quat: np.ndarray) -> np.ndarray:
-    """(T, 4) quaternions x, y, z, w (the raw format's `ee_pose` order) -> (T, 3, 3) rotations."""
-    out = np.zeros((len(quat), 9))
-    for i, q in enumerate(np.asarray(quat, dtype=np.float64)):
-        mujoco.mju_quat2Mat(out[i], q[[3, 0, 1, 2]] / np.linalg.norm(q))
-    return out.reshape(-1, 3, 3)
-
-
-def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations -> (T, 4) quaternions x, y, z, w with w >= 0."""
-    out = np.zeros((len(rot), 4))
-    q = np.zeros(4)
-    for i, r in enumerate(np.asarray(rot, dtype=np.float64)):
-        mujoco.mju_mat2Quat(q, np.ascontiguousarray(r).ravel())
-        out[i] = (q if q[0] >= 0 else -q)[[1, 2, 3, 0]]
-    return out
 
 
 def force_matched_poses(
@@ -78,21 +78,7 @@ def force_matched_poses(
 
 
 # ----------------------------------------------------------------------------- replay in the simulator
-STS_VISUAL = "observation.images.sts_visual"
-STS_TACTILE = "observation.images.sts_tactile"
-STS_IMAGE = "observation.images.sts"
-CAMERA_PREFIX = "observation.images."
 REPLAY_SECONDS = 60.0  # time limit of a replay per unit of slowdown (the recording's own limit is shorter)
-
-
-@dataclass
-class Replay:
-    """One replay: frame t holds the state before action t (the last target's state is not kept)."""
-
-    frames: dict[str, np.ndarray]
-    """Per-frame arrays by output feature name."""
-    success: bool
-    first_contact_step: int | None
 
 
 def final_pose(pose: np.ndarray, action: np.ndarray) -> np.ndarray:
@@ -115,75 +101,6 @@ def interpolate_poses(poses: np.ndarray, factor: int) -> np.ndarray:
     inner = ((1 - a) * poses[:-1, None] + a * poses[1:, None]).reshape(-1, poses.shape[1])
     inner[:, 3:7] /= np.linalg.norm(inner[:, 3:7], axis=1, keepdims=True)
     return np.concatenate([inner, poses[-1:]])
-
-
-def replay_targets(
-    env: Any,
-    seed: int,
-    targets: np.ndarray,
-    modes: np.ndarray,
-    warmup_steps: int,
-    family: Any,
-    cameras: tuple[str, ...] = (),
-    sts_images: Literal["none", "active", "both"] = "none",
-    hold_steps: int = 0,
-) -> Replay:
-    """Replay T + 1 sensor target poses through the env's impedance controller, as the door-tactile
-    family's position replay does: reset with the demonstration's seed, set the controller's target
-    to the first pose for `warmup_steps` (the steps the demonstration spent before recording
-    started), then to target t + 1 at step t (the mode from the (T,) `modes`; the recorded action is
-    that target's relative pose from the pose reached, clipped to the action range: what a policy
-    trained on the replay outputs), then hold the last target for `hold_steps` more steps. Records, per step, the
-    env's observation split into state / environment state, the simulator state, the reached pose,
-    the true and raw contact wrench, the requested cameras and the STS image of the active mode
-    (`sts_images` "active") or both STS images ("both")."""
-    from shiftkit.envs.door_tactile.experts import relative_action
-
-    targets = np.asarray(targets, dtype=np.float64)
-    rots = quat_xyzw_to_matrix(targets[:, 3:7])
-    rows: dict[str, list[np.ndarray]] = {}
-    actions, success, contact = [], [], None
-
-    def record(obs: np.ndarray, info: dict[str, Any]) -> None:
-        data = env.physics.data
-        wrench = env.sensor.contact_wrench(data)
-        values = {
-            "observation.state": obs[family.state_indices],
-            "observation.environment_state": obs[family.environment_state_indices],
-            "sim.qpos": info["qpos"],
-            "sim.qvel": info["qvel"],
-            "observation.ee_pose": env.ee_pose(),
-            "contact_wrench": wrench,
-            "observation.wrench": env.sensor.raw_wrench(wrench),
-            **{CAMERA_PREFIX + c: env.render_rgb(c) for c in cameras},
-        }
-        if sts_images == "both":
-            values[STS_VISUAL] = env.sensor.visual_image(data)
-            values[STS_TACTILE] = env.sensor.tactile_image(data)
-        elif sts_images == "active":
-            values[STS_IMAGE] = env.sts_image()
-        for key, value in values.items():
-            rows.setdefault(key, []).append(np.asarray(value))
-
-    obs, info = env.reset(seed=seed)
-    for _ in range(warmup_steps):
-        obs, _, _, _, info = env.step_pose(targets[0, :3], rots[0], "visual")
-    n = len(targets) - 1
-    for t in range(n + hold_steps):
-        if contact is None and info["handle_contact"]:
-            contact = t
-        record(obs, info)
-        k, tactile = min(t + 1, n), bool(modes[min(t, n - 1)] > 0.5)
-        p = env.physics
-        actions.append(np.append(relative_action(p.ee_pos(), p.ee_rot(), targets[k, :3], rots[k]), float(tactile)))
-        obs, _, _, truncated, info = env.step_pose(targets[k, :3], rots[k], "tactile" if tactile else "visual")
-        success.append(bool(info["is_success"]))
-        if truncated:
-            break
-    frames = {k: np.stack(v) for k, v in rows.items()}
-    frames["action"] = np.array(actions)
-    frames["next.success"] = np.array(success)
-    return Replay(frames, bool(any(success)), contact)
 
 
 @dataclass
@@ -217,6 +134,11 @@ class ForceMatchConfig:
     damping_time * v_raw, the pose error the replay controller's damping D needs at the recorded
     velocity (about D / K: 0.25 s replays the door-tactile demonstrations best, docs/force_matching.md).
     0 = the static model F = K e."""
+    execute: Literal["sim", "plan"] = "sim"
+    """"sim": replay in the simulator and write the replay; "plan": write the replay targets as a
+    plan a real robot executes (`action` = target pose x, y, z, qx, qy, qz, qw in the recording's
+    base frame + STS mode, one per control step; `replay_plan` metadata with the start pose), whose
+    recording the `replay_join` stage turns into the training dataset."""
 
     def __post_init__(self) -> None:
         if self.slowdown < 1 or self.hold_steps < 0 or self.damping_time < 0:
@@ -228,6 +150,8 @@ class ForceMatchConfig:
             raise ValueError(f"unknown wrench axes {unknown}; known: {', '.join(WRENCH_AXES)}")
         if self.mode == "force_matched" and not self.calibration:
             raise ValueError('mode "force_matched" needs a calibration file')
+        if self.execute == "plan" and self.drop_failed:
+            raise ValueError('drop_failed needs execute = "sim" (a plan has not run yet)')
 
 
 # what the replay produces for a recorded feature (cameras are handled apart)
@@ -276,13 +200,19 @@ class ForceMatch(Stage):
                 raise ConfigError(f"force_match: cannot replay feature {key!r}; drop it before this stage")
         self._cameras = tuple(cameras)
         self._sts = "none" if STS_IMAGE not in features else "both" if self.config.sts_images else "active"
+        self._image_shape = next(
+            (tuple(features[k]["shape"]) for k in (*(CAMERA_PREFIX + c for c in cameras), STS_IMAGE) if k in features),
+            None,
+        )
+        if self.config.mode == "force_matched":
+            load_calibration(self.config.calibration, sensor_id(family.sim_model_id))
+        if self.config.execute == "plan":
+            return {"action": vector_feature("float64", list(PLAN_ACTION_NAMES))}
         out = dict(features)
         if self._sts == "both":
             del out[STS_IMAGE]
             for key in (STS_VISUAL, STS_TACTILE):
                 out[key] = copy.deepcopy(features[STS_IMAGE])
-        if self.config.mode == "force_matched":
-            load_calibration(self.config.calibration, sensor_id(family.sim_model_id))
         return out
 
     def describe(self) -> dict[str, Any]:
@@ -340,20 +270,31 @@ class ForceMatch(Stage):
         if meta.get("sim_model") not in (None, family.sim_model_id):
             raise DatasetError(f"{where}: recorded in {meta.get('sim_model')!r}, not {family.sim_model_id!r}")
         task = str(meta.get("task") or episode.frames["task"][0])
-        images = [k for k in (*(CAMERA_PREFIX + c for c in self._cameras), STS_IMAGE) if k in episode.frames]
-        shape = episode.frames[images[0]].shape[1:] if images else None  # the recording's one image size
-        env = self._env(task, shape)
         action = np.asarray(episode.frames["action"])
         # the operator's mode labels of the recording (the family's last action dim), else tactile
         modes = action[:, -1] if action.shape[1] == len(family.action_names) else np.ones(len(action))
         k = self.config.slowdown
+        targets, modes = interpolate_poses(self.targets(episode), k), np.repeat(modes, k)
+        warmup = int(meta.get("recording_start_step", 0))
+        out_meta = {
+            **meta,
+            "replay_mode": self.config.mode,
+            "replay_slowdown": k,
+            # recorded frame indices become replay frame indices
+            "recorded_first_contact_step": meta.get("first_contact_step"),
+        }
+        if meta.get("mode_switch_step") is not None:
+            out_meta["mode_switch_step"] = int(meta["mode_switch_step"]) * k
+        tasks = lambda n: np.asarray(episode.frames["task"])[np.minimum(np.arange(n) // k, len(episode) - 1)]  # noqa: E731
+        if self.config.execute == "plan":
+            yield self._plan(targets, modes, warmup, tasks, out_meta)
+            return
         replay = replay_targets(
-            env,
+            self._env(task, self._image_shape),
             int(meta["seed"]),
-            interpolate_poses(self.targets(episode), k),
-            np.repeat(modes, k),
-            int(meta.get("recording_start_step", 0)),
-            family,
+            targets,
+            modes,
+            warmup,
             self._cameras,
             self._sts,
             self.config.hold_steps,
@@ -369,17 +310,33 @@ class ForceMatch(Stage):
         if self._sts == "both":
             frames[STS_VISUAL], frames[STS_TACTILE] = replay.frames[STS_VISUAL], replay.frames[STS_TACTILE]
         frames["timestamp"] = np.arange(n, dtype=np.float64) / self.context.fps
-        frames["task"] = np.asarray(episode.frames["task"])[np.minimum(np.arange(n) // k, len(episode) - 1)]
-        out_meta = {
-            **meta,
-            "outcome": "success" if replay.success else "failure",
-            "replay_mode": self.config.mode,
-            "replay_success": replay.success,
-            "replay_slowdown": k,
-            # recorded frame indices become replay frame indices; the replay's own first contact
-            "recorded_first_contact_step": meta.get("first_contact_step"),
-            "first_contact_step": replay.first_contact_step,
-        }
-        if meta.get("mode_switch_step") is not None:
-            out_meta["mode_switch_step"] = int(meta["mode_switch_step"]) * k
+        frames["task"] = tasks(n)
+        out_meta.update(
+            outcome="success" if replay.success else "failure",
+            replay_success=replay.success,
+            first_contact_step=replay.first_contact_step,  # the replay's own first contact
+        )
         yield Episode(frames, out_meta)
+
+    def _plan(self, targets: np.ndarray, modes: np.ndarray, warmup: int, tasks: Any, meta: dict) -> Episode:
+        """The replay plan of one demonstration: action t = (target t + 1, mode t) for the T steps
+        and the `hold_steps` after, the first target as the start pose to hold for `warmup` steps."""
+        n = len(targets) - 1
+        steps = np.arange(n + self.config.hold_steps)
+        action = np.concatenate([targets[np.minimum(steps + 1, n)], modes[np.minimum(steps, n - 1), None]], axis=1)
+        frames = {
+            "action": action.astype(np.float64),
+            "timestamp": steps.astype(np.float64) / self.context.fps,
+            "task": tasks(len(steps)),
+        }
+        plan = {
+            "env": self.config.env,
+            "start_pose": [float(v) for v in targets[0]],
+            "warmup_steps": warmup,
+            # what the simulated robot records of it, as the in-simulator replay would
+            "cameras": list(self._cameras),
+            "sts_images": self._sts,
+            "image_shape": list(self._image_shape) if self._image_shape else None,
+        }
+        meta = {k: v for k, v in meta.items() if k not in ("outcome", "first_contact_step")}
+        return Episode(frames, {**meta, "replay_plan": plan})

@@ -1,0 +1,151 @@
+"""The door-tactile arm as a lab's robot: it executes commanded sensor poses through its impedance
+controller, as a real arm executes a plan that shiftkit wrote for it, and returns what the lab's
+logger records (docs/real_robot.md). Two plans exist: calibration pushes against the door's handle
+or knob (`execute_pushes`) and force-matched replay targets of a demonstration (`replay_targets`,
+which the `force_match` stage also runs in the simulator directly).
+
+Poses are position + quaternion x, y, z, w (the raw format's `ee_pose` order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import mujoco
+import numpy as np
+
+from shiftkit.envs.door_tactile.env import ENVIRONMENT_STATE_INDICES, STATE_INDICES, DoorTactileEnv
+from shiftkit.envs.door_tactile.experts import relative_action
+
+STS_VISUAL = "observation.images.sts_visual"
+STS_TACTILE = "observation.images.sts_tactile"
+STS_IMAGE = "observation.images.sts"
+CAMERA_PREFIX = "observation.images."
+
+
+def quat_xyzw_to_matrix(quat: np.ndarray) -> np.ndarray:
+    """(T, 4) quaternions x, y, z, w -> (T, 3, 3) rotations."""
+    out = np.zeros((len(quat), 9))
+    for i, q in enumerate(np.asarray(quat, dtype=np.float64)):
+        mujoco.mju_quat2Mat(out[i], q[[3, 0, 1, 2]] / np.linalg.norm(q))
+    return out.reshape(-1, 3, 3)
+
+
+def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) rotations -> (T, 4) quaternions x, y, z, w with w >= 0."""
+    out = np.zeros((len(rot), 4))
+    q = np.zeros(4)
+    for i, r in enumerate(np.asarray(rot, dtype=np.float64)):
+        mujoco.mju_mat2Quat(q, np.ascontiguousarray(r).ravel())
+        out[i] = (q if q[0] >= 0 else -q)[[1, 2, 3, 0]]
+    return out
+
+
+# ----------------------------------------------------------------------------- calibration pushes
+def execute_pushes(env: DoorTactileEnv, seed: int, commanded: np.ndarray) -> dict[str, np.ndarray]:
+    """Execute one calibration push against the handle / knob (door shut against its stop): the
+    controller holds commanded pose t (T, 7), given in the sensor frame of the contact pose (pad
+    just touching the face, normal +z into it), for one control period each, from the first
+    pose at rest. Returns, per period, what the logger records at its end: `action` (the commanded
+    pose in effect), `ee_pose` (the measured sensor pose, contact frame), `wrench_raw` (the STS's
+    raw reading) and the simulator state. `seed` seeds the sensor's noise."""
+    commanded = np.asarray(commanded, dtype=np.float64)
+    env.reset(seed=seed)
+    p, sensor = env.physics, env.sensor
+    start, rot = p.grasp_pose(0.0)
+    first = quat_xyzw_to_matrix(commanded[:1, 3:7])[0]
+    p.reset(start + rot @ commanded[0, :3], rot @ first, 0.0)
+    targets = quat_xyzw_to_matrix(commanded[:, 3:7])
+    rows: dict[str, list[np.ndarray]] = {"ee_pose": [], "wrench_raw": [], "sim_qpos": [], "sim_qvel": []}
+    for pose, target_rot in zip(commanded, targets, strict=True):
+        p.target_pos, p.target_rot = start + rot @ pose[:3], rot @ target_rot
+        p.simulate(p.n_substeps)
+        measured_rot = rot.T @ p.ee_rot()
+        rows["ee_pose"].append(
+            np.concatenate([rot.T @ (p.ee_pos() - start), matrix_to_quat_xyzw(measured_rot[None])[0]])
+        )
+        rows["wrench_raw"].append(sensor.raw_wrench(sensor.contact_wrench(p.data)))
+        rows["sim_qpos"].append(p.data.qpos.copy())
+        rows["sim_qvel"].append(p.data.qvel.copy())
+    return {"action": commanded, **{k: np.array(v) for k, v in rows.items()}}
+
+
+# ----------------------------------------------------------------------------- replay targets
+@dataclass
+class Replay:
+    """One replay: frame t holds the state before action t (the last target's state is not kept)."""
+
+    frames: dict[str, np.ndarray]
+    """Per-frame arrays by LeRobot feature name."""
+    success: bool
+    first_contact_step: int | None
+
+
+def replay_targets(
+    env: DoorTactileEnv,
+    seed: int,
+    targets: np.ndarray,
+    modes: np.ndarray,
+    warmup_steps: int,
+    cameras: tuple[str, ...] = (),
+    sts_images: Literal["none", "active", "both"] = "none",
+    hold_steps: int = 0,
+) -> Replay:
+    """Replay T + 1 sensor target poses through the env's impedance controller, as the family's
+    position replay does: reset with the demonstration's seed, set the controller's target to the
+    first pose for `warmup_steps` (the steps the demonstration spent before recording started),
+    then to target t + 1 at step t (the mode from the (T,) `modes`), then hold the last target for
+    `hold_steps` more steps. Records, per step, the env's observation split into state /
+    environment state, the simulator state, the reached pose, the true and raw contact wrench, the
+    requested cameras and the STS image of the active mode (`sts_images` "active") or both STS
+    images ("both"); `action` is the env action (the target's relative pose from the pose reached,
+    clipped to the action range, plus the mode: what a policy trained on the replay outputs) and
+    `target` the commanded pose + mode (what a robot is sent)."""
+    targets = np.asarray(targets, dtype=np.float64)
+    rots = quat_xyzw_to_matrix(targets[:, 3:7])
+    rows: dict[str, list[np.ndarray]] = {}
+    actions, sent, success, contact = [], [], [], None
+
+    def record(obs: np.ndarray, info: dict[str, Any]) -> None:
+        data = env.physics.data
+        wrench = env.sensor.contact_wrench(data)
+        values = {
+            "observation.state": obs[STATE_INDICES],
+            "observation.environment_state": obs[ENVIRONMENT_STATE_INDICES],
+            "sim.qpos": info["qpos"],
+            "sim.qvel": info["qvel"],
+            "observation.ee_pose": env.ee_pose(),
+            "contact_wrench": wrench,
+            "observation.wrench": env.sensor.raw_wrench(wrench),
+            **{CAMERA_PREFIX + c: env.render_rgb(c) for c in cameras},
+        }
+        if sts_images == "both":
+            values[STS_VISUAL] = env.sensor.visual_image(data)
+            values[STS_TACTILE] = env.sensor.tactile_image(data)
+        elif sts_images == "active":
+            values[STS_IMAGE] = env.sts_image()
+        for key, value in values.items():
+            rows.setdefault(key, []).append(np.asarray(value))
+
+    obs, info = env.reset(seed=seed)
+    for _ in range(warmup_steps):
+        obs, _, _, _, info = env.step_pose(targets[0, :3], rots[0], "visual")
+    n = len(targets) - 1
+    for t in range(n + hold_steps):
+        if contact is None and info["handle_contact"]:
+            contact = t
+        record(obs, info)
+        k, tactile = min(t + 1, n), bool(modes[min(t, n - 1)] > 0.5)
+        p = env.physics
+        actions.append(np.append(relative_action(p.ee_pos(), p.ee_rot(), targets[k, :3], rots[k]), float(tactile)))
+        sent.append(np.append(targets[k], float(tactile)))
+        obs, _, _, truncated, info = env.step_pose(targets[k, :3], rots[k], "tactile" if tactile else "visual")
+        success.append(bool(info["is_success"]))
+        if truncated:
+            break
+    frames = {k: np.stack(v) for k, v in rows.items()}
+    frames["action"] = np.array(actions)
+    frames["target"] = np.array(sent)
+    frames["next.success"] = np.array(success)
+    return Replay(frames, bool(any(success)), contact)
