@@ -1,4 +1,4 @@
-"""VPACE learning check on Panda reach (issue acceptance, SPEC 6.2): from 200 success examples per task,
+"""VPACE learning check on Panda reach (acceptance check, docs/vpace.md): from 200 success examples per task,
 the main intention must reach >= 90% success.
 
 Steps, all through shiftkit's own entry points:

@@ -118,8 +118,22 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
     )
 
 
+def _normalization(norm: dict[str, Any] | None) -> str:
+    """The card's input-normalisation section (BC policies: `policies.bc.Normalization`)."""
+    if not norm:
+        return ""
+    clip = f"clipped to +-{norm['clip']:g} stds" if norm.get("clip") is not None else "not clipped"
+    return (
+        "\n## Input normalisation\n\n"
+        f"`(x - mean) / std` with each dimension's std floored at max({norm['std_floor']:g} x its RMS value, "
+        f"{norm['std_min']:g}); inputs {clip}, action targets never clipped. "
+        f"Dimensions normalised by a floored std: {norm.get('floored_dims', '?')}.\n"
+    )
+
+
 def render_model_card(card: dict[str, Any]) -> str:
-    """Card for a trained policy: keys `trainer`, `datasets`, `args`, `metrics`, `env`, `versions`."""
+    """Card for a trained policy: keys `trainer`, `datasets`, `args`, `metrics`, `env`, `versions`,
+    optionally `normalization` (BC: the std floor and input clipping)."""
     datasets = (
         "\n".join(
             "- " + ", ".join(f"{k}: `{v}`" for k, v in d.items() if v not in (None, ""))
@@ -133,6 +147,7 @@ def render_model_card(card: dict[str, Any]) -> str:
     )
     trainer = str(card.get("trainer", "policy"))
     return _template("model_card.md").substitute(
+        normalization=_normalization(card.get("normalization")),
         trainer=trainer,
         shiftkit_version=card.get("versions", {}).get("shiftkit", "?"),
         datasets=datasets,

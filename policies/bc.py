@@ -11,6 +11,11 @@ Two regimes:
   when its validation loss has not improved for 30 epochs (max 200) and keeps its best weights.
 * `fixed` (thesis ch. 4): 20k steps, AdamW weight decay 0.1, lr 3e-4 halved halfway.
 
+Normalisation cannot explode (`Normalization`): each dimension's std is floored at a share of its
+own magnitude and the normalised inputs are clipped, so a state far outside the demonstrations (a
+correction in FIRE, a bumped object whose velocity was ~0 in every demonstration) reaches the network
+as a bounded input. The values are part of the policy spec, so checkpoint and model card record them.
+
 The batch order is a function of (seed, member, step) and every checkpoint holds the full training
 state, so a resumed run continues bit for bit where the killed one left off.
 """
@@ -82,6 +87,11 @@ class BCArgs:
     """Save a checkpoint every this many steps (and at the end)."""
     log_every: int = 100
     """Write mean training loss to metrics.jsonl every this many steps."""
+    norm_std_floor: float = 0.01
+    """Floor of each dimension's normalisation std, as a share of the dimension's RMS value
+    (`sqrt(mean^2 + std^2)`); 0 turns the floor off (the absolute floor 1e-6 stays)."""
+    norm_clip: float | None = 10.0
+    """Normalised inputs are clipped to +-this many (floored) stds; None: no clipping."""
     device: str = "auto"
     """`auto` (CUDA when present), `cpu` or `cuda[:N]`."""
     threads: int | None = None
@@ -129,7 +139,56 @@ class BCArgs:
             raise ConfigError("the early-stop regime needs val_fraction > 0")
         if out.weight_decay < 0 or any(h <= 0 for h in out.hidden):
             raise ConfigError("weight_decay must be >= 0 and hidden widths positive")
+        out.normalization()  # checks the normalisation values
         return out
+
+    def normalization(self) -> Normalization:
+        """The input normalisation these arguments ask for."""
+        return Normalization(std_floor=self.norm_std_floor, clip=self.norm_clip)
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """How a policy normalises: per dimension `std' = max(std, std_floor * sqrt(mean^2 + std^2),
+    std_min)`, inputs `clip((x - mean) / std', -clip, clip)`; actions use the same floor, unclipped.
+
+    Why these defaults: a dimension whose std is under 1% of its magnitude (coefficient of variation
+    < 1%) barely moved in the demonstrations, and dividing by that std turns noise or a small
+    deviation into hundreds of stds; the floor caps that gain at 100 / magnitude while leaving any
+    dimension that varies by more than 1% of its size untouched. It cannot help a dimension that sits
+    at ~0 (an untouched object's velocity), so inputs are also clipped: by Chebyshev's inequality at
+    most 1/k^2 of any dimension's training frames lie beyond k stds, so clipping at 10 touches at
+    most 1% of the frames of even a spiky feature (contact forces), where 5 could touch 4%, while a
+    state outside the demonstrations reaches the network as at most 10 stds. Action targets are not
+    clipped: a correction may need an action the demonstrations never took, and the output must be
+    able to reach it."""
+
+    std_floor: float = 0.01
+    """Relative floor: share of the dimension's RMS value `sqrt(mean^2 + std^2)`."""
+    std_min: float = 1e-6
+    """Absolute floor (dataset units), so an exactly constant zero dimension divides by no zero."""
+    clip: float | None = 10.0
+    """Bound of the normalised inputs in floored stds; None: no clipping."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.std_floor) and 0 <= self.std_floor < 1):
+            raise ConfigError(f"norm_std_floor must be in [0, 1), got {self.std_floor}")
+        if not (math.isfinite(self.std_min) and self.std_min > 0):
+            raise ConfigError(f"the absolute std floor must be positive, got {self.std_min}")
+        if self.clip is not None and not self.clip > 0:
+            raise ConfigError(f"norm_clip must be positive (or none for no clipping), got {self.clip}")
+
+    def floored(self, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+        """The std used for normalisation."""
+        floor = torch.clamp(self.std_floor * torch.sqrt(mean**2 + std**2), min=self.std_min)
+        return torch.maximum(std, floor)
+
+
+def legacy_std(std: torch.Tensor) -> torch.Tensor:
+    """Normalisation of checkpoints written before `Normalization` was recorded (their policy spec has
+    no `normalization`): a std below 1e-6 is replaced by 1 and nothing is clipped, so such policies act
+    exactly as they were trained, near-constant dimensions included."""
+    return torch.where(std < 1e-6, torch.ones_like(std), std)
 
 
 @dataclass
@@ -146,6 +205,12 @@ class PolicySpec:
     num_keypoints: int
     hidden: list[int]
     ensemble_size: int
+    normalization: Normalization | None = field(default_factory=Normalization)
+    """Std floor and input clipping; None for checkpoints that predate it (`legacy_std`, no clip)."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.normalization, dict):  # as stored in a checkpoint by dataclasses.asdict
+            self.normalization = Normalization(**self.normalization)
 
     def image_keys(self) -> list[str]:
         """Camera features: RGB (`image`/`video`, uint8) and float maps named (height, width, channels),
@@ -177,10 +242,12 @@ def _channel_stats(mean: np.ndarray, std: np.ndarray, channels: int) -> tuple[np
 class Normalizer(nn.Module):
     """Dataset-stats normalisation: numeric features `(x - mean) / std`; images `(B, H, W, C)` to float
     `(B, C, H, W)` (uint8 scaled to [0, 1], as lerobot's image stats are), then per-channel
-    `(x - mean) / std`."""
+    `(x - mean) / std`; std floored and inputs clipped as `spec.normalization` says."""
 
     def __init__(self, spec: PolicySpec) -> None:
         super().__init__()
+        norm = spec.normalization
+        self.clip = norm.clip if norm is not None else None
         self.keys = [*spec.numeric_keys(), *spec.image_keys(), "action"]
         self.images = set(spec.image_keys())
         # RGB cameras are uint8 (scaled to [0, 1] as lerobot's image stats are); depth is metres.
@@ -192,8 +259,7 @@ class Normalizer(nn.Module):
                 channels = spec.features[key]["shape"][-1]
                 mean, std = (x.reshape(1, -1, 1, 1) for x in _channel_stats(mean, std, channels))
             mean, std = torch.as_tensor(mean), torch.as_tensor(std)
-            # constant dimensions (std ~ 0) pass through centred instead of blowing up
-            std = torch.where(std < 1e-6, torch.ones_like(std), std)
+            std = norm.floored(mean, std) if norm is not None else legacy_std(std)
             self.register_buffer(f"mean{i}", mean)
             self.register_buffer(f"std{i}", std)
 
@@ -208,8 +274,17 @@ class Normalizer(nn.Module):
             x = batch[key]
             if key in self.images:
                 x = x.permute(0, 3, 1, 2).float() / (255.0 if key in self.uint8 else 1.0)
-            out[key] = (x.float() - mean) / std
+            x = (x.float() - mean) / std
+            out[key] = x if self.clip is None else x.clamp(-self.clip, self.clip)
         return out
+
+    def floored_dims(self, spec: PolicySpec) -> int:
+        """How many numeric dimensions normalise by a floored std (for the model card)."""
+        return sum(
+            int((getattr(self, f"std{i}") > torch.as_tensor(spec.stats[k]["std"], dtype=torch.float32)).sum())
+            for i, k in enumerate(self.keys)
+            if k not in self.images
+        )
 
     def action(self, action: torch.Tensor) -> torch.Tensor:
         mean, std = self._ms("action")
@@ -307,7 +382,8 @@ def load_policy(path: str | Path, device: str = "cpu") -> BCPolicy:
     state = load_checkpoint(path)
     if state.get("trainer") != "bc":
         raise DatasetError(f"{path} is not a BC checkpoint (trainer {state.get('trainer')!r})")
-    policy = BCPolicy(PolicySpec(**state["policy_spec"]))
+    # a spec without `normalization` predates it: None keeps that policy's own (legacy) normalisation
+    policy = BCPolicy(PolicySpec(**{"normalization": None, **state["policy_spec"]}))
     policy.load_state_dict(state["model"])
     return policy.to(device).eval()
 
@@ -410,6 +486,7 @@ def train(args: BCArgs, progress: bool = False) -> dict:
         num_keypoints=args.num_keypoints,
         hidden=args.hidden,
         ensemble_size=args.ensemble_size,
+        normalization=args.normalization(),
     )
 
     # --- model and optimisers: one AdamW per member ---
@@ -429,6 +506,10 @@ def train(args: BCArgs, progress: bool = False) -> dict:
             "versions": versions(),
             "inputs": inputs,
             "frames": {"train": len(train_rows), "val": len(val_rows), "episodes": len(table.episodes)},
+            "normalization": {
+                **dataclasses.asdict(spec.normalization),
+                "floored_dims": policy.normalizer.floored_dims(spec),
+            },
         }
     )
 

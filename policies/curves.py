@@ -82,7 +82,8 @@ def plot_curves(
     xlabel: str = "environment steps",
     ylabel: str = "success rate (IQM, 95% CI)",
 ) -> Path:
-    """Draw IQM lines with shaded CIs into a PNG."""
+    """Draw IQM lines with shaded CIs into a PNG; without `title`, the title names the curves (each
+    legend entry gives its n)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -90,15 +91,14 @@ def plot_curves(
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
     for c in curves:
-        (line,) = ax.plot(c.steps, c.iqm, label=f"{c.label} ({c.runs} runs)")
+        (line,) = ax.plot(c.steps, c.iqm, label=f"{c.label} (n = {c.runs} run{'s' if c.runs != 1 else ''})")
         ax.fill_between(c.steps, c.low, c.high, color=line.get_color(), alpha=0.25, linewidth=0)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="best")
-    if title:
-        ax.set_title(title)
+    ax.set_title(title or f"{' vs '.join(c.label for c in curves)}: {ylabel}", fontsize=9)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)

@@ -400,12 +400,22 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
     centres = [(r["yaw"][0] + r["yaw"][1]) / 2 for r in rows]
     rates = np.array([r["success_rate"] for r in rows])
     err = np.array([[r["success_rate"] - r["ci95"][0], r["ci95"][1] - r["success_rate"]] for r in rows]).T
+    from shiftkit.envs.multiview.physics import YAW_RANGE
+
     fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.axvspan(*YAW_RANGE, color="0.9", zorder=0, label=f"training yaw U[{YAW_RANGE[0]:g}, {YAW_RANGE[1]:g}]")
     ax.bar(centres, rates, width=0.08, yerr=err, capsize=3, color="tab:blue")
     ax.set_xlabel("base yaw (rad), bin centre")
     ax.set_ylabel("success rate")
     ax.set_ylim(0, 1.05)
-    ax.set_title(f"{sweep['env']} / {sweep['task']}: success per base-yaw bin", fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    per_bin = sorted({r["episodes"] for r in rows})
+    ax.set_title(
+        f"{Path(sweep.get('policy') or 'policy').name} on {sweep['env']} / {sweep['task']}: success per base-yaw bin\n"
+        f"n = {'/'.join(map(str, per_bin))} episodes per bin ({sum(r['episodes'] for r in rows)} in all), "
+        f"seeds from {sweep['seed']}, Wilson 95% CI",
+        fontsize=8,
+    )
     fig.tight_layout()
     fig.savefig(png, dpi=100)  # the figure first: a failure leaves no JSON without its PNG
     plt.close(fig)

@@ -276,6 +276,7 @@ class RunDir:
             "metrics": metrics,
             "env": ", ".join(dict.fromkeys(envs)) or config.get("env"),
             "versions": config.get("versions", {}),
+            "normalization": config.get("normalization"),
         }
         text = render_model_card(card)
         _atomic_write(self.path / CARD, lambda f: f.write(text.encode()))

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
-from shiftkit.policies.bc import BCArgs, BCPolicy, PolicySpec, load_policy, train
+from shiftkit.policies.bc import BCArgs, BCPolicy, Normalization, PolicySpec, load_policy, train, update_members
 from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
 
 
@@ -27,9 +27,11 @@ def make_dataset(
     learnable: bool = True,
     depth: str | None = None,
     seed: int = 0,
+    still_std: float | None = None,
 ) -> Path:
     """A tiny LeRobot dataset written by lerobot's own writer. State-only: action = linear function
-    of the state. `image="image"|"video"`: a bright square whose position is the action (`depth`
+    of the state (`still_std`: s3, which the action ignores, is ~0 with this std, like the velocity of
+    an object no demonstration touches). `image="image"|"video"`: a bright square whose position is the action (`depth`
     "m" or "mm": plus a lerobot depth map of it, float32 metres or uint16 millimetres)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -55,6 +57,8 @@ def make_dataset(
     for _ in range(episodes):
         for _ in range(length):
             s = rng.normal(size=4).astype(np.float32)
+            if still_std is not None:
+                s[3] = rng.normal(scale=still_std)
             a = np.array([s[0] + 0.5 * s[1], -s[2]], np.float32) if learnable else rng.normal(size=2).astype(np.float32)
             frame = {"observation.state": s, "task": "synthetic"}
             if image:
@@ -339,6 +343,75 @@ def test_resume_after_kill_equals_uninterrupted_run(state_ds, tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
     strip = lambda lines: [{k: v for k, v in m.items() if k != "steps_per_s"} for m in lines]  # noqa: E731
     assert strip(metric_lines(killed, "train")) == strip(metric_lines(clean, "train"))
+
+
+# ------------------------------------------------------------------------------ normalisation
+
+
+def test_std_floor_is_relative_to_each_dimension():
+    norm = Normalization()
+    mean, std = torch.tensor([0.02, 1.0, 0.0, 0.0]), torch.tensor([2e-5, 0.5, 2e-5, 0.0])
+    # nearly constant at 2 cm: floored at 1% of its size; a varying one untouched; ~0: the absolute floor
+    torch.testing.assert_close(norm.floored(mean, std), torch.tensor([2e-4, 0.5, 2e-5, 1e-6]), rtol=1e-3, atol=0)
+    with pytest.raises(ConfigError, match="norm_clip"):
+        Normalization(clip=0)
+    with pytest.raises(ConfigError, match="norm_std_floor"):
+        BCArgs(datasets=["x"], output_dir="y", norm_std_floor=-1).resolved()
+
+
+def test_correction_outside_few_demonstrations_stays_bounded(tmp_path):
+    """5 demonstrations where s3 has std 2e-5 (an object nobody touched); a correction then moves it
+    by 0.1: 5000 stds. Its normalised input, the policy's output and the BC loss stay bounded."""
+    ds = make_dataset(tmp_path / "few", episodes=5, length=20, still_std=2e-5)
+    out = tmp_path / "run"
+    train(small_args(ds, out, steps=100, log_every=50, checkpoint_every=100))
+    policy = load_policy(out)
+    demo = {"observation.state": torch.tensor([[0.3, -0.2, 0.5, 0.0]])}
+    correction = {"observation.state": torch.tensor([[0.3, -0.2, 0.5, 0.1]])}
+    assert policy.normalizer(correction)["observation.state"].abs().max() <= 10.0
+    # beyond the bound every state acts as the bound: the output cannot run away with the input
+    far = {"observation.state": torch.tensor([[0.3, -0.2, 0.5, 1e3]])}
+    torch.testing.assert_close(policy(far), policy(correction))
+    a_mean, a_std = policy.normalizer._ms("action")
+    assert ((policy(correction) - a_mean) / a_std).abs().max() < 50  # normalised action units
+    # a BC update on the correction (labelled with the demonstration's action): bounded loss
+    batch = {**correction, "action": policy(demo).detach()}
+    optimizers = [torch.optim.Adam(m.parameters(), lr=1e-4) for m in policy.members]
+    losses = update_members(policy, optimizers, {k: v.repeat(2, 1) for k, v in batch.items()}, 1, [True, True], 1e-4)
+    assert max(losses) < 100, losses
+
+
+def test_normalization_round_trips_and_is_on_the_card(state_ds, tmp_path):
+    out = tmp_path / "run"
+    train(small_args(state_ds, out, steps=20, norm_std_floor=0.05, norm_clip=4.0))
+    state = torch.load(out / "checkpoints" / "step-00000020.pt", weights_only=False)
+    assert state["policy_spec"]["normalization"] == {"std_floor": 0.05, "std_min": 1e-6, "clip": 4.0}
+    policy = load_policy(out)
+    assert policy.spec.normalization == Normalization(std_floor=0.05, clip=4.0) and policy.normalizer.clip == 4.0
+    x = {"observation.state": torch.tensor([[100.0, 0.0, 0.0, 0.0]])}
+    assert policy.normalizer(x)["observation.state"].max() == 4.0
+    card = (out / "README.md").read_text()
+    assert "## Input normalisation" in card and "0.05 x its RMS value" in card and "clipped to +-4 stds" in card
+    assert "Dimensions normalised by a floored std: 0." in card  # every state dim varies (std ~1)
+    assert "| `norm_clip` | `4.0` |" in card
+
+
+def test_checkpoint_without_normalization_loads_with_its_legacy_behaviour(tmp_path):
+    """Checkpoints from before the floor and clip: a std under 1e-6 became 1, nothing was clipped."""
+    ds = make_dataset(tmp_path / "few", episodes=5, length=20, still_std=2e-5)
+    out = tmp_path / "run"
+    train(small_args(ds, out, steps=20))
+    path = out / "checkpoints" / "step-00000020.pt"
+    state = torch.load(path, weights_only=False)
+    del state["policy_spec"]["normalization"]
+    torch.save(state, path)
+    policy = load_policy(out)
+    assert policy.spec.normalization is None and policy.normalizer.clip is None
+    correction = {"observation.state": torch.tensor([[0.3, -0.2, 0.5, 0.1]])}
+    assert policy.normalizer(correction)["observation.state"].abs().max() > 1e3  # unbounded, as trained
+    legacy = BCPolicy(PolicySpec(**{**state["policy_spec"], "normalization": None}))
+    std = legacy.normalizer._ms("observation.state")[1]
+    assert std[3] == pytest.approx(state["policy_spec"]["stats"]["observation.state"]["std"][3])
 
 
 # ------------------------------------------------------------------------------ user errors

@@ -89,7 +89,11 @@ def _run_roc(args: argparse.Namespace) -> int:
         print(f"{name}: AUC {auc:.3f}")
     ax.set_xlabel("false positive rate")
     ax.set_ylabel("true positive rate")
-    ax.set_title(args.title or f"failure prediction ({len(failed)} episodes, {int(failed.sum())} failed)")
+    names = ", ".join(Path(run).name for run in args.runs)
+    ax.set_title(
+        args.title or f"failure prediction, {names}\n(n = {len(failed)} episodes, {int(failed.sum())} failed)",
+        fontsize=9,
+    )
     ax.legend(loc="lower right")
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -129,7 +133,7 @@ def _run_fire(args: argparse.Namespace) -> int:
         curves = []
         for label, episode_lines in lines.items():
             x, rate, low, high = success_curve(episode_lines, key, args.window)
-            curves.append(Curve(label, x, rate, low, high, 1))
+            curves.append(Curve(f"{label}, {len(episode_lines)} episodes", x, rate, low, high, 1))
         path = out.with_name(f"{out.stem}-{suffix}{out.suffix or '.png'}")
         try:
             written.append(

@@ -52,6 +52,18 @@ def _add_bc_arguments(p: argparse.ArgumentParser) -> None:
         default=[512, 512],
         help="fully connected widths, comma-separated (default: 512,512)",
     )
+    p.add_argument(
+        "--norm-std-floor",
+        type=finite_float,
+        default=0.01,
+        help="floor of each dimension's normalisation std as a share of its RMS value (default: 0.01)",
+    )
+    p.add_argument(
+        "--norm-clip",
+        type=lambda s: None if s.lower() == "none" else positive_float(s),
+        default=10.0,
+        help="clip normalised inputs to +-this many stds; none: no clipping (default: 10)",
+    )
     p.add_argument("--seed", type=non_negative_int, default=0, help="seed of split, shuffles and init (default: 0)")
     p.add_argument(
         "--checkpoint-every", type=positive_int, default=1000, help="steps between checkpoints (default: 1000)"
@@ -94,6 +106,8 @@ def _run_bc(args: argparse.Namespace) -> int:
             encoder_weights=args.encoder_weights,
             num_keypoints=args.keypoints,
             hidden=args.hidden,
+            norm_std_floor=args.norm_std_floor,
+            norm_clip=args.norm_clip,
             seed=args.seed,
             checkpoint_every=args.checkpoint_every,
             log_every=args.log_every,
