@@ -14,8 +14,10 @@ THESIS = (
 )
 CITATIONS = {
     "multiview": "Ablett et al., *Seeing all the angles: learning multiview manipulation policies for contact-rich tasks from demonstrations*, IROS 2021.",
-    "force_matching": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
-    "mode_labelling": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
+    # keyed by the registered stage (or producer) name the card looks up
+    "force_match": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
+    "replay_join": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
+    "mode_label": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
     "fire": "Ablett et al., *Failure identification to reduce expert burden in intervention-based learning*, 2020.",
     "success_examples": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
     "vpace": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
@@ -97,6 +99,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
 
         task_list = "\n".join(f"- `{t}`" for t in pd.read_parquet(tasks_path).index)
     stage_names = [s["name"] for s in provenance.get("stages", [])]
+    methods = stage_names + (["fire"] if "fire" in provenance else [])  # FIRE writes its datasets itself
     versions = provenance.get("versions", {})
     return _template("dataset_card.md").substitute(
         license=license,
@@ -114,7 +117,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
         features=features,
         stats=stat_rows,
         task_list=task_list,
-        citation=_citation(stage_names),
+        citation=_citation(methods),
     )
 
 
