@@ -256,7 +256,7 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
             for rec in recordings:
                 for ep in rec.reader.iter_episodes():
                     inputs = _d_inputs(ep.frames, keys, spec)
-                    batch = {k: torch.as_tensor(inputs[k]) for k in spec.features}
+                    batch = {k: torch.as_tensor(np.array(inputs[k])) for k in spec.features}  # a writable copy
                     policy_set.add({**inputs, "action": policy(batch).numpy().astype(np.float32)})
         own_actions = True
     else:
