@@ -87,7 +87,7 @@ def write_recording(
 
 @dataclass
 class Recording:
-    """One opened DAgger recording."""
+    """One opened DAgger recording (its layout shows in its frames: corrections only, or both)."""
 
     resolved: ResolvedDataset
     reader: LeRobotDatasetReader
@@ -95,25 +95,6 @@ class Recording:
     @property
     def name(self) -> str:
         return self.resolved.repo_id
-
-    @property
-    def layout(self) -> str:
-        """`continuous` (record_autonomous=true) or `corrections` (only corrections were recorded)."""
-        return "corrections" if self.policy_frames == 0 else "continuous"
-
-    @property
-    def policy_frames(self) -> int:
-        """Frames the policy drove (`intervention` False), from the data files' one column."""
-        import pyarrow.parquet as pq
-
-        total = 0
-        for path in sorted((self.reader.root / "data").glob("*/*.parquet")):
-            try:
-                column = pq.read_table(path, columns=[INTERVENTION]).column(0).to_numpy(zero_copy_only=False)
-            except Exception as exc:  # pyarrow raises several types for a damaged file
-                raise DatasetError(f"rollouts {self.name}: cannot read {path.name}: {exc}") from None
-            total += int((~np.stack(column).astype(bool)).sum())
-        return total
 
 
 def _differences(expected: dict, got: dict) -> str | None:

@@ -689,20 +689,20 @@ def run(args: FireArgs) -> dict:
                 recorded_episodes(episodes_dir, fps, task),
                 robot_type=ds.meta.robot_type,
             )
-        aggregate(aggregate_args(args, [str(rollouts)], str(bc_dir)))
+        aggregate(aggregate_args(args, [str(rollouts)], str(bc_dir), dataset_root))
     summary["dataset"] = str(dataset_root)
     checkpoint(summary)
     env.close()
     return summary
 
 
-def aggregate_args(args: FireArgs, rollouts: list[str], policy: str) -> AggregateArgs:
+def aggregate_args(args: FireArgs, rollouts: list[str], policy: str, out: Path) -> AggregateArgs:
     """The offline aggregation of a simulated run's recordings, with the run's settings."""
     return AggregateArgs(
         expert=args.dataset,
         root=args.root,
         rollouts=rollouts,
-        out=str(Path(args.dataset_root) if args.dataset_root else lerobot_home() / args.repo_id),
+        out=str(out),
         repo_id=args.repo_id,
         policy=policy,
         predictor=args.predictor if args.predictor in RULES else "gda",

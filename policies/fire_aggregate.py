@@ -235,7 +235,9 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
         expert_set.add(_d_inputs(demo.frames, keys, spec))
     parts: list[Stretch] = []
     index = corrections = 0
+    layouts = []  # per recording: whether the policy drove any of its frames
     for rec in recordings:
+        before = len(policy_set)
         for ep in rec.reader.iter_episodes():
             flags = np.asarray(ep.frames[INTERVENTION], dtype=bool).reshape(-1)
             inputs = _d_inputs(ep.frames, keys, spec)
@@ -244,6 +246,7 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
             parts += stretches(flags, index)
             corrections += int(flags.sum())
             index += 1
+        layouts.append("continuous" if len(policy_set) > before else "corrections")
     if len(policy_set) == 0:
         # only corrections were recorded: D compares them with what the policy would have done there
         if args.policy is None:
@@ -352,10 +355,10 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
                         {
                             "kind": "dagger",
                             "path": str(r.resolved.root),
-                            "layout": r.layout,
+                            "layout": layout,
                             "num_episodes": r.reader.num_episodes,
                         }
-                        for r in recordings
+                        for r, layout in zip(recordings, layouts, strict=True)
                     ),
                 ],
                 seed=args.seed,

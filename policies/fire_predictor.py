@@ -56,9 +56,7 @@ def _plain(state: Any) -> Any:
 class FailurePredictor:
     """D(s, a) and one rule (`beta` or `gda`) deciding when to ask the operator."""
 
-    def __init__(
-        self, disc: Discriminator, spec: PolicySpec, rules: dict[str, Any], rule: str, fps: int, device: str = "cpu"
-    ) -> None:
+    def __init__(self, disc: Discriminator, spec: PolicySpec, rules: dict[str, Any], rule: str, fps: int) -> None:
         if rule not in RULES:
             raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
         self.disc, self.spec, self.rules, self.rule_name, self.fps = disc, spec, rules, rule, int(fps)
@@ -110,7 +108,7 @@ class FailurePredictor:
         beta, gda = BetaRule(), GDARule()
         beta.load_state_dict(state["rules"]["beta"])
         gda.load_state_dict(state["rules"]["gda"])
-        return cls(disc, spec, {"beta": beta, "gda": gda}, rule or state["rule"], state["fps"], device)
+        return cls(disc, spec, {"beta": beta, "gda": gda}, rule or state["rule"], state["fps"])
 
     # --- use in a rollout
     def reset(self) -> None:
