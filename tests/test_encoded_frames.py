@@ -102,3 +102,38 @@ def test_new_frames_are_encoded_by_the_workers_not_the_writer(synthetic_raw_imag
     # a part holds the pixels and the PNG bytes once each (the copies that confirm a hit are rebuilt)
     encoded = sum(len(source_bytes(f, frames)) for f in frames)
     assert len(pickle.dumps(frames)) < frames.nbytes + encoded + 4096
+
+
+def test_raw_camera_frames_travel_as_their_png_files(synthetic_raw_images, tmp_path, monkeypatch):
+    """A pass-through of a raw-episode source copies each camera PNG file's bytes into the
+    dataset: no frame is encoded again."""
+    from shiftkit.pipelines import lerobot_io
+
+    def no_encoding(frame):
+        raise AssertionError("an unchanged raw frame was PNG-encoded again")
+
+    monkeypatch.setattr(lerobot_io, "_png_bytes", no_encoding)
+    files = {p.read_bytes() for p in synthetic_raw_images.rglob("frame_*.png")}
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(synthetic_raw_images))],
+        destination=DestinationConfig(root=str(tmp_path / "out")),
+        stages=[StageSpec("trim", {"head": 1})],
+    )
+    written = _png_column(run_pipeline(config, progress=False))
+    assert written and set(written) <= files
+
+
+def test_raw_pngs_a_reader_decodes_otherwise_are_encoded_afresh(synthetic_raw_images, tmp_path):
+    """A grey PNG is read as three equal channels: its own bytes would decode to one channel, so
+    the dataset holds an RGB encoding of what the raw reader saw."""
+    for path in synthetic_raw_images.rglob("frame_*.png"):
+        grey = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2GRAY)
+        path.write_bytes(cv2.imencode(".png", grey)[1].tobytes())
+    grey_files = {p.read_bytes() for p in synthetic_raw_images.rglob("frame_*.png")}
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(synthetic_raw_images))], destination=DestinationConfig(root=str(tmp_path / "out"))
+    )
+    out = run_pipeline(config, progress=False)
+    assert not set(_png_column(out)) & grey_files
+    frames = next(open_lerobot_dataset(out).iter_episodes()).frames[KEY]
+    assert frames.shape[-1] == 3 and np.array_equal(frames[..., 0], frames[..., 2])

@@ -31,6 +31,7 @@ import numpy as np
 
 from shiftkit.pipelines.camera_meta import check_cameras, merge_cameras
 from shiftkit.pipelines.depth import clean_metres, depth_feature
+from shiftkit.pipelines.encoded_frames import EncodedFrames
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, image_feature, vector_feature
@@ -293,7 +294,7 @@ class RawDataset:
             files = sorted(cam_dir.glob("frame_*.png"))
             if len(files) != length:
                 raise DatasetError(f"{cam_dir}: {len(files)} image files for {length} frames")
-            frames[_camera_feature(cam_dir.name)] = np.stack([_read_png(f) for f in files])
+            frames[_camera_feature(cam_dir.name)] = _read_camera(files)
         cameras = check_cameras(
             merge_cameras(self.index.get("info", {}).get("cameras"), meta.get("cameras")), f"{where}/meta.json"
         )
@@ -345,11 +346,39 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
     path.write_bytes(data.tobytes())
 
 
-def _read_png(path: Path) -> np.ndarray:
+def _read_camera(files: list[Path]) -> np.ndarray:
+    """One camera's frames, decoded, keeping each file's bytes where a LeRobot reader decodes them
+    to the same pixels (8-bit RGB, not interlaced): a stage that leaves the pixels alone then
+    costs no PNG encoding when the episode is written (`pipelines/encoded_frames.py`)."""
+    decoded, encoded = [], []
+    for path in files:
+        data = _read_bytes(path)
+        decoded.append(_decode_png(data, path))
+        encoded.append(data if _is_plain_rgb_png(data) else None)
+    frames = np.stack(decoded)
+    if all(b is not None for b in encoded):
+        return EncodedFrames.wrap(frames, encoded)
+    return frames
+
+
+def _is_plain_rgb_png(data: bytes) -> bool:
+    # IHDR is the first chunk: bytes 24-28 are bit depth, colour type, compression, filter, interlace.
+    return data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and data[24:29] == b"\x08\x02\x00\x00\x00"
+
+
+def _read_bytes(path: Path) -> bytes:
     try:
-        data = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+        return path.read_bytes()
     except OSError as exc:
         raise DatasetError(f"{path}: missing or unreadable image ({exc.strerror})") from None
+
+
+def _read_png(path: Path) -> np.ndarray:
+    return _decode_png(_read_bytes(path), path)
+
+
+def _decode_png(raw: bytes, path: Path) -> np.ndarray:
+    data = np.frombuffer(raw, dtype=np.uint8)
     img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         raise DatasetError(f"{path}: missing or unreadable image")
