@@ -138,7 +138,7 @@ class RawDatasetWriter:
         if "cameras" in meta:
             check_cameras(meta["cameras"], f"{where}: meta")
         arrays = {k: np.asarray(v) for k, v in arrays.items()}
-        _validate_arrays(arrays, where)
+        validate_arrays(arrays, where)
         length = len(arrays["timestamp"])
         layout = {
             "arrays": {k: [str(v.dtype), list(v.shape[1:])] for k, v in sorted(arrays.items())},
@@ -191,7 +191,7 @@ class RawDatasetWriter:
         (self._tmp / "dataset.json").write_text(dumps(index, indent=1))
 
 
-def _validate_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
+def validate_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
     for name in REQUIRED_ARRAYS:
         if name not in arrays:
             raise DatasetError(f"{where}: required array {name!r} is missing")
@@ -237,35 +237,11 @@ class RawDataset:
         return self.root / self.index["episodes"][i]["name"]
 
     def features(self) -> Features:
-        """The LeRobot schema the episodes map onto (from episode 0's files)."""
         ep = self.episode_dir(0)
-        names = self.index.get("names", {})
-        features: Features = {}
-        for path in sorted((ep / "arrays").glob("*.npy")):
-            name = path.stem
-            if name == "timestamp":
-                continue
-            arr = _load_npy(path, mmap=True)
-            key = FEATURE_OF_ARRAY.get(name, name)
-            dim = arr.shape[1] if arr.ndim == 2 else 1
-            dims = (
-                names.get(name)
-                or DEFAULT_NAMES.get(name)
-                or ([name] if arr.ndim == 1 else [f"{name}_{i}" for i in range(dim)])
-            )
-            if len(dims) != dim:
-                raise DatasetError(f"{self.root}/dataset.json: names[{name!r}] has {len(dims)} entries for {dim} dims")
-            features[key] = vector_feature(str(arr.dtype), dims)
-        for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
-            first = _read_png(cam_dir / "frame_000000.png")
-            features[_camera_feature(cam_dir.name)] = image_feature(first.shape)
-        for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
-            d = _load_npy(path, mmap=True)
-            if d.ndim != 3:
-                raise DatasetError(f"{path}: depth must be (T, H, W), got {d.shape}")
-            # metres, lerobot's native depth
-            features[_depth_feature(path.stem)] = depth_feature(d.shape[1], d.shape[2])
-        return features
+        arrays = {p.stem: _load_npy(p, mmap=True) for p in sorted((ep / "arrays").glob("*.npy"))}
+        images = {d.name: _read_png(d / "frame_000000.png")[None] for d in _children(ep / "images")}
+        depth = {p.stem: _load_npy(p, mmap=True) for p in sorted((ep / "depth").glob("*.npy"))}
+        return raw_features(arrays, images, depth, self.index.get("names", {}), f"{self.root}/dataset.json")
 
     def read_episode(self, i: int) -> Episode:
         ep = self.episode_dir(i)
@@ -273,46 +249,95 @@ class RawDataset:
         meta = read_json_file(ep / "meta.json", "episode metadata")
         if not isinstance(meta, dict):
             raise DatasetError(f"{ep}/meta.json: expected an object")
-        arrays: dict[str, np.ndarray] = {}
-        for path in sorted((ep / "arrays").glob("*.npy")):
-            arrays[path.stem] = _load_npy(path)
-        _validate_arrays(arrays, where)
+        arrays = {path.stem: _load_npy(path) for path in sorted((ep / "arrays").glob("*.npy"))}
+        validate_arrays(arrays, where)
         length = len(arrays["timestamp"])
         if meta.get("length", length) != length:
             raise DatasetError(f"{where}: meta.json says {meta['length']} frames, arrays have {length}")
-        if not isinstance(meta.get("task"), str):
-            raise DatasetError(f"{where}/meta.json: 'task' must be a string")
-
-        frames: dict[str, np.ndarray] = {}
-        ts = arrays.pop("timestamp").astype(np.float64)
-        frames["timestamp"] = ts - ts[0]
-        for name, arr in arrays.items():
-            frames[FEATURE_OF_ARRAY.get(name, name)] = arr if arr.ndim == 2 else arr.reshape(-1, 1)
-        if "next.success" in frames:
-            frames["next.success"] = frames["next.success"].astype(bool)
-        for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
+        images = {}
+        for cam_dir in _children(ep / "images"):
             files = sorted(cam_dir.glob("frame_*.png"))
             if len(files) != length:
                 raise DatasetError(f"{cam_dir}: {len(files)} image files for {length} frames")
-            frames[_camera_feature(cam_dir.name)] = _read_camera(files)
-        cameras = check_cameras(
-            merge_cameras(self.index.get("info", {}).get("cameras"), meta.get("cameras")), f"{where}/meta.json"
-        )
-        for path in sorted((ep / "depth").glob("*.npy")) if (ep / "depth").exists() else []:
-            d = _load_npy(path).astype(np.float32)
+            images[cam_dir.name] = _read_camera(files)
+        depth = {path.stem: _load_npy(path) for path in sorted((ep / "depth").glob("*.npy"))}
+        for name, d in depth.items():
             if d.ndim != 3 or len(d) != length:
-                raise DatasetError(f"{path}: {len(d)} depth frames for {length} frames")
-            frames[_depth_feature(path.stem)] = clean_metres(d)
-        frames["task"] = _frame_tasks(meta, length, where)
-        episode_meta = {k: v for k, v in meta.items() if k not in ("length",)}
-        episode_meta["source_episode_index"] = i
-        if cameras:
-            episode_meta["cameras"] = cameras
-        return Episode(frames, episode_meta)
+                raise DatasetError(f"{ep / 'depth' / name}.npy: {len(d)} depth frames for {length} frames")
+        return raw_episode(arrays, images, depth, meta, i, self.index.get("info", {}).get("cameras"), where)
 
     def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:
         for i in range(self.num_episodes) if indices is None else indices:
             yield self.read_episode(i)
+
+
+def raw_features(
+    arrays: dict[str, np.ndarray],
+    images: dict[str, np.ndarray],
+    depth: dict[str, np.ndarray],
+    names: dict[str, list[str]],
+    where: str,
+) -> Features:
+    """The LeRobot features of a raw episode's arrays, camera frames (T, H, W, 3) and depth
+    (T, H, W): those of a raw dataset on disk and of episodes recorded straight into LeRobot."""
+    features: Features = {}
+    for name, arr in sorted(arrays.items()):
+        if name == "timestamp":
+            continue
+        dim = arr.shape[1] if arr.ndim == 2 else 1
+        dims = (
+            names.get(name)
+            or DEFAULT_NAMES.get(name)
+            or ([name] if arr.ndim == 1 else [f"{name}_{i}" for i in range(dim)])
+        )
+        if len(dims) != dim:
+            raise DatasetError(f"{where}: names[{name!r}] has {len(dims)} entries for {dim} dims")
+        features[FEATURE_OF_ARRAY.get(name, name)] = vector_feature(str(arr.dtype), dims)
+    for cam, frames in sorted(images.items()):
+        features[_camera_feature(cam)] = image_feature(np.shape(frames)[1:])
+    for cam, d in sorted(depth.items()):
+        if np.ndim(d) != 3:
+            raise DatasetError(f"{where}: depth {cam!r} must be (T, H, W), got {np.shape(d)}")
+        features[_depth_feature(cam)] = depth_feature(d.shape[1], d.shape[2])  # metres, lerobot's native depth
+    return features
+
+
+def raw_episode(
+    arrays: dict[str, np.ndarray],
+    images: dict[str, np.ndarray],
+    depth: dict[str, np.ndarray],
+    meta: dict[str, Any],
+    index: int,
+    dataset_cameras: dict[str, Any] | None,
+    where: str,
+) -> Episode:
+    """A raw episode (validated arrays, camera frames, depth in metres, JSON metadata) as the
+    pipeline's `Episode`: the one conversion for episodes read from disk and recorded in memory."""
+    if not isinstance(meta.get("task"), str):
+        raise DatasetError(f"{where}/meta.json: 'task' must be a string")
+    length = len(arrays["timestamp"])
+    ts = arrays["timestamp"].astype(np.float64)
+    frames: dict[str, np.ndarray] = {"timestamp": ts - ts[0]}
+    for name, arr in arrays.items():
+        if name != "timestamp":
+            frames[FEATURE_OF_ARRAY.get(name, name)] = arr if arr.ndim == 2 else arr.reshape(-1, 1)
+    if "next.success" in frames:
+        frames["next.success"] = frames["next.success"].astype(bool)
+    for cam, cam_frames in sorted(images.items()):
+        frames[_camera_feature(cam)] = cam_frames
+    cameras = check_cameras(merge_cameras(dataset_cameras, meta.get("cameras")), f"{where}/meta.json")
+    for cam, d in sorted(depth.items()):
+        frames[_depth_feature(cam)] = clean_metres(np.asarray(d, dtype=np.float32))
+    frames["task"] = _frame_tasks(meta, length, where)
+    episode_meta = {k: v for k, v in meta.items() if k != "length"}
+    episode_meta["source_episode_index"] = index
+    if cameras:
+        episode_meta["cameras"] = cameras
+    return Episode(frames, episode_meta)
+
+
+def _children(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*")) if folder.exists() else []
 
 
 def _load_npy(path: Path, mmap: bool = False) -> np.ndarray:

@@ -12,10 +12,11 @@ its registry entry says (panda-play: reference dims 0:12 + 53:59 and 12:53; docs
 from __future__ import annotations
 
 import glob
+import itertools
 import logging
 import os
 import shutil
-import uuid
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -130,16 +131,77 @@ class CollectConfig:
             raise ConfigError(f"render quality must be 'fast' or 'full', got {self.render_quality!r}")
 
 
-def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> dict[str, Any]:
-    from tqdm import tqdm
+@dataclass
+class _Recording:
+    """The episodes of one `collect`, recorded as they are consumed, in the raw format's terms
+    (`RawDatasetWriter.add_episode`'s arguments); `counts` grows as they are."""
 
+    config: CollectConfig
+    names: dict[str, list[str]]
+    info: dict[str, Any]
+    robot: str
+    counts: dict[str, Any] = field(default_factory=lambda: {"episodes": 0, "successes": 0, "skipped": 0, "seeds": []})
+
+    def episodes(self, env: Any, family: Any, progress: bool) -> Iterator[dict[str, Any]]:
+        from tqdm import tqdm
+
+        config, counts = self.config, self.counts
+        state_idx, env_idx = family.state_indices, family.environment_state_indices
+        record = family.rollout if config.expert == "scripted" else family.experts[config.expert]
+        sequence = tuple(config.sequence) or family.play_sequences.get(config.task, ())
+        with tqdm(total=config.episodes, desc="collect", unit="ep", disable=not progress, leave=False) as bar:
+            for i in range(config.episodes):
+                if i:
+                    bar.update(1)
+                    bar.set_postfix(success=f"{(counts['successes']) / i:.0%}")
+                seed = config.seed + i
+                if config.play:
+                    r = family.play_rollout(env, seed, sequence, cameras=config.cameras, depth=config.depth)
+                    ok = all(s["success"] for s in r.segments)
+                    task = f"play: {', '.join(sequence)}"
+                else:
+                    r = record(env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps)
+                    ok = r.succeeded
+                    task = config.task
+                log.info("episode %d (seed %d): %s, %d frames", i, seed, "success" if ok else "failure", len(r.actions))
+                if config.only_successful and not ok:
+                    counts["skipped"] += 1
+                    continue
+                t = len(r.actions)
+                yield {
+                    "arrays": {
+                        "timestamp": np.arange(t, dtype=np.float64) / config.control_hz,
+                        "action": r.actions,
+                        "state": r.observations[:, state_idx],
+                        "environment_state": r.observations[:, env_idx],
+                        "success": r.success,
+                        "sim_qpos": r.qpos,
+                        "sim_qvel": r.qvel,
+                        **r.arrays,
+                    },
+                    "images": r.images or None,
+                    "depth": r.depth or None,
+                    "meta": {
+                        "task": task,
+                        "outcome": "success" if ok else "failure",
+                        "seed": seed,
+                        "sim_model": family.sim_model_id,
+                        "segments": r.segments,
+                        "control_hz": config.control_hz,
+                        **r.meta,
+                    },
+                }
+                counts["episodes"] += 1
+                counts["successes"] += int(ok)
+                counts["seeds"].append(seed)
+            bar.update(1)
+
+
+def _open_env(config: CollectConfig) -> tuple[Any, Any, _Recording]:
     from shiftkit.envs import env_family, make
     from shiftkit.envs.cameras import camera_intrinsics
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
     family = env_family(config.env)
-    state_idx, env_idx = family.state_indices, family.environment_state_indices
-    record = family.rollout if config.expert == "scripted" else family.experts[config.expert]
     try:
         env = make(
             config.env,
@@ -153,8 +215,8 @@ def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> 
     except (TypeError, ValueError) as exc:  # a keyword the constructor does not take, or a bad value
         raise ConfigError(f"--env-kwarg for {config.env}: {exc}") from None
     names = {
-        "state": [family.observation_names[i] for i in state_idx],
-        "environment_state": [family.observation_names[i] for i in env_idx],
+        "state": [family.observation_names[i] for i in family.state_indices],
+        "environment_state": [family.observation_names[i] for i in family.environment_state_indices],
         "action": list(env.action_names),  # an --env-kwarg may change the action (door-tactile sensor_mode)
     }
     info = {
@@ -165,64 +227,7 @@ def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> 
             for c in config.cameras
         },
     }
-    counts = {"episodes": 0, "successes": 0, "skipped": 0}
-    sequence = tuple(config.sequence) or family.play_sequences.get(config.task, ())
-    bar = tqdm(total=config.episodes, desc="collect", unit="ep", disable=not progress, leave=False)
-    with (
-        bar,
-        RawDatasetWriter(
-            out_dir, fps=config.control_hz, robot=family.robot, env=config.env, names=names, info=info
-        ) as writer,
-    ):
-        for i in range(config.episodes):
-            if i:
-                bar.update(1)
-                bar.set_postfix(success=f"{(counts['successes']) / i:.0%}")
-            seed = config.seed + i
-            if config.play:
-                r = family.play_rollout(env, seed, sequence, cameras=config.cameras, depth=config.depth)
-                ok = all(s["success"] for s in r.segments)
-                task = f"play: {', '.join(sequence)}"
-            else:
-                r = record(env, seed, cameras=config.cameras, depth=config.depth, extra_steps=config.extra_steps)
-                ok = r.succeeded
-                task = config.task
-            log.info("episode %d (seed %d): %s, %d frames", i, seed, "success" if ok else "failure", len(r.actions))
-            if config.only_successful and not ok:
-                counts["skipped"] += 1
-                continue
-            t = len(r.actions)
-            writer.add_episode(
-                arrays={
-                    "timestamp": np.arange(t, dtype=np.float64) / config.control_hz,
-                    "action": r.actions,
-                    "state": r.observations[:, state_idx],
-                    "environment_state": r.observations[:, env_idx],
-                    "success": r.success,
-                    "sim_qpos": r.qpos,
-                    "sim_qvel": r.qvel,
-                    **r.arrays,
-                },
-                images=r.images or None,
-                depth=r.depth or None,
-                meta={
-                    "task": task,
-                    "outcome": "success" if ok else "failure",
-                    "seed": seed,
-                    "sim_model": family.sim_model_id,
-                    "segments": r.segments,
-                    "control_hz": config.control_hz,
-                    **r.meta,
-                },
-            )
-            counts["episodes"] += 1
-            counts["successes"] += int(ok)
-            counts.setdefault("seeds", []).append(seed)
-        bar.update(1)
-    env.close()
-    if counts["episodes"] == 0:
-        raise ShiftkitError("no episode was kept (all failed with --only-successful)")
-    return counts
+    return env, family, _Recording(config, names, info, family.robot)
 
 
 def collect(config: CollectConfig, progress: bool = False) -> tuple[Path, dict[str, Any]]:
@@ -231,34 +236,80 @@ def collect(config: CollectConfig, progress: bool = False) -> tuple[Path, dict[s
     config.validate()
     target = Path(config.out if config.out is not None else config.root)
     remove_dead_leftovers(target)
-    if config.out is not None:
-        return target, _write_raw(config, target, progress)
-    from shiftkit.pipelines.features import plain_camera_features
-    from shiftkit.pipelines.sources import write_imported
-    from shiftkit.pipelines.sources.raw import RawSource
-
-    tmp = target.parent / f".{target.name}.collect-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir(parents=True)
+    env, family, recording = _open_env(config)
     try:
-        raw = tmp / "raw"
-        counts = _write_raw(config, raw, progress)
-        source = RawSource(raw)
-        features = plain_camera_features(source.features, "video") if config.video else source.features
-        write_imported(
-            config.lerobot,
-            target,
-            source.fps,
-            features,
-            source.iter_episodes(list(range(source.num_episodes))),
-            robot_type=source.robot_type,
-            # What was recorded, not the temporary raw folder it passed through.
-            sources=[{"kind": "simulator", "env": config.env, "task": config.task, "seeds": counts["seeds"]}],
-            importer={"name": "collect", **{k: v for k, v in asdict(config).items() if k not in ("out", "root")}},
-            seed=config.seed,
-        )
-        return target, counts
+        episodes = recording.episodes(env, family, progress)
+        if config.out is not None:
+            _write_raw(recording, episodes, target)
+        else:
+            _write_lerobot(recording, episodes, target)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        env.close()
+    return target, recording.counts
+
+
+def _write_raw(recording: _Recording, episodes: Iterator[dict[str, Any]], out_dir: Path) -> None:
+    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+
+    config = recording.config
+    with RawDatasetWriter(
+        out_dir,
+        fps=config.control_hz,
+        robot=recording.robot,
+        env=config.env,
+        names=recording.names,
+        info=recording.info,
+    ) as writer:
+        for episode in episodes:
+            writer.add_episode(**episode)
+        _check_kept(recording)
+
+
+def _write_lerobot(recording: _Recording, episodes: Iterator[dict[str, Any]], root: Path) -> None:
+    """Straight into the dataset, each episode converted as the raw reader would read it back
+    (so the dataset equals recording raw episodes and importing them), without writing them."""
+    import json
+
+    from shiftkit.pipelines.features import plain_camera_features
+    from shiftkit.pipelines.jsonutil import dumps
+    from shiftkit.pipelines.sources import write_imported
+    from shiftkit.pipelines.sources.raw import raw_episode, raw_features, validate_arrays
+
+    config = recording.config
+
+    def converted(i: int, episode: dict[str, Any]):
+        arrays = {k: np.asarray(v) for k, v in episode["arrays"].items()}
+        validate_arrays(arrays, f"episode {i}")
+        meta = json.loads(dumps(episode["meta"]))  # what a JSON round trip through meta.json gives
+        return raw_episode(
+            arrays, episode["images"] or {}, episode["depth"] or {}, meta, i, recording.info["cameras"], f"episode {i}"
+        )
+
+    first = next(episodes, None)
+    if first is None:
+        _check_kept(recording)
+    first_episode = converted(0, first)
+    features = raw_features(first["arrays"], first["images"] or {}, first["depth"] or {}, recording.names, "collect")
+    if config.video:
+        features = plain_camera_features(features, "video")
+    rest = (converted(i, e) for i, e in enumerate(episodes, start=1))
+    write_imported(
+        config.lerobot,
+        root,
+        config.control_hz,
+        features,
+        itertools.chain([first_episode], rest),
+        robot_type=recording.robot or None,
+        # `seeds` fills as the episodes are written, before the provenance is made from it
+        sources=[{"kind": "simulator", "env": config.env, "task": config.task, "seeds": recording.counts["seeds"]}],
+        importer={"name": "collect", **{k: v for k, v in asdict(config).items() if k not in ("out", "root")}},
+        seed=config.seed,
+    )
+
+
+def _check_kept(recording: _Recording) -> None:
+    if recording.counts["episodes"] == 0:
+        raise ShiftkitError("no episode was kept (all failed with --only-successful)")
 
 
 def remove_dead_leftovers(target: Path) -> None:
