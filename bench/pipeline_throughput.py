@@ -7,6 +7,10 @@ Measures, in one run, on the same synthetic state-only LeRobot dataset (>= 200 e
   * the I/O floor: pyarrow alone reading and rewriting the same parquet files (data and episode
     metadata), and the share of the pipeline's time it accounts for;
 and the peak RSS of the pipeline on 1x and 4x the episodes (each in a fresh process).
+A second source, raw episodes with an RGB camera (one PNG file per frame), measures the same
+pass-through against its own floor: reading the PNG files' bytes and the arrays, and writing
+them as parquet with pyarrow. Its frames travel as their files' bytes (no PNG is encoded again),
+so the pipeline's time is mostly that floor plus decoding.
 Goals: speed-up >= 10x; RSS(4x) <= 1.2 x RSS(1x). The last line printed is the JSON result.
 """
 
@@ -92,6 +96,22 @@ def io_floor(src: Path, dst: Path) -> float:
     return time.perf_counter() - t0
 
 
+def raw_camera_floor(src: Path, dst: Path) -> float:
+    """pyarrow alone on a raw camera source: every episode's arrays and PNG bytes read and written
+    as one parquet file per episode; returns seconds."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    dst.mkdir(parents=True)
+    t0 = time.perf_counter()
+    for k, ep in enumerate(sorted(src.glob("episode_*"))):
+        columns = {p.stem: list(np.load(p)) for p in sorted((ep / "arrays").glob("*.npy"))}
+        for cam in sorted((ep / "images").iterdir()):
+            columns[cam.name] = [f.read_bytes() for f in sorted(cam.glob("frame_*.png"))]
+        pq.write_table(pa.table(columns), dst / f"episode_{k:06d}.parquet", compression="snappy")
+    return time.perf_counter() - t0
+
+
 def shiftkit_copy(src: Path, dst: Path, workers: int = 1) -> float:
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.runner import run_pipeline
@@ -156,6 +176,12 @@ def main() -> None:
         if args.profile:
             print_profile(src, tmp / "profiled_copy", args.profile)
         fps_lerobot, fps_shiftkit = frames / t_lerobot, frames / t_shiftkit
+        from shiftkit.pipelines.synthetic import write_synthetic_raw
+
+        cam_episodes = 20 if args.quick else 50
+        raw_cam = write_synthetic_raw(tmp / "raw_cam", episodes=cam_episodes, length=length, seed=3, camera=(96, 96))
+        t_cam = sorted(shiftkit_copy(raw_cam, tmp / f"raw_cam_copy{k}") for k in range(3))[1]
+        t_cam_floor = min(raw_camera_floor(raw_cam, tmp / f"raw_cam_floor{k}") for k in range(3))
         rss_episodes = 50 if args.quick else episodes
         small = make_source(tmp / "small", rss_episodes, length, seed=1)
         large = make_source(tmp / "large", 4 * rss_episodes, length, seed=2)
@@ -165,6 +191,10 @@ def main() -> None:
     print(f"lerobot copy loop : {fps_lerobot:9.0f} frames/s ({frames} frames, {episodes} episodes)")
     print(f"shiftkit pipeline : {fps_shiftkit:9.0f} frames/s  -> speed-up {speedup:.1f}x")
     print(f"I/O floor (pyarrow read + write): {t_floor:.3f} s = {t_floor / t_shiftkit:.1%} of the pipeline's time")
+    print(
+        f"raw camera source: {cam_episodes * length / t_cam:.0f} frames/s; its I/O floor {t_cam_floor:.3f} s = "
+        f"{t_cam_floor / t_cam:.1%} of the pipeline's time"
+    )
     print(f"peak RSS 1x ({rss_episodes} eps): {rss_1x:.0f} MB, 4x: {rss_4x:.0f} MB -> ratio {rss_4x / rss_1x:.2f}")
     print(
         json.dumps(
@@ -181,6 +211,10 @@ def main() -> None:
                 "seconds_lerobot": round(t_lerobot, 3),
                 "io_floor_s": round(t_floor, 3),
                 "io_floor_fraction_of_pipeline": round(t_floor / t_shiftkit, 4),
+                "raw_camera_frames_per_s": round(cam_episodes * length / t_cam, 1),
+                "raw_camera_episodes": cam_episodes,
+                "raw_camera_io_floor_s": round(t_cam_floor, 3),
+                "raw_camera_io_floor_fraction_of_pipeline": round(t_cam_floor / t_cam, 4),
                 "episodes": episodes,
                 "frames_per_episode": length,
                 "rss_mb_1x": round(rss_1x, 1),
