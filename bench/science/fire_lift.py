@@ -1,0 +1,136 @@
+"""FIRE against BC at equal expert samples and execution time (thesis Figs 5.3 and 5.9), over seeds.
+
+panda-play lift at 5 Hz, as in docs/fire.md: demonstrations recorded once (seeds 0-39), then per
+training seed s: BC from 20 and from 40 demonstrations, and FIRE (gda and beta predictors) started
+from the 20 demonstrations with D after 300 policy samples and a budget of 500 corrections (env
+seeds 10000 + 1000 s onwards). Every policy is evaluated on the same held-out episodes (seeds
+100000 onwards, used by no demonstration or FIRE episode). Each step is a `shiftkit` command,
+printed before it runs, so a row of docs/results.md can be re-made by hand.
+
+Prints a table and, last, the JSON result: FIRE gda's success pooled over seeds against BC from 40
+demonstrations (the thesis claim: FIRE reaches BC's success with fewer expert samples). `--quick`
+is a smoke test of the whole path (one seed, a few episodes; its numbers mean nothing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from scipy.stats import binomtest
+
+SHIFTKIT = [sys.executable, "-m", "shiftkit.pipelines.cli"]
+
+
+def shiftkit(*args: str, env: dict[str, str]) -> None:
+    print("+ shiftkit " + " ".join(args), flush=True)
+    subprocess.run([*SHIFTKIT, *args], env=env, check=True, stdout=subprocess.DEVNULL)
+
+
+def evaluate(policy: Path, episodes: int, env: dict[str, str]) -> dict:
+    out = policy.parent / f"{policy.name}-eval.json"
+    shiftkit(
+        "eval", "--policy", str(policy), "--task", "lift", "--control-hz", "5",
+        "--episodes", str(episodes), "--seed", "100000", "--out", str(out), env=env,
+    )  # fmt: skip
+    return json.loads(out.read_text())
+
+
+def wilson(successes: int, n: int) -> list[float]:
+    ci = binomtest(successes, n).proportion_ci(method="wilson")
+    return [round(ci.low, 4), round(ci.high, 4)]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke test: one seed, a few episodes (< 5 min)")
+    parser.add_argument("--seeds", default="0,1,2", help="training seeds (default: 0,1,2)")
+    parser.add_argument("--eval-episodes", type=int, default=30, help="held-out episodes per policy (default: 30)")
+    parser.add_argument("--workdir", help="keep the datasets and runs here (default: a temporary folder)")
+    args = parser.parse_args()
+    seeds = [0] if args.quick else [int(s) for s in args.seeds.split(",")]
+    demos = {"small": 3, "large": 6} if args.quick else {"small": 20, "large": 40}
+    episodes = 2 if args.quick else args.eval_episodes
+    budget, max_episodes = ("30", "2") if args.quick else ("500", "60")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.workdir or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, "HF_LEROBOT_HOME": str(work / "lerobot"), "HF_HUB_OFFLINE": "1"}
+        for n in demos.values():
+            if not (work / "lerobot" / "local" / f"lift5-{n}").exists():
+                shiftkit(
+                    "collect", "--task", "lift", "--episodes", str(n), "--control-hz", "5", "--seed", "0",
+                    "--lerobot", f"local/lift5-{n}", "--root", str(work / "lerobot" / "local" / f"lift5-{n}"),
+                    "--no-progress", env=env,
+                )  # fmt: skip
+        rows: dict[str, list[dict]] = {}
+        for seed in seeds:
+            common = ["--threads", "1", "--device", "cpu", "--seed", str(seed), "--no-progress"]
+            for n in demos.values():
+                run = work / f"bc{n}-s{seed}"
+                shiftkit("train", "bc", "--dataset", f"local/lift5-{n}", "--output", str(run),
+                         "--hidden", "256,256", *common, env=env)  # fmt: skip
+                frames = json.loads((work / "lerobot" / "local" / f"lift5-{n}" / "meta" / "info.json").read_text())
+                result = evaluate(run, episodes, env)
+                rows.setdefault(f"BC, {n} demos", []).append(
+                    {"seed": seed, "successes": result["successes"], "episodes": result["episodes"],
+                     "expert_samples": frames["total_frames"], "execution_s": frames["total_frames"] / 5}
+                )  # fmt: skip
+            for predictor in ("gda", "beta"):
+                run = work / f"fire-{predictor}-s{seed}"
+                shiftkit(
+                    "fire", "--dataset", f"local/lift5-{demos['small']}", "--env", "panda-play", "--task", "lift",
+                    "--predictor", predictor, "--budget-expert-samples", budget, "--max-episodes", max_episodes,
+                    "--d-start", "300", "--env-seed", str(10000 + 1000 * seed), "--output", str(run),
+                    "--repo-id", f"local/fire-{predictor}-s{seed}", *common, env=env,
+                )  # fmt: skip
+                last = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+                last = [m for m in last if m.get("split") == "episode"][-1]
+                result = evaluate(run / "policy", episodes, env)
+                rows.setdefault(f"FIRE {predictor}, from {demos['small']} demos", []).append(
+                    {"seed": seed, "successes": result["successes"], "episodes": result["episodes"],
+                     "expert_samples": last["expert_samples"], "execution_s": last["execution_time_s"],
+                     "fire_episodes": last["episode"] + 1}
+                )  # fmt: skip
+
+    summary = {}
+    print(
+        "\n| policy | seeds | expert samples (mean) | execution time s (mean) | success per seed | pooled (Wilson 95%) |"
+    )
+    print("|---|---|---|---|---|---|")
+    for name, runs in rows.items():
+        k, n = sum(r["successes"] for r in runs), sum(r["episodes"] for r in runs)
+        samples = sum(r["expert_samples"] for r in runs) / len(runs)
+        exec_s = sum(r["execution_s"] for r in runs) / len(runs)
+        summary[name] = {"success": round(k / n, 4), "ci95": wilson(k, n), "runs": runs}
+        per_seed = ", ".join(f"{r['successes']}/{r['episodes']}" for r in runs)
+        ci = summary[name]["ci95"]
+        print(
+            f"| {name} | {len(runs)} | {samples:.0f} | {exec_s:.0f} | {per_seed} | {k / n:.1%} [{ci[0]:.1%}, {ci[1]:.1%}] |"
+        )
+    fire, bc = summary[f"FIRE gda, from {demos['small']} demos"], summary[f"BC, {demos['large']} demos"]
+    print(
+        json.dumps(
+            {
+                "bench": "science_fire_lift",
+                "metric": "fire_gda_success_minus_bc_large_success",
+                "value": round(fire["success"] - bc["success"], 4),
+                "goal": 0.0,
+                "higher_is_better": True,
+                "seeds": seeds,
+                "eval_episodes": episodes,
+                "quick": args.quick,
+                "policies": summary,
+            }
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
