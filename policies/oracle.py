@@ -18,7 +18,6 @@ finish the task), the oracle looks ahead itself and stops a failing run there: a
 from __future__ import annotations
 
 import copy
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -65,16 +64,14 @@ def sim_state(env: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def scripted_expert(env_name: str, env: Any) -> Any:
-    """The env family's scripted expert as a policy acting from the env's current state (`ExpertPolicy`
-    next to the family's recorder, with `reset()` and `act(obs)`)."""
+    """The env family's scripted expert as a policy acting from the env's current state (the
+    family's registered `expert_policy`, with `reset()` and `act(obs)`)."""
     from shiftkit.envs import env_family
 
     family = env_family(env_name)
-    module = importlib.import_module(family.rollout.__module__)
-    cls = getattr(module, "ExpertPolicy", None)
-    if cls is None:
-        raise ConfigError(f"env {env_name!r} has no scripted expert that acts from any state ({module.__name__})")
-    return cls(env)
+    if family.expert_policy is None:
+        raise ConfigError(f"env {env_name!r} has no scripted expert that acts from any state")
+    return family.expert_policy(env)
 
 
 @dataclass

@@ -44,6 +44,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features, vector_feature
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms import papers
 from shiftkit.transforms.force_calibration import WRENCH_AXES, Calibration, load_calibration, sensor_id
 
 __all__ = ["matrix_to_quat_xyzw", "quat_xyzw_to_matrix"]  # the pose conversions force matching uses
@@ -172,6 +173,10 @@ REPLAYED = (
 class ForceMatch(Stage):
     name = "force_match"
     version = 1
+    citation = papers.FORCE_MATCHING
+    # position mode replays the demonstration's contacts in the simulator without a calibration file
+    example_params = {"mode": "position", "hold_steps": 2}
+    example_input = "door-kinesthetic"
     Config = ForceMatchConfig
 
     def _family(self) -> Any:

@@ -51,6 +51,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features, image_feature
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms import papers
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +152,9 @@ def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
 class Multiview(Stage):
     name = "multiview"
     version = 2  # 2: depth is native (H, W, 1) metres
+    citation = papers.MULTIVIEW
+    example_params = {"num_views": 2, "depth": True}
+    example_input = "mv-lift"
     Config = MultiviewConfig
 
     def setup(self) -> None:
