@@ -47,7 +47,8 @@ def bare(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
     """The same IK + RGB-D rendering with plain mujoco calls: per episode, frames and seconds."""
     from shiftkit.envs.base_pose import BasePose
     from shiftkit.envs.cameras import disable_costly_flags, scene_option
-    from shiftkit.envs.multiview.physics import SAMPLER, MultiviewPhysics, rebase_state, rotation_z
+    from shiftkit.envs.geometry import rotation_z
+    from shiftkit.envs.multiview.physics import SAMPLER, MultiviewPhysics, rebase_state
     from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     dataset = open_raw_dataset(raw)

@@ -1,4 +1,4 @@
-"""The simulated expert of FIRE (thesis Algorithm 2's human H; SPEC 5.4): it answers "will the agent
+"""The simulated expert of FIRE (thesis Algorithm 2's human H; docs/fire.md): it answers "will the agent
 fail?" by forking the simulator and rolling the current policy ahead, stops failures nobody predicted,
 and takes over with the environment's scripted expert. A real deployment puts a person behind the same
 three calls (`will_fail`, `stops_unpredicted`, `take_over`).

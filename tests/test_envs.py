@@ -116,7 +116,7 @@ def test_hold_counts_and_5hz():
 
 
 def test_gripper_positive_opens_negative_closes(shared_envs):
-    """SPEC §7: gripper action > 0 opens, < 0 closes; 0 keeps the last command."""
+    """docs/panda_play.md: gripper action > 0 opens, < 0 closes; 0 keeps the last command."""
     env = shared_envs[("panda-play", "grasp")]
     obs, _ = env.reset(seed=0)
     for command, check in ((-1.0, lambda f: f < 0.1), (0.0, lambda f: f < 0.1), (1.0, lambda f: f > 0.95)):

@@ -1,5 +1,5 @@
 """`mode_label`: label the STS sensor mode (1 tactile / 0 visual) as an action dimension (thesis
-§4.3.7, SPEC §5.3) and keep the STS image of the active mode.
+§4.3.7, docs/force_matching.md) and keep the STS image of the active mode.
 
 The mode comes from the operator's mode-switch presses recorded in the raw episode (each press
 toggles the mode, starting visual; `shiftkit collect --expert kinesthetic` records one press as

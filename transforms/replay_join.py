@@ -23,12 +23,13 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.envs.geometry import quat_xyzw_to_matrix
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
 from shiftkit.transforms import papers
-from shiftkit.transforms.force_matching import PLAN_ACTION_NAMES, quat_xyzw_to_matrix
+from shiftkit.transforms.force_matching import PLAN_ACTION_NAMES
 
 POSE = "observation.ee_pose"
 

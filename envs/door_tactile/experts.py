@@ -25,10 +25,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from shiftkit.envs.controllers import rotation_vector
 from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, DoorTactileEnv
 from shiftkit.envs.door_tactile.physics import HANDLE_RADIUS, DoorTactilePhysics
 from shiftkit.envs.door_tactile.tasks import CLOSED_ANGLE, OPEN_ANGLE
+from shiftkit.envs.geometry import rotation_vector
 from shiftkit.envs.rollout import Rollout, RolloutRecorder, expert_rollout
 
 PRE_CONTACT = 0.012  # m before the handle face at the end of the approach

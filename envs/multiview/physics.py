@@ -23,6 +23,7 @@ import numpy as np
 from shiftkit.envs.base_pose import BasePose, BasePoseSampler
 from shiftkit.envs.cameras import look_at
 from shiftkit.envs.controllers import FixedOrientationIK
+from shiftkit.envs.geometry import quat_wxyz_to_xyzw, rotation_z, yaw_quat_wxyz
 from shiftkit.envs.panda_model import panda_spec
 from shiftkit.envs.scene import SCENE_GROUP, add_box, add_light_and_ground
 
@@ -49,7 +50,7 @@ CAMERA_FOVY = 70.0
 WORKSPACE_LOW = AIM + [-0.22, -0.2, 0.005]
 WORKSPACE_HIGH = AIM + [0.22, 0.2, 0.3]
 
-YAW_RANGE = (-0.6, 0.2)  # 45.8 deg, the reference's simulated range (SPEC §5.1)
+YAW_RANGE = (-0.6, 0.2)  # 45.8 deg, the reference's simulated range (docs/multiview.md)
 WORLD_CENTRE = (0.0, 0.0, TABLE_Z)
 SAMPLER = BasePoseSampler(
     centre=WORLD_CENTRE,
@@ -218,20 +219,6 @@ def build_spec(model_id: str, task: str, objects: tuple[str, ...]) -> mujoco.MjS
     return spec
 
 
-def rotation_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def quat_wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
-    q = np.asarray(q)[..., [1, 2, 3, 0]]
-    return np.where(q[..., 3:4] < 0, -q, q)  # w >= 0
-
-
-def _yaw_quat(angle: float) -> np.ndarray:
-    return np.array([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)])
-
-
 class MultiviewPhysics:
     """MuJoCo model/data of one multiview task scene, its base pose and Cartesian 6-DOF controller."""
 
@@ -277,7 +264,7 @@ class MultiviewPhysics:
         inverse_rot = -pose.yaw
         origin = -(rotation_z(inverse_rot) @ [pose.x, pose.y, 0.0])
         self.model.body_pos[self.frame_body] = origin
-        self.model.body_quat[self.frame_body] = _yaw_quat(inverse_rot)
+        self.model.body_quat[self.frame_body] = yaw_quat_wxyz(inverse_rot)
         mujoco.mj_forward(self.model, self.data)
 
     def world_to_base(self, points: np.ndarray) -> np.ndarray:
@@ -334,7 +321,7 @@ class MultiviewPhysics:
         pos = pose.to_base(np.array([*world_xy, z]))
         a = self.object_qpos[name]
         self.data.qpos[a : a + 3] = pos
-        self.data.qpos[a + 3 : a + 7] = _yaw_quat(yaw - pose.yaw)
+        self.data.qpos[a + 3 : a + 7] = yaw_quat_wxyz(yaw - pose.yaw)
 
     def reset(self, pose: BasePose, place: Callable[[MultiviewPhysics], np.ndarray]) -> None:
         """Reset at base pose `pose`: `place(self)` puts the objects and returns the base-frame TCP
@@ -461,7 +448,7 @@ def rebase_state(
     for name in physics.objects:
         a, v = physics.object_qpos[name], physics.object_dof[name]
         out_q[a : a + 3] = new.to_base(old.to_world(qpos[a : a + 3]))
-        mujoco.mju_mulQuat(quat, _yaw_quat(old.yaw - new.yaw), qpos[a + 3 : a + 7])
+        mujoco.mju_mulQuat(quat, yaw_quat_wxyz(old.yaw - new.yaw), qpos[a + 3 : a + 7])
         out_q[a + 3 : a + 7] = quat
         out_v[v : v + 3] = rel @ qvel[v : v + 3]  # linear velocity in the frame; angular is body-local
     return out_q, out_v
