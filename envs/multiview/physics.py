@@ -23,7 +23,7 @@ import numpy as np
 from shiftkit.envs.base_pose import BasePose, BasePoseSampler
 from shiftkit.envs.cameras import look_at
 from shiftkit.envs.controllers import FixedOrientationIK
-from shiftkit.envs.geometry import quat_wxyz_to_xyzw, rotation_z, yaw_quat_wxyz
+from shiftkit.envs.geometry import quat_wxyz_to_xyzw, quat_xyzw, rotation_from_vector, rotation_z, yaw_quat_wxyz
 from shiftkit.envs.panda_model import panda_spec
 from shiftkit.envs.scene import SCENE_GROUP, add_box, add_light_and_ground
 
@@ -401,13 +401,8 @@ class MultiviewPhysics:
             self.gripper_closed = gripper < 0.0
         tick_dt = TICK_SUBSTEPS * PHYSICS_DT
         if np.any(rotate):
-            angle = np.linalg.norm(rotate) * MAX_TCP_ROT_SPEED * tick_dt * self.n_ticks
-            axis = rotate / np.linalg.norm(rotate)
-            rot = np.zeros(9)
-            quat = np.zeros(4)
-            mujoco.mju_axisAngle2Quat(quat, axis, angle)
-            mujoco.mju_quat2Mat(rot, quat)
-            self.desired_rot = rot.reshape(3, 3) @ self.desired_rot
+            turn = rotation_from_vector(np.asarray(rotate, np.float64) * MAX_TCP_ROT_SPEED * tick_dt * self.n_ticks)
+            self.desired_rot = turn @ self.desired_rot
             self._ik = self._make_ik(self.desired_rot)
         for _ in range(self.n_ticks):
             self.desired_tcp = (self.desired_tcp + move * MAX_TCP_SPEED * tick_dt).clip(WORKSPACE_LOW, WORKSPACE_HIGH)
@@ -421,10 +416,8 @@ class MultiviewPhysics:
     # ----------------------------------------------------------------- observation
     def proprioception(self) -> np.ndarray:
         """TCP position, orientation (xyzw) and fingers now, t-1, t-2: 13 numbers, base frame."""
-        quat = np.zeros(4)
-        mujoco.mju_mat2Quat(quat, (self.tcp_rot()).ravel())
         h = self.finger_history
-        return np.concatenate([self.tcp_pos(), quat_wxyz_to_xyzw(quat), h[2], h[1], h[0]])
+        return np.concatenate([self.tcp_pos(), quat_xyzw(self.tcp_rot()), h[2], h[1], h[0]])
 
     def object_state(self) -> np.ndarray:
         """Pose of each free object (position + xyzw quaternion), then the door's handle position
