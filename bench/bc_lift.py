@@ -1,4 +1,4 @@
-"""BC learning check on Panda lift (SPEC 6.1 acceptance): BC from 50 scripted-expert episodes
+"""BC learning check on Panda lift: BC from 50 scripted-expert episodes
 (state observations) must succeed on >= 80% of 50 held-out seeds.
 
 Steps, all through shiftkit's own entry points:

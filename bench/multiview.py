@@ -4,6 +4,7 @@ Measures, in one run, on the same recorded `mv-lift` episodes (fixed view, simul
   * frames/s of the stage's `process` (IK + re-render RGB-D + re-expression + checks) against a
     bare loop over the same work: `mujoco.Renderer` (RGB and depth) on the same scene plus the same
     damped least-squares IK, nothing else (goal: stage / bare >= 0.8);
+  * the stage's damped least-squares IK against mink's on the same targets (accuracy, ms/frame);
   * the whole pipeline (raw source -> multiview -> LeRobot dataset), `shiftkit run` in a fresh
     process as a user runs it, with 2 workers against 1 (goal: speed-up >= 1.6; it needs two free
     cores), with each run's CPU seconds (its processes together). Start-up is also measured apart:
@@ -47,7 +48,8 @@ def bare(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
     """The same IK + RGB-D rendering with plain mujoco calls: per episode, frames and seconds."""
     from shiftkit.envs.base_pose import BasePose
     from shiftkit.envs.cameras import disable_costly_flags, scene_option
-    from shiftkit.envs.multiview.physics import SAMPLER, MultiviewPhysics, rebase_state, rotation_z
+    from shiftkit.envs.geometry import rotation_z
+    from shiftkit.envs.multiview.physics import SAMPLER, MultiviewPhysics, rebase_state
     from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     dataset = open_raw_dataset(raw)
@@ -89,6 +91,92 @@ def bare(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
         return frames, time.perf_counter() - start
 
     return episode
+
+
+def ik_targets(raw: Path, views: int, episodes: int):
+    """Per (episode, view): the physics at the new base pose, the arm's start and the re-expressed
+    TCP targets, as the stage computes them."""
+    from shiftkit.envs.base_pose import BasePose
+    from shiftkit.envs.geometry import quat_xyzw_to_matrix, rotation_z
+    from shiftkit.envs.multiview.physics import SAMPLER, MultiviewPhysics, rebase_state
+    from shiftkit.pipelines.sources.raw import open_raw_dataset
+
+    dataset = open_raw_dataset(raw)
+    physics = MultiviewPhysics("mv-lift-v1", "lift", ("block",))
+    for i in range(episodes):
+        ep = dataset.read_episode(i)
+        old = BasePose.from_dict(ep.meta["cameras"]["base"]["base_pose"])
+        state = ep.frames["observation.state"].astype(np.float64)
+        rng = np.random.default_rng(i)
+        for _ in range(views):
+            new = SAMPLER.sample(rng)
+            physics.set_base_pose(new)
+            rots = rotation_z(old.yaw - new.yaw) @ quat_xyzw_to_matrix(state[:, 3:7])
+            tcp = new.to_base(old.to_world(state[:, :3]))
+            qpos = [
+                rebase_state(physics, q, v, old, new)[0]
+                for q, v in zip(ep.frames["sim.qpos"], ep.frames["sim.qvel"], strict=True)
+            ]
+            yield physics, np.asarray(ep.frames["sim.qpos"][0][physics.arm_qpos], np.float64), tcp, rots, qpos
+
+
+def ik_comparison(
+    raw: Path, views: int, episodes: int, posture_cost: float = 1e-3, mink_iterations: tuple[int, int] = (10, 2)
+) -> dict[str, dict[str, float]]:
+    """The stage's damped least-squares IK (80 iterations on an episode's first frame, 20 after)
+    against mink's (a QP over a frame task and a posture task, daqp solver; `mink_iterations`) on
+    the same targets and warm starts: worst and median TCP position error (mm), worst rotation
+    error (deg) and milliseconds per frame."""
+    import mink
+
+    from shiftkit.envs.multiview.physics import HOME_QPOS
+
+    errors: dict[str, list[float]] = {"dls": [], "mink": []}
+    rotation_errors: dict[str, list[float]] = {"dls": [], "mink": []}
+
+    def keep(name: str, error: tuple[float, float]) -> None:
+        errors[name].append(error[0])
+        rotation_errors[name].append(error[1])
+
+    seconds = {"dls": 0.0, "mink": 0.0}
+    for physics, q0, tcp, rots, qpos in ik_targets(raw, views, episodes):
+        config = mink.Configuration(physics.model)
+        frame = mink.FrameTask("tcp", "site", position_cost=1.0, orientation_cost=1.0)
+        posture = mink.PostureTask(physics.model, cost=posture_cost)
+        limits = [mink.ConfigurationLimit(physics.model)]
+        q_dls, q_mink = q0.copy(), q0.copy()
+        for t in range(len(tcp)):
+            iterations = 80 if t == 0 else 20
+            physics.data.qpos[:] = qpos[t]
+            start = time.perf_counter()
+            q_dls = physics.solve_arm(tcp[t], rots[t], q_dls, iterations)
+            seconds["dls"] += time.perf_counter() - start
+            keep("dls", physics.tcp_error(q_dls, tcp[t], rots[t]))
+            start = time.perf_counter()
+            full = np.array(qpos[t], np.float64)
+            full[physics.arm_qpos] = q_mink
+            config.update(full)
+            home = full.copy()
+            home[physics.arm_qpos] = HOME_QPOS
+            posture.set_target(home)
+            frame.set_target(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(rots[t]), tcp[t]))
+            for _ in range(mink_iterations[t > 0]):
+                velocity = mink.solve_ik(config, [frame, posture], 0.1, "daqp", damping=1e-4, limits=limits)
+                config.integrate_inplace(velocity, 0.1)
+            q_mink = config.q[physics.arm_qpos].copy()
+            seconds["mink"] += time.perf_counter() - start
+            keep("mink", physics.tcp_error(q_mink, tcp[t], rots[t]))
+    frames = len(errors["dls"])
+    return {
+        name: {
+            "worst_mm": round(1e3 * max(errors[name]), 4),
+            "median_mm": round(1e3 * float(np.median(errors[name])), 4),
+            "worst_rotation_deg": round(float(np.degrees(max(rotation_errors[name]))), 4),
+            "ms_per_frame": round(1e3 * seconds[name] / frames, 3),
+            "frames": frames,
+        }
+        for name in errors
+    }
 
 
 def stage(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
@@ -199,6 +287,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-multiview-") as tmp:
         raw = record(Path(tmp) / "raw", episodes)
         (stage_frames, stage_s), (bare_frames, bare_s) = stage_vs_bare(raw, views, stage_episodes)
+        ik = ik_comparison(raw, views, episodes)
         imports = writer_imports()
         startup = pool_startup(raw, Path(tmp) / "s", views, 2)
         one, one_cpu = pipeline(raw, Path(tmp) / "w1", views, 1)
@@ -207,6 +296,11 @@ def main() -> None:
     bare_fps, stage_fps = bare_frames / bare_s, stage_frames / stage_s
     print(f"bare mujoco.Renderer + IK: {bare_fps:8.1f} frames/s ({bare_frames} frames)")
     print(f"multiview stage process:   {stage_fps:8.1f} frames/s ({stage_frames} frames)")
+    for name, row in ik.items():
+        print(
+            f"IK {name:4s}: worst {row['worst_mm']} mm (median {row['median_mm']}), worst rotation "
+            f"{row['worst_rotation_deg']} deg, {row['ms_per_frame']} ms/frame over {row['frames']} frames"
+        )
     print(f"start-up: writer imports {imports:.1f} s (every run); 2-worker pool ready {startup:.1f} s")
     print(
         f"shiftkit run, {episodes} episodes x {views} views: 1 worker {one:.1f} s ({one_cpu:.1f} CPU s), "
@@ -227,6 +321,7 @@ def main() -> None:
                 "workers_speedup_goal": 1.6,
                 "run_seconds": {"1": round(one, 2), "2": round(two, 2)},
                 "run_cpu_seconds": {"1": round(one_cpu, 2), "2": round(two_cpu, 2)},
+                "ik": ik,
                 "startup_seconds": {"writer_imports": round(imports, 2), "pool_2_workers": round(startup, 2)},
                 "episodes": episodes,
                 "stage_episodes": stage_episodes,

@@ -8,18 +8,13 @@ from pathlib import Path
 from string import Template
 from typing import Any
 
-# Method citations by stage / trainer name (the thesis the methods come from).
 THESIS = (
     "Trevor Ablett. *Mitigating distribution shift in robotic imitation learning* (PhD thesis, University of Toronto)."
 )
-CITATIONS = {
-    "multiview": "Ablett et al., *Seeing all the angles: learning multiview manipulation policies for contact-rich tasks from demonstrations*, IROS 2021.",
-    # keyed by the registered stage (or producer) name the card looks up
-    "force_match": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
-    "replay_join": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
-    "mode_label": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
+# Stages record their method's paper in the provenance (`citation` in a stage's entry). Trainers
+# (model cards, and FIRE's own datasets) are cited by name until they record theirs the same way.
+TRAINER_CITATIONS = {
     "fire": "Ablett et al., *Failure identification to reduce expert burden in intervention-based learning*, 2020.",
-    "success_examples": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
     "vpace": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
     "lfgp": "Ablett et al., *Learning from guided play: improving exploration for adversarial imitation learning with simple auxiliary tasks*, RA-L 2023.",
 }
@@ -29,9 +24,15 @@ def _template(name: str) -> Template:
     return Template(resources.files("shiftkit.cards").joinpath("templates", name).read_text())
 
 
-def _citation(names: list[str]) -> str:
-    cites = [CITATIONS[n] for n in dict.fromkeys(names) if n in CITATIONS]
-    return "\n".join(f"- {c}" for c in cites + [THESIS])
+def _citation(cites: list[str | None]) -> str:
+    """The methods' papers (each once, in order) and the thesis, as a Markdown list."""
+    return "\n".join(f"- {c}" for c in [*dict.fromkeys(c for c in cites if c), THESIS])
+
+
+def _stage_citations(provenance: dict[str, Any]) -> list[str | None]:
+    """The citations the provenance records with its stages (each source's own stages first)."""
+    own = [s for src in provenance.get("sources", []) for s in src.get("stages") or []]
+    return [s.get("citation") for s in [*own, *provenance.get("stages", [])]]
 
 
 def _fmt(values: Any, k: int = 4) -> str:
@@ -99,7 +100,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
 
         task_list = "\n".join(f"- `{t}`" for t in pd.read_parquet(tasks_path).index)
     stage_names = [s["name"] for s in provenance.get("stages", [])]
-    methods = stage_names + (["fire"] if "fire" in provenance else [])  # FIRE writes its datasets itself
+    cites = _stage_citations(provenance) + ([TRAINER_CITATIONS["fire"]] if "fire" in provenance else [])
     versions = provenance.get("versions", {})
     return _template("dataset_card.md").substitute(
         license=license,
@@ -117,7 +118,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
         features=features,
         stats=stat_rows,
         task_list=task_list,
-        citation=_citation(methods),
+        citation=_citation(cites),
     )
 
 
@@ -157,5 +158,5 @@ def render_model_card(card: dict[str, Any]) -> str:
         env=card.get("env") or "(not evaluated in an environment)",
         args=args,
         metrics=metrics or "| (none yet) | |",
-        citation=_citation([trainer]),
+        citation=_citation([TRAINER_CITATIONS.get(trainer)]),
     )

@@ -13,13 +13,14 @@ import pkgutil
 from shiftkit.envs.registry import EnvFamily, env_family, env_tasks, families, gym_id, make, register_family
 
 
-def _import_families() -> None:
-    for module in pkgutil.iter_modules(__path__):
+def import_families(path: list[str] | None = None) -> None:
+    """Import every family package on `path` (default: this package's folder), which registers it."""
+    for module in pkgutil.iter_modules(__path__ if path is None else path):
         if module.ispkg:
             importlib.import_module(f"{__name__}.{module.name}")
 
 
-_import_families()
+import_families()
 ENV_TASKS: dict[str, tuple[str, ...]] = env_tasks()
 
 __all__ = ["ENV_TASKS", "EnvFamily", "env_family", "env_tasks", "families", "gym_id", "make", "register_family"]

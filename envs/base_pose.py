@@ -1,4 +1,4 @@
-"""Mobile-base poses for multiview manipulation (thesis §3.5, SPEC §5.1).
+"""Mobile-base poses for multiview manipulation (thesis §3.5, docs/multiview.md).
 
 A base pose is an SE(2) pose (x, y, yaw) of the robot base in the world. The base carries a rigidly
 mounted camera; a pose is *aimed* when the camera's optical axis passes through a chosen task centre

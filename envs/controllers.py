@@ -5,6 +5,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from shiftkit.envs.geometry import rotation_vector
+
 
 def _rotation_error_matrix(rotation: np.ndarray) -> np.ndarray:
     """(3, 9) matrix C with C @ R.ravel() = the small-angle rotation from a site orientation R to
@@ -61,15 +63,6 @@ class FixedOrientationIK:
         mujoco.mju_cholSolve(self._sol, a, err - jac @ posture)
         dq = (jac.T @ self._sol + posture).clip(-self.max_dq, self.max_dq)  # large errors converge over calls
         return (q + dq).clip(self.low, self.high)
-
-
-def rotation_vector(rotation: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a 3x3 rotation matrix."""
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rotation, dtype=np.float64).ravel())
-    vec = np.zeros(3)
-    mujoco.mju_quat2Vel(vec, quat, 1.0)
-    return vec
 
 
 class CartesianImpedance:

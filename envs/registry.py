@@ -1,8 +1,9 @@
 """The registry over environment families: CLI names, tasks, gymnasium ids and the facts that the
 dataset tools need (how an observation splits into LeRobot features, cameras, experts).
 
-A family is a package under `shiftkit/envs/` whose `__init__` calls `register_family(EnvFamily(...))`;
-`shiftkit.envs` imports every such package, so a new family only adds a folder. Gymnasium ids are
+A family is a package under `shiftkit/envs/` whose `__init__` calls `register_family(EnvFamily(...))`
+with everything the rest of shiftkit uses of it (dataset layout, recorders, the expert as a policy);
+`shiftkit.envs` imports every such package (pkgutil), so a new family only adds a folder. Gymnasium ids are
 `shiftkit/<gym_prefix>-<TaskName>-v0` (e.g. `shiftkit/PandaPlay-Lift-v0`); `gymnasium.make(id,
 control_hz=5, render_mode="rgb_array")` passes keyword arguments through.
 """
@@ -57,6 +58,9 @@ class EnvFamily:
     """Default play sequence per main task."""
     action_conventions: dict[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
     """Converters from other codebases' action conventions (e.g. "vpace") into this family's."""
+    expert_policy: Callable[[Any], Any] | None = None
+    """`expert_policy(env)`: the scripted expert as a policy that acts from the env's current state
+    (`reset()`, `act(obs)`), if the family has one: FIRE's simulated oracle takes over with it."""
 
     def gym_id(self, task: str) -> str:
         return f"shiftkit/{self.gym_prefix}-{self.tasks[task]}-v0"

@@ -25,7 +25,22 @@ from typing import Any
 
 from shiftkit.pipelines.dataclass_config import from_dict
 from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.sources import SourceConfig
+
+
+@dataclass
+class SourceConfig:
+    """One pipeline input: a local path or a dataset ID (`shiftkit.pipelines.sources.open_source` opens it)."""
+
+    path: str | None = None
+    """A raw-episode directory or a LeRobot dataset directory (relative to the config file)."""
+    repo_id: str | None = None
+    """A LeRobot dataset ID: looked up in $HF_LEROBOT_HOME first, then on the hub."""
+    revision: str | None = None
+    """Hub revision (branch, tag or commit) when `repo_id` is pulled."""
+
+    def __post_init__(self) -> None:
+        if (self.path is None) == (self.repo_id is None):
+            raise ValueError("give exactly one of 'path' and 'repo_id'")
 
 
 @dataclass

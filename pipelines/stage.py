@@ -18,6 +18,7 @@ resumes, and puts them into the run summary and the provenance.
 from __future__ import annotations
 
 import importlib
+import pkgutil
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -30,7 +31,8 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.features import Features
 
-# Packages whose import registers the built-in stages (the core never imports them directly).
+# Packages whose import registers the built-in stages (the core never imports them directly): each
+# imports every module in it (`import_modules`), so a new stage is one new module.
 BUILTIN_STAGE_PACKAGES = ("shiftkit.transforms",)
 
 
@@ -42,9 +44,27 @@ class StageContext:
 
 
 class Stage(ABC):
+    """A registered, versioned stage (see the module docstring). Besides its name, version and
+    `Config`, a stage class carries what the rest of shiftkit reads from the registry: the
+    conformance tests its example, the frame-rate property tests its resampling grid, the dataset
+    card (through the provenance) its citation."""
+
     name: ClassVar[str]
     version: ClassVar[int]
     Config: ClassVar[type]
+    citation: ClassVar[str | None] = None
+    """The paper the method comes from: recorded with the stage in the provenance, cited by the dataset card."""
+    example_params: ClassVar[dict[str, Any] | None] = None
+    """Parameters that make the stage do real work on `example_input` (tests/test_stage_conformance.py
+    runs every stage that has them; every stage shiftkit ships must)."""
+    example_input: ClassVar[str] = "synthetic"
+    """The recording `example_params` need: "synthetic" (the synthetic raw episodes with images, 10 fps),
+    "mv-lift" (simulated multiview lift episodes with RGB-D and camera metadata), "door-kinesthetic"
+    (a simulated kinesthetic door demonstration with STS images) or "door-replay" (the robot's
+    recording of that demonstration's replay plan)."""
+    resampling_params: ClassVar[dict[str, list[Any]] | None] = None
+    """Required of a stage that changes the frame rate (overrides `transform_fps`): values to try per
+    parameter in the property tests that episode-end events survive resampling."""
 
     def __init__(self, config: Any, context: StageContext) -> None:
         self.config = config
@@ -85,7 +105,11 @@ class Stage(ABC):
         return counts
 
     def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "version": self.version, "params": to_dict(self.config)}
+        """The stage as the provenance records it (the dataset card cites `citation`)."""
+        entry = {"name": self.name, "version": self.version, "params": to_dict(self.config)}
+        if self.citation:
+            entry["citation"] = self.citation
+        return entry
 
 
 _REGISTRY: dict[str, type[Stage]] = {}
@@ -96,6 +120,8 @@ def register_stage(cls: type[Stage]) -> type[Stage]:
     for attr in ("name", "version", "Config"):
         if not hasattr(cls, attr):
             raise TypeError(f"stage {cls.__name__} lacks class attribute {attr!r}")
+    if cls.transform_fps is not Stage.transform_fps and not cls.resampling_params:
+        raise TypeError(f"stage {cls.__name__} changes the frame rate but gives no resampling_params")
     existing = _REGISTRY.get(cls.name)
     if existing is not None and existing is not cls:
         raise TypeError(f"stage name {cls.name!r} is registered twice ({existing.__name__}, {cls.__name__})")
@@ -128,6 +154,13 @@ def select_outputs(stages: list[Stage], read_metas: Callable[[], list[dict[str, 
         for k, flag in zip(kept, chosen, strict=True):
             keep[k] = bool(flag)
     return keep
+
+
+def import_modules(package: str, path: Iterable[str]) -> None:
+    """Import every module found on `path` (a package's `__path__`) as `package.<module>`: how the
+    stage packages load their stages without listing them."""
+    for module in pkgutil.iter_modules(list(path)):
+        importlib.import_module(f"{package}.{module.name}")
 
 
 def load_builtin_stages() -> None:

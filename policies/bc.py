@@ -1,4 +1,4 @@
-"""Behavioural cloning (SPEC 6.1; thesis 3.6.3 and 4.4.2): MSE action regression by an ensemble.
+"""Behavioural cloning (thesis 3.6.3 and 4.4.2): MSE action regression by an ensemble.
 
 Observations are the dataset's `observation.*` features: numeric ones are normalised with the
 dataset's stats and concatenated; each camera goes through a CNN (or ResNet-18 trunk) ending in a
@@ -44,7 +44,7 @@ REGIMES = ("early-stop", "fixed")
 
 @dataclass
 class BCArgs:
-    """Arguments of `shiftkit train bc` (defaults follow SPEC 6.1)."""
+    """Arguments of `shiftkit train bc` (defaults follow the thesis, 3.6.3 and 4.4.2)."""
 
     datasets: list[str]
     """Dataset IDs or local dataset folders; several are trained on as one (same features)."""

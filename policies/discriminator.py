@@ -1,4 +1,4 @@
-"""FIRE's discriminator D(s, a) (thesis 5.3.1, SPEC 5.4): the probability that a state-action pair
+"""FIRE's discriminator D(s, a) (thesis 5.3.1, docs/fire.md): the probability that a state-action pair
 comes from the expert rather than the policy.
 
 Inputs are the BC policy's features, normalised with the same dataset statistics (`bc.Normalizer`);

@@ -16,7 +16,7 @@ from `env.render_rgb(cam)` and `observation.depth.<cam>` from `env.render_depth(
 Episode `i` is reset with seed `seed + i`; it counts as a success once `info["is_success"]` holds.
 An env with `episode_extras()` (e.g. door-tactile: the STS modes the policy drove) adds that dict to
 each episode's result.
-`yaw_sweep` evaluates a multiview policy per base-yaw bin (SPEC §5.1: 12 bins [-0.8, -0.7] ...
+`yaw_sweep` evaluates a multiview policy per base-yaw bin (docs/multiview.md: 12 bins [-0.8, -0.7] ...
 [0.3, 0.4] rad) and `write_yaw_sweep` saves its JSON and a PNG of success per bin.
 """
 
@@ -338,7 +338,7 @@ def _make_env(
 YAW_BINS: tuple[tuple[float, float], ...] = tuple(
     (round(-0.8 + 0.1 * k, 1), round(-0.7 + 0.1 * k, 1)) for k in range(12)
 )
-"""The out-of-distribution sweep of SPEC §5.1 for policies trained on base yaw U[-0.6, 0.2]."""
+"""The out-of-distribution sweep (thesis ch. 3, docs/multiview.md) for policies trained on base yaw U[-0.6, 0.2]."""
 
 
 def yaw_sweep(

@@ -1,4 +1,4 @@
-"""FIRE's failure predictors (thesis 5.3-5.4, SPEC 5.4): when should a running policy be stopped
+"""FIRE's failure predictors (thesis 5.3-5.4, docs/fire.md): when should a running policy be stopped
 and the expert asked "will the agent fail?".
 
 Every predictor sees, at each autonomous step t, the discriminator score `d_t = D(s_t, a_t)` (None

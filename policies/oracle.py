@@ -1,4 +1,4 @@
-"""The simulated expert of FIRE (thesis Algorithm 2's human H; SPEC 5.4): it answers "will the agent
+"""The simulated expert of FIRE (thesis Algorithm 2's human H; docs/fire.md): it answers "will the agent
 fail?" by forking the simulator and rolling the current policy ahead, stops failures nobody predicted,
 and takes over with the environment's scripted expert. A real deployment puts a person behind the same
 three calls (`will_fail`, `stops_unpredicted`, `take_over`).
@@ -18,7 +18,6 @@ finish the task), the oracle looks ahead itself and stops a failing run there: a
 from __future__ import annotations
 
 import copy
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -65,16 +64,14 @@ def sim_state(env: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def scripted_expert(env_name: str, env: Any) -> Any:
-    """The env family's scripted expert as a policy acting from the env's current state (`ExpertPolicy`
-    next to the family's recorder, with `reset()` and `act(obs)`)."""
+    """The env family's scripted expert as a policy acting from the env's current state (the
+    family's registered `expert_policy`, with `reset()` and `act(obs)`)."""
     from shiftkit.envs import env_family
 
     family = env_family(env_name)
-    module = importlib.import_module(family.rollout.__module__)
-    cls = getattr(module, "ExpertPolicy", None)
-    if cls is None:
-        raise ConfigError(f"env {env_name!r} has no scripted expert that acts from any state ({module.__name__})")
-    return cls(env)
+    if family.expert_policy is None:
+        raise ConfigError(f"env {env_name!r} has no scripted expert that acts from any state")
+    return family.expert_policy(env)
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""VPACE / LfGP trainer: scheduled auxiliary control (SAC-X) learning from success examples (SPEC 6.2).
+"""VPACE / LfGP trainer: scheduled auxiliary control (SAC-X) learning from success examples (thesis ch. 6-7, docs/vpace.md).
 
 One SAC intention per task (main + auxiliary), all learning off-policy from one shared replay buffer of
 every interaction; a scheduler picks which intention acts in each fixed period of an episode. Rewards
@@ -57,7 +57,7 @@ EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes never reuse a training reset
 
 @dataclass
 class VPACEArgs:
-    """Arguments of `shiftkit train vpace|lfgp`; defaults are the thesis hyperparameters (SPEC 6.2)."""
+    """Arguments of `shiftkit train vpace|lfgp`; defaults are the thesis hyperparameters (docs/vpace.md)."""
 
     examples: list[str] = field(default_factory=list)
     """Example dataset IDs or local roots; each frame's `task` names the task it is an example of."""
@@ -592,7 +592,7 @@ def train(
 
 
 class MainIntentionPolicy:
-    """A trained agent's main intention acting with its mean action (SPEC 6.2), in the policy
+    """A trained agent's main intention acting with its mean action (docs/vpace.md), in the policy
     interface of `shiftkit eval`: one `observation.state` input named like the env's observation."""
 
     def __init__(

@@ -1,4 +1,4 @@
-"""Dataset cards cite the method that made the dataset, looked up by its registered name."""
+"""Dataset cards cite the method that made the dataset, from the citation its stages record in the provenance."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from shiftkit.cards.render import render_dataset_card
-from shiftkit.pipelines.stage import registered_stages
+from shiftkit.pipelines.stage import StageContext, build_stage, registered_stages
 
 
 def _root(tmp_path: Path) -> Path:
@@ -29,9 +29,22 @@ def _root(tmp_path: Path) -> Path:
     ],
 )
 def test_a_dataset_card_cites_the_method_of_its_stages(tmp_path, stage, title):
-    assert stage in registered_stages()  # the card's key is the name the stage registers under
-    provenance = {"stages": [{"name": stage, "version": 1, "params": {}}], "sources": []}
-    assert title in render_dataset_card(_root(tmp_path), provenance)
+    # the stage's entry as the runner records it in the provenance
+    entry = build_stage(stage, registered_stages()[stage].example_params, StageContext(fps=10), stage).describe()
+    root = _root(tmp_path)
+    assert title in render_dataset_card(root, {"stages": [entry], "sources": []})
+    own = {"stages": [], "sources": [{"path": "raw", "stages": [entry]}]}
+    assert title in render_dataset_card(root, own), "a source's own stage is cited too"
+
+
+def test_a_card_cites_each_paper_once(tmp_path):
+    stages = registered_stages()
+    entries = [
+        build_stage(n, stages[n].example_params, StageContext(fps=10), n).describe()
+        for n in ("mode_label", "resample", "mode_label")
+    ]
+    card = render_dataset_card(_root(tmp_path), {"stages": entries, "sources": []})
+    assert card.count("force-matched imitation learning") == 1
 
 
 def test_a_fire_dataset_card_cites_fire(tmp_path):

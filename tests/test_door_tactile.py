@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 import shiftkit.envs as envs
-from shiftkit.envs.controllers import rotation_vector
 from shiftkit.envs.door_tactile.env import DoorTactileEnv
 from shiftkit.envs.door_tactile.experts import rollout
 from shiftkit.envs.door_tactile.physics import STIFFNESS
 from shiftkit.envs.door_tactile.tasks import START_HALF, START_OFFSET_ALONG_NORMAL, START_OFFSET_BACK, START_YAW
+from shiftkit.envs.geometry import rotation_vector
 from shiftkit.envs.sts import PadContacts
 from shiftkit.envs.tactile_estimation import MarkerWrenchEstimator, detect_markers
 

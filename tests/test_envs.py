@@ -116,7 +116,7 @@ def test_hold_counts_and_5hz():
 
 
 def test_gripper_positive_opens_negative_closes(shared_envs):
-    """SPEC §7: gripper action > 0 opens, < 0 closes; 0 keeps the last command."""
+    """docs/panda_play.md: gripper action > 0 opens, < 0 closes; 0 keeps the last command."""
     env = shared_envs[("panda-play", "grasp")]
     obs, _ = env.reset(seed=0)
     for command, check in ((-1.0, lambda f: f < 0.1), (0.0, lambda f: f < 0.1), (1.0, lambda f: f > 0.95)):
@@ -185,3 +185,41 @@ def test_unknown_names_raise():
         envs.make("panda-play", "fly")
     with pytest.raises(ValueError, match="unknown env"):
         envs.make("kitchen", "lift")
+
+
+NEW_FAMILY = '''"""A family a test adds as a new folder: Panda play's scene and expert under another name."""
+
+from dataclasses import replace
+
+from shiftkit.envs import panda_play
+from shiftkit.envs.registry import register_family
+
+FAMILY = register_family(replace(panda_play.FAMILY, name="toy-play", gym_prefix="ToyPlay"))
+'''
+
+
+def test_a_new_family_folder_is_discovered(tmp_path, monkeypatch):
+    """Adding an env family is one new folder under envs/: discovery registers it with its gymnasium
+    ids, and what the rest of shiftkit asks of a family (make, the expert as a policy) comes from
+    its registration."""
+    import sys
+
+    from shiftkit.envs import registry
+
+    (tmp_path / "toy_play").mkdir()
+    (tmp_path / "toy_play" / "__init__.py").write_text(NEW_FAMILY)
+    monkeypatch.setattr(registry, "_FAMILIES", dict(registry._FAMILIES))
+    monkeypatch.setattr(envs, "__path__", [*envs.__path__, str(tmp_path)])
+    assert "toy-play" not in envs.families()
+    envs.import_families([str(tmp_path)])
+    family = envs.env_family("toy-play")
+    try:
+        assert envs.gym_id("toy-play", "lift") in gym.registry
+        env = envs.make("toy-play", "lift")
+        env.reset(seed=0)
+        assert family.expert_policy(env).act(None).shape == env.action_space.shape
+        env.close()
+    finally:
+        sys.modules.pop("shiftkit.envs.toy_play", None)
+        for task in family.tasks:
+            gym.registry.pop(family.gym_id(task), None)

@@ -7,13 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from shiftkit.transforms.force_calibration import WRENCH_AXES, AxisFit, Calibration
-from shiftkit.transforms.force_matching import (
-    force_matched_poses,
-    matrix_to_quat_xyzw,
-    median_filter,
-    quat_xyzw_to_matrix,
-)
+from shiftkit.transforms.force_matching import force_matched_poses, median_filter
 from tests.helpers import lerobot_train_two_steps
 
 

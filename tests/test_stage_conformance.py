@@ -1,5 +1,6 @@
 """Every registered stage: predicted schema == written schema, same seed -> same bytes, input
-untouched, bad config -> one-line ConfigError. A new stage must add its example parameters here."""
+untouched, bad config -> one-line ConfigError. The stages and their examples come from the registry
+(`Stage.example_params`, `Stage.example_input`): a new stage module needs no edit here."""
 
 from __future__ import annotations
 
@@ -17,38 +18,21 @@ from shiftkit.pipelines.sources import SourceConfig
 from shiftkit.pipelines.stage import registered_stages
 from tests.helpers import tree_hashes
 
-# Parameters that make each stage do real work on the synthetic fixture (10 fps, 3 episodes).
-EXAMPLE_PARAMS = {
-    "filter": {"min_length": 2, "keep_fraction": 0.7},
-    "trim": {"head": 1, "tail": 2},
-    "subsample": {"every": 2, "offset": 1},
-    "resample": {"fps": 5},
-    "rename": {"mapping": {"observation.environment_state": "observation.goal"}},
-    "drop": {"features": ["observation.environment_state"]},
-    "cast": {"dtypes": {"action": "float64"}},
-    "depth_image": {"unit": "mm"},
-    "success_examples": {"n_per_task": 3, "states": "success"},
-    # the synthetic gripper command flips from open (1) to closed (-1) near the goal: a "contact"
-    # replays the recording in the simulator (position mode needs no calibration file)
-    "force_match": {"mode": "position", "hold_steps": 2},
-    "mode_label": {
-        "signal": "observation.state",
-        "signal_dims": ["gripper"],
-        "on_threshold": 1.0,
-        "off_threshold": 0.5,
-    },
-    "multiview": {"num_views": 2, "depth": True},
-    "resize": {"width": 32, "height": 24},
-    "select": {"feature": "observation.state", "names": ["gripper", "ee_x"], "rename": {"ee_x": "x"}},
-    "pad": {"feature": "observation.state", "names": ["ee_x", "ee_y", "ee_z", "ee_yaw", "gripper"], "value": 0.5},
-    "map_tasks": {"mapping": {"reach": "reach the goal"}},
-    "replay_join": {"env": "door-tactile"},
+# The recordings a stage's `example_input` names: example input -> fixture.
+EXAMPLE_INPUTS = {
+    "synthetic": "synthetic_raw_images",
+    "mv-lift": "mv_lift_raw",
+    "door-kinesthetic": "kinesthetic_raw",
+    "door-replay": "replay_recording",
 }
-# Stages that replay or re-render simulator recordings run on a recording of their kind: stage -> fixture.
-STAGE_INPUTS = {"multiview": "mv_lift_raw", "force_match": "kinesthetic_raw", "replay_join": "replay_recording"}
 
-# Every stage shiftkit ships (tests may register their own stages; those are not covered here).
-STAGES = sorted(name for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit."))
+
+def shipped_stages() -> dict[str, type]:
+    """Every stage shiftkit ships (tests may register their own stages; those are not covered here)."""
+    return {name: cls for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit.")}
+
+
+STAGES = sorted(shipped_stages())
 # Further parameter sets that change a stage's schema another way: id -> (stage, params, fixture).
 VARIANTS = {
     # a fixed-mode baseline: the door recording's action loses sts_mode, its state shows visual mode
@@ -58,8 +42,18 @@ VARIANTS = {
     # a replay plan for a robot: target poses + STS mode only
     "force_match-plan": ("force_match", {"mode": "position", "execute": "plan"}, "kinesthetic_raw"),
 }
+
+
+def stage_cases() -> list:
+    """One conformance case per shipped stage, from its registration."""
+    return [
+        pytest.param(n, cls.example_params, EXAMPLE_INPUTS[cls.example_input], id=n)
+        for n, cls in shipped_stages().items()
+    ]
+
+
 CASES = [
-    *(pytest.param(n, EXAMPLE_PARAMS[n], STAGE_INPUTS.get(n, "synthetic_raw_images"), id=n) for n in STAGES),
+    *stage_cases(),
     *(pytest.param(*case, id=case_id) for case_id, case in VARIANTS.items()),
 ]
 
@@ -73,8 +67,11 @@ def config_for(raw, dest, name, params, seed=0):
     )
 
 
-def test_every_stage_has_example_params():
-    assert set(STAGES) <= set(EXAMPLE_PARAMS), f"add example params for {set(STAGES) - set(EXAMPLE_PARAMS)}"
+def test_every_stage_has_an_example():
+    missing = {n for n, cls in shipped_stages().items() if not cls.example_params}
+    assert not missing, f"give {missing} example_params"
+    unknown = {n: cls.example_input for n, cls in shipped_stages().items() if cls.example_input not in EXAMPLE_INPUTS}
+    assert not unknown, f"unknown example_input {unknown}"
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +109,11 @@ def mv_lift_raw(tmp_path):
 
 @pytest.mark.parametrize(("name", "params", "fixture"), CASES)
 def test_stage_conformance(name, params, fixture, request, tmp_path):
-    raw = request.getfixturevalue(fixture)
+    assert_conforms(name, params, request.getfixturevalue(fixture), tmp_path)
+
+
+def assert_conforms(name, params, raw, tmp_path):
+    """Predicted schema and fps == written ones, same seed -> same bytes, input untouched."""
     before = tree_hashes(raw)
     dest = tmp_path / "out"
     config = config_for(raw, dest, name, params, seed=7)
@@ -140,9 +141,69 @@ def test_stage_conformance(name, params, fixture, request, tmp_path):
 
 @pytest.mark.parametrize("name", STAGES)
 def test_stage_rejects_bad_config(name, synthetic_raw, tmp_path):
+    assert_rejects_bad_config(name, synthetic_raw, tmp_path)
+
+
+def assert_rejects_bad_config(name, raw, tmp_path):
+    """An unknown key and a wrongly typed value are one-line ConfigErrors naming the key."""
+    example = registered_stages()[name].example_params
     with pytest.raises(ConfigError, match="unknown key 'no_such_option'") as info:
-        plan_pipeline(config_for(synthetic_raw, tmp_path / "o", name, {**EXAMPLE_PARAMS[name], "no_such_option": 1}))
+        plan_pipeline(config_for(raw, tmp_path / "o", name, {**example, "no_such_option": 1}))
     assert "\n" not in str(info.value)
-    first_key = next(iter(EXAMPLE_PARAMS[name]))
+    first_key = next(iter(example))
     with pytest.raises(ConfigError, match=rf"\.{first_key}: expected"):
-        plan_pipeline(config_for(synthetic_raw, tmp_path / "o", name, {first_key: object()}))
+        plan_pipeline(config_for(raw, tmp_path / "o", name, {first_key: object()}))
+
+
+THROWAWAY_STAGE = '''"""`scale_action`: multiply the action by a factor (a stage a test adds as a new module)."""
+
+from dataclasses import dataclass
+
+from shiftkit.pipelines.stage import Stage, register_stage
+
+
+@dataclass
+class ScaleActionConfig:
+    factor: float = 1.0
+    """Factor on every action dimension."""
+
+
+@register_stage
+class ScaleAction(Stage):
+    name = "scale_action"
+    version = 1
+    Config = ScaleActionConfig
+    example_params = {"factor": 2.0}
+
+    def transform_features(self, features):
+        return features
+
+    def process(self, episode, rng):
+        yield episode.with_frames(action=episode.frames["action"] * self.config.factor)
+'''
+
+
+def test_a_new_stage_module_is_discovered_and_checked(synthetic_raw_images, tmp_path, monkeypatch):
+    """Adding a stage is one new module in the stages package: discovery registers it, `plan --stages`
+    lists it, and the conformance checks above run on it from its registration alone."""
+    import sys
+
+    import shiftkit.transforms
+    from shiftkit.pipelines import stage as stage_module
+
+    folder = tmp_path / "new_stages"
+    folder.mkdir()
+    (folder / "scale_action.py").write_text(THROWAWAY_STAGE)
+    monkeypatch.setattr(stage_module, "_REGISTRY", dict(stage_module._REGISTRY))
+    monkeypatch.setattr(shiftkit.transforms, "__path__", [*shiftkit.transforms.__path__, str(folder)])
+    monkeypatch.delitem(sys.modules, "shiftkit.transforms.scale_action", raising=False)
+    assert "scale_action" not in registered_stages()
+
+    stage_module.import_modules("shiftkit.transforms", shiftkit.transforms.__path__)
+    assert "scale_action" in [case.id for case in stage_cases()]
+    assert "scale_action (v1): `scale_action`: multiply the action by a factor" in stage_module.describe_stages()
+    name, params, fixture = next(case.values for case in stage_cases() if case.id == "scale_action")
+    assert fixture == "synthetic_raw_images"
+    assert_conforms(name, params, synthetic_raw_images, tmp_path / "conforms")
+    assert_rejects_bad_config(name, synthetic_raw_images, tmp_path / "bad")
+    sys.modules.pop("shiftkit.transforms.scale_action")

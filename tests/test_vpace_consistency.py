@@ -91,7 +91,7 @@ def test_reset_states_match_published_episode_starts(env):
 
 def test_published_gripper_sign_is_the_negative_of_ours():
     """Published lift trajectories: a positive gripper action closes the fingers (the finger
-    reading drops within a frame or two; the simulated gripper lags). Ours closes on < 0 (SPEC §7),
+    reading drops within a frame or two; the simulated gripper lags). Ours closes on < 0 (docs/panda_play.md),
     so `vpace_action_to_shiftkit` negates that dimension."""
     d = _load("full_trajectories_3_lift.gz")
     o, a, no = d["observations"], d["actions"], d["next_observations"]

@@ -27,6 +27,7 @@ class CastConfig:
 class Cast(Stage):
     name = "cast"
     version = 1
+    example_params = {"dtypes": {"action": "float64"}}
     Config = CastConfig
 
     def transform_features(self, features: Features) -> Features:

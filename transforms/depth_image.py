@@ -36,6 +36,7 @@ class DepthImageConfig:
 class DepthImage(Stage):
     name = "depth_image"
     version = 2
+    example_params = {"unit": "mm"}
     Config = DepthImageConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -55,6 +55,7 @@ class SelectConfig:
 class Select(Stage):
     name = "select"
     version = 1
+    example_params = {"feature": "observation.state", "names": ["gripper", "ee_x"], "rename": {"ee_x": "x"}}
     Config = SelectConfig
 
     def transform_features(self, features: Features) -> Features:
@@ -97,6 +98,11 @@ class PadConfig:
 class Pad(Stage):
     name = "pad"
     version = 1
+    example_params = {
+        "feature": "observation.state",
+        "names": ["ee_x", "ee_y", "ee_z", "ee_yaw", "gripper"],
+        "value": 0.5,
+    }
     Config = PadConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -23,6 +23,7 @@ class DropConfig:
 class Drop(Stage):
     name = "drop"
     version = 1
+    example_params = {"features": ["observation.environment_state"]}
     Config = DropConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -38,6 +38,7 @@ class FilterConfig:
 class FilterEpisodes(Stage):
     name = "filter"
     version = 1
+    example_params = {"min_length": 2, "keep_fraction": 0.7}
     Config = FilterConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -1,5 +1,5 @@
 """`force_match`: replay kinesthetic demonstrations so that the replay presses as the person did
-(thesis §4.3.6, SPEC §5.2).
+(thesis §4.3.6, docs/force_matching.md).
 
 Kinesthetic teaching records the sensor poses x_raw,t and the unscaled tactile wrench F~_raw,t.
 Under an impedance controller a replay of x_raw alone loses the contact force, since the force
@@ -36,17 +36,16 @@ from shiftkit.envs.door_tactile.lab import (
     STS_IMAGE,
     STS_TACTILE,
     STS_VISUAL,
-    matrix_to_quat_xyzw,
-    quat_xyzw_to_matrix,
     replay_targets,
 )
+from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, rotation_from_vector
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features, vector_feature
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms import papers
 from shiftkit.transforms.force_calibration import WRENCH_AXES, Calibration, load_calibration, sensor_id
 
-__all__ = ["matrix_to_quat_xyzw", "quat_xyzw_to_matrix"]  # the pose conversions force matching uses
 PLAN_ACTION_NAMES = ("x", "y", "z", "qx", "qy", "qz", "qw", "sts_mode")
 
 
@@ -84,12 +83,12 @@ REPLAY_SECONDS = 60.0  # time limit of a replay per unit of slowdown (the record
 def final_pose(pose: np.ndarray, action: np.ndarray) -> np.ndarray:
     """The door-tactile pose reached by `action` (the relative pose change in the sensor frame,
     scaled as the env scales it) from `pose`: the recording's last action closes its pose sequence."""
-    from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, rotation_from_vector
+    from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION
 
-    rot = quat_xyzw_to_matrix(pose[None, 3:7])[0]
+    rot = quat_xyzw_to_matrix(pose[3:7])
     pos = pose[:3] + rot @ (np.asarray(action[:3], np.float64) * MAX_TRANSLATION)
     turned = rot @ rotation_from_vector(np.asarray(action[3:6], np.float64) * MAX_ROTATION)
-    return np.concatenate([pos, matrix_to_quat_xyzw(turned[None])[0]])
+    return np.concatenate([pos, matrix_to_quat_xyzw(turned)])
 
 
 def interpolate_poses(poses: np.ndarray, factor: int) -> np.ndarray:
@@ -172,6 +171,10 @@ REPLAYED = (
 class ForceMatch(Stage):
     name = "force_match"
     version = 1
+    citation = papers.FORCE_MATCHING
+    # position mode replays the demonstration's contacts in the simulator without a calibration file
+    example_params = {"mode": "position", "hold_steps": 2}
+    example_input = "door-kinesthetic"
     Config = ForceMatchConfig
 
     def _family(self) -> Any:

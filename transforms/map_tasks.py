@@ -33,6 +33,7 @@ class MapTasksConfig:
 class MapTasks(Stage):
     name = "map_tasks"
     version = 1
+    example_params = {"mapping": {"reach": "reach the goal"}}
     Config = MapTasksConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -1,5 +1,5 @@
 """`mode_label`: label the STS sensor mode (1 tactile / 0 visual) as an action dimension (thesis
-§4.3.7, SPEC §5.3) and keep the STS image of the active mode.
+§4.3.7, docs/force_matching.md) and keep the STS image of the active mode.
 
 The mode comes from the operator's mode-switch presses recorded in the raw episode (each press
 toggles the mode, starting visual; `shiftkit collect --expert kinesthetic` records one press as
@@ -42,6 +42,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms import papers
 
 MODE_DIM = "sts_mode"
 SWITCH_STEP = "sts_mode_switch_step"
@@ -115,6 +116,13 @@ class ModeLabelConfig:
 class ModeLabel(Stage):
     name = "mode_label"
     version = 2
+    citation = papers.FORCE_MATCHING
+    example_params = {
+        "signal": "observation.state",
+        "signal_dims": ["gripper"],
+        "on_threshold": 1.0,
+        "off_threshold": 0.5,
+    }
     Config = ModeLabelConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -1,4 +1,4 @@
-"""`multiview`: re-render simulator-recorded episodes from new mobile-base poses (thesis ch. 3, SPEC §5.1).
+"""`multiview`: re-render simulator-recorded episodes from new mobile-base poses (thesis ch. 3, docs/multiview.md).
 
 Input: episodes of a multiview env (`mv-lift`, `mv-stack`, `mv-pick-insert`, `mv-door`, any view)
 recorded with simulator state (`sim.qpos`, `sim.qvel`) and the per-episode camera metadata that
@@ -38,7 +38,8 @@ import numpy as np
 
 from shiftkit.envs import make
 from shiftkit.envs.base_pose import BasePose
-from shiftkit.envs.multiview.physics import CAMERA_NAME, SAMPLER, rebase_state, rotation_z
+from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, rotation_z
+from shiftkit.envs.multiview.physics import CAMERA_NAME, SAMPLER, rebase_state
 from shiftkit.envs.multiview.tasks import TASKS
 from shiftkit.pipelines.depth import (
     as_metres,
@@ -51,6 +52,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features, image_feature
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms import papers
 
 log = logging.getLogger(__name__)
 
@@ -114,19 +116,6 @@ class MultiviewConfig:
         )
 
 
-def _quat_xyzw_to_mat(q: np.ndarray) -> np.ndarray:
-    out = np.zeros(9)
-    mujoco.mju_quat2Mat(out, np.array([q[3], q[0], q[1], q[2]], dtype=np.float64))
-    return out.reshape(3, 3)
-
-
-def _mat_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, rot.ravel())
-    xyzw = q[[1, 2, 3, 0]]
-    return -xyzw if xyzw[3] < 0 else xyzw
-
-
 def _project(points: np.ndarray, extrinsics: dict[str, Any], intrinsics: dict[str, float]) -> np.ndarray:
     """Pixel coordinates (u, v) and depth of base-frame points seen by a MuJoCo camera (x right, y up,
     looking along -z); depth <= 0 means behind the camera."""
@@ -151,6 +140,9 @@ def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
 class Multiview(Stage):
     name = "multiview"
     version = 2  # 2: depth is native (H, W, 1) metres
+    citation = papers.MULTIVIEW
+    example_params = {"num_views": 2, "depth": True}
+    example_input = "mv-lift"
     Config = MultiviewConfig
 
     def setup(self) -> None:
@@ -290,7 +282,7 @@ class Multiview(Stage):
         state = np.asarray(f["observation.state"], dtype=np.float64)
         rel = rotation_z(old.yaw - new.yaw)  # old base axes in the new base frame
         tcp = new.to_base(old.to_world(state[:, STATE_POS]))
-        rots = [rel @ _quat_xyzw_to_mat(q) for q in state[:, STATE_QUAT]]
+        rots = rel @ quat_xyzw_to_matrix(state[:, STATE_QUAT])
         physics = env.physics
         env.set_base_pose(new)
         qpos, qvel = [], []
@@ -321,7 +313,7 @@ class Multiview(Stage):
             env_state.append(physics.object_state())
         new_state = state.copy()
         new_state[:, STATE_POS] = tcp
-        new_state[:, STATE_QUAT] = [_mat_to_quat_xyzw(r) for r in rots]
+        new_state[:, STATE_QUAT] = matrix_to_quat_xyzw(rots)
         action = np.asarray(f["action"], dtype=np.float64).copy()
         action[:, 0:3] = action[:, 0:3] @ rel.T
         if action.shape[1] == 7:  # 6-DOF: the angular velocity turns with the base too

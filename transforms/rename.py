@@ -23,6 +23,7 @@ class RenameConfig:
 class Rename(Stage):
     name = "rename"
     version = 1
+    example_params = {"mapping": {"observation.environment_state": "observation.goal"}}
     Config = RenameConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -23,11 +23,13 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.envs.geometry import quat_xyzw_to_matrix
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
-from shiftkit.transforms.force_matching import PLAN_ACTION_NAMES, quat_xyzw_to_matrix
+from shiftkit.transforms import papers
+from shiftkit.transforms.force_matching import PLAN_ACTION_NAMES
 
 POSE = "observation.ee_pose"
 
@@ -43,6 +45,9 @@ class ReplayJoinConfig:
 class ReplayJoin(Stage):
     name = "replay_join"
     version = 1
+    citation = papers.FORCE_MATCHING
+    example_params = {"env": "door-tactile"}
+    example_input = "door-replay"
     Config = ReplayJoinConfig
 
     def transform_features(self, features: Features) -> Features:

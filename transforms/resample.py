@@ -37,6 +37,8 @@ class ResampleConfig:
 class Resample(Stage):
     name = "resample"
     version = 2  # v2: episode events OR-ed over the dropped frames
+    example_params = {"fps": 5}
+    resampling_params = {"fps": [1, 2, 7, 13, 30, 90]}
     Config = ResampleConfig
 
     def transform_fps(self, fps: int) -> int:

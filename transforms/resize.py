@@ -44,6 +44,7 @@ class ResizeConfig:
 class Resize(Stage):
     name = "resize"
     version = 1
+    example_params = {"width": 32, "height": 24}
     Config = ResizeConfig
 
     def transform_features(self, features: Features) -> Features:

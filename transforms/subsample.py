@@ -33,6 +33,8 @@ class SubsampleConfig:
 class Subsample(Stage):
     name = "subsample"
     version = 2  # v2: episode events OR-ed over the dropped frames
+    example_params = {"every": 2, "offset": 1}
+    resampling_params = {"every": [2, 3, 4, 5], "offset": [0, 1, 2]}
     Config = SubsampleConfig
 
     def transform_fps(self, fps: int) -> int:

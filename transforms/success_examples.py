@@ -25,6 +25,7 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.transforms import papers
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,8 @@ class SuccessExamplesConfig:
 class SuccessExamples(Stage):
     name = "success_examples"
     version = 1
+    citation = papers.VPACE
+    example_params = {"n_per_task": 3, "states": "success"}
     Config = SuccessExamplesConfig
 
     def transform_features(self, features: Features) -> Features:

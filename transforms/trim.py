@@ -28,6 +28,7 @@ class TrimConfig:
 class Trim(Stage):
     name = "trim"
     version = 1
+    example_params = {"head": 1, "tail": 2}
     Config = TrimConfig
 
     def transform_features(self, features: Features) -> Features:

@@ -23,11 +23,10 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
-import mujoco
 import numpy as np
 
 from shiftkit.envs.cameras import SceneRendering
-from shiftkit.envs.door_tactile.physics import CAMERAS, DoorTactilePhysics, yaw_rotation
+from shiftkit.envs.door_tactile.physics import CAMERAS, DoorTactilePhysics
 from shiftkit.envs.door_tactile.tasks import (
     SLAM_SPEED,
     START_OFFSET_ALONG_NORMAL,
@@ -35,6 +34,7 @@ from shiftkit.envs.door_tactile.tasks import (
     get_task,
     sample_start,
 )
+from shiftkit.envs.geometry import quat_xyzw, rotation_from_vector, rotation_z
 from shiftkit.envs.sts import STSSensor
 from shiftkit.envs.tactile_estimation import MarkerWrenchEstimator
 
@@ -62,25 +62,6 @@ ENVIRONMENT_STATE_INDICES = np.r_[19:OBS_DIM]
 ACTION_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz", "sts_mode")
 MODE_THRESHOLD = 0.5  # sts_mode above it selects the tactile mode (labels: 1 tactile, 0 visual)
 SENSOR_MODES = ("policy", "visual", "tactile")  # "policy": the action's last dim drives the mode
-
-
-def _quat_xyzw(rot: np.ndarray) -> np.ndarray:
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rot).ravel())
-    if q[0] < 0:
-        q = -q
-    return q[[1, 2, 3, 0]]
-
-
-def rotation_from_vector(vec: np.ndarray) -> np.ndarray:
-    """3x3 rotation of an axis-angle vector."""
-    q = np.zeros(4)
-    angle = float(np.linalg.norm(vec))
-    axis = vec / angle if angle > 1e-12 else np.array([1.0, 0.0, 0.0])
-    mujoco.mju_axisAngle2Quat(q, axis, angle)
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, q)
-    return mat.reshape(3, 3)
 
 
 class DoorTactileEnv(SceneRendering, gym.Env):
@@ -138,7 +119,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         angle, offset, yaw = sample_start(self.task, self.np_random)
         pos, rot = p.grasp_pose(angle)
         nominal = pos + rot[:, 2] * START_OFFSET_ALONG_NORMAL + p.door_outward(angle) * START_OFFSET_BACK
-        p.reset(nominal + offset, yaw_rotation(yaw) @ rot, angle)
+        p.reset(nominal + offset, rotation_z(yaw) @ rot, angle)
         self.sensor.reset(int(self.np_random.integers(2**31)), mode=self.fixed_mode or "visual")
         self.estimator.reset(self.sensor.tactile_image(p.data))
         self._init_pos, self._init_rot = p.ee_pos(), p.ee_rot()
@@ -206,7 +187,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
     def _relative_pose(self) -> np.ndarray:
         p = self.physics
         rel_pos = self._init_rot.T @ (p.ee_pos() - self._init_pos)
-        return np.concatenate([rel_pos, _quat_xyzw(self._init_rot.T @ p.ee_rot())])
+        return np.concatenate([rel_pos, quat_xyzw(self._init_rot.T @ p.ee_rot())])
 
     def _observation(self) -> np.ndarray:
         p = self.physics
@@ -247,7 +228,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
 
     def ee_pose(self) -> np.ndarray:
         """Sensor pose in the base frame: position and quaternion xyzw (the raw format's `ee_pose`)."""
-        return np.concatenate([self.physics.ee_pos(), _quat_xyzw(self.physics.ee_rot())])
+        return np.concatenate([self.physics.ee_pos(), quat_xyzw(self.physics.ee_rot())])
 
     def sts_image(self) -> np.ndarray:
         """The STS image of the active mode (the marker image of the last step in tactile mode)."""

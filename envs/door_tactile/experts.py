@@ -25,10 +25,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from shiftkit.envs.controllers import rotation_vector
 from shiftkit.envs.door_tactile.env import MAX_ROTATION, MAX_TRANSLATION, DoorTactileEnv
 from shiftkit.envs.door_tactile.physics import HANDLE_RADIUS, DoorTactilePhysics
 from shiftkit.envs.door_tactile.tasks import CLOSED_ANGLE, OPEN_ANGLE
+from shiftkit.envs.geometry import quat_xyzw_to_matrix, rotation_vector
 from shiftkit.envs.rollout import Rollout, RolloutRecorder, expert_rollout
 
 PRE_CONTACT = 0.012  # m before the handle face at the end of the approach
@@ -291,10 +291,7 @@ def replay_positions(
     those targets from the pose at each step (clipped to the action range: what a policy trained on
     the replay would output)."""
     poses = np.asarray(ee_pose, dtype=np.float64)
-    rots = np.zeros((len(poses), 9))
-    for i, q in enumerate(poses[:, 3:7]):
-        mujoco.mju_quat2Mat(rots[i], np.array([q[3], q[0], q[1], q[2]]))
-    rots = rots.reshape(-1, 3, 3)
+    rots = quat_xyzw_to_matrix(poses[:, 3:7])
     targets = [*range(1, len(poses)), *[len(poses) - 1] * settle_steps]
     rec = _recorder(env, cameras, depth)
     obs, info = env.reset(seed=seed)

@@ -12,34 +12,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import mujoco
 import numpy as np
 
 from shiftkit.envs.door_tactile.env import ENVIRONMENT_STATE_INDICES, STATE_INDICES, DoorTactileEnv
 from shiftkit.envs.door_tactile.experts import relative_action
+from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 
 STS_VISUAL = "observation.images.sts_visual"
 STS_TACTILE = "observation.images.sts_tactile"
 STS_IMAGE = "observation.images.sts"
 CAMERA_PREFIX = "observation.images."
-
-
-def quat_xyzw_to_matrix(quat: np.ndarray) -> np.ndarray:
-    """(T, 4) quaternions x, y, z, w -> (T, 3, 3) rotations."""
-    out = np.zeros((len(quat), 9))
-    for i, q in enumerate(np.asarray(quat, dtype=np.float64)):
-        mujoco.mju_quat2Mat(out[i], q[[3, 0, 1, 2]] / np.linalg.norm(q))
-    return out.reshape(-1, 3, 3)
-
-
-def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations -> (T, 4) quaternions x, y, z, w with w >= 0."""
-    out = np.zeros((len(rot), 4))
-    q = np.zeros(4)
-    for i, r in enumerate(np.asarray(rot, dtype=np.float64)):
-        mujoco.mju_mat2Quat(q, np.ascontiguousarray(r).ravel())
-        out[i] = (q if q[0] >= 0 else -q)[[1, 2, 3, 0]]
-    return out
 
 
 # ----------------------------------------------------------------------------- calibration pushes
@@ -62,9 +44,7 @@ def execute_pushes(env: DoorTactileEnv, seed: int, commanded: np.ndarray) -> dic
         p.target_pos, p.target_rot = start + rot @ pose[:3], rot @ target_rot
         p.simulate(p.n_substeps)
         measured_rot = rot.T @ p.ee_rot()
-        rows["ee_pose"].append(
-            np.concatenate([rot.T @ (p.ee_pos() - start), matrix_to_quat_xyzw(measured_rot[None])[0]])
-        )
+        rows["ee_pose"].append(np.concatenate([rot.T @ (p.ee_pos() - start), matrix_to_quat_xyzw(measured_rot)]))
         rows["wrench_raw"].append(sensor.raw_wrench(sensor.contact_wrench(p.data)))
         rows["sim_qpos"].append(p.data.qpos.copy())
         rows["sim_qvel"].append(p.data.qvel.copy())

@@ -31,7 +31,8 @@ import mujoco
 import numpy as np
 
 from shiftkit.envs.cameras import look_at
-from shiftkit.envs.controllers import CartesianImpedance, rotation_vector
+from shiftkit.envs.controllers import CartesianImpedance
+from shiftkit.envs.geometry import quat_wxyz, rotation_vector, rotation_z
 from shiftkit.envs.panda_model import panda_spec
 from shiftkit.envs.scene import SCENE_GROUP, add_box, add_light_and_ground
 
@@ -95,12 +96,6 @@ def door_handle_local(variant: str) -> np.ndarray:
     return np.array([HANDLE_RADIUS, -DOOR_THICK / 2 - stand_off, HANDLE_Z - DOOR_BOTTOM - DOOR_HEIGHT / 2])
 
 
-def _mat_quat(mat: np.ndarray) -> list[float]:
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(mat, dtype=np.float64).ravel())
-    return quat.tolist()
-
-
 def build_spec(variant: str) -> mujoco.MjSpec:
     """Compose the scene: Panda with the STS finger + cabinet door with the given handle."""
     if variant not in VARIANTS:
@@ -156,20 +151,20 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     site = finger.add_site()
     site.name = "ee"
     site.pos = [pad_x + PAD_HALF[0], 0.0, PAD_CENTER_Z]
-    site.quat = _mat_quat(SENSOR_AXES.T)
+    site.quat = quat_wxyz(SENSOR_AXES.T).tolist()
     site.size = [0.004, 0.004, 0.004]
     site.group = 5
     sts = finger.add_camera()
     sts.name = "sts"
     # behind the gel looking out along the pad normal (MuJoCo cameras look along -z)
     sts.pos = [FINGER_HALF[0] - 0.002, 0.0, PAD_CENTER_Z]
-    sts.quat = _mat_quat(np.column_stack([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]))
+    sts.quat = quat_wxyz(np.column_stack([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])).tolist()
     sts.fovy = 90.0
     wrist = link7.add_camera()
     wrist.name = "wrist"
     # above the flange, looking along the finger past the pad side
     wrist.pos = [0.06, 0.0, 0.10]
-    wrist.quat = _mat_quat(np.column_stack([[0.0, 1.0, 0.0], [-0.8, 0.0, -0.6], [0.6, 0.0, -0.8]]))
+    wrist.quat = quat_wxyz(np.column_stack([[0.0, 1.0, 0.0], [-0.8, 0.0, -0.6], [0.6, 0.0, -0.8]])).tolist()
     wrist.fovy = 70.0
 
     world = spec.worldbody
@@ -233,12 +228,6 @@ def build_spec(variant: str) -> mujoco.MjSpec:
     front.alt.xyaxes = list(look_at(cam["pos"], cam["target"]))
     front.fovy = cam["fovy"]
     return spec
-
-
-def yaw_rotation(yaw: float) -> np.ndarray:
-    """Rotation about the world z axis."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class DoorTactilePhysics:
@@ -368,7 +357,7 @@ class DoorTactilePhysics:
         """Sensor pose touching the hinge side of the handle (pad centre on the fin face / knob
         equator, pad normal along the door towards the free edge) at `door_angle` (default: now)."""
         angle = self.door_angle() if door_angle is None else door_angle
-        rot = yaw_rotation(-angle)  # the hinge turns about -z
+        rot = rotation_z(-angle)  # the hinge turns about -z
         local = door_handle_local(self.variant) - [FIN_HALF[0] if self.variant == "flat" else KNOB_RADIUS, 0.0, 0.0]
         origin = np.array([*HINGE_XY, DOOR_BOTTOM + DOOR_HEIGHT / 2])
         return origin + rot @ local, rot @ EE_ROTATION
@@ -376,4 +365,4 @@ class DoorTactilePhysics:
     def door_outward(self, door_angle: float | None = None) -> np.ndarray:
         """Unit normal of the door's front face (towards the robot when closed)."""
         angle = self.door_angle() if door_angle is None else door_angle
-        return yaw_rotation(-angle) @ np.array([0.0, -1.0, 0.0])
+        return rotation_z(-angle) @ np.array([0.0, -1.0, 0.0])

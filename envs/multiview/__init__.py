@@ -6,7 +6,7 @@ and Door. One env family per task (`mv-lift`, `mv-stack`, `mv-pick-insert`, `mv-
 
 import numpy as np
 
-from shiftkit.envs.multiview.experts import rollout
+from shiftkit.envs.multiview.experts import ExpertPolicy, rollout
 from shiftkit.envs.multiview.physics import CAMERA_NAME, CONTROL_HZ, SAMPLER
 from shiftkit.envs.multiview.tasks import STATE_NAMES, TASKS
 from shiftkit.envs.registry import EnvFamily, register_family
@@ -28,6 +28,7 @@ FAMILIES = {
             observation_layout="base frame: state = TCP pose + fingers (now, t-1, t-2); environment_state = objects",
             rollout=rollout,
             control_rates=(CONTROL_HZ,),
+            expert_policy=ExpertPolicy,
         )
     )
     for task in TASKS.values()

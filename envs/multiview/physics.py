@@ -23,6 +23,7 @@ import numpy as np
 from shiftkit.envs.base_pose import BasePose, BasePoseSampler
 from shiftkit.envs.cameras import look_at
 from shiftkit.envs.controllers import FixedOrientationIK
+from shiftkit.envs.geometry import quat_wxyz_to_xyzw, quat_xyzw, rotation_from_vector, rotation_z, yaw_quat_wxyz
 from shiftkit.envs.panda_model import panda_spec
 from shiftkit.envs.scene import SCENE_GROUP, add_box, add_light_and_ground
 
@@ -49,7 +50,7 @@ CAMERA_FOVY = 70.0
 WORKSPACE_LOW = AIM + [-0.22, -0.2, 0.005]
 WORKSPACE_HIGH = AIM + [0.22, 0.2, 0.3]
 
-YAW_RANGE = (-0.6, 0.2)  # 45.8 deg, the reference's simulated range (SPEC §5.1)
+YAW_RANGE = (-0.6, 0.2)  # 45.8 deg, the reference's simulated range (docs/multiview.md)
 WORLD_CENTRE = (0.0, 0.0, TABLE_Z)
 SAMPLER = BasePoseSampler(
     centre=WORLD_CENTRE,
@@ -218,20 +219,6 @@ def build_spec(model_id: str, task: str, objects: tuple[str, ...]) -> mujoco.MjS
     return spec
 
 
-def rotation_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def quat_wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
-    q = np.asarray(q)[..., [1, 2, 3, 0]]
-    return np.where(q[..., 3:4] < 0, -q, q)  # w >= 0
-
-
-def _yaw_quat(angle: float) -> np.ndarray:
-    return np.array([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)])
-
-
 class MultiviewPhysics:
     """MuJoCo model/data of one multiview task scene, its base pose and Cartesian 6-DOF controller."""
 
@@ -277,7 +264,7 @@ class MultiviewPhysics:
         inverse_rot = -pose.yaw
         origin = -(rotation_z(inverse_rot) @ [pose.x, pose.y, 0.0])
         self.model.body_pos[self.frame_body] = origin
-        self.model.body_quat[self.frame_body] = _yaw_quat(inverse_rot)
+        self.model.body_quat[self.frame_body] = yaw_quat_wxyz(inverse_rot)
         mujoco.mj_forward(self.model, self.data)
 
     def world_to_base(self, points: np.ndarray) -> np.ndarray:
@@ -334,7 +321,7 @@ class MultiviewPhysics:
         pos = pose.to_base(np.array([*world_xy, z]))
         a = self.object_qpos[name]
         self.data.qpos[a : a + 3] = pos
-        self.data.qpos[a + 3 : a + 7] = _yaw_quat(yaw - pose.yaw)
+        self.data.qpos[a + 3 : a + 7] = yaw_quat_wxyz(yaw - pose.yaw)
 
     def reset(self, pose: BasePose, place: Callable[[MultiviewPhysics], np.ndarray]) -> None:
         """Reset at base pose `pose`: `place(self)` puts the objects and returns the base-frame TCP
@@ -414,13 +401,8 @@ class MultiviewPhysics:
             self.gripper_closed = gripper < 0.0
         tick_dt = TICK_SUBSTEPS * PHYSICS_DT
         if np.any(rotate):
-            angle = np.linalg.norm(rotate) * MAX_TCP_ROT_SPEED * tick_dt * self.n_ticks
-            axis = rotate / np.linalg.norm(rotate)
-            rot = np.zeros(9)
-            quat = np.zeros(4)
-            mujoco.mju_axisAngle2Quat(quat, axis, angle)
-            mujoco.mju_quat2Mat(rot, quat)
-            self.desired_rot = rot.reshape(3, 3) @ self.desired_rot
+            turn = rotation_from_vector(np.asarray(rotate, np.float64) * MAX_TCP_ROT_SPEED * tick_dt * self.n_ticks)
+            self.desired_rot = turn @ self.desired_rot
             self._ik = self._make_ik(self.desired_rot)
         for _ in range(self.n_ticks):
             self.desired_tcp = (self.desired_tcp + move * MAX_TCP_SPEED * tick_dt).clip(WORKSPACE_LOW, WORKSPACE_HIGH)
@@ -434,10 +416,8 @@ class MultiviewPhysics:
     # ----------------------------------------------------------------- observation
     def proprioception(self) -> np.ndarray:
         """TCP position, orientation (xyzw) and fingers now, t-1, t-2: 13 numbers, base frame."""
-        quat = np.zeros(4)
-        mujoco.mju_mat2Quat(quat, (self.tcp_rot()).ravel())
         h = self.finger_history
-        return np.concatenate([self.tcp_pos(), quat_wxyz_to_xyzw(quat), h[2], h[1], h[0]])
+        return np.concatenate([self.tcp_pos(), quat_xyzw(self.tcp_rot()), h[2], h[1], h[0]])
 
     def object_state(self) -> np.ndarray:
         """Pose of each free object (position + xyzw quaternion), then the door's handle position
@@ -461,7 +441,7 @@ def rebase_state(
     for name in physics.objects:
         a, v = physics.object_qpos[name], physics.object_dof[name]
         out_q[a : a + 3] = new.to_base(old.to_world(qpos[a : a + 3]))
-        mujoco.mju_mulQuat(quat, _yaw_quat(old.yaw - new.yaw), qpos[a + 3 : a + 7])
+        mujoco.mju_mulQuat(quat, yaw_quat_wxyz(old.yaw - new.yaw), qpos[a + 3 : a + 7])
         out_q[a + 3 : a + 7] = quat
         out_v[v : v + 3] = rel @ qvel[v : v + 3]  # linear velocity in the frame; angular is body-local
     return out_q, out_v

@@ -3,7 +3,7 @@ insertion slots; reset-based tasks and play episodes. Scene and physics in `phys
 predicates in `tasks`, the gymnasium env in `env`, scripted experts in `experts`, the published
 VPACE data's conventions in `vpace_compat`."""
 
-from shiftkit.envs.panda_play.experts import PLAY_SEQUENCES, play_rollout, rollout
+from shiftkit.envs.panda_play.experts import PLAY_SEQUENCES, ExpertPolicy, play_rollout, rollout
 from shiftkit.envs.panda_play.physics import (
     ACTION_NAMES,
     CAMERAS,
@@ -35,5 +35,6 @@ FAMILY = register_family(
         play_rollout=play_rollout,
         play_sequences=PLAY_SEQUENCES,
         action_conventions={"vpace": vpace_action_to_shiftkit},
+        expert_policy=ExpertPolicy,
     )
 )

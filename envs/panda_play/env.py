@@ -2,7 +2,7 @@
 
 Observation: the 59-dim reference vector, names in `observation_names` (docs/panda_play.md).
 Action: Box(-1, 1, (4,)): delta TCP position (1 = 1 cm per step at 20 Hz, 4 cm at 5 Hz) and the
-gripper (> 0 opens, < 0 closes, as SPEC §7 and thesis appendix A.1; the published VPACE data use
+gripper (> 0 opens, < 0 closes, as thesis appendix A.1 and docs/panda_play.md; the published VPACE data use
 the opposite sign, see `vpace_compat`). Reward: 1.0 on steps where the task counts as solved,
 else 0. Episodes never terminate on their own; they are truncated after `max_episode_seconds`
 (18 s = 360 steps at 20 Hz).

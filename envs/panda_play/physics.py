@@ -134,7 +134,7 @@ OBS_DIM = len(OBSERVATION_NAMES)
 # dataset split: robot proprioception vs privileged object state (full = state[:12] + env + state[12:])
 STATE_INDICES = np.r_[0:12, 53:59]
 ENVIRONMENT_STATE_INDICES = np.r_[12:53]
-# gripper: > 0 opens, < 0 closes (SPEC §7; the published VPACE data use the opposite sign, see
+# gripper: > 0 opens, < 0 closes (thesis appendix A.1, docs/panda_play.md; the published VPACE data use the opposite sign, see
 # `vpace_compat`)
 ACTION_NAMES = ("delta_x", "delta_y", "delta_z", "gripper_open")
 

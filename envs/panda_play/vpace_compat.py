@@ -3,7 +3,7 @@
 Observations: dims 0:53 of our 59-dim Panda play observation are the VPACE-era 53-dim layout in
 the same frame and units (checked in tests/test_vpace_consistency.py): they map one to one.
 Actions: (dx, dy, dz, gripper) with the same scaling, but the published gripper command closes
-on > 0 (the reference code's convention) while ours opens on > 0 (SPEC §7): the gripper
+on > 0 (the reference code's convention) while ours opens on > 0 (thesis appendix A.1, docs/panda_play.md): the gripper
 dimension is negated on import.
 """
 

@@ -20,23 +20,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from shiftkit.pipelines.config import SourceConfig
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.features import Features
 
-
-@dataclass
-class SourceConfig:
-    path: str | None = None
-    """A raw-episode directory or a LeRobot dataset directory (relative to the config file)."""
-    repo_id: str | None = None
-    """A LeRobot dataset ID: looked up in $HF_LEROBOT_HOME first, then on the hub."""
-    revision: str | None = None
-    """Hub revision (branch, tag or commit) when `repo_id` is pulled."""
-
-    def __post_init__(self) -> None:
-        if (self.path is None) == (self.repo_id is None):
-            raise ValueError("give exactly one of 'path' and 'repo_id'")
+# `SourceConfig` (a `[[sources]]` entry) lives with the config file's schema; `open_source` reads it.
+__all__ = [
+    "ImportSummary",
+    "Importer",
+    "Source",
+    "SourceConfig",
+    "importers",
+    "open_source",
+    "write_imported",
+]
 
 
 class Source(Protocol):

@@ -20,25 +20,42 @@ from shiftkit.pipelines.synthetic import write_synthetic_raw
 from tests.helpers import tree_hashes
 from tests.reliability.harness import cli
 
-# Frame-rate-changing stages and parameters to try (a new resampling stage must be added here).
-RESAMPLERS = {"subsample": {"every": [2, 3, 4, 5], "offset": [0, 1, 2]}, "resample": {"fps": [1, 2, 7, 13, 30, 90]}}
+# Frame-rate-changing stages and the parameters to try, from their registration (`resampling_params`).
+RESAMPLERS = {name: cls.resampling_params for name, cls in registered_stages().items() if cls.resampling_params}
 EVENT_EXAMPLES = 40
 
 
 def test_every_frame_rate_stage_is_covered():
-    changes_fps = {
-        name
-        for name, cls in registered_stages().items()
-        if cls.__module__.startswith("shiftkit.") and name in RESAMPLERS or _changes_fps(name)
-    }
-    assert changes_fps <= set(RESAMPLERS), f"add {changes_fps - set(RESAMPLERS)} to RESAMPLERS"
+    changes_fps = {name for name, cls in registered_stages().items() if _changes_fps(name, cls.example_params)}
+    assert {"subsample", "resample"} <= changes_fps
+    assert changes_fps <= set(RESAMPLERS), f"give {changes_fps - set(RESAMPLERS)} resampling_params"
 
 
-def _changes_fps(name: str) -> bool:
-    from tests.test_stage_conformance import EXAMPLE_PARAMS
+def test_a_frame_rate_stage_must_give_resampling_params():
+    from shiftkit.pipelines.stage import Stage, register_stage
 
+    class Halve(Stage):
+        name, version, Config = "halve_fps", 1, dict
+
+        def transform_fps(self, fps: int) -> int:
+            return fps // 2
+
+        def transform_features(self, features):
+            return features
+
+        def process(self, episode, rng):
+            yield episode
+
+    with pytest.raises(TypeError, match="changes the frame rate but gives no resampling_params"):
+        register_stage(Halve)
+    assert "halve_fps" not in registered_stages()
+
+
+def _changes_fps(name: str, params: dict | None) -> bool:
+    if params is None:
+        return False
     try:
-        stage = build_stage(name, EXAMPLE_PARAMS[name], StageContext(fps=10), name)
+        stage = build_stage(name, params, StageContext(fps=10), name)
     except Exception:
         return False
     return stage.transform_fps(10) != 10
