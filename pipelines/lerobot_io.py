@@ -37,7 +37,6 @@ import io
 import json
 import os
 import shutil
-import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,6 +59,7 @@ from shiftkit.pipelines.features import (
     user_features,
 )
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 from shiftkit.pipelines.stats import RunningStats, image_stats, numeric_stats
 from shiftkit.pipelines.video import decode_episode, encode_frames
 
@@ -174,12 +174,13 @@ class DatasetWriter:
         check_features(self.features, where=f"schema of {self.root}")
         self.fps = int(fps)
         self.repo_id = repo_id
-        self.tmp = self.root.parent / f".{self.root.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        self.tmp = staging_path(self.root)
         video_keys = [k for k, ft in self.features.items() if ft["dtype"] == "video"]  # pipelines/video.py
         try:
             self.root.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DatasetError(f"cannot create the destination's folder {self.root.parent}: {exc.strerror}") from None
+        remove_dead_staging(self.root)
         # lerobot's own metadata and writer objects: the writer appends video files and fills a
         # video feature's `info` (`video.*`, the depth quantiser) exactly as its save_episode does.
         self._meta = LeRobotDatasetMetadata.create(
@@ -380,11 +381,8 @@ class DatasetWriter:
         cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
         if provenance is not None:
             write_provenance(self.tmp, {**provenance, "cameras": cameras} if cameras else provenance)
-        if self.root.exists():
-            self.abort()
-            raise DatasetError(f"destination already exists: {self.root}")
-        os.rename(self.tmp, self.root)
         self._closed = True
+        publish(self.tmp, self.root)
         return self.root
 
     def _write_info_and_stats(self) -> None:
@@ -397,6 +395,8 @@ class DatasetWriter:
         write_stats({k: stats[k] for k in self._meta.features if k in stats}, self.tmp)
 
     def abort(self) -> None:
+        if self._closed:
+            return
         if self._writer is not None:
             self._writer.close()
             self._writer = None

@@ -33,6 +33,7 @@ from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.features import check_episode
 from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.stage import select_outputs
+from shiftkit.pipelines.staging import remove_dead_staging, sibling
 
 MAX_EPISODES_PER_UNIT = 16
 
@@ -110,7 +111,7 @@ class PartStore:
 
 
 def work_dir_for(destination: Path) -> Path:
-    return destination.parent / f".{destination.name}.shiftkit-work"
+    return sibling(destination, "shiftkit-work")
 
 
 def source_fingerprint(root: Path) -> str:
@@ -377,8 +378,7 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
 
 def _prepare_work_dir(work: Path, key: str, dest: Path) -> None:
     # Leftovers of a writer killed mid-way are never a usable dataset: remove them.
-    for stale in dest.parent.glob(f".{dest.name}.partial-*"):
-        shutil.rmtree(stale, ignore_errors=True)
+    remove_dead_staging(dest)
     key_file = work / "run_key"
     if work.exists() and (not key_file.exists() or key_file.read_text() != key):
         shutil.rmtree(work)  # parts of a different pipeline/config cannot be reused

@@ -12,14 +12,13 @@ writes; shiftkit adds its provenance file and dataset card.
 
 from __future__ import annotations
 
-import os
 import shutil
-import uuid
 from pathlib import Path
 
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.sources import Importer, ImportSummary
+from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 
 LEGACY_FILES = ("meta/info.json", "meta/episodes.jsonl", "meta/tasks.jsonl", "meta/episodes_stats.jsonl")
 
@@ -56,9 +55,10 @@ def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> Im
     if dest.is_relative_to(source):
         raise DatasetError(f"destination {dest} lies inside the source dataset; choose a directory outside it")
     source_fingerprint = fingerprint(source)
-    tmp = dest.parent / f".{dest.name}.partial-{uuid.uuid4().hex[:8]}"
+    tmp = staging_path(dest)
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
+        remove_dead_staging(dest)
         num_episodes, num_frames, fps = convert_v21(source, tmp)
         write_provenance(
             tmp,
@@ -71,7 +71,7 @@ def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> Im
                 importer={"name": "lerobot-v2.1", "converter": V21_CONVERTER},
             ),
         )
-        os.rename(tmp, dest)
+        publish(tmp, dest)
     except DatasetError:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -11,11 +11,8 @@ its registry entry says (panda-play: reference dims 0:12 + 53:59 and 12:53; docs
 
 from __future__ import annotations
 
-import glob
 import logging
-import os
 import shutil
-import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from shiftkit.pipelines.errors import ConfigError, ShiftkitError
+from shiftkit.pipelines.staging import remove_dead_staging, staging_path
 
 log = logging.getLogger(__name__)
 
@@ -228,16 +226,18 @@ def _write_raw(config: CollectConfig, out_dir: Path, progress: bool = False) -> 
 def collect(config: CollectConfig, progress: bool = False) -> tuple[Path, dict[str, Any]]:
     """Record the episodes; returns the written directory and counts (`seeds`: those kept).
     `progress` shows a bar with the success rate so far."""
+    if config.out is not None or config.root is not None:
+        # Before validating: a dead recorder's leftovers go even when this run is then refused.
+        remove_dead_staging(Path(config.out if config.out is not None else config.root))
     config.validate()
     target = Path(config.out if config.out is not None else config.root)
-    remove_dead_leftovers(target)
     if config.out is not None:
         return target, _write_raw(config, target, progress)
     from shiftkit.pipelines.features import plain_camera_features
     from shiftkit.pipelines.sources import write_imported
     from shiftkit.pipelines.sources.raw import RawSource
 
-    tmp = target.parent / f".{target.name}.collect-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp = staging_path(target, "collect")
     tmp.mkdir(parents=True)
     try:
         raw = tmp / "raw"
@@ -259,25 +259,3 @@ def collect(config: CollectConfig, progress: bool = False) -> tuple[Path, dict[s
         return target, counts
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-
-
-def remove_dead_leftovers(target: Path) -> None:
-    """Remove what a killed `collect` into `target` left beside it (`.<name>.collect-<pid>-*`,
-    `.<name>.partial-<pid>-*`): only folders whose recording process no longer runs."""
-    if not target.parent.is_dir():
-        return
-    for kind in ("collect", "partial"):
-        for path in target.parent.glob(f".{glob.escape(target.name)}.{kind}-*"):
-            pid, _, rest = path.name[len(f".{target.name}.{kind}-") :].partition("-")
-            if pid.isdigit() and rest and not _alive(int(pid)):
-                shutil.rmtree(path, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

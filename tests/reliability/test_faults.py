@@ -163,6 +163,72 @@ def test_killed_collect_leftovers_are_cleaned_safely(tmp_path):
     assert not any(p.exists() for p in leftovers) and live.exists() and foreign.exists()
 
 
+def _dead_pid() -> int:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    return dead.pid
+
+
+def _writers(tmp: Path, raw: Path) -> dict[str, list[str]]:
+    from tests.test_import_lerobot_v21 import _write_v21
+    from tests.test_import_robomimic import _write
+
+    return {
+        "import lerobot-v2.1": ["import", "lerobot-v2.1", str(_write_v21(tmp / "src")), "--repo-id", "me/x"],
+        "import robomimic": ["import", "robomimic", str(_write(tmp / "d.hdf5")), "--repo-id", "me/x"],
+        "run": ["run", str(_config(tmp, raw, "out")), "--no-progress"],
+    }
+
+
+@pytest.mark.parametrize("command", ["import lerobot-v2.1", "import robomimic", "run"])
+def test_every_writer_removes_a_dead_writers_staging_folder(tmp_path, rel_raw, command):
+    """What a SIGKILLed writer into `out` left (`.out.partial-<pid>-<hex>`) goes with the next
+    successful writer into `out`, whichever command; a live writer's folder stays."""
+    argv = _writers(tmp_path, rel_raw)[command]
+    if command != "run":
+        argv += ["--root", str(tmp_path / "out")]
+    dead = tmp_path / f".out.partial-{_dead_pid()}-0123abcd"
+    live = tmp_path / f".out.partial-{os.getpid()}-0123abcd"
+    for folder in (dead, live):
+        (folder / "data").mkdir(parents=True)
+    outcome = cli(argv)
+    assert outcome.code == 0, outcome
+    assert not dead.exists() and live.exists() and (tmp_path / "out" / "meta" / "info.json").is_file()
+
+
+def test_collect_beaten_to_its_destination_leaves_nothing(tmp_path, monkeypatch):
+    """Two `collect --out raw` at once: the one that finishes second gets a one-line error and its
+    staging folder goes (the other's dataset stays)."""
+    from shiftkit.pipelines.sources import raw as raw_module
+
+    write_index = raw_module.RawDatasetWriter._write_index
+
+    def beaten(self) -> None:
+        write_index(self)
+        self.out_dir.mkdir()  # the other recorder renamed its dataset into place meanwhile
+        (self.out_dir / "dataset.json").write_text("{}")
+
+    monkeypatch.setattr(raw_module.RawDatasetWriter, "_write_index", beaten)
+    outcome = cli(["collect", "--task", "reach", "--episodes", "1", "--out", str(tmp_path / "raw"), "--no-progress"])
+    assert outcome.code == 2 and "another run wrote it meanwhile" in outcome.error_line, outcome
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]
+    assert (tmp_path / "raw" / "dataset.json").read_text() == "{}"
+
+
+@pytest.mark.parametrize("command", ["collect", "run", "import robomimic"])
+def test_a_destination_name_of_250_characters_works(tmp_path, rel_raw, command):
+    """A legal 250-character destination name never fails on shiftkit's temporary or work names."""
+    name = "d" * 250
+    argv = {
+        "collect": ["collect", "--task", "reach", "--episodes", "1", "--out", str(tmp_path / name), "--no-progress"],
+        "run": ["run", str(_config(tmp_path, rel_raw, name)), "--no-progress"],
+        "import robomimic": [*_writers(tmp_path, rel_raw)["import robomimic"], "--root", str(tmp_path / name)],
+    }[command]
+    outcome = cli(argv)
+    assert outcome.code == 0, outcome
+    assert (tmp_path / name).is_dir() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
 def test_eval_warns_when_the_run_did_not_finish(tmp_path, rel_ds, caplog):
     from shiftkit.policies.run_dir import CARD_METRICS
 
