@@ -33,7 +33,7 @@ from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.features import check_episode
 from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.stage import select_outputs
-from shiftkit.pipelines.staging import remove_dead_staging, sibling
+from shiftkit.pipelines.staging import DestinationLock, remove_dead_staging, sibling
 
 MAX_EPISODES_PER_UNIT = 16
 
@@ -288,7 +288,7 @@ def run_pipeline(
     dest = plan.destination
     check_writable_name(dest)
     work = work_dir_for(dest)
-    with WorkLock(work):
+    with DestinationLock(dest):
         if restart and work.exists():
             shutil.rmtree(work)
         try:
@@ -395,51 +395,6 @@ def _size_text(folder: Path) -> str:
             with contextlib.suppress(OSError):  # removed meanwhile
                 total += os.lstat(os.path.join(dirpath, name)).st_size
     return f"{total / 1e6:.1f} MB"
-
-
-class WorkLock:
-    """An exclusive lock on a work directory (`<work>.lock`, flock'ed, holding the owner's pid).
-
-    The kernel drops the flock when its owner dies, so the lock of a killed run is simply taken
-    over; a second live run on the same destination gets a one-line error naming the first."""
-
-    def __init__(self, work: Path) -> None:
-        self.path = work.with_name(work.name + ".lock")
-        self._fd: int | None = None
-
-    def __enter__(self) -> WorkLock:
-        import fcntl
-
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                owner = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
-                os.close(fd)
-                raise ShiftkitError(
-                    f"another shiftkit run (pid {owner}) is writing this destination (lock {self.path}); "
-                    "wait for it to finish or stop it"
-                ) from None
-            # The file may have been removed by the previous owner between open and flock.
-            try:
-                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
-                break
-            os.close(fd)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        self._fd = fd
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        if self._fd is not None:
-            self.path.unlink(missing_ok=True)
-            os.close(self._fd)
-            self._fd = None
 
 
 class _progress:

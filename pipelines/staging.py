@@ -18,8 +18,9 @@ import os
 import shutil
 import uuid
 from pathlib import Path
+from typing import Any
 
-from shiftkit.pipelines.errors import DatasetError
+from shiftkit.pipelines.errors import DatasetError, ShiftkitError
 
 _NAME_MAX = 255  # bytes per path component on Linux/macOS file systems
 _SUFFIX_BYTES = 48  # room for ".<kind>-<pid>-<hex>" or ".<suffix>" of every sibling shiftkit names
@@ -82,3 +83,49 @@ def _alive(pid: int) -> bool:
     except PermissionError:  # someone else's process
         return True
     return True
+
+
+class DestinationLock:
+    """An exclusive lock on a destination (`.<name>.shiftkit-work.lock` beside it, flock'ed, holding
+    the owner's pid), held by every command that writes there over a while (`run`, the trainers).
+
+    The kernel drops the flock when its owner dies, so the lock of a killed run is simply taken
+    over; a second live run on the same destination gets a one-line error naming the first."""
+
+    def __init__(self, destination: Path) -> None:
+        self.path = sibling(destination, "shiftkit-work.lock")
+        self._fd: int | None = None
+
+    def __enter__(self) -> DestinationLock:
+        import fcntl
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                owner = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+                os.close(fd)
+                raise ShiftkitError(
+                    f"another shiftkit run (pid {owner}) is writing this destination (lock {self.path}); "
+                    "wait for it to finish or stop it"
+                ) from None
+            # The file may have been removed by the previous owner between open and flock.
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._fd is not None:
+            self.path.unlink(missing_ok=True)
+            os.close(self._fd)
+            self._fd = None

@@ -103,13 +103,30 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
 
 
 def test_second_run_on_same_destination_is_refused(tmp_path, rel_raw):
-    from shiftkit.pipelines.runner import WorkLock, work_dir_for
+    from shiftkit.pipelines.staging import DestinationLock
 
     config = _config(tmp_path, rel_raw, "out")
-    with WorkLock(work_dir_for(tmp_path / "out")):
+    with DestinationLock(tmp_path / "out"):
         outcome = cli(["run", str(config), "--no-progress"])
     assert outcome.code == 2 and f"pid {os.getpid()}" in outcome.error_line, outcome
     assert cli(["run", str(config), "--no-progress"]).code == 0  # released: the next run works
+
+
+@pytest.mark.parametrize("command", ["train bc", "train vpace", "fire"])
+def test_second_training_run_on_same_output_is_refused(tmp_path, rel_ds, command):
+    """Two trainers on one --output: the second is told another run holds it (not a resume mismatch)."""
+    from shiftkit.pipelines.staging import DestinationLock
+
+    run = tmp_path / "run"
+    argv = {
+        "train bc": ["train", "bc", "--dataset", str(rel_ds), "--steps", "2", "--no-progress"],
+        "train vpace": ["train", "vpace", "--examples", str(rel_ds), "--main-task", "reach"],
+        "fire": ["fire", "--dataset", str(rel_ds), "--env", "panda-play", "--task", "reach"],
+    }[command]
+    with DestinationLock(run):
+        outcome = cli([*argv, "--output", str(run)])
+    assert outcome.code == 2 and f"another shiftkit run (pid {os.getpid()})" in outcome.error_line, outcome
+    assert not run.exists()
 
 
 def test_stale_lock_of_a_dead_run_is_taken_over(tmp_path, rel_raw):
