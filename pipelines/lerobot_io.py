@@ -714,11 +714,25 @@ def check_info_values(info: dict[str, Any], info_path: Path) -> None:
             raise DatasetError(f"{info_path}: feature {key!r} needs a 'dtype' string and a 'shape' list of sizes")
 
 
+def require_utf8_path(path: Path, what: str, verb: str) -> None:
+    """pyarrow (LeRobot's parquet files) opens UTF-8 paths only: a one-line error naming the path
+    rather than a parquet error about a file that is fine."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = str(path).encode("utf-8", "backslashreplace").decode()
+        raise DatasetError(
+            f"{what} {shown} is not a UTF-8 path; LeRobot datasets can only be {verb} UTF-8 paths"
+        ) from None
+
+
 def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     """Open a local LeRobot v3.0 dataset for streaming; one-line errors for broken metadata."""
     import pyarrow.parquet as pq
 
     root = Path(root)
+    if root.is_dir():
+        require_utf8_path(root.resolve(), "dataset", "read from")
     info_path = root / "meta" / "info.json"
     if not root.is_dir():
         raise DatasetError(f"dataset not found: {root}")

@@ -31,6 +31,7 @@ from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.features import check_episode
+from shiftkit.pipelines.lerobot_io import require_utf8_path
 from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.stage import select_outputs
 from shiftkit.pipelines.staging import DestinationLock, remove_dead_staging, sibling
@@ -304,13 +305,7 @@ def run_pipeline(
 
 def check_writable_name(dest: Path) -> None:
     """LeRobot's parquet writer (pyarrow) takes UTF-8 paths only: refuse others before any work."""
-    try:
-        str(dest).encode("utf-8")
-    except UnicodeEncodeError:
-        shown = str(dest).encode("utf-8", "backslashreplace").decode()
-        raise ShiftkitError(
-            f"destination {shown} is not a UTF-8 path; LeRobot datasets can only be written to UTF-8 paths"
-        ) from None
+    require_utf8_path(dest, "destination", "written to")
 
 
 def _run_locked(config: PipelineConfig, plan: Plan, engine: Any, work: Path, progress: bool) -> Path | None:
