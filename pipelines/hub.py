@@ -68,12 +68,14 @@ def validate_repo_id(repo_id: str) -> None:
 
     try:
         hf_validate(repo_id)
-        valid = repo_id.count("/") == 1
+        # huggingface_hub's pattern takes any Unicode letter, the hub itself ASCII only: checked
+        # here, so no command writes a dataset under an id it could never be pushed as.
+        valid = repo_id.count("/") == 1 and repo_id.isascii()
     except HFValidationError:
         valid = False
     if not valid:
         raise ShiftkitError(
-            f"invalid repo id {repo_id!r}: expected ORG/NAME made of letters, digits, '-', '_' and '.' "
+            f"invalid repo id {repo_id!r}: expected ORG/NAME made of ASCII letters, digits, '-', '_' and '.' "
             "(no '--' or '..', not starting or ending with '-' or '.', at most 96 characters)"
         )
 

@@ -48,7 +48,7 @@ from shiftkit.pipelines.provenance import recorded_envs
 from shiftkit.policies.bc import BCArgs, BCPolicy, ensemble_doubt, load_policy, update_members
 from shiftkit.policies.bc import train as train_bc
 from shiftkit.policies.dagger_recording import rollout_repo_id, write_recording
-from shiftkit.policies.data import FrameTable, epoch_batches, open_datasets
+from shiftkit.policies.data import FrameTable, epoch_batches, open_datasets, refuse_example_sets
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.evaluation import ObservationMap, run_episodes, wilson_interval
 from shiftkit.policies.failure_predictors import (
@@ -427,7 +427,8 @@ def run(args: FireArgs) -> dict:
     dataset_root = Path(args.dataset_root) if args.dataset_root else lerobot_home() / args.repo_id
 
     # --- data and environment, checked before anything is written
-    ((resolved, ds),) = open_datasets([args.dataset], args.root)
+    ((resolved, ds),) = opened = open_datasets([args.dataset], args.root)
+    refuse_example_sets(opened, "FIRE")
     fps, features = int(ds.meta.fps), user_features(ds.meta.features)
     try:
         family = env_family(args.env)

@@ -31,7 +31,7 @@ from shiftkit.pipelines.camera_meta import check_cameras, merge_cameras
 from shiftkit.pipelines.depth import clean_metres, depth_feature
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, image_feature, vector_feature
+from shiftkit.pipelines.features import Features, flag_array, image_feature, vector_feature
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 
@@ -291,7 +291,7 @@ class RawDataset:
         for name, arr in arrays.items():
             frames[FEATURE_OF_ARRAY.get(name, name)] = arr if arr.ndim == 2 else arr.reshape(-1, 1)
         if "next.success" in frames:
-            frames["next.success"] = frames["next.success"].astype(bool)
+            frames["next.success"] = flag_array(frames["next.success"], f"{where}/arrays/success.npy")
         for cam_dir in sorted((ep / "images").glob("*")) if (ep / "images").exists() else []:
             files = sorted(cam_dir.glob("frame_*.png"))
             if len(files) != length:

@@ -33,7 +33,7 @@ import numpy as np
 
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, image_feature, vector_feature
+from shiftkit.pipelines.features import Features, flag_array, image_feature, vector_feature
 from shiftkit.pipelines.sources import Importer, ImportSummary, write_imported
 
 IMAGE_SUFFIX = "_image"
@@ -218,7 +218,7 @@ def _read_demo(
     if "next.reward" in features:
         frames["next.reward"] = read("rewards").reshape(n, 1).astype(np.float32)
     if "next.done" in features:
-        frames["next.done"] = read("dones").reshape(n, 1).astype(bool)
+        frames["next.done"] = flag_array(read("dones").reshape(n, 1), f"{path}: data/{name}/dones")
     if "sim.state" in features:
         frames["sim.state"] = read("states").reshape(n, -1).astype(np.float64)
     for key, ft in features.items():

@@ -196,7 +196,10 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     if missing:
         raise DatasetError(f"{path}: missing key(s) {missing}")
     counters = [data[k] for k in ("memory_size", "pointer", "count")]
-    if not all(np.ndim(v) == 0 and np.asarray(v).dtype.kind in "iu" for v in counters):
+    if not all(
+        isinstance(v, (int, np.integer, np.ndarray)) and np.ndim(v) == 0 and np.asarray(v).dtype.kind in "iu"
+        for v in counters
+    ):
         raise DatasetError(f"{path}: memory_size, pointer and count must be integers")
     size, pointer, count = (int(v) for v in counters)
     if size < 0 or count < 0 or not 0 <= pointer < max(size, 1):

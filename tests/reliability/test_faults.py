@@ -246,6 +246,14 @@ def test_a_destination_name_of_250_characters_works(tmp_path, rel_raw, command):
     assert (tmp_path / name).is_dir() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
+def test_reader_closing_stdout_early_is_not_an_error(tmp_path, rel_ds):
+    """`shiftkit info ds | head -0`: the reader is gone before info prints; info ends quietly, exit 0."""
+    proc = shiftkit_process("info", str(rel_ds), cwd=tmp_path)
+    proc.stdout.close()  # the reader leaves before the first line
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and err.decode().strip() == "", err.decode()
+
+
 def test_eval_warns_when_the_run_did_not_finish(tmp_path, rel_ds, caplog):
     from shiftkit.policies.run_dir import CARD_METRICS
 
