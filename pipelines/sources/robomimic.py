@@ -271,10 +271,11 @@ def import_robomimic(
                 raise DatasetError(f"{path}: data/{d}/actions must be a numeric (frames[, dims]) array ({found})")
         if "total" in data.attrs:
             samples = sum(int(data[d]["actions"].shape[0]) for d in all_demos)
-            if int(data.attrs["total"]) != samples:
-                raise DatasetError(
-                    f"{path}: data attribute total is {int(data.attrs['total'])}, the demos hold {samples}"
-                )
+            total = data.attrs["total"]
+            if np.ndim(total) != 0 or np.asarray(total).dtype.kind not in "iu":
+                raise DatasetError(f"{path}: data attribute total must be an integer, got {total!r:.40}")
+            if int(total) != samples:
+                raise DatasetError(f"{path}: data attribute total is {int(total)}, the demos hold {samples}")
         demos = _demo_names(path, f, filter_key)
         control_freq = env_kwargs.get("control_freq")
         if fps is None:

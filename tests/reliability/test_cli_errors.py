@@ -590,6 +590,10 @@ CASES = {
         lambda t, r, d: ["import", "robomimic", str(_robomimic(t, drop="actions")), *_to(t)],
         2,
     ),
+    "import robomimic total is text": (
+        lambda t, r, d: ["import", "robomimic", str(_robomimic(t, total="x")), *_to(t)],
+        2,
+    ),
     "import robomimic dones of 0.5": (
         lambda t, r, d: ["import", "robomimic", str(_robomimic(t, dones=0.5)), *_to(t)],
         2,
@@ -647,6 +651,7 @@ MESSAGES = {
     "import lerobot-v2.1 task is a number": "tasks.jsonl: line 2: 'task' must be a string",
     "import robomimic control_freq is text": "control_freq",
     "import robomimic demo without actions": "data/demo_1/actions must be a numeric (frames[, dims]) array (missing)",
+    "import robomimic total is text": "data attribute total must be an integer, got 'x'",
     "import robomimic dones of 0.5": "data/demo_0/dones: a flag holds only 0 and 1 (or bools), found",
     "run raw success of 0.5": "arrays/success.npy: a flag holds only 0 and 1 (or bools), found",
     "fire on another env's dataset": "was recorded in mv-lift, not panda-play",
@@ -820,7 +825,7 @@ def _v21(t: Path, fps=None, line: tuple[str, str, object] | None = None) -> Path
     return src
 
 
-def _robomimic(t: Path, control_freq=20, drop: str | None = None, dones: float | None = None) -> Path:
+def _robomimic(t: Path, control_freq=20, drop: str | None = None, dones: float | None = None, total=None) -> Path:
     import h5py
     import numpy as np
 
@@ -831,6 +836,8 @@ def _robomimic(t: Path, control_freq=20, drop: str | None = None, dones: float |
         env_args={"env_name": "Lift", "env_type": 1, "env_kwargs": {"control_freq": control_freq, "robots": ["Panda"]}},
     )
     with h5py.File(path, "a") as f:
+        if total is not None:
+            f["data"].attrs["total"] = total
         if drop is not None:
             del f[f"data/demo_1/{drop}"]
         if dones is not None:

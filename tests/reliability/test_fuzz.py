@@ -193,7 +193,7 @@ def test_pipeline_config_files_with_random_text(tmp_path, suffix, text, raw):
     clean_or_error(lambda: load_pipeline_config(path))
 
 
-ROBOMIMIC_EXAMPLES = 8
+ROBOMIMIC_EXAMPLES = 12
 
 
 @settings(max_examples=ROBOMIMIC_EXAMPLES, **FUZZ)
@@ -201,8 +201,9 @@ ROBOMIMIC_EXAMPLES = 8
     target=st.sampled_from(["data/demo_0/actions", "data/demo_0/obs/robot0_eef_pos", "data/demo_1/rewards"]),
     array=npy_arrays,
     control_freq=json_values,
+    total=st.none() | st.integers(-3, 20) | st.text(max_size=4) | st.floats(allow_nan=True),
 )
-def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, control_freq):
+def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, control_freq, total):
     import h5py
 
     from shiftkit.pipelines.sources.robomimic import import_robomimic
@@ -217,6 +218,8 @@ def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, co
         args = json.loads(f["data"].attrs["env_args"])
         args["env_kwargs"]["control_freq"] = control_freq
         f["data"].attrs["env_args"] = json.dumps(args)
+        if total is not None:
+            f["data"].attrs["total"] = total
     clean_or_error(lambda: import_robomimic(path, "rm/fuzz", tmp / "out"))
 
 
