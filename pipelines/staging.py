@@ -95,11 +95,14 @@ class DestinationLock:
     def __init__(self, destination: Path) -> None:
         self.path = sibling(destination, "shiftkit-work.lock")
         self._fd: int | None = None
+        self._made: list[Path] = []
 
     def __enter__(self) -> DestinationLock:
         import fcntl
 
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        parent = self.path.parent
+        self._made = [p for p in [parent, *parent.parents] if not p.exists()]  # removed again if left empty
+        parent.mkdir(parents=True, exist_ok=True)
         while True:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
@@ -129,3 +132,8 @@ class DestinationLock:
             self.path.unlink(missing_ok=True)
             os.close(self._fd)
             self._fd = None
+            for folder in self._made:  # innermost first; a command that failed early leaves no folders
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break

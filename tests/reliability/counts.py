@@ -56,7 +56,7 @@ def readme_section() -> str:
 * {c["faults"]} faults injected: SIGKILL of `shiftkit run` at seeded random points (the resumed run
   writes the clean run's bytes and no pool worker outlives its parent), SIGKILL of a Ray run (every
   process of its Ray cluster exits), a second run on the same
-  destination (and a second trainer on one `--output`), a stale lock, a full disk, a run that can
+  destination (and a second trainer on one `--output`, and one refused early: no folder left), a stale lock, a full disk, a run that can
   never resume, a killed writer's staging folder (removed by the next writer of any command), a
   writer beaten to its destination, a 250-character destination name, a reader that closes
   stdout early, and an evaluation of an unfinished training run.

@@ -129,6 +129,12 @@ def test_second_training_run_on_same_output_is_refused(tmp_path, rel_ds, command
     assert not run.exists()
 
 
+def test_a_trainer_failing_early_leaves_no_folder(tmp_path):
+    """The output's lock makes its parent folders; a run refused before any work removes them again."""
+    outcome = cli(["train", "bc", "--dataset", str(tmp_path / "none"), "--output", str(tmp_path / "a" / "b" / "run")])
+    assert outcome.code == 2 and not (tmp_path / "a").exists(), outcome
+
+
 def test_stale_lock_of_a_dead_run_is_taken_over(tmp_path, rel_raw):
     config = _config(tmp_path, rel_raw, "out")
     (tmp_path / ".out.shiftkit-work.lock").write_text("999999\n")  # a SIGKILLed run's lock file
