@@ -57,7 +57,7 @@ def readme_section() -> str:
   writes the clean run's bytes and no pool worker outlives its parent), SIGKILL of a Ray run (every
   process of its Ray cluster exits), a second run on the same
   destination (and a second trainer on one `--output`, and one refused early: no folder left), a stale lock, a full disk, a run that can
-  never resume, a killed writer's staging folder (removed by the next writer of any command), a
+  never resume, a killed writer's staging folder (a SIGKILLed `import lerobot-v2.1`'s among them, removed by the next writer of any command), a
   writer beaten to its destination, a 250-character destination name, a reader that closes
   stdout early, and an evaluation of an unfinished training run.
 * {c["integrity"]} checks against silent wrong results: stale parts after the source changed,

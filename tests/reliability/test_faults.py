@@ -219,6 +219,21 @@ def test_every_writer_removes_a_dead_writers_staging_folder(tmp_path, rel_raw, c
     assert not dead.exists() and live.exists() and (tmp_path / "out" / "meta" / "info.json").is_file()
 
 
+def test_sigkilled_v21_import_leftovers_go_with_the_next_import(tmp_path):
+    """SIGKILL `import lerobot-v2.1` while it converts: its staging folder stays; the re-run succeeds
+    and removes it (the killed process's pid is in the folder's name)."""
+    from tests.test_import_lerobot_v21 import _write_v21
+
+    src = _write_v21(tmp_path / "src")
+    args = ("import", "lerobot-v2.1", str(src), "--repo-id", "me/x", "--root", str(tmp_path / "out"))
+    proc = shiftkit_process(*args, cwd=tmp_path)
+    assert sigkill_when(proc, lambda: any(tmp_path.glob(".out.partial-*"))) is not None, "the import ended first"
+    assert list(tmp_path.glob(f".out.partial-{proc.pid}-*")) and not (tmp_path / "out").exists()
+    outcome = cli(list(args))
+    assert outcome.code == 0, outcome
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "src"]
+
+
 def test_collect_beaten_to_its_destination_leaves_nothing(tmp_path, monkeypatch):
     """Two `collect --out raw` at once: the one that finishes second gets a one-line error and its
     staging folder goes (the other's dataset stays)."""
