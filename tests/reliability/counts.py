@@ -55,11 +55,12 @@ def readme_section() -> str:
   exception.
 * {c["faults"]} faults injected: SIGKILL of `shiftkit run` at seeded random points (the resumed run
   writes the clean run's bytes and no pool worker outlives its parent), SIGKILL of a Ray run (every
-  process of its Ray cluster exits), a second run on the same
-  destination (and a second trainer on one `--output`, and one refused early: no folder left), a stale lock, a full disk, a run that can
-  never resume, a killed writer's staging folder (a SIGKILLed `import lerobot-v2.1`'s among them, removed by the next writer of any command), a
-  writer beaten to its destination, a 250-character destination name, a reader that closes
-  stdout early, and an evaluation of an unfinished training run.
+  process of its Ray cluster exits), a second run on the same destination (and a second trainer
+  on one `--output`), a trainer refused early (no folder left), a stale lock, a full disk, a run
+  that can never resume, a killed writer's staging folder (a SIGKILLed `import lerobot-v2.1`'s
+  among them; the next writer of any command removes it), a writer beaten to its destination, a
+  250-character destination name, a reader that closes stdout early, and an evaluation of an
+  unfinished training run.
 * {c["integrity"]} checks against silent wrong results: stale parts after the source changed,
   success flags kept by every frame-rate-changing stage (property-based), statistics that no longer
   match the data (`shiftkit validate --deep`), dataset ids that do not match, example sets, VPACE
