@@ -44,6 +44,22 @@ def object_column(values: list[Any]) -> np.ndarray:
     return out
 
 
+def flag_array(arr: np.ndarray, where: str) -> np.ndarray:
+    """A success or done flag as bool. Only 0 and 1 (or bools) are flags: a 0.5 would otherwise
+    be cast to True and count as a success (docs/raw_format.md)."""
+    arr = np.asarray(arr)
+    if arr.dtype == bool:
+        return arr
+    if arr.dtype.kind not in "iuf":
+        raise DatasetError(f"{where}: a flag holds only 0 and 1 (or bools), found dtype {arr.dtype}")
+    odd = np.flatnonzero((arr != 0) & (arr != 1))
+    if odd.size:
+        frame = odd[0] // max(1, arr.size // max(1, len(arr)))
+        value = arr.reshape(-1)[odd[0]].item()
+        raise DatasetError(f"{where}: a flag holds only 0 and 1 (or bools), found {value!r} at frame {frame}")
+    return arr.astype(bool)
+
+
 def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
     feature: dict[str, Any] = {"dtype": dtype, "shape": (len(names),), "names": list(names)}
     if info:

@@ -24,12 +24,12 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
 from shiftkit.pipelines.lerobot_io import find_local_dataset, lerobot_home
+from shiftkit.pipelines.staging import remove_dead_staging, staging_path
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +68,14 @@ def validate_repo_id(repo_id: str) -> None:
 
     try:
         hf_validate(repo_id)
-        valid = repo_id.count("/") == 1
+        # huggingface_hub's pattern takes any Unicode letter, the hub itself ASCII only: checked
+        # here, so no command writes a dataset under an id it could never be pushed as.
+        valid = repo_id.count("/") == 1 and repo_id.isascii()
     except HFValidationError:
         valid = False
     if not valid:
         raise ShiftkitError(
-            f"invalid repo id {repo_id!r}: expected ORG/NAME made of letters, digits, '-', '_' and '.' "
+            f"invalid repo id {repo_id!r}: expected ORG/NAME made of ASCII letters, digits, '-', '_' and '.' "
             "(no '--' or '..', not starting or ending with '-' or '.', at most 96 characters)"
         )
 
@@ -341,7 +343,8 @@ def _pull(repo_id: str, repo_type: str, revision: str, dest: Path, check) -> Pat
         if check is not None:
             check(repo_id, staging)
         if dest.exists():  # only with force: swap, then drop the old copy
-            old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old-", dir=dest.parent))
+            old = staging_path(dest, "old")
+            old.mkdir()
             os.replace(dest, old / dest.name)
             os.replace(staging, dest)
             shutil.rmtree(old)
@@ -356,7 +359,9 @@ def _staging(dest: Path) -> Iterator[Path]:
     """A temporary folder on dest's filesystem; on failure it and any parents made for it go."""
     made = [p for p in [dest.parent, *dest.parent.parents] if not p.exists()]
     dest.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{dest.name}.pull-", dir=dest.parent))
+    remove_dead_staging(dest)
+    staging = staging_path(dest, "pull")
+    staging.mkdir()
     try:
         yield staging
     except BaseException:

@@ -37,7 +37,6 @@ import io
 import json
 import os
 import shutil
-import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,6 +59,7 @@ from shiftkit.pipelines.features import (
     user_features,
 )
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 from shiftkit.pipelines.stats import RunningStats, image_stats, numeric_stats
 from shiftkit.pipelines.video import decode_episode, encode_frames
 
@@ -174,12 +174,13 @@ class DatasetWriter:
         check_features(self.features, where=f"schema of {self.root}")
         self.fps = int(fps)
         self.repo_id = repo_id
-        self.tmp = self.root.parent / f".{self.root.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        self.tmp = staging_path(self.root)
         video_keys = [k for k, ft in self.features.items() if ft["dtype"] == "video"]  # pipelines/video.py
         try:
             self.root.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DatasetError(f"cannot create the destination's folder {self.root.parent}: {exc.strerror}") from None
+        remove_dead_staging(self.root)
         # lerobot's own metadata and writer objects: the writer appends video files and fills a
         # video feature's `info` (`video.*`, the depth quantiser) exactly as its save_episode does.
         self._meta = LeRobotDatasetMetadata.create(
@@ -380,11 +381,8 @@ class DatasetWriter:
         cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
         if provenance is not None:
             write_provenance(self.tmp, {**provenance, "cameras": cameras} if cameras else provenance)
-        if self.root.exists():
-            self.abort()
-            raise DatasetError(f"destination already exists: {self.root}")
-        os.rename(self.tmp, self.root)
         self._closed = True
+        publish(self.tmp, self.root)
         return self.root
 
     def _write_info_and_stats(self) -> None:
@@ -397,6 +395,8 @@ class DatasetWriter:
         write_stats({k: stats[k] for k in self._meta.features if k in stats}, self.tmp)
 
     def abort(self) -> None:
+        if self._closed:
+            return
         if self._writer is not None:
             self._writer.close()
             self._writer = None
@@ -714,11 +714,25 @@ def check_info_values(info: dict[str, Any], info_path: Path) -> None:
             raise DatasetError(f"{info_path}: feature {key!r} needs a 'dtype' string and a 'shape' list of sizes")
 
 
+def require_utf8_path(path: Path, what: str, verb: str) -> None:
+    """pyarrow (LeRobot's parquet files) opens UTF-8 paths only: a one-line error naming the path
+    rather than a parquet error about a file that is fine."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = str(path).encode("utf-8", "backslashreplace").decode()
+        raise DatasetError(
+            f"{what} {shown} is not a UTF-8 path; LeRobot datasets can only be {verb} UTF-8 paths"
+        ) from None
+
+
 def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     """Open a local LeRobot v3.0 dataset for streaming; one-line errors for broken metadata."""
     import pyarrow.parquet as pq
 
     root = Path(root)
+    if root.is_dir():
+        require_utf8_path(root.resolve(), "dataset", "read from")
     info_path = root / "meta" / "info.json"
     if not root.is_dir():
         raise DatasetError(f"dataset not found: {root}")

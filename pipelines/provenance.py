@@ -108,3 +108,21 @@ def report_lines(provenance: dict[str, Any]) -> list[str]:
         for k, stage in enumerate(provenance.get("stages", []), start=1)
         if stage.get("report")
     ]
+
+
+def recorded_envs(root: Any) -> set[str]:
+    """The envs a LeRobot dataset's episodes were recorded in, as its provenance names them (its
+    raw and simulator sources); empty when it has no provenance or the provenance does not say."""
+    from pathlib import Path
+
+    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+
+    path = Path(root) / PROVENANCE_PATH
+    provenance = read_json_file(path, "provenance") if path.is_file() else {}
+    sources = provenance.get("sources") if isinstance(provenance, dict) else None
+    return {
+        s["env"]
+        for s in (sources if isinstance(sources, list) else [])
+        if isinstance(s, dict) and isinstance(s.get("env"), str) and s["env"]
+    }

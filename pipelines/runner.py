@@ -31,8 +31,10 @@ from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.features import check_episode
+from shiftkit.pipelines.lerobot_io import require_utf8_path
 from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.stage import select_outputs
+from shiftkit.pipelines.staging import DestinationLock, remove_dead_staging, sibling
 
 MAX_EPISODES_PER_UNIT = 16
 
@@ -110,7 +112,7 @@ class PartStore:
 
 
 def work_dir_for(destination: Path) -> Path:
-    return destination.parent / f".{destination.name}.shiftkit-work"
+    return sibling(destination, "shiftkit-work")
 
 
 def source_fingerprint(root: Path) -> str:
@@ -287,7 +289,7 @@ def run_pipeline(
     dest = plan.destination
     check_writable_name(dest)
     work = work_dir_for(dest)
-    with WorkLock(work):
+    with DestinationLock(dest):
         if restart and work.exists():
             shutil.rmtree(work)
         try:
@@ -303,13 +305,7 @@ def run_pipeline(
 
 def check_writable_name(dest: Path) -> None:
     """LeRobot's parquet writer (pyarrow) takes UTF-8 paths only: refuse others before any work."""
-    try:
-        str(dest).encode("utf-8")
-    except UnicodeEncodeError:
-        shown = str(dest).encode("utf-8", "backslashreplace").decode()
-        raise ShiftkitError(
-            f"destination {shown} is not a UTF-8 path; LeRobot datasets can only be written to UTF-8 paths"
-        ) from None
+    require_utf8_path(dest, "destination", "written to")
 
 
 def _run_locked(config: PipelineConfig, plan: Plan, engine: Any, work: Path, progress: bool) -> Path | None:
@@ -377,8 +373,7 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
 
 def _prepare_work_dir(work: Path, key: str, dest: Path) -> None:
     # Leftovers of a writer killed mid-way are never a usable dataset: remove them.
-    for stale in dest.parent.glob(f".{dest.name}.partial-*"):
-        shutil.rmtree(stale, ignore_errors=True)
+    remove_dead_staging(dest)
     key_file = work / "run_key"
     if work.exists() and (not key_file.exists() or key_file.read_text() != key):
         shutil.rmtree(work)  # parts of a different pipeline/config cannot be reused
@@ -395,51 +390,6 @@ def _size_text(folder: Path) -> str:
             with contextlib.suppress(OSError):  # removed meanwhile
                 total += os.lstat(os.path.join(dirpath, name)).st_size
     return f"{total / 1e6:.1f} MB"
-
-
-class WorkLock:
-    """An exclusive lock on a work directory (`<work>.lock`, flock'ed, holding the owner's pid).
-
-    The kernel drops the flock when its owner dies, so the lock of a killed run is simply taken
-    over; a second live run on the same destination gets a one-line error naming the first."""
-
-    def __init__(self, work: Path) -> None:
-        self.path = work.with_name(work.name + ".lock")
-        self._fd: int | None = None
-
-    def __enter__(self) -> WorkLock:
-        import fcntl
-
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                owner = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
-                os.close(fd)
-                raise ShiftkitError(
-                    f"another shiftkit run (pid {owner}) is writing this destination (lock {self.path}); "
-                    "wait for it to finish or stop it"
-                ) from None
-            # The file may have been removed by the previous owner between open and flock.
-            try:
-                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
-                break
-            os.close(fd)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        self._fd = fd
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        if self._fd is not None:
-            self.path.unlink(missing_ok=True)
-            os.close(self._fd)
-            self._fd = None
 
 
 class _progress:

@@ -35,7 +35,14 @@ from tqdm import tqdm
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import numpy_dtype
-from shiftkit.policies.data import FrameTable, Prefetcher, batches_per_epoch, epoch_batches, open_datasets
+from shiftkit.policies.data import (
+    FrameTable,
+    Prefetcher,
+    batches_per_epoch,
+    epoch_batches,
+    open_datasets,
+    refuse_example_sets,
+)
 from shiftkit.policies.networks import image_encoder, mlp, orthogonal_init_
 from shiftkit.policies.run_dir import RunDir, dataset_records, load_checkpoint, torch_device, versions
 
@@ -473,6 +480,7 @@ def train(args: BCArgs, progress: bool = False) -> dict:
 
     # --- data: one frame table over all datasets, episodes split into train / held-out ---
     opened = open_datasets(args.datasets, args.root)
+    refuse_example_sets(opened, "BC")
     datasets = [ds for _, ds in opened]
     inputs = _select_inputs(datasets[0].meta.features, args.inputs)
     table = FrameTable(datasets, [*inputs, "action"])

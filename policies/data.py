@@ -48,6 +48,40 @@ def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Resolv
     return opened
 
 
+def example_set_origin(root: str | Path) -> str | None:
+    """What made the dataset at `root` a success-example set (frames of successful states, not
+    demonstrations), as its provenance says: the `success_examples` stage or `import vpace` of
+    example files; None for anything else."""
+    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+
+    path = Path(root) / PROVENANCE_PATH
+    try:
+        provenance = read_json_file(path, "provenance") if path.is_file() else {}
+    except DatasetError:
+        return None
+    provenance = provenance if isinstance(provenance, dict) else {}
+    stages = [s.get("name") for s in provenance.get("stages") or [] if isinstance(s, dict)]
+    importer = provenance.get("importer")
+    if "success_examples" in stages:
+        return "the success_examples stage"
+    if isinstance(importer, dict) and importer.get("kind") == "examples":
+        return f"`import {importer.get('name')}` of example files"
+    return None
+
+
+def refuse_example_sets(opened: list[tuple[ResolvedDataset, object]], trainer: str) -> None:
+    """Trainers that imitate demonstrations (BC, FIRE, LfGP) refuse a success-example set: its
+    frames are isolated successful states, and their actions are no demonstration."""
+    for resolved, _ in opened:
+        origin = example_set_origin(resolved.root)
+        if origin is not None:
+            raise DatasetError(
+                f"{resolved.repo_id} is a success-example set (made by {origin}), not demonstrations: {trainer} "
+                "learns from trajectories; give it to `train vpace --examples` instead"
+            )
+
+
 def numeric_column(ds, key: str) -> np.ndarray:
     """A numeric feature of every frame as one `(N, *shape)` float32 array."""
     column = ds.hf_dataset.with_format("numpy", columns=[key])[key]

@@ -12,15 +12,14 @@ vary (std 0) stay exact.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, ResolvedDataset
-from shiftkit.policies.data import numeric_column, open_datasets
+from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.policies.data import example_set_origin, numeric_column, open_datasets, refuse_example_sets
 
 STATE_KEYS = ("observation.state", "observation.environment_state")
 
@@ -52,15 +51,7 @@ def check_example_set(ref: str, root: Path, dataset) -> None:
     """Refuse to take every frame of a trajectory dataset as a success example: an example set is
     made by the `success_examples` stage, imported as one (`import vpace`, kind examples), or holds
     states only (no `action`)."""
-    if "action" not in dataset.features:
-        return
-    try:
-        provenance = json.loads((Path(root) / PROVENANCE_PATH).read_text())
-    except (OSError, ValueError):
-        provenance = {}
-    stages = [s.get("name") for s in provenance.get("stages") or [] if isinstance(s, dict)]
-    importer = provenance.get("importer") or {}
-    if "success_examples" in stages or (isinstance(importer, dict) and importer.get("kind") == "examples"):
+    if "action" not in dataset.features or example_set_origin(root) is not None:
         return
     raise DatasetError(
         f"{ref} holds trajectories ({dataset.meta.total_episodes} episodes with actions), not a success-example set: "
@@ -91,6 +82,8 @@ def load_dataset_examples(
         keys = [k for k in STATE_KEYS if k in dataset.features]
         if "observation.state" not in keys:
             raise DatasetError(f"example dataset {ref!r} has no 'observation.state' feature")
+        if with_actions:
+            refuse_example_sets([(resolved, dataset)], "LfGP")
         if with_actions and "action" not in dataset.features:
             raise DatasetError(f"example dataset {ref!r} has no 'action' feature (LfGP needs full trajectories)")
         obs = np.concatenate([numeric_column(dataset, k).reshape(len(dataset), -1) for k in keys], axis=1)

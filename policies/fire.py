@@ -44,10 +44,11 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.features import user_features
 from shiftkit.pipelines.lerobot_io import lerobot_home, open_lerobot_dataset
+from shiftkit.pipelines.provenance import recorded_envs
 from shiftkit.policies.bc import BCArgs, BCPolicy, ensemble_doubt, load_policy, update_members
 from shiftkit.policies.bc import train as train_bc
 from shiftkit.policies.dagger_recording import rollout_repo_id, write_recording
-from shiftkit.policies.data import FrameTable, epoch_batches, open_datasets
+from shiftkit.policies.data import FrameTable, epoch_batches, open_datasets, refuse_example_sets
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.evaluation import ObservationMap, run_episodes, wilson_interval
 from shiftkit.policies.failure_predictors import (
@@ -416,7 +417,7 @@ def _load_npz(path: Path) -> tuple[dict[str, np.ndarray], dict]:
 
 def run(args: FireArgs) -> dict:
     """Run (or resume) FIRE and write the aggregated dataset; returns the final summary."""
-    from shiftkit.envs import env_family, make
+    from shiftkit.envs import ENV_TASKS, env_family, make
 
     args = args.resolved()
     run_dir = RunDir(args.output_dir, args.resume)
@@ -426,7 +427,8 @@ def run(args: FireArgs) -> dict:
     dataset_root = Path(args.dataset_root) if args.dataset_root else lerobot_home() / args.repo_id
 
     # --- data and environment, checked before anything is written
-    ((resolved, ds),) = open_datasets([args.dataset], args.root)
+    ((resolved, ds),) = opened = open_datasets([args.dataset], args.root)
+    refuse_example_sets(opened, "FIRE")
     fps, features = int(ds.meta.fps), user_features(ds.meta.features)
     try:
         family = env_family(args.env)
@@ -436,8 +438,21 @@ def run(args: FireArgs) -> dict:
         env = make(args.env, args.task, **env_kwargs)
     except (ValueError, TypeError) as exc:
         raise ConfigError(str(exc)) from None
+    # Another registered env's dataset: its rate and observations are not this env's.
+    recorded = sorted(recorded_envs(ds.root) & set(ENV_TASKS))
+    if recorded and args.env not in recorded:
+        env.close()
+        raise ConfigError(
+            f"{resolved.repo_id} was recorded in {', '.join(recorded)}, not {args.env}: "
+            f"FIRE it in the env it was recorded in (--env {recorded[0]})"
+        )
     if round(getattr(env, "control_hz", fps)) != fps:
-        raise ConfigError(f"the env runs at {env.control_hz} Hz but the dataset at {fps} fps (pass control_hz)")
+        env.close()
+        offered = ", ".join(str(r) for r in sorted(family.control_rates))
+        raise ConfigError(
+            f"the dataset is at {fps} fps but {args.env} would run at {env.control_hz} Hz ({args.env} offers "
+            f"{offered} Hz): FIRE a dataset recorded at a rate the env offers"
+        )
     scripted_expert(args.env, env)  # the env must have an expert that acts from any state
     observed = recordable_features(features, list(env.observation_names))
     if dataset_root.exists() and not args.resume:

@@ -169,6 +169,8 @@ class RunDir:
         keys in `ignore_on_resume`), since a checkpoint only continues the run that made it."""
         config = _jsonable(config)
         old = self.read_config()
+        if old is not None and not self.resume:  # it appeared after __init__: another run started there
+            raise ShiftkitError(f"output folder {self.path} now holds another run's config; choose another --output")
         if old is not None:
             old_args, new_args = old.get("args", {}), config.get("args", {})
             for key in sorted(set(old_args) | set(new_args)):

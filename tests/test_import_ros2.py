@@ -65,12 +65,16 @@ STREAMS = {  # topic: (type, period ns, first offset ns, message)
 }
 
 
-def _write_bag(path, duration_ns=1_000_000_000, storage=StoragePlugin.SQLITE3, markers=(), image_encoding="rgb8"):
+def _write_bag(
+    path, duration_ns=1_000_000_000, storage=StoragePlugin.SQLITE3, markers=(), image_encoding="rgb8", streams=None
+):
+    """A bag of `streams` (default STREAMS; a test may swap one topic's message maker)."""
+    streams = STREAMS if streams is None else streams
     with Writer(path, version=9, storage_plugin=storage) as writer:
-        conns = {topic: writer.add_connection(topic, typ, typestore=TS) for topic, (typ, *_rest) in STREAMS.items()}
+        conns = {topic: writer.add_connection(topic, typ, typestore=TS) for topic, (typ, *_rest) in streams.items()}
         marker = writer.add_connection("/episode", "std_msgs/msg/Empty", typestore=TS) if markers else None
         events = []
-        for topic, (typ, period, offset, make) in STREAMS.items():
+        for topic, (typ, period, offset, make) in streams.items():
             for t in range(T0 + offset, T0 + duration_ns + 1, period):
                 events.append((t, topic, typ, make))
         for t, topic, typ, make in sorted(events, key=lambda e: e[0]):

@@ -16,7 +16,6 @@ residuals and where the pushes came from; reading one of another version or sens
 from __future__ import annotations
 
 import os
-import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,7 @@ import numpy as np
 
 from shiftkit.pipelines.errors import ConfigError, ShiftkitError
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.staging import staging_path
 
 FORMAT = "shiftkit-force-calibration"
 VERSION = 1
@@ -120,9 +120,13 @@ class Calibration:
     def save(self, path: str | Path) -> Path:
         """Write the file atomically (a temporary sibling renamed into place)."""
         path = Path(path)
-        tmp = path.parent / f".{path.name}.{uuid.uuid4().hex[:8]}.tmp"
-        tmp.write_text(dumps(self.to_json(), indent=1))
-        os.replace(tmp, path)
+        tmp = staging_path(path, "tmp")  # within the name limit whatever the length of the name
+        try:
+            tmp.write_text(dumps(self.to_json(), indent=1))
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
         return path
 
 

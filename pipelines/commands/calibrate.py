@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from shiftkit.pipelines.commands.plot import check_figure_path
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.transforms import force_calibration as fc
 
@@ -62,15 +63,28 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.is_dir() or not out.parent.is_dir():
         raise ConfigError(f"--out {out}: give a file in an existing folder")
+    plot = Path(args.plot) if args.plot else out.with_suffix(".png")
+    if plot.resolve() == out.resolve():  # the plot would overwrite the calibration
+        raise ConfigError(
+            f"--out {out} and the plot {plot} would be one file: give --out a .json path or another --plot"
+        )
+    check_figure_path(str(plot), "--plot" if args.plot else "the plot of --out")
+    if plot.is_dir() or not plot.parent.is_dir():
+        raise ConfigError(f"--plot {plot}: give a file in an existing folder")
     if args.recording:
         calibration, fit, held = fc.calibrate_recording(args.recording, args.sensor_id)
     else:
         calibration, fit, held = fc.calibrate_env(args.env, args.task, fit_seeds, held_seeds)
-    calibration.save(out)
     stack = lambda pushes: [np.concatenate([getattr(p, a) for p in pushes]) for a in ("displacement", "wrench", "mask")]  # noqa: E731
     e, f, m = stack(fit)
-    plot = Path(args.plot) if args.plot else out.with_suffix(".png")
-    fc.plot_calibration(calibration, e, f, plot, held_out=tuple(stack(held)) if held else None, mask=m)
+    new = [p for p in (out, plot) if not p.exists()]
+    try:
+        calibration.save(out)
+        fc.plot_calibration(calibration, e, f, plot, held_out=tuple(stack(held)) if held else None, mask=m)
+    except BaseException:  # no calibration without its plot: remove what this run created
+        for path in new:
+            path.unlink(missing_ok=True)
+        raise
     print(f"wrote {out} (sensor {calibration.sensor_id}) and {plot}")
     split = "held_out" if held else "fit"
     for axis in fc.WRENCH_AXES:

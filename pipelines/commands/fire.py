@@ -118,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.pipelines.hub import validate_repo_id
     from shiftkit.pipelines.option_values import check_env_kwargs
+    from shiftkit.pipelines.staging import DestinationLock
     from shiftkit.policies.fire import FireArgs
     from shiftkit.policies.fire import run as run_fire
 
@@ -130,41 +131,42 @@ def run(args: argparse.Namespace) -> int:
     validate_repo_id(args.repo_id or f"local/{Path(args.output).name}")
     check_env_kwargs(args.env, dict(args.env_kwarg))
 
-    summary = run_fire(
-        FireArgs(
-            dataset=args.dataset,
-            root=args.root,
-            env=args.env,
-            task=args.task,
-            output_dir=args.output,
-            predictor=args.predictor,
-            budget_expert_samples=args.budget_expert_samples,
-            max_episodes=args.max_episodes,
-            repo_id=args.repo_id,
-            dataset_root=args.dataset_root,
-            env_kwargs=dict(args.env_kwarg),
-            seed=args.seed,
-            env_seed=args.env_seed,
-            bc_regime=args.bc_regime,
-            bc_steps=args.bc_steps,
-            ensemble_size=args.ensemble,
-            hidden=args.hidden,
-            batch_size=args.batch_size,
-            retrain_every=args.retrain_every,
-            d_start=args.d_start,
-            d_hidden=args.d_hidden,
-            beta=args.beta,
-            gamma=args.gamma,
-            doubt_threshold=args.doubt_threshold,
-            expert_margin=args.expert_margin,
-            eval_every=args.eval_every,
-            eval_episodes=args.eval_episodes,
-            device=args.device,
-            threads=args.threads,
-            resume=args.resume,
-            progress=not args.no_progress,
+    with DestinationLock(Path(args.output)):  # a second run on the same --output is told who holds it
+        summary = run_fire(
+            FireArgs(
+                dataset=args.dataset,
+                root=args.root,
+                env=args.env,
+                task=args.task,
+                output_dir=args.output,
+                predictor=args.predictor,
+                budget_expert_samples=args.budget_expert_samples,
+                max_episodes=args.max_episodes,
+                repo_id=args.repo_id,
+                dataset_root=args.dataset_root,
+                env_kwargs=dict(args.env_kwarg),
+                seed=args.seed,
+                env_seed=args.env_seed,
+                bc_regime=args.bc_regime,
+                bc_steps=args.bc_steps,
+                ensemble_size=args.ensemble,
+                hidden=args.hidden,
+                batch_size=args.batch_size,
+                retrain_every=args.retrain_every,
+                d_start=args.d_start,
+                d_hidden=args.d_hidden,
+                beta=args.beta,
+                gamma=args.gamma,
+                doubt_threshold=args.doubt_threshold,
+                expert_margin=args.expert_margin,
+                eval_every=args.eval_every,
+                eval_episodes=args.eval_episodes,
+                device=args.device,
+                threads=args.threads,
+                resume=args.resume,
+                progress=not args.no_progress,
+            )
         )
-    )
     print(
         f"FIRE: {summary['episodes']} episodes ({summary['successes']} successful, the policy alone "
         f"{summary['policy_successes']}), {summary['corrections']} expert corrections "

@@ -23,10 +23,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shiftkit.pipelines.errors import ConfigError
-
-    if not args.repo_id.isascii():  # the hub refuses such ids on push, long after the import
-        raise ConfigError(f"invalid repo id {args.repo_id!r}: the hub takes ASCII letters, digits, '-', '_' and '.'")
     importer = args._importer
     summary = importer.run(args)
     for line in importer.report(summary):

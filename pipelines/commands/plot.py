@@ -38,8 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     fire.set_defaults(_plot=_run_fire)
 
 
-def check_figure_path(out: str) -> None:
-    """`out` must name a format matplotlib writes, checked before any run is read."""
+def check_figure_path(out: str, flag: str = "--out") -> None:
+    """`out` (given as `flag`) must name a format matplotlib writes, checked before any work."""
     from pathlib import Path
 
     from matplotlib.figure import Figure
@@ -49,7 +49,9 @@ def check_figure_path(out: str) -> None:
     formats = Figure().canvas.get_supported_filetypes()
     suffix = Path(out).suffix.lower().lstrip(".")
     if suffix and suffix not in formats:
-        raise ConfigError(f"--out {out}: format {suffix!r} is not one matplotlib writes ({', '.join(sorted(formats))})")
+        raise ConfigError(
+            f"{flag} {out}: format {suffix!r} is not one matplotlib writes ({', '.join(sorted(formats))})"
+        )
 
 
 def _run_roc(args: argparse.Namespace) -> int:

@@ -152,4 +152,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return args._train_run(args)
+    from pathlib import Path
+
+    from shiftkit.pipelines.staging import DestinationLock
+
+    if getattr(args, "output", None) is None:  # `train plot` writes no run folder
+        return args._train_run(args)
+    with DestinationLock(Path(args.output)):  # a second run on the same --output is told who holds it
+        return args._train_run(args)

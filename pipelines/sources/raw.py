@@ -18,9 +18,7 @@ recording gives the same files.
 
 from __future__ import annotations
 
-import os
 import shutil
-import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,8 +32,9 @@ from shiftkit.pipelines.depth import clean_metres, depth_feature
 from shiftkit.pipelines.encoded_frames import EncodedFrames
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, image_feature, vector_feature
+from shiftkit.pipelines.features import Features, flag_array, image_feature, vector_feature
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 
 FORMAT = "shiftkit-raw"
 VERSION = 1
@@ -101,19 +100,23 @@ class RawDatasetWriter:
         self.env = env
         self.names = {k: list(v) for k, v in (names or {}).items()}
         self.info = dict(info or {})
-        # The pid names the writer, so a later run can tell a killed writer's leftovers from a live one.
-        self._tmp = self.out_dir.parent / f".{self.out_dir.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        self._tmp = staging_path(self.out_dir)
         self._episodes: list[dict[str, Any]] = []
         self._layout: dict[str, Any] | None = None
 
     def __enter__(self) -> RawDatasetWriter:
+        remove_dead_staging(self.out_dir)
         self._tmp.mkdir(parents=True)
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None and self._episodes:
-            self._write_index()
-            os.rename(self._tmp, self.out_dir)
+            try:
+                self._write_index()
+            except BaseException:
+                shutil.rmtree(self._tmp, ignore_errors=True)
+                raise
+            publish(self._tmp, self.out_dir)
         else:
             shutil.rmtree(self._tmp, ignore_errors=True)
             if exc_type is None:
@@ -322,7 +325,7 @@ def raw_episode(
         if name != "timestamp":
             frames[FEATURE_OF_ARRAY.get(name, name)] = arr if arr.ndim == 2 else arr.reshape(-1, 1)
     if "next.success" in frames:
-        frames["next.success"] = frames["next.success"].astype(bool)
+        frames["next.success"] = flag_array(frames["next.success"], f"{where}/arrays/success.npy")
     for cam, cam_frames in sorted(images.items()):
         frames[_camera_feature(cam)] = cam_frames
     cameras = check_cameras(merge_cameras(dataset_cameras, meta.get("cameras")), f"{where}/meta.json")

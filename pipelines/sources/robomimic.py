@@ -33,7 +33,7 @@ import numpy as np
 
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, image_feature, vector_feature
+from shiftkit.pipelines.features import Features, flag_array, image_feature, vector_feature
 from shiftkit.pipelines.sources import Importer, ImportSummary, write_imported
 
 IMAGE_SUFFIX = "_image"
@@ -218,7 +218,7 @@ def _read_demo(
     if "next.reward" in features:
         frames["next.reward"] = read("rewards").reshape(n, 1).astype(np.float32)
     if "next.done" in features:
-        frames["next.done"] = read("dones").reshape(n, 1).astype(bool)
+        frames["next.done"] = flag_array(read("dones").reshape(n, 1), f"{path}: data/{name}/dones")
     if "sim.state" in features:
         frames["sim.state"] = read("states").reshape(n, -1).astype(np.float64)
     for key, ft in features.items():
@@ -271,10 +271,11 @@ def import_robomimic(
                 raise DatasetError(f"{path}: data/{d}/actions must be a numeric (frames[, dims]) array ({found})")
         if "total" in data.attrs:
             samples = sum(int(data[d]["actions"].shape[0]) for d in all_demos)
-            if int(data.attrs["total"]) != samples:
-                raise DatasetError(
-                    f"{path}: data attribute total is {int(data.attrs['total'])}, the demos hold {samples}"
-                )
+            total = data.attrs["total"]
+            if np.ndim(total) != 0 or np.asarray(total).dtype.kind not in "iu":
+                raise DatasetError(f"{path}: data attribute total must be an integer, got {total!r:.40}")
+            if int(total) != samples:
+                raise DatasetError(f"{path}: data attribute total is {int(total)}, the demos hold {samples}")
         demos = _demo_names(path, f, filter_key)
         control_freq = env_kwargs.get("control_freq")
         if fps is None:

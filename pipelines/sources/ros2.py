@@ -355,9 +355,14 @@ def _episode(
         columns = []
         for part in parts:
             msgs = messages[part.topic]
-            columns.append(
-                np.stack([_vector(msgs[int(k)], part, f"{path} {part.topic}") for k in plan.picks[part.topic]])
-            )
+            vectors = [_vector(msgs[int(k)], part, f"{path} {part.topic}") for k in plan.picks[part.topic]]
+            odd = next((i for i, v in enumerate(vectors) if len(v) != len(vectors[0])), None)
+            if odd is not None:
+                raise DatasetError(
+                    f"{path} {part.topic}: field {part.field!r} changes width mid-bag ({len(vectors[0])} values, "
+                    f"then {len(vectors[odd])} at frame {odd} of the episode starting at {plan.start} ns)"
+                )
+            columns.append(np.stack(vectors))
         try:
             value = np.concatenate(columns, axis=1)
         except ValueError:

@@ -11,11 +11,8 @@ its registry entry says (panda-play: reference dims 0:12 + 53:59 and 12:53; docs
 
 from __future__ import annotations
 
-import glob
 import itertools
 import logging
-import os
-import shutil
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -24,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from shiftkit.pipelines.errors import ConfigError, ShiftkitError
+from shiftkit.pipelines.staging import remove_dead_staging
 
 log = logging.getLogger(__name__)
 
@@ -233,9 +231,11 @@ def _open_env(config: CollectConfig) -> tuple[Any, Any, _Recording]:
 def collect(config: CollectConfig, progress: bool = False) -> tuple[Path, dict[str, Any]]:
     """Record the episodes; returns the written directory and counts (`seeds`: those kept).
     `progress` shows a bar with the success rate so far."""
+    if config.out is not None or config.root is not None:
+        # Before validating: a dead recorder's leftovers go even when this run is then refused.
+        remove_dead_staging(Path(config.out if config.out is not None else config.root))
     config.validate()
     target = Path(config.out if config.out is not None else config.root)
-    remove_dead_leftovers(target)
     env, family, recording = _open_env(config)
     try:
         episodes = recording.episodes(env, family, progress)
@@ -310,25 +310,3 @@ def _write_lerobot(recording: _Recording, episodes: Iterator[dict[str, Any]], ro
 def _check_kept(recording: _Recording) -> None:
     if recording.counts["episodes"] == 0:
         raise ShiftkitError("no episode was kept (all failed with --only-successful)")
-
-
-def remove_dead_leftovers(target: Path) -> None:
-    """Remove what a killed `collect` into `target` left beside it (`.<name>.collect-<pid>-*`,
-    `.<name>.partial-<pid>-*`): only folders whose recording process no longer runs."""
-    if not target.parent.is_dir():
-        return
-    for kind in ("collect", "partial"):
-        for path in target.parent.glob(f".{glob.escape(target.name)}.{kind}-*"):
-            pid, _, rest = path.name[len(f".{target.name}.{kind}-") :].partition("-")
-            if pid.isdigit() and rest and not _alive(int(pid)):
-                shutil.rmtree(path, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

@@ -195,17 +195,18 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
     missing = [k for k in _REQUIRED_KEYS if k not in data]
     if missing:
         raise DatasetError(f"{path}: missing key(s) {missing}")
-    try:
-        size, pointer, count = int(data["memory_size"]), int(data["pointer"]), int(data["count"])
-    except (TypeError, ValueError):
-        raise DatasetError(f"{path}: memory_size, pointer and count must be integers") from None
+    counters = [data[k] for k in ("memory_size", "pointer", "count")]
+    if not all(
+        isinstance(v, (int, np.integer, np.ndarray)) and np.ndim(v) == 0 and np.asarray(v).dtype.kind in "iu"
+        for v in counters
+    ):
+        raise DatasetError(f"{path}: memory_size, pointer and count must be integers")
+    size, pointer, count = (int(v) for v in counters)
     if size < 0 or count < 0 or not 0 <= pointer < max(size, 1):
         raise DatasetError(f"{path}: pointer {pointer} is outside the buffer of {size} rows (count {count})")
     if min(count, size) == 0:
         raise DatasetError(f"{path}: empty buffer (no rows)")
-    arrays = {
-        k: np.asarray(data[k], dtype=np.float32) for k in ("observations", "next_observations", "actions", "rewards")
-    }
+    arrays = {k: _rows(path, k, data[k]) for k in ("observations", "next_observations", "actions", "rewards")}
     if any(len(a) != size for a in arrays.values()):
         raise DatasetError(f"{path}: array lengths {[len(a) for a in arrays.values()]} differ from memory_size {size}")
     # Circular buffer: once it has wrapped, the oldest row is at `pointer`.
@@ -238,6 +239,21 @@ def read_vpace_buffer(path: str | Path, task: str | None = None) -> VpaceBuffer:
         overwritten_rows=max(count - size, 0),
         reference_name=reference_name,
     )
+
+
+def _rows(path: Path, key: str, value: Any) -> np.ndarray:
+    """`value` as a float32 array with one row per buffer entry; a one-line error naming the file
+    and the key for anything else (ragged rows, text, objects, a scalar)."""
+    if isinstance(value, np.ndarray) and value.dtype.kind not in "biuf":
+        raise DatasetError(f"{path}: {key} has dtype {value.dtype}, expected numbers")
+    try:
+        arr = np.asarray(value, dtype=np.float32)
+    except (TypeError, ValueError) as exc:
+        reason = "rows of different lengths" if "inhomogeneous" in str(exc) else "not numbers"
+        raise DatasetError(f"{path}: {key} is not a numeric array ({reason})") from None
+    if arr.ndim == 0:
+        raise DatasetError(f"{path}: {key} is a scalar, expected one row per buffer entry")
+    return arr
 
 
 def _panda_play():

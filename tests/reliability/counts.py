@@ -22,10 +22,12 @@ def counts() -> dict[str, int]:
         + test_fuzz.CONFIG_EXAMPLES
         + test_fuzz.CONFIG_TEXT_EXAMPLES
         + test_fuzz.ROBOMIMIC_EXAMPLES
+        + test_fuzz.VPACE_EXAMPLES
+        + test_fuzz.ROS2_EXAMPLES
+        + test_fuzz.V21_EXAMPLES
+        + test_fuzz.INFO_VALIDATE_EXAMPLES
     )
-    # SIGKILLs at seeded random points, plus one fault per other fault test (a killed parent, a
-    # concurrent run, a stale lock, a full disk, an unresumable run, a killed collect, an unfinished
-    # training run).
+    # SIGKILLs at seeded random points, plus one fault per other fault test (the README lists them).
     faults = len(test_faults.KILL_SEEDS) + len(_tests(test_faults)) - 1
     integrity = len(_tests(test_integrity)) - 2 + test_integrity.EVENT_EXAMPLES  # minus the two meta tests
     return {
@@ -43,17 +45,22 @@ def readme_section() -> str:
 `tests/reliability/` keeps shiftkit honest under bad input and faults, and runs with the other tests:
 
 * {c["bad_inputs"]} bad inputs against the CLI (negative seeds, invalid repo ids, malformed raw and
-  LeRobot metadata, 16-bit images, non-UTF-8 paths, unwritable or file-blocked outputs, ...): each
-  ends in a correct result or one line `shiftkit COMMAND: error: ...` with exit 2, and no input is
-  modified.
+  LeRobot metadata, malformed importer files, 16-bit images, non-UTF-8 paths, unwritable or
+  file-blocked outputs, two outputs at one path, ...): each ends in a correct result or one line
+  `shiftkit COMMAND: error: ...` with exit 2, and no input is modified.
 * {c["fuzzed"]} fuzzed files and configs (hypothesis: truncated files, garbage, wrong dtypes and
-  shapes, NaN/inf, random JSON values) for the raw episode reader, the LeRobot reader, the
-  pipeline config parser and the robomimic importer: a clean result or a one-line error, never another exception.
+  shapes, ragged rows, NaN/inf, random JSON values) for the raw episode reader, the LeRobot
+  reader and `info` / `validate` on it, the pipeline config parser and every importer
+  (robomimic, VPACE, ros2, LeRobot v2.1): a clean result or a one-line error, never another
+  exception.
 * {c["faults"]} faults injected: SIGKILL of `shiftkit run` at seeded random points (the resumed run
   writes the clean run's bytes and no pool worker outlives its parent), SIGKILL of a Ray run (every
-  process of its Ray cluster exits), a second run on the same
-  destination, a stale lock, a full disk, a run that can never resume, a killed `collect` and an
-  evaluation of an unfinished training run.
+  process of its Ray cluster exits), a second run on the same destination (and a second trainer
+  on one `--output`), a trainer refused early (no folder left), a stale lock, a full disk, a run
+  that can never resume, a killed writer's staging folder (a SIGKILLed `import lerobot-v2.1`'s
+  among them; the next writer of any command removes it), a writer beaten to its destination, a
+  250-character destination name, a reader that closes stdout early, and an evaluation of an
+  unfinished training run.
 * {c["integrity"]} checks against silent wrong results: stale parts after the source changed,
   success flags kept by every frame-rate-changing stage (property-based), statistics that no longer
   match the data (`shiftkit validate --deep`), dataset ids that do not match, example sets, VPACE

@@ -554,6 +554,114 @@ CASES = {
     ),
     "plot fire window 0": (lambda t, r, d: ["plot", "fire", str(t), "--out", str(t / "f.png"), "--window", "0"], 2),
     "run destination inside its source": (lambda t, r, d: ["run", pipeline(t, r, dest=str(r / "out"))], 2),
+    "calibrate out is the plot": (lambda t, r, d: ["calibrate", "--out", str(t / "cal.png")], 2),
+    "calibrate plot is the out": (
+        lambda t, r, d: ["calibrate", "--out", str(t / "cal.json"), "--plot", str(t / "cal.json")],
+        2,
+    ),
+    "calibrate plot format": (lambda t, r, d: ["calibrate", "--out", str(t / "c.json"), "--plot", str(t / "c.txt")], 2),
+    # malformed file contents in importers and readers
+    "import vpace ragged observations": (
+        lambda t, r, d: ["import", "vpace", str(_buffer(t, 0, observations=[[0.0] * 60] * 3 + [[0.0]])), *_to(t)],
+        2,
+    ),
+    "import vpace pointer is a float": (lambda t, r, d: ["import", "vpace", str(_buffer(t, 1.5)), *_to(t)], 2),
+    "import ros2 joint vector changes width mid-bag": (
+        lambda t, r, d: ["import", "ros2", *_ros2_widening(t), *_to(t)],
+        2,
+    ),
+    "import lerobot-v2.1 fps is text": (
+        lambda t, r, d: ["import", "lerobot-v2.1", str(_v21(t, fps="fast")), *_to(t)],
+        2,
+    ),
+    "import lerobot-v2.1 episode length is text": (
+        lambda t, r, d: ["import", "lerobot-v2.1", str(_v21(t, line=("episodes.jsonl", "length", "4"))), *_to(t)],
+        2,
+    ),
+    "import lerobot-v2.1 task is a number": (
+        lambda t, r, d: ["import", "lerobot-v2.1", str(_v21(t, line=("tasks.jsonl", "task", 7))), *_to(t)],
+        2,
+    ),
+    "import robomimic control_freq is text": (
+        lambda t, r, d: ["import", "robomimic", str(_robomimic(t, control_freq="fast")), *_to(t)],
+        2,
+    ),
+    "import robomimic demo without actions": (
+        lambda t, r, d: ["import", "robomimic", str(_robomimic(t, drop="actions")), *_to(t)],
+        2,
+    ),
+    "import robomimic total is text": (
+        lambda t, r, d: ["import", "robomimic", str(_robomimic(t, total="x")), *_to(t)],
+        2,
+    ),
+    "import robomimic dones of 0.5": (
+        lambda t, r, d: ["import", "robomimic", str(_robomimic(t, dones=0.5)), *_to(t)],
+        2,
+    ),
+    "run raw success of 0.5": (lambda t, r, d: ["run", pipeline(t, raw_with(t, r, _half_success))], 2),
+    # misleading messages
+    "fire on another env's dataset": (
+        lambda t, r, d: ["fire", "--dataset", str(_with_provenance(t, d, env="mv-lift")), *_fire_to(t)],
+        2,
+    ),
+    "info non-UTF-8 dataset folder": (lambda t, r, d: ["info", str(_copy(d, t / NON_UTF8))], 2),
+    "validate non-UTF-8 dataset folder": (lambda t, r, d: ["validate", str(_copy(d, t / NON_UTF8))], 2),
+    # ambiguous acceptances, decided
+    "train bc on a success-example set": (
+        lambda t, r, d: ["train", "bc", "--dataset", str(_with_provenance(t, d, stage="success_examples")), *_run(t)],
+        2,
+    ),
+    "train lfgp on a success-example set": (
+        lambda t, r, d: [
+            "train",
+            "lfgp",
+            "--examples",
+            str(_with_provenance(t, d, kind="examples")),
+            "--main-task",
+            "lift",
+            "--output",
+            str(t / "run"),
+        ],
+        2,
+    ),
+    "fire on a success-example set": (
+        lambda t, r, d: ["fire", "--dataset", str(_with_provenance(t, d, stage="success_examples")), *_fire_to(t)],
+        2,
+    ),
+    "collect lerobot non-ASCII repo id": (
+        lambda t, r, d: ["collect", "--task", "lift", "--lerobot", "me/donn\u00e9es", "--root", str(t / "o")],
+        2,
+    ),
+    "run non-ASCII destination repo id": (
+        lambda t, r, d: ["run", _ascii_repo(t, r)],
+        2,
+    ),
+}
+
+# What the error line must say, where the wording is the point (the misleading messages it replaced).
+MESSAGES = {
+    "calibrate out is the plot": "would be one file",
+    "calibrate plot is the out": "would be one file",
+    "calibrate plot format": "--plot",
+    "import vpace ragged observations": "observations is not a numeric array (rows of different lengths)",
+    "import vpace pointer is a float": "memory_size, pointer and count must be integers",
+    "import ros2 joint vector changes width mid-bag": "field 'position' changes width mid-bag (3 values, then 2",
+    "import lerobot-v2.1 fps is text": "info.json: 'fps' must be a positive integer, got 'fast'",
+    "import lerobot-v2.1 episode length is text": "episodes.jsonl: line 2: 'length' must be a positive integer",
+    "import lerobot-v2.1 task is a number": "tasks.jsonl: line 2: 'task' must be a string",
+    "import robomimic control_freq is text": "control_freq",
+    "import robomimic demo without actions": "data/demo_1/actions must be a numeric (frames[, dims]) array (missing)",
+    "import robomimic total is text": "data attribute total must be an integer, got 'x'",
+    "import robomimic dones of 0.5": "data/demo_0/dones: a flag holds only 0 and 1 (or bools), found",
+    "run raw success of 0.5": "arrays/success.npy: a flag holds only 0 and 1 (or bools), found",
+    "fire on another env's dataset": "was recorded in mv-lift, not panda-play",
+    "info non-UTF-8 dataset folder": "is not a UTF-8 path; LeRobot datasets can only be read from UTF-8 paths",
+    "validate non-UTF-8 dataset folder": "is not a UTF-8 path; LeRobot datasets can only be read from UTF-8 paths",
+    "train bc on a success-example set": "is a success-example set (made by the success_examples stage)",
+    "train lfgp on a success-example set": "is a success-example set (made by `import vpace` of example files)",
+    "fire on a success-example set": "FIRE learns from trajectories",
+    "collect lerobot non-ASCII repo id": "ASCII letters",
+    "run non-ASCII destination repo id": "ASCII letters",
 }
 
 
@@ -645,7 +753,7 @@ def _bad_repo(t: Path, r: Path) -> str:
     )
 
 
-def _buffer(t: Path, pointer: int) -> Path:
+def _buffer(t: Path, pointer: int | float, **arrays) -> Path:
     import gzip
     import pickle
 
@@ -661,11 +769,113 @@ def _buffer(t: Path, pointer: int) -> Path:
         "memory_size": n,
         "pointer": pointer,
         "count": n + 2,
+        **arrays,
     }
     path = t / "3_lift.gz"
     with gzip.open(path, "wb") as f:
         pickle.dump(data, f)
     return path
+
+
+def _to(t: Path) -> list[str]:
+    return ["--repo-id", "me/x", "--root", str(t / "x")]
+
+
+def _run(t: Path) -> list[str]:
+    return ["--output", str(t / "run"), "--no-progress"]
+
+
+def _fire_to(t: Path) -> list[str]:
+    return ["--env", "panda-play", "--task", "reach", "--output", str(t / "run")]
+
+
+def _ros2_widening(t: Path) -> list[str]:
+    """A bag whose joint vector has 3 values, then 2 from its fourth message on."""
+    import numpy as np
+
+    from tests import test_import_ros2 as bags
+
+    sent = []
+
+    def joint_state(stamp):
+        sent.append(stamp)
+        q = np.full(3 if len(sent) < 4 else 2, 1.0)
+        return bags.TS.types["sensor_msgs/msg/JointState"](
+            header=bags._header(stamp), name=bags.JOINTS, position=q, velocity=np.zeros(3), effort=np.zeros(0)
+        )
+
+    typ, period, offset, _ = bags.STREAMS["/joint_states"]
+    bag = bags._write_bag(t / "bag", streams={**bags.STREAMS, "/joint_states": (typ, period, offset, joint_state)})
+    (t / "m.toml").write_text(bags.MAPPING)
+    return [str(bag), "--mapping", str(t / "m.toml")]
+
+
+def _v21(t: Path, fps=None, line: tuple[str, str, object] | None = None) -> Path:
+    from tests.test_import_lerobot_v21 import _write_v21
+
+    src = _write_v21(t / "v21")
+    if fps is not None:
+        _json_edit("meta/info.json", fps=fps)(src)
+    if line is not None:
+        name, key, value = line
+        path = src / "meta" / name
+        rows = [json.loads(row) for row in path.read_text().splitlines()]
+        rows[-1][key] = value
+        path.write_text("".join(json.dumps(row) + "\n" for row in rows))
+    return src
+
+
+def _robomimic(t: Path, control_freq=20, drop: str | None = None, dones: float | None = None, total=None) -> Path:
+    import h5py
+    import numpy as np
+
+    from tests.test_import_robomimic import _write
+
+    path = _write(
+        t / "rm.hdf5",
+        env_args={"env_name": "Lift", "env_type": 1, "env_kwargs": {"control_freq": control_freq, "robots": ["Panda"]}},
+    )
+    with h5py.File(path, "a") as f:
+        if total is not None:
+            f["data"].attrs["total"] = total
+        if drop is not None:
+            del f[f"data/demo_1/{drop}"]
+        if dones is not None:
+            n = len(f["data/demo_0/dones"])
+            del f["data/demo_0/dones"]
+            f.create_dataset("data/demo_0/dones", data=np.full(n, dones))
+    return path
+
+
+def _half_success(root: Path) -> None:
+    import numpy as np
+
+    path = root / "episode_000001/arrays/success.npy"
+    np.save(path, np.full(len(np.load(path)), 0.5))
+
+
+def _with_provenance(
+    t: Path, d: Path, env: str | None = None, stage: str | None = None, kind: str | None = None
+) -> Path:
+    """A copy of dataset `d` whose provenance says it was recorded in `env`, or made by a `stage`, or
+    imported as `kind`."""
+    copy = _copy(d, t / "ds")
+    path = copy / "meta/shiftkit_provenance.json"
+    provenance = json.loads(path.read_text())
+    if env is not None:
+        provenance["sources"] = [{"kind": "simulator", "env": env, "task": "lift"}]
+    if stage is not None:
+        provenance["stages"] = [*provenance.get("stages", []), {"name": stage, "params": {}}]
+    if kind is not None:
+        provenance["importer"] = {"name": "vpace", "kind": kind}
+    path.write_text(json.dumps(provenance))
+    return copy
+
+
+def _ascii_repo(t: Path, r: Path) -> str:
+    return str(
+        _write(t / "u.toml", f'[[sources]]\npath = "{r}"\n[destination]\nroot = "out"\nrepo_id = "me/donn\u00e9es"\n')
+    )
 
 
 _ENV: dict[str, str] = {}
@@ -688,6 +898,8 @@ def test_bad_input_gives_one_line(name, tmp_path, rel_raw, rel_ds, monkeypatch):
     outcome = cli(argv)
     assert outcome.clean, f"{name}: {outcome}"
     assert outcome.code == expected, f"{name}: {outcome}"
+    if name in MESSAGES:
+        assert MESSAGES[name] in outcome.error_line, f"{name}: {outcome.error_line}"
     assert (tree_state(rel_raw), tree_state(rel_ds)) == before, f"{name} modified an input"
 
 

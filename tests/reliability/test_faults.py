@@ -103,13 +103,36 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
 
 
 def test_second_run_on_same_destination_is_refused(tmp_path, rel_raw):
-    from shiftkit.pipelines.runner import WorkLock, work_dir_for
+    from shiftkit.pipelines.staging import DestinationLock
 
     config = _config(tmp_path, rel_raw, "out")
-    with WorkLock(work_dir_for(tmp_path / "out")):
+    with DestinationLock(tmp_path / "out"):
         outcome = cli(["run", str(config), "--no-progress"])
     assert outcome.code == 2 and f"pid {os.getpid()}" in outcome.error_line, outcome
     assert cli(["run", str(config), "--no-progress"]).code == 0  # released: the next run works
+
+
+@pytest.mark.parametrize("command", ["train bc", "train vpace", "fire"])
+def test_second_training_run_on_same_output_is_refused(tmp_path, rel_ds, command):
+    """Two trainers on one --output: the second is told another run holds it (not a resume mismatch)."""
+    from shiftkit.pipelines.staging import DestinationLock
+
+    run = tmp_path / "run"
+    argv = {
+        "train bc": ["train", "bc", "--dataset", str(rel_ds), "--steps", "2", "--no-progress"],
+        "train vpace": ["train", "vpace", "--examples", str(rel_ds), "--main-task", "reach"],
+        "fire": ["fire", "--dataset", str(rel_ds), "--env", "panda-play", "--task", "reach"],
+    }[command]
+    with DestinationLock(run):
+        outcome = cli([*argv, "--output", str(run)])
+    assert outcome.code == 2 and f"another shiftkit run (pid {os.getpid()})" in outcome.error_line, outcome
+    assert not run.exists()
+
+
+def test_a_trainer_failing_early_leaves_no_folder(tmp_path):
+    """The output's lock makes its parent folders; a run refused before any work removes them again."""
+    outcome = cli(["train", "bc", "--dataset", str(tmp_path / "none"), "--output", str(tmp_path / "a" / "b" / "run")])
+    assert outcome.code == 2 and not (tmp_path / "a").exists(), outcome
 
 
 def test_stale_lock_of_a_dead_run_is_taken_over(tmp_path, rel_raw):
@@ -161,6 +184,95 @@ def test_killed_collect_leftovers_are_cleaned_safely(tmp_path):
     outcome = cli(["collect", "--task", "reach", "--episodes", "1", "--out", str(tmp_path / "raw"), "--no-progress"])
     assert outcome.code == 0, outcome
     assert not any(p.exists() for p in leftovers) and live.exists() and foreign.exists()
+
+
+def _dead_pid() -> int:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    return dead.pid
+
+
+def _writers(tmp: Path, raw: Path) -> dict[str, list[str]]:
+    from tests.test_import_lerobot_v21 import _write_v21
+    from tests.test_import_robomimic import _write
+
+    return {
+        "import lerobot-v2.1": ["import", "lerobot-v2.1", str(_write_v21(tmp / "src")), "--repo-id", "me/x"],
+        "import robomimic": ["import", "robomimic", str(_write(tmp / "d.hdf5")), "--repo-id", "me/x"],
+        "run": ["run", str(_config(tmp, raw, "out")), "--no-progress"],
+    }
+
+
+@pytest.mark.parametrize("command", ["import lerobot-v2.1", "import robomimic", "run"])
+def test_every_writer_removes_a_dead_writers_staging_folder(tmp_path, rel_raw, command):
+    """What a SIGKILLed writer into `out` left (`.out.partial-<pid>-<hex>`) goes with the next
+    successful writer into `out`, whichever command; a live writer's folder stays."""
+    argv = _writers(tmp_path, rel_raw)[command]
+    if command != "run":
+        argv += ["--root", str(tmp_path / "out")]
+    dead = tmp_path / f".out.partial-{_dead_pid()}-0123abcd"
+    live = tmp_path / f".out.partial-{os.getpid()}-0123abcd"
+    for folder in (dead, live):
+        (folder / "data").mkdir(parents=True)
+    outcome = cli(argv)
+    assert outcome.code == 0, outcome
+    assert not dead.exists() and live.exists() and (tmp_path / "out" / "meta" / "info.json").is_file()
+
+
+def test_sigkilled_v21_import_leftovers_go_with_the_next_import(tmp_path):
+    """SIGKILL `import lerobot-v2.1` while it converts: its staging folder stays; the re-run succeeds
+    and removes it (the killed process's pid is in the folder's name)."""
+    from tests.test_import_lerobot_v21 import _write_v21
+
+    src = _write_v21(tmp_path / "src")
+    args = ("import", "lerobot-v2.1", str(src), "--repo-id", "me/x", "--root", str(tmp_path / "out"))
+    proc = shiftkit_process(*args, cwd=tmp_path)
+    assert sigkill_when(proc, lambda: any(tmp_path.glob(".out.partial-*"))) is not None, "the import ended first"
+    assert list(tmp_path.glob(f".out.partial-{proc.pid}-*")) and not (tmp_path / "out").exists()
+    outcome = cli(list(args))
+    assert outcome.code == 0, outcome
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "src"]
+
+
+def test_collect_beaten_to_its_destination_leaves_nothing(tmp_path, monkeypatch):
+    """Two `collect --out raw` at once: the one that finishes second gets a one-line error and its
+    staging folder goes (the other's dataset stays)."""
+    from shiftkit.pipelines.sources import raw as raw_module
+
+    write_index = raw_module.RawDatasetWriter._write_index
+
+    def beaten(self) -> None:
+        write_index(self)
+        self.out_dir.mkdir()  # the other recorder renamed its dataset into place meanwhile
+        (self.out_dir / "dataset.json").write_text("{}")
+
+    monkeypatch.setattr(raw_module.RawDatasetWriter, "_write_index", beaten)
+    outcome = cli(["collect", "--task", "reach", "--episodes", "1", "--out", str(tmp_path / "raw"), "--no-progress"])
+    assert outcome.code == 2 and "another run wrote it meanwhile" in outcome.error_line, outcome
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]
+    assert (tmp_path / "raw" / "dataset.json").read_text() == "{}"
+
+
+@pytest.mark.parametrize("command", ["collect", "run", "import robomimic"])
+def test_a_destination_name_of_250_characters_works(tmp_path, rel_raw, command):
+    """A legal 250-character destination name never fails on shiftkit's temporary or work names."""
+    name = "d" * 250
+    argv = {
+        "collect": ["collect", "--task", "reach", "--episodes", "1", "--out", str(tmp_path / name), "--no-progress"],
+        "run": ["run", str(_config(tmp_path, rel_raw, name)), "--no-progress"],
+        "import robomimic": [*_writers(tmp_path, rel_raw)["import robomimic"], "--root", str(tmp_path / name)],
+    }[command]
+    outcome = cli(argv)
+    assert outcome.code == 0, outcome
+    assert (tmp_path / name).is_dir() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_reader_closing_stdout_early_is_not_an_error(tmp_path, rel_ds):
+    """`shiftkit info ds | head -0`: the reader is gone before info prints; info ends quietly, exit 0."""
+    proc = shiftkit_process("info", str(rel_ds), cwd=tmp_path)
+    proc.stdout.close()  # the reader leaves before the first line
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and err.decode().strip() == "", err.decode()
 
 
 def test_eval_warns_when_the_run_did_not_finish(tmp_path, rel_ds, caplog):

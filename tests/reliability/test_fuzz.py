@@ -1,6 +1,8 @@
 """Property-based fuzzing of the readers users feed files to: the raw episode reader, the pipeline
-config parser and the LeRobot reader, on mutated files (truncated, garbage, wrong dtypes and
-shapes, NaN/inf, wrong JSON values). Every outcome is a clean result or a one-line ShiftkitError."""
+config parser, the LeRobot reader (and `info` / `validate` on it) and every importer (robomimic,
+VPACE, ros2, LeRobot v2.1), on mutated files (truncated, garbage, wrong dtypes and shapes,
+ragged rows, NaN/inf, wrong JSON values). Every outcome is a clean result or a one-line
+ShiftkitError."""
 
 from __future__ import annotations
 
@@ -191,7 +193,7 @@ def test_pipeline_config_files_with_random_text(tmp_path, suffix, text, raw):
     clean_or_error(lambda: load_pipeline_config(path))
 
 
-ROBOMIMIC_EXAMPLES = 8
+ROBOMIMIC_EXAMPLES = 12
 
 
 @settings(max_examples=ROBOMIMIC_EXAMPLES, **FUZZ)
@@ -199,8 +201,9 @@ ROBOMIMIC_EXAMPLES = 8
     target=st.sampled_from(["data/demo_0/actions", "data/demo_0/obs/robot0_eef_pos", "data/demo_1/rewards"]),
     array=npy_arrays,
     control_freq=json_values,
+    total=st.none() | st.integers(-3, 20) | st.text(max_size=4) | st.floats(allow_nan=True),
 )
-def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, control_freq):
+def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, control_freq, total):
     import h5py
 
     from shiftkit.pipelines.sources.robomimic import import_robomimic
@@ -215,4 +218,122 @@ def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, co
         args = json.loads(f["data"].attrs["env_args"])
         args["env_kwargs"]["control_freq"] = control_freq
         f["data"].attrs["env_args"] = json.dumps(args)
+        if total is not None:
+            f["data"].attrs["total"] = total
     clean_or_error(lambda: import_robomimic(path, "rm/fuzz", tmp / "out"))
+
+
+VPACE_EXAMPLES = 25
+ragged = st.lists(st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=3), min_size=1, max_size=4)
+
+
+@settings(max_examples=VPACE_EXAMPLES, **FUZZ)
+@given(
+    key=st.sampled_from(
+        ["observations", "next_observations", "actions", "rewards", "memory_size", "pointer", "count", "dones"]
+    ),
+    value=st.one_of(st.tuples(st.just("npy"), npy_arrays), st.tuples(st.just("json"), json_values), ragged),
+)
+def test_vpace_importer_on_mutated_buffers(tmp_path_factory, key, value):
+    import gzip
+    import pickle
+
+    from shiftkit.pipelines.sources.vpace import import_vpace
+
+    tmp = tmp_path_factory.mktemp("vp")
+    n = 4
+    data = {
+        "observations": np.zeros((n, 60), np.float32),
+        "next_observations": np.zeros((n, 60), np.float32),
+        "actions": np.zeros((n, 4), np.float32),
+        "rewards": np.zeros((n, 1), np.float32),
+        "dones": np.zeros((n, 1), bool),
+        "memory_size": n,
+        "pointer": 0,
+        "count": n,
+    }
+    if isinstance(value, tuple) and value[0] == "npy":
+        data[key] = _array(value[1])
+    else:
+        data[key] = value[1] if isinstance(value, tuple) else value
+    path = tmp / "3_lift.gz"
+    with gzip.open(path, "wb") as f:
+        pickle.dump(data, f)
+    clean_or_error(lambda: import_vpace([path], "vp/fuzz", tmp / "out"))
+
+
+ROS2_EXAMPLES = 6
+
+
+@settings(max_examples=ROS2_EXAMPLES, **FUZZ)
+@given(
+    widths=st.lists(st.integers(0, 4), min_size=1, max_size=3),
+    value=st.sampled_from([0.0, np.nan, np.inf, 1e300]),
+    field=st.sampled_from(["position", "velocity", "effort"]),
+)
+def test_ros2_importer_on_joint_vectors_of_changing_width(tmp_path_factory, widths, value, field):
+    """Joint vectors whose width changes through the bag (cycling `widths`), holding `value`."""
+    from shiftkit.pipelines.sources.ros2 import import_ros2
+    from tests import test_import_ros2 as bags
+
+    tmp = tmp_path_factory.mktemp("ros")
+    count = iter(range(10_000))
+
+    def joint_state(t):
+        w = widths[next(count) % len(widths)]
+        arrays = {"position": np.full(3, 1.0), "velocity": np.zeros(3), "effort": np.zeros(0)}
+        arrays[field] = np.full(w, value)
+        return bags.TS.types["sensor_msgs/msg/JointState"](header=bags._header(t), name=bags.JOINTS, **arrays)
+
+    typ, period, offset, _ = bags.STREAMS["/joint_states"]
+    streams = {**bags.STREAMS, "/joint_states": (typ, period, offset, joint_state)}
+    bag = bags._write_bag(tmp / "bag", duration_ns=300_000_000, streams=streams)
+    mapping = tmp / "m.toml"
+    camera = '[features."observation.images.front"]\ntopic = "/camera/image_raw"\n'  # not what is fuzzed here
+    mapping.write_text(bags.MAPPING.replace('field = "position"', f'field = "{field}"').replace(camera, ""))
+    clean_or_error(lambda: import_ros2([bag], mapping, "ros/fuzz", tmp / "out"))
+
+
+V21_EXAMPLES = 8
+
+
+@settings(max_examples=V21_EXAMPLES, **FUZZ)
+@given(
+    target=st.sampled_from(["meta/info.json", "meta/episodes.jsonl", "meta/tasks.jsonl", "meta/episodes_stats.jsonl"]),
+    key=st.sampled_from(
+        ["fps", "features", "total_chunks", "video_path", "episode_index", "tasks", "length", "task", "stats"]
+    ),
+    value=json_values,
+)
+def test_lerobot_v21_importer_on_mutated_metadata(tmp_path_factory, target, key, value):
+    from shiftkit.pipelines.sources.lerobot_v21 import import_lerobot_v21
+    from tests.test_import_lerobot_v21 import _write_v21
+
+    tmp = tmp_path_factory.mktemp("v21")
+    src = _write_v21(tmp / "src")
+    path = src / target
+    if path.suffix == ".json":
+        info = json.loads(path.read_text())
+        info[key] = value
+        path.write_text(json.dumps(info))
+    else:
+        lines = [json.loads(line) for line in path.read_text().splitlines()]
+        lines[-1][key] = value
+        path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    clean_or_error(lambda: import_lerobot_v21(src, "v21/fuzz", tmp / "out"))
+
+
+INFO_VALIDATE_EXAMPLES = 12
+
+
+@settings(max_examples=INFO_VALIDATE_EXAMPLES, **FUZZ)
+@given(index=st.integers(0, 10_000), mutation=mutations, command=st.sampled_from(["info", "validate"]))
+def test_info_and_validate_on_mutated_datasets(rel_ds, index, mutation, command):
+    """`shiftkit info` / `validate` on a mutated dataset: a result or one line with exit 2."""
+    from tests.reliability.harness import cli
+
+    tmp, root = _copy(rel_ds)
+    with tmp:
+        mutate(root, index, mutation)
+        outcome = cli([command, str(root)])
+        assert outcome.clean, outcome
