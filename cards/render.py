@@ -8,7 +8,8 @@ from pathlib import Path
 from string import Template
 from typing import Any
 
-# Method citations by stage / trainer name (the thesis the methods come from).
+# Method citations of datasets by stage name (the thesis the methods come from); a model card's
+# citation comes with its card data (each trainer registers its own).
 THESIS = (
     "Trevor Ablett. *Mitigating distribution shift in robotic imitation learning* (PhD thesis, University of Toronto)."
 )
@@ -20,8 +21,6 @@ CITATIONS = {
     "mode_label": "Ablett et al., *Multimodal and force-matched imitation learning with a see-through visuotactile sensor*, IEEE T-RO 2025.",
     "fire": "Ablett et al., *Failure identification to reduce expert burden in intervention-based learning*, 2020.",
     "success_examples": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
-    "vpace": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
-    "lfgp": "Ablett et al., *Learning from guided play: improving exploration for adversarial imitation learning with simple auxiliary tasks*, RA-L 2023.",
 }
 
 
@@ -29,8 +28,8 @@ def _template(name: str) -> Template:
     return Template(resources.files("shiftkit.cards").joinpath("templates", name).read_text())
 
 
-def _citation(names: list[str]) -> str:
-    cites = [CITATIONS[n] for n in dict.fromkeys(names) if n in CITATIONS]
+def _citation(names: list[str], extra: tuple[str, ...] = ()) -> str:
+    cites = [*extra, *(CITATIONS[n] for n in dict.fromkeys(names) if n in CITATIONS)]
     return "\n".join(f"- {c}" for c in cites + [THESIS])
 
 
@@ -136,7 +135,8 @@ def _normalization(norm: dict[str, Any] | None) -> str:
 
 def render_model_card(card: dict[str, Any]) -> str:
     """Card for a trained policy: keys `trainer`, `datasets`, `args`, `metrics`, `env`, `versions`,
-    optionally `normalization` (BC: the std floor and input clipping)."""
+    optionally `citation` (the trainer's method) and `normalization` (BC: the std floor and input
+    clipping)."""
     datasets = (
         "\n".join(
             "- " + ", ".join(f"{k}: `{v}`" for k, v in d.items() if v not in (None, ""))
@@ -157,5 +157,5 @@ def render_model_card(card: dict[str, Any]) -> str:
         env=card.get("env") or "(not evaluated in an environment)",
         args=args,
         metrics=metrics or "| (none yet) | |",
-        citation=_citation([trainer]),
+        citation=_citation([], tuple(filter(None, [card.get("citation")]))),
     )
