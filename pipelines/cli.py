@@ -16,6 +16,7 @@ import inspect
 import logging
 import os
 import sys
+import typing
 
 from shiftkit.pipelines.errors import ShiftkitError
 
@@ -52,12 +53,31 @@ def _available_commands() -> dict[str, object]:
 
 
 class Parser(argparse.ArgumentParser):
-    """An argparse parser that takes options only by their full name; `add_subparsers` makes its
-    subparsers of this class, so every command and subcommand refuses abbreviations."""
+    """An argparse parser that takes options only by their full name and reports a bad command
+    line in one line (`shiftkit fire: error: argument --beta: must be a positive integer, got '0'`,
+    exit 2), as every other user mistake is; `add_subparsers` makes its subparsers of this class, so
+    every command and subcommand behaves alike."""
 
     def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003 - argparse's signature
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
+
+    def parse_known_args(self, args=None, namespace=None):  # noqa: ANN001, ANN201 - argparse's signature
+        self._words = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str) -> typing.NoReturn:
+        # an unknown option's value is otherwise taken for a subcommand ("invalid choice: 'local/exp'")
+        unknown = [
+            w.split("=")[0]
+            for w in getattr(self, "_words", [])
+            if w.startswith("--") and w.split("=")[0] not in self._option_string_actions
+        ]
+        if "invalid choice" in message and unknown:
+            message = f"unrecognized arguments: {' '.join(unknown)}"
+        command = _chosen(getattr(self, "_words", []))[0] if " " not in self.prog else ""
+        where = f"{self.prog} {command}" if command in COMMANDS else self.prog  # as `_fail` names it
+        self.exit(2, f"{where}: error: {' '.join(message.split())}\n")
 
 
 def _chosen(argv: list[str]) -> tuple[str, list[str]]:
@@ -110,7 +130,10 @@ def _fail(command: str, message: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser(argv).parse_args(argv)
+    try:
+        args = build_parser(argv).parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad command line (2, its one line printed)
+        return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(message)s")
     try:
         return int(args._run(args) or 0)

@@ -82,7 +82,8 @@ def test_help_is_the_field_docstring_with_the_dataclass_default():
 def test_out_of_range_values_are_refused_with_the_rule_message(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
         _parse(["--name", "x", *argv])
-    assert exc.value.code == 2 and message in capsys.readouterr().err
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(errors) == 1 and message in errors[0], errors
 
 
 def test_a_missing_required_option_names_its_flag():
@@ -103,13 +104,12 @@ def test_no_parser_takes_abbreviations(capsys):
     assert len(parsers) > 20 and all(not p.allow_abbrev for p in parsers)
     # `--expert` once landed on `--expert-margin` and failed on its type
     for argv, refused in (
-        (["fire", "--expert", "local/exp"], "local/exp"),
+        (["fire", "--expert", "local/exp"], "unrecognized arguments: --expert"),
         (["train", "bc", "--data", "x", "--output", "o"], "unrecognized arguments: --data"),
     ):
-        with pytest.raises(SystemExit) as exc:
-            main(argv)
-        error = capsys.readouterr().err.strip().splitlines()[-1]
-        assert exc.value.code == 2 and refused in error and "--expert-margin" not in error, error
+        assert main(argv) == 2
+        errors = capsys.readouterr().err.strip().splitlines()
+        assert len(errors) == 1 and refused in errors[0] and "--expert-margin" not in errors[0], errors
 
 
 def test_fire_options_mirror_every_field_of_its_args(tmp_path):
@@ -131,7 +131,7 @@ def test_fire_options_mirror_every_field_of_its_args(tmp_path):
 def test_help_imports_no_torch_or_mujoco(argv):
     code = (
         "import sys\nfrom shiftkit.pipelines.cli import main\n"
-        f"try:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
+        f"assert main({argv!r}) == 0\n"
         "print(sorted(m for m in ('torch', 'mujoco', 'lerobot') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
@@ -152,8 +152,7 @@ def test_trainers_register_themselves_and_a_new_module_is_found(tmp_path, monkey
     monkeypatch.setattr(registry, "_DISCOVERED", False)
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     assert registry.trainer("throwaway").citation == "Me, 2026."
-    with pytest.raises(SystemExit):
-        main(["train", "--help"])
+    assert main(["train", "--help"]) == 0
     assert "a trainer made by a test" in capsys.readouterr().out
     with pytest.raises(ConfigError, match="unknown trainer 'nope'"):
         registry.trainer("nope")
