@@ -11,13 +11,10 @@ from typing import Any
 THESIS = (
     "Trevor Ablett. *Mitigating distribution shift in robotic imitation learning* (PhD thesis, University of Toronto)."
 )
-# Stages record their method's paper in the provenance (`citation` in a stage's entry). Trainers
-# (model cards, and FIRE's own datasets) are cited by name until they record theirs the same way.
-TRAINER_CITATIONS = {
-    "fire": "Ablett et al., *Failure identification to reduce expert burden in intervention-based learning*, 2020.",
-    "vpace": "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control from examples*, ICRA 2025.",
-    "lfgp": "Ablett et al., *Learning from guided play: improving exploration for adversarial imitation learning with simple auxiliary tasks*, RA-L 2023.",
-}
+# Stages record their method's paper in the provenance (`citation` in a stage's entry) and trainers
+# in their model card's data (each trainer registers its own). FIRE runs outside both: its datasets
+# and policies are cited by name.
+FIRE_CITATION = "Ablett et al., *Failure identification to reduce expert burden in intervention-based learning*, 2020."
 
 
 def _template(name: str) -> Template:
@@ -100,7 +97,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
 
         task_list = "\n".join(f"- `{t}`" for t in pd.read_parquet(tasks_path).index)
     stage_names = [s["name"] for s in provenance.get("stages", [])]
-    cites = _stage_citations(provenance) + ([TRAINER_CITATIONS["fire"]] if "fire" in provenance else [])
+    cites = _stage_citations(provenance) + ([FIRE_CITATION] if "fire" in provenance else [])
     versions = provenance.get("versions", {})
     return _template("dataset_card.md").substitute(
         license=license,
@@ -137,7 +134,8 @@ def _normalization(norm: dict[str, Any] | None) -> str:
 
 def render_model_card(card: dict[str, Any]) -> str:
     """Card for a trained policy: keys `trainer`, `datasets`, `args`, `metrics`, `env`, `versions`,
-    optionally `normalization` (BC: the std floor and input clipping)."""
+    optionally `citation` (the trainer's method) and `normalization` (BC: the std floor and input
+    clipping)."""
     datasets = (
         "\n".join(
             "- " + ", ".join(f"{k}: `{v}`" for k, v in d.items() if v not in (None, ""))
@@ -158,5 +156,5 @@ def render_model_card(card: dict[str, Any]) -> str:
         env=card.get("env") or "(not evaluated in an environment)",
         args=args,
         metrics=metrics or "| (none yet) | |",
-        citation=_citation([TRAINER_CITATIONS.get(trainer)]),
+        citation=_citation([card.get("citation"), FIRE_CITATION if trainer == "fire" else None]),
     )

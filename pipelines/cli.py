@@ -1,17 +1,22 @@
 """The `shiftkit` command line: a thin dispatcher over `shiftkit.pipelines.commands.*`.
 
 Each command module defines `HELP` (one line, plain text), `add_arguments(parser)` and `run(args) -> int`, and
-imports its heavy dependencies inside `run`, so `shiftkit --help` stays fast. User mistakes raise
-`ShiftkitError`, printed here as one line with exit code 2.
+imports its heavy dependencies inside `run`. Only the command named on the command line gets its
+options built (`shiftkit --help` builds none, so it imports no trainer, torch or simulator); a command
+with subcommands may take `add_arguments(parser, argv)`, the words after its name, to build only the
+chosen subcommand's. No parser accepts abbreviated options (`--expert` is not `--expert-margin`).
+User mistakes raise `ShiftkitError`, printed here as one line with exit code 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import logging
 import os
 import sys
+import typing
 
 from shiftkit.pipelines.errors import ShiftkitError
 
@@ -47,17 +52,59 @@ def _available_commands() -> dict[str, object]:
     return modules
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+class Parser(argparse.ArgumentParser):
+    """An argparse parser that takes options only by their full name and reports a bad command
+    line in one line (`shiftkit fire: error: argument --beta: must be a positive integer, got '0'`,
+    exit 2), as every other user mistake is; `add_subparsers` makes its subparsers of this class, so
+    every command and subcommand behaves alike."""
+
+    def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003 - argparse's signature
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def parse_known_args(self, args=None, namespace=None):  # noqa: ANN001, ANN201 - argparse's signature
+        self._words = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str) -> typing.NoReturn:
+        # an unknown option's value is otherwise taken for a subcommand ("invalid choice: 'local/exp'")
+        unknown = [
+            w.split("=")[0]
+            for w in getattr(self, "_words", [])
+            if w.startswith("--") and w.split("=")[0] not in self._option_string_actions
+        ]
+        if "invalid choice" in message and unknown:
+            message = f"unrecognized arguments: {' '.join(unknown)}"
+        command = _chosen(getattr(self, "_words", []))[0] if " " not in self.prog else ""
+        where = f"{self.prog} {command}" if command in COMMANDS else self.prog  # as `_fail` names it
+        self.exit(2, f"{where}: error: {' '.join(message.split())}\n")
+
+
+def _chosen(argv: list[str]) -> tuple[str, list[str]]:
+    """The command named in `argv` ("" for none, e.g. `shiftkit --help`) and the words after it."""
+    for i, word in enumerate(argv):
+        if not word.startswith("-"):
+            return word, argv[i + 1 :]
+        if word in ("-h", "--help"):
+            break
+    return "", []
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser of `shiftkit`; with `argv`, only the command it names gets its options."""
+    parser = Parser(
         prog="shiftkit",
         description="Datasets, environments and trainers against distribution shift in imitation learning.",
     )
     parser.add_argument("--verbose", "-v", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    chosen, rest = _chosen(argv) if argv is not None else (None, None)
     for name, module in _available_commands().items():
         p = sub.add_parser(name, help=module.HELP.replace("%", "%%"), description=module.HELP)
-        module.add_arguments(p)
-        p.set_defaults(_run=module.run)
+        if chosen is None or chosen == name:
+            nested = len(inspect.signature(module.add_arguments).parameters) > 1
+            module.add_arguments(p, rest) if nested else module.add_arguments(p)
+            p.set_defaults(_run=module.run)
     return parser
 
 
@@ -82,8 +129,11 @@ def _fail(command: str, message: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        args = build_parser(argv).parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad command line (2, its one line printed)
+        return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(message)s")
     try:
         return int(args._run(args) or 0)

@@ -1,11 +1,14 @@
-"""Strict construction of typed dataclass configs from plain dicts (TOML/YAML/CLI).
+"""Typed dataclass configs from plain dicts (TOML/YAML) and from command-line options.
 
-Unknown keys, missing required keys and values of the wrong type are `ConfigError`s naming the
-key and where it was found; nothing is coerced silently except int -> float.
+`from_dict`: unknown keys, missing required keys and values of the wrong type are `ConfigError`s
+naming the key and where it was found; nothing is coerced silently except int -> float.
+`field_docs` gives the field docstrings that the command-line option generator
+(`option_values.DataclassOptions`) turns into help.
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import types
 import typing
@@ -137,7 +140,6 @@ def add_env_kwarg(parser: Any, example: str = "view=fixed", **options: Any) -> N
 def key_value(text: str) -> tuple[str, object]:
     """`KEY=VALUE` from the command line (an argparse `type`): VALUE as JSON if it parses, else the
     string (`view=multiview`, `control_hz=5`, `noise=[0.1, 0.2]`)."""
-    import argparse
     import json
 
     key, sep, value = text.partition("=")

@@ -26,7 +26,6 @@ import json
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from importlib import import_module
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -34,9 +33,6 @@ import numpy as np
 
 from shiftkit.pipelines.depth import clean_metres, is_legacy_depth, legacy_grey
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
-
-# trainer name (config.json / checkpoint) -> module with `load_policy(path, device)`
-POLICY_LOADERS = {"bc": "shiftkit.policies.bc", "vpace": "shiftkit.policies.vpace", "lfgp": "shiftkit.policies.vpace"}
 
 
 class Policy(Protocol):
@@ -173,6 +169,7 @@ class EvalReport:
 def load_policy(path: str | Path, device: str = "cpu") -> Policy:
     """A trained policy from a run folder or checkpoint file, whichever trainer made it."""
     from shiftkit.policies.run_dir import RunDir, run_folder, torch_device
+    from shiftkit.policies.trainers import trainers
 
     path = Path(path)
     if not path.exists():
@@ -181,14 +178,15 @@ def load_policy(path: str | Path, device: str = "cpu") -> Policy:
     if config is None:
         raise DatasetError(f"{path} is not a shiftkit run (no {run_folder(path) / 'config.json'})")
     torch_device(device)  # an unknown or absent device fails here, in one line
-    trainer = config.get("trainer")
-    if trainer not in POLICY_LOADERS:
-        raise DatasetError(f"{run_folder(path) / 'config.json'}: unknown trainer {trainer!r}")
+    name = config.get("trainer")
+    registered = trainers()  # the trainer that made the run loads its policies
+    if name not in registered:
+        raise DatasetError(f"{run_folder(path) / 'config.json'}: unknown trainer {name!r}")
     try:
-        module = import_module(POLICY_LOADERS[trainer])
+        loader = registered[name].policy_loader()
     except ModuleNotFoundError as exc:
-        raise ShiftkitError(f"policies of trainer {trainer!r} cannot be loaded in this install ({exc})") from exc
-    return module.load_policy(path, device=device)
+        raise ShiftkitError(f"policies of trainer {name!r} cannot be loaded in this install ({exc})") from exc
+    return loader(path, device=device)
 
 
 def policy_rate(path: str | Path) -> int | None:

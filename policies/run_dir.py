@@ -254,6 +254,7 @@ class RunDir:
     def refresh_model_card(self) -> None:
         """Re-render README.md (e.g. after an evaluation wrote eval/*.json)."""
         from shiftkit.cards import render_model_card
+        from shiftkit.policies.trainers import trainers
 
         config = self.read_config()
         if config is None:
@@ -271,8 +272,10 @@ class RunDir:
             lo, hi = ev["ci95"]
             metrics[f"success {name}"] = f"{ev['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%})"
             envs.append(f"{ev['env']} / {ev['task']}")
+        registered = trainers().get(config["trainer"])
         card = {
             "trainer": config["trainer"],
+            "citation": registered.citation if registered is not None else None,
             "datasets": config.get("datasets", []),
             "args": config.get("args", {}),
             "metrics": metrics,

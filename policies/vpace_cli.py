@@ -1,113 +1,88 @@
 """CLI glue for `shiftkit train vpace|lfgp` and the success-curve plot; the logic lives in vpace.py/curves.py.
 
-Every hyperparameter of `VPACEArgs` is a flag (`--total-steps`, `--main-rate`, ...) whose help is the
-field's docstring; flags left out keep the chosen `--variant`'s preset and the thesis defaults.
+Every hyperparameter of `VPACEArgs` is an option generated from the dataclass
+(`dataclass_config.DataclassOptions`: `--total-steps`, `--main-rate`, ..., help from the field's
+docstring); options left out keep the chosen `--variant`'s preset and the thesis defaults.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import typing
 
-from shiftkit.pipelines.dataclass_config import add_env_kwarg, csv_list
+from shiftkit.pipelines.dataclass_config import csv_list
+from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.policies.trainers import Trainer
 
-# Fields with a hand-made flag (lists, dicts, renamed or preset-only ones); the rest are generated.
-_SPECIAL = {
-    "examples",
-    "aux_tasks",
-    "handcrafted",
+_POSITIVE_INT = (
+    "examples_per_task",
+    "total_steps",
+    "batch_size",
+    "example_batch_size",
+    "n_step",
     "hidden",
-    "env_kwargs",
-    "multitask",
-    "full_trajectories",
-    "variant",
-    "output_dir",
+    "vp_filter_size",
+    "num_periods",
+    "episode_steps",
+    "eval_episodes",
+    "checkpoint_every",
+    "log_every",
     "torch_threads",
-    "resume",
-    "frames_as_examples",
-}
+)
+_POSITIVE_FLOAT = ("gamma", "reward_scale", "lr", "initial_alpha", "polyak", "max_grad_norm")
+_NON_NEGATIVE_FLOAT = ("value_penalty", "aug_factor", "weight_decay", "gradient_penalty", "main_rate", "handcraft_rate")
 
 
-def _scalar_type(tp: object) -> type:
-    """int / float / str behind `X` or `X | None` annotations."""
-    args = [a for a in typing.get_args(tp) if a is not type(None)]
-    return args[0] if args else tp  # type: ignore[return-value]
+def options() -> DataclassOptions:
+    """`VPACEArgs` as options; `variant` and `handcrafted` are made by `add_arguments`, the
+    preset-only `full_trajectories` has none."""
+    from shiftkit.policies.vpace import VPACEArgs
+
+    return DataclassOptions(
+        VPACEArgs,
+        skip=("variant", "handcrafted", "full_trajectories"),
+        flags={"output_dir": "output", "torch_threads": "threads", "env_kwargs": "env-kwarg"},
+        rules={
+            **dict.fromkeys(_POSITIVE_INT, "positive_int"),
+            **dict.fromkeys(("seed", "buffer_warmup", "random_steps", "eval_every"), "non_negative_int"),
+            **dict.fromkeys(_POSITIVE_FLOAT, "positive_float"),
+            **dict.fromkeys(_NON_NEGATIVE_FLOAT, "non_negative_float"),
+        },
+        choices={"reward_model": ("sqil", "dac", "rce"), "vp_q_max": ("mean", "max"), "scheduler": ("wrs", "learned")},
+        required=("examples", "main_task", "output_dir"),
+    )
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Flags of `train vpace` and `train lfgp` (the subcommand name sets the default variant)."""
+def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
+    """Options of `train vpace` and `train lfgp` (the subcommand's name is the default variant)."""
     from shiftkit.pipelines.dataclass_config import field_docs
     from shiftkit.policies.vpace import VARIANTS, VPACEArgs
 
     docs = field_docs(VPACEArgs)
-    hints = typing.get_type_hints(VPACEArgs)
-    p = parser
-    p.add_argument(
-        "--examples",
-        type=csv_list,
-        required=True,
-        help="example dataset ID(s) or local folder(s), comma-separated; frames' `task` names the task",
-    )
-    p.add_argument("--env", default=None, help=f"{docs['env']} (default: panda-play)")
-    p.add_argument("--main-task", required=True, help=docs["main_task"])
-    p.add_argument("--aux-tasks", type=csv_list, default=None, help=docs["aux_tasks"] + " Comma-separated.")
-    p.add_argument("--output", required=True, help=docs["output_dir"])
-    p.add_argument(
+    options().add_to(parser)
+    parser.add_argument(
         "--variant",
         choices=list(VARIANTS),
-        default=None,
-        help="vpace | ace | vp-sqil | sqil | dac | rce | lfgp (default: the subcommand's name)",
+        default=trainer.name,
+        help=f"{docs['variant']} (default: {trainer.name})",
     )
-    p.add_argument(
-        "--single-task",
-        dest="multitask",
-        action="store_false",
-        default=None,
-        help="main intention only (no scheduler), overriding the variant",
-    )
-    p.add_argument(
+    parser.add_argument(
         "--handcrafted",
         action="append",
-        default=None,
+        default=argparse.SUPPRESS,
         metavar="T1,T2,...",
         help=docs["handcrafted"] + " Repeatable, e.g. --handcrafted panda or "
         "--handcrafted reach,lift,main,open,reach,lift,main,open",
     )
-    p.add_argument(
-        "--hidden",
-        type=lambda s: tuple(int(x) for x in csv_list(s)),
-        default=None,
-        help="hidden widths, comma-separated (default: 256,256)",
-    )
-    add_env_kwarg(p, "control_hz=5", dest="env_kwargs", default=None)
-    p.add_argument("--threads", dest="torch_threads", type=int, default=None, help=docs["torch_threads"])
-    p.add_argument("--resume", action="store_true", help=docs["resume"])
-    p.add_argument("--frames-as-examples", action="store_true", default=None, help=docs["frames_as_examples"])
-    for f in dataclasses.fields(VPACEArgs):
-        if f.name in _SPECIAL or f.name in ("env", "main_task"):
-            continue
-        default = f.default if f.default is not dataclasses.MISSING else None
-        p.add_argument(
-            f"--{f.name.replace('_', '-')}",
-            type=_scalar_type(hints[f.name]),
-            default=None,
-            help=f"{docs.get(f.name, '')} (default: {default})",
-        )
 
 
 def build_args(args: argparse.Namespace):
-    """`VPACEArgs` from parsed flags: the variant preset, then every flag that was given."""
+    """`VPACEArgs` from parsed options: the variant preset, then every option that was given."""
     from shiftkit.policies.vpace import VPACEArgs
 
-    variant = args.variant or getattr(args, "trainer", None) or "vpace"
-    overrides = {}
-    for f in dataclasses.fields(VPACEArgs):
-        key = "output" if f.name == "output_dir" else f.name
-        value = getattr(args, key, None)
-        if value is not None and f.name not in ("variant", "resume"):
-            overrides[f.name] = dict(value) if f.name == "env_kwargs" else value
-    return VPACEArgs.for_variant(variant, resume=bool(args.resume), **overrides)
+    given = options().values(args)
+    if hasattr(args, "handcrafted"):
+        given["handcrafted"] = list(args.handcrafted)
+    return VPACEArgs.for_variant(args.variant, **given)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -131,7 +131,8 @@ def test_raw_pngs_a_reader_decodes_otherwise_are_encoded_afresh(synthetic_raw_im
         path.write_bytes(cv2.imencode(".png", grey)[1].tobytes())
     grey_files = {p.read_bytes() for p in synthetic_raw_images.rglob("frame_*.png")}
     config = PipelineConfig(
-        sources=[SourceConfig(path=str(synthetic_raw_images))], destination=DestinationConfig(root=str(tmp_path / "out"))
+        sources=[SourceConfig(path=str(synthetic_raw_images))],
+        destination=DestinationConfig(root=str(tmp_path / "out")),
     )
     out = run_pipeline(config, progress=False)
     assert not set(_png_column(out)) & grey_files

@@ -296,7 +296,7 @@ def test_fire_user_errors_are_one_line(demo, tmp_path, capsys):
         (["--predictor", "gda"], "--env", "no-such-env", "unknown env"),
         ([], "--task", "no-such-task", "unknown task"),
         ([], "--dataset", str(tmp_path / "missing"), "dataset not found"),
-        (["--budget-expert-samples", "0"], None, None, "budget_expert_samples must be positive"),
+        (["--budget-expert-samples", "0"], None, None, "--budget-expert-samples: must be a positive integer"),
         (["--repo-id", "noslash"], None, None, "ORG/NAME"),
     ]
     for extra, flag, value, message in cases:

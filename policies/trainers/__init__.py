@@ -1,0 +1,82 @@
+"""The trainer registry: every `shiftkit train` trainer registers itself here once.
+
+A trainer is one module in this package that calls `register(Trainer(...))` with everything the rest
+of shiftkit needs: its name (the `train` subcommand and the `trainer` of its run's config.json), a
+one-line help, its args dataclass, its CLI glue (options and run), the loader `shiftkit eval` uses
+for its policies, and the citation its model cards carry. The heavy parts (torch) are named as
+`module:attribute` and imported only when used, so `shiftkit train --help` lists the trainers
+without importing any of them. `commands/train.py` builds its subcommands from `trainers()`,
+`evaluation.load_policy` loads through `trainer(name)`, `run_dir` passes the citation to the card.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from dataclasses import dataclass
+from typing import Any
+
+from shiftkit.pipelines.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Trainer:
+    """One trainer, as it registers itself."""
+
+    name: str
+    """Subcommand of `shiftkit train`, and the `trainer` its runs record in config.json."""
+    help: str
+    """One line for `shiftkit train --help`."""
+    args: str
+    """`module:Class` of its args dataclass (the options of `shiftkit train NAME`)."""
+    cli: str
+    """Module with `add_arguments(parser, trainer)` and `run(namespace) -> int` (imports no torch)."""
+    load_policy: str
+    """`module:function(path, device)` loading a trained policy for `shiftkit eval`."""
+    citation: str | None = None
+    """The method's reference, cited by the model cards of its runs (the thesis is always cited)."""
+
+    def args_class(self) -> type:
+        return _resolve(self.args)
+
+    def cli_module(self) -> Any:
+        return importlib.import_module(self.cli)
+
+    def policy_loader(self) -> Any:
+        return _resolve(self.load_policy)
+
+
+_REGISTRY: dict[str, Trainer] = {}
+_DISCOVERED = False
+
+
+def register(trainer: Trainer) -> Trainer:
+    """Add `trainer` to the registry (its module calls this once, at import)."""
+    known = _REGISTRY.get(trainer.name)
+    if known is not None and known != trainer:
+        raise ValueError(f"trainer {trainer.name!r} is registered twice")
+    _REGISTRY[trainer.name] = trainer
+    return trainer
+
+
+def trainers() -> dict[str, Trainer]:
+    """Every registered trainer by name, after importing each module of this package once."""
+    global _DISCOVERED
+    if not _DISCOVERED:
+        for info in pkgutil.iter_modules(__path__, f"{__name__}."):
+            importlib.import_module(info.name)
+        _DISCOVERED = True
+    return dict(sorted(_REGISTRY.items()))
+
+
+def trainer(name: str) -> Trainer:
+    """The trainer called `name`; ConfigError naming the known ones otherwise."""
+    known = trainers()
+    if name not in known:
+        raise ConfigError(f"unknown trainer {name!r} (known: {', '.join(known)})")
+    return known[name]
+
+
+def _resolve(ref: str) -> Any:
+    module, _, attr = ref.partition(":")
+    return getattr(importlib.import_module(module), attr)

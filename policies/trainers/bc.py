@@ -1,0 +1,77 @@
+"""Trainer `bc`: behavioural cloning by an ensemble (`policies/bc.py`), and its `shiftkit train bc` glue."""
+
+from __future__ import annotations
+
+import argparse
+
+from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.policies.trainers import Trainer, register
+
+TRAINER = register(
+    Trainer(
+        name="bc",
+        help="behavioural cloning (MSE, ensembles, CNN + spatial soft-argmax)",
+        args="shiftkit.policies.bc:BCArgs",
+        cli=__name__,
+        load_policy="shiftkit.policies.bc:load_policy",
+    )
+)
+
+
+def options() -> DataclassOptions:
+    """`BCArgs` as options: counts and widths positive, the seed >= 0, rates positive."""
+    from shiftkit.policies.bc import REGIMES
+
+    positive = (
+        "steps",
+        "max_epochs",
+        "patience",
+        "batch_size",
+        "ensemble_size",
+        "num_keypoints",
+        "hidden",
+        "checkpoint_every",
+        "log_every",
+        "threads",
+    )
+    return DataclassOptions(
+        TRAINER.args_class(),
+        flags={
+            "datasets": "dataset",
+            "output_dir": "output",
+            "ensemble_size": "ensemble",
+            "num_keypoints": "keypoints",
+        },
+        rules={
+            **dict.fromkeys(positive, "positive_int"),
+            **dict.fromkeys(("lr", "norm_clip"), "positive_float"),
+            **dict.fromkeys(("weight_decay", "val_fraction", "norm_std_floor"), "non_negative_float"),
+            "seed": "non_negative_int",
+        },
+        choices={"regime": REGIMES, "encoder": ("cnn", "resnet18")},
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
+    options().add_to(parser)
+    parser.add_argument(
+        "--progress", action=argparse.BooleanOptionalAction, default=True, help="show a progress bar (default: on)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from shiftkit.policies.bc import train
+
+    config = options().build(args)
+    if config.regime == "early-stop":
+        steps = f"{config.steps} steps or " if config.steps else ""
+        print(
+            f"early-stop: at most {steps}{config.max_epochs} epochs; ends sooner once every member has not "
+            f"improved for {config.patience} epochs"
+        )
+    metrics = train(config, progress=args.progress)
+    shown = ", ".join(
+        f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in metrics.items() if not isinstance(v, list)
+    )
+    print(f"trained BC policy in {config.output_dir}: {shown}")
+    return 0
