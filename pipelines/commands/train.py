@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     from shiftkit.pipelines.staging import DestinationLock
 
-    if getattr(args, "output", None) is None:  # `train plot` writes no run folder
+    if getattr(args, "output_dir", None) is None:  # `train plot` writes no run folder
         return args._train_run(args)
-    with DestinationLock(Path(args.output)):  # a second run on the same --output is told who holds it
+    with DestinationLock(Path(args.output_dir)):  # a second run on the same --output is told who holds it
         return args._train_run(args)
