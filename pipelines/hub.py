@@ -29,7 +29,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
-from shiftkit.pipelines.lerobot_io import find_local_dataset, lerobot_home
+from shiftkit.pipelines.local_datasets import find_local_dataset, lerobot_home
 
 log = logging.getLogger(__name__)
 

@@ -194,7 +194,7 @@ def shiftkit(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
 
 
 def _job_id(dest: Path) -> str:
-    from shiftkit.pipelines.runner import work_dir_for
+    from shiftkit.pipelines.work import work_dir_for
 
     return (work_dir_for(dest) / "datatrove" / "slurm" / "job_id").read_text().strip()
 
@@ -227,7 +227,7 @@ def test_slurm_job_array_writes_the_local_executors_bytes(slurm, raw, tmp_path):
 
 
 def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, raw, tmp_path):
-    from shiftkit.pipelines.runner import work_dir_for
+    from shiftkit.pipelines.work import work_dir_for
 
     shiftkit(slurm.env, "run", str(_config(tmp_path, raw, "local")), "--no-progress")
     dest = tmp_path / "slurm"
