@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -54,8 +55,15 @@ class RayCluster:
         self.port = _free_port()
         # Ray's nodes listen on this machine's address (as on a real cluster), not on loopback.
         self.address = f"{get_node_ip_address()}:{self.port}"
-        self.env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
-        self.env.pop("RAY_ADDRESS", None)
+        # Token authentication (Ray's default once a token exists) with a token of this cluster's
+        # own: the nodes and every driver, shiftkit's included, read it from RAY_AUTH_TOKEN_PATH.
+        token = root / "auth_token"
+        token.write_text(secrets.token_hex(32))
+        token.chmod(0o600)
+        self.env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token"}
+        self.env["RAY_AUTH_TOKEN_PATH"] = str(token)
+        for name in ("RAY_ADDRESS", "RAY_AUTH_TOKEN"):
+            self.env.pop(name, None)
         self.procs: list[subprocess.Popen] = []
 
     def _start(self, name: str, args: list[str], workers: int) -> None:
