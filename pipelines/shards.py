@@ -12,13 +12,13 @@ host), so the provenance can say how many machines did the work.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import os
 import shutil
 import socket
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -160,11 +160,9 @@ class ShardStep(PipelineStep):
 
 def _node() -> str:
     """This worker's node: its Ray node id on a Ray cluster, else the host name."""
-    with contextlib.suppress(ImportError):
-        import ray
-
-        if ray.is_initialized():
-            return ray.get_runtime_context().get_node_id()
+    ray = sys.modules.get("ray")  # a Ray worker has imported it; nothing else needs to
+    if ray is not None and ray.is_initialized():
+        return ray.get_runtime_context().get_node_id()
     return socket.gethostname()
 
 

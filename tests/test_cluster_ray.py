@@ -10,9 +10,11 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -65,6 +67,8 @@ class RayCluster:
         for name in ("RAY_ADDRESS", "RAY_AUTH_TOKEN"):
             self.env.pop(name, None)
         self.procs: list[subprocess.Popen] = []
+        # Short: Ray's socket paths inside it must fit AF_UNIX's 107 bytes (pytest's folders do not).
+        self.temp = Path(tempfile.mkdtemp(prefix="skray-", dir="/tmp"))
 
     def _start(self, name: str, args: list[str], workers: int) -> None:
         log = open(self.root / f"{name}.log", "wb")  # noqa: SIM115  (kept open while the node runs)
@@ -83,7 +87,7 @@ class RayCluster:
         return int(proc.stdout.strip().splitlines()[-1]) if proc.returncode == 0 and proc.stdout.strip() else 0
 
     def start(self) -> None:
-        temp = self.root / "ray"  # Ray's session folder; shared by the nodes of one machine
+        temp = self.temp  # Ray's session folder; shared by the nodes of one machine
         self._start(
             "head",
             ["--head", f"--port={self.port}", "--include-dashboard=false", f"--temp-dir={temp}",
@@ -111,6 +115,7 @@ class RayCluster:
                     os.killpg(proc.pid, sig)
                 except ProcessLookupError:
                     break
+        shutil.rmtree(self.temp, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")
