@@ -248,9 +248,9 @@ def writer_imports() -> float:
 
 
 def _init_and_wait(config, barrier) -> None:
-    from shiftkit.pipelines import runner
+    from shiftkit.pipelines import work
 
-    runner.init_worker(config)
+    work.init_worker(config)
     barrier.wait()  # returns once every worker of the pool is set up
 
 

@@ -1,18 +1,10 @@
 """Distributed executors on datatrove: local processes, a Ray cluster, or a SLURM job array.
 
-The work units of a run are packed into *shards* (consecutive units, at most `shard_episodes`
-source episodes each), a grouping that does not depend on the number of workers. Each datatrove
-task (rank) takes every `world_size`-th unfinished shard and transforms its episodes into the
-run's part store, the same parts the local executor's workers write (so a resumed run skips
-finished episodes, whichever executor made them). A failing shard is retried (`attempts` in all,
-with freshly set-up stages); one that keeps failing leaves a failure record naming the episode and
-the reason, and the run stops with that message before anything is written at the destination.
-
-When every part exists, the destination is written by the local executor's writer
-(`runner.write_dataset`): one ordered pass over the parts, each episode written once, with the
-position-dependent statistics computed as it goes. Every executor therefore writes the same bytes
-for the same pipeline and seed (apart from the provenance's `executor` fields), and a dataset-level
-`select` runs in that pass like any other.
+Each runs the run's unfinished shards (`shards`) as datatrove tasks and reports failed or
+unfinished shards in one line before anything is written at the destination. The runner then
+writes the dataset from the parts with the same ordered writer pass as for the local executor
+(`assembly.write_dataset`), so every executor writes the same bytes for the same pipeline and seed
+(apart from the provenance's `executor` fields).
 """
 
 from __future__ import annotations
@@ -26,149 +18,21 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from datatrove.pipeline.base import PipelineStep
-
-from shiftkit.pipelines import runner
 from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.runner import PartStore, WorkUnit
-from shiftkit.pipelines.stage import Stage, register_stage, registered_stages
+from shiftkit.pipelines.planner import Plan
+from shiftkit.pipelines.shards import FailureStore, Shard, ShardStep, nodes_used, plan_shards
+from shiftkit.pipelines.work import PartStore, WorkUnit
 
 SHARD_EPISODES = 16
 ATTEMPTS = 3
 _LOG = logging.getLogger("shiftkit")
 
 
-@dataclass(frozen=True)
-class Shard:
-    """Consecutive work units that one task transforms (and retries) together."""
-
-    index: int
-    units: tuple[WorkUnit, ...]
-
-    @property
-    def episodes(self) -> list[tuple[int, int]]:
-        return [(u.source, i) for u in self.units for i in u.episodes]
-
-    def done(self, parts: PartStore) -> bool:
-        return all(parts.done(s, i) for s, i in self.episodes)
-
-    def describe(self) -> str:
-        eps = self.episodes
-        return (
-            f"shard {self.index} (source {eps[0][0]} episode {eps[0][1]} .. source {eps[-1][0]} episode {eps[-1][1]})"
-        )
-
-
-def plan_shards(units: list[WorkUnit], max_episodes: int) -> list[Shard]:
-    """Pack consecutive units into shards of at most `max_episodes` episodes (a unit is never split)."""
-    shards: list[Shard] = []
-    current: list[WorkUnit] = []
-    for unit in units:
-        if current and sum(len(u.episodes) for u in current) + len(unit.episodes) > max_episodes:
-            shards.append(Shard(len(shards), tuple(current)))
-            current = []
-        current.append(unit)
-    if current:
-        shards.append(Shard(len(shards), tuple(current)))
-    return shards
-
-
-class FailureStore:
-    """The failure records of shards that kept failing, in `<work dir>/failures`."""
-
-    def __init__(self, work_dir: Path) -> None:
-        self.dir = work_dir / "failures"
-
-    def _path(self, k: int) -> Path:
-        return self.dir / f"{k:05d}.json"
-
-    def record(self, k: int, where: str, reason: str, attempts: int) -> None:
-        self.dir.mkdir(parents=True, exist_ok=True)
-        tmp = self._path(k).with_suffix(f".tmp-{os.getpid()}")
-        tmp.write_text(json.dumps({"where": where, "reason": reason, "attempts": attempts}))
-        os.rename(tmp, self._path(k))
-
-    def clear(self, k: int) -> None:
-        self._path(k).unlink(missing_ok=True)
-
-    def get(self, k: int) -> dict[str, Any] | None:
-        path = self._path(k)
-        return json.loads(path.read_text()) if path.is_file() else None
-
-    def clean(self) -> None:
-        """Forget the failures of earlier attempts: a new attempt starts."""
-        shutil.rmtree(self.dir, ignore_errors=True)
-
-    def message(self, shards: list[Shard]) -> str | None:
-        """One line naming the failed episodes of `shards` and why, or None when none failed."""
-        failures = [f for f in (self.get(s.index) for s in shards) if f is not None]
-        if not failures:
-            return None
-        what = "; ".join(f"{f['where']}: {f['reason']}" for f in failures)
-        return f"{len(failures)} of {len(shards)} shards failed {failures[0]['attempts']} times: {what}"
-
-
-class ShardStep(PipelineStep):
-    """The datatrove pipeline step: transforms the unfinished shards of its rank into parts."""
-
-    name = "shiftkit shards"
-    type = "🤖 - SHIFTKIT"
-
-    def __init__(self, config: Any, shards: list[Shard], attempts: int, stage_classes: list[type[Stage]]) -> None:
-        super().__init__()
-        self.config = config
-        self.shards = shards
-        self.attempts = attempts
-        # The stage classes travel with the step, so stages registered outside shiftkit's own
-        # packages (a plugin, a script's __main__) exist on Ray workers too.
-        self.stage_classes = stage_classes
-        self.main_pid = os.getpid()  # workers of a local pool exit when this process dies
-
-    def run(self, data: Any = None, rank: int = 0, world_size: int = 1) -> Any:
-        runner.exit_with_parent(getattr(self, "main_pid", None))
-        known = registered_stages()
-        for cls in self.stage_classes:
-            if cls.name not in known:
-                register_stage(cls)
-        work = runner.work_dir_for(Path(self.config.destination.root))
-        parts, failures = PartStore(work), FailureStore(work)
-        plan = None
-        failed = []
-        for shard in self.shards[rank::world_size]:
-            if shard.done(parts):  # finished by an earlier, killed or cancelled, run of this task
-                continue
-            for attempt in range(1, self.attempts + 1):
-                try:
-                    if plan is None:  # set up once per rank, and again after a failure
-                        plan = runner.init_worker(self.config)
-                    for unit in shard.units:
-                        self.stat_update("episodes", value=runner.process_unit(unit))
-                    failures.clear(shard.index)
-                    self.stat_update("shards")
-                    break
-                except Exception as exc:
-                    plan = None
-                    where = next((f"source {s} episode {i}" for s, i in shard.episodes if not parts.done(s, i)), "?")
-                    reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
-                    _LOG.warning(
-                        "%s, attempt %d/%d failed at %s: %s", shard.describe(), attempt, self.attempts, where, reason
-                    )
-                    self.stat_update("failed_attempts")
-                    if attempt == self.attempts:
-                        failures.record(shard.index, where, reason, attempt)
-                        failed.append(shard.index)
-        if failed:
-            raise DatasetError(f"shards {failed} failed {self.attempts} times (records in {failures.dir})")
-        return data
-
-
 class DatatroveExecutor:
-    """Shared driver side: shard planning, the datatrove pass, failure reports; the dataset is
-    written by the local executor's writer (`runner.write_dataset`)."""
+    """Shared driver side: shard planning, the datatrove pass, failure reports."""
 
     name: ClassVar[str]
     schedules: ClassVar[bool] = False  # True: the work is handed to a scheduler, not run here
@@ -181,11 +45,18 @@ class DatatroveExecutor:
         self.workers = workers
         self.shard_episodes = shard_episodes
         self.attempts = attempts
+        self.nodes: int | None = None  # how many nodes did the work, once it is done
 
     def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "workers": self.workers}
+        return {"name": self.name, "workers": self.workers, **({"nodes": self.nodes} if self.nodes else {})}
 
-    def run(self, plan: Any, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
+    def run(self, plan: Plan, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
+        done = self._run(plan, units, parts, bar)
+        if done:
+            self.nodes = nodes_used(parts.dir.parent)
+        return done
+
+    def _run(self, plan: Plan, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
         todo = [s for s in plan_shards(units, self.shard_episodes) if not s.done(parts)]
         if not todo:
             return True
@@ -218,7 +89,7 @@ class DatatroveExecutor:
 
     def _schedule(
         self,
-        plan: Any,
+        plan: Plan,
         step: ShardStep,
         tasks: int,
         logdir: Path,
@@ -227,9 +98,6 @@ class DatatroveExecutor:
         parts: PartStore,
     ) -> bool:
         raise NotImplementedError
-
-    def assemble(self, plan: Any, parts: PartStore, bar: Any) -> Path:
-        return runner.write_dataset(plan, parts, self.describe(), bar)
 
 
 class _PartsProgress:
@@ -381,7 +249,7 @@ class SlurmExecutor(DatatroveExecutor):
 
     def _schedule(
         self,
-        plan: Any,
+        plan: Plan,
         step: ShardStep,
         tasks: int,
         logdir: Path,
@@ -456,7 +324,7 @@ def slurm_job_active(job: str) -> bool:
     return proc.returncode == 0 and bool(proc.stdout.strip())
 
 
-def write_slurm_job(executor: SlurmExecutor, plan: Any, step: ShardStep, tasks: int, logdir: Path) -> Path:
+def write_slurm_job(executor: SlurmExecutor, plan: Plan, step: ShardStep, tasks: int, logdir: Path) -> Path:
     """What datatrove's `SlurmPipelineExecutor.launch_job` prepares, without calling sbatch."""
     import dill
     from datatrove.executor import SlurmPipelineExecutor

@@ -1,11 +1,11 @@
-"""Executors run the work units (groups of source episodes) of a pipeline and assemble the
-finished episodes into the destination dataset; they know nothing about what a stage does.
+"""Executors run the work units (`work`: groups of source episodes) of a pipeline into parts;
+they know nothing about what a stage does, and none writes the dataset: the runner writes it from
+the parts with the one ordered writer pass (`assembly.write_dataset`), so they all write the same
+bytes.
 
 `local` is a process pool on this machine (in-process for 1 worker); it is the default.
 `datatrove-local`, `ray` and `slurm` run the same transforms on datatrove
-(`shiftkit.pipelines.datatrove_executor`). Every executor's workers leave their finished episodes
-as parts, and every executor writes the dataset from them with the same ordered writer pass
-(`runner.write_dataset`), so they all write the same bytes.
+(`shiftkit.pipelines.datatrove_executor`).
 """
 
 from __future__ import annotations
@@ -16,22 +16,21 @@ import multiprocessing
 import os
 import threading
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from pathlib import Path
 from typing import Any, Protocol
 
+from shiftkit.pipelines import work
 from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.planner import Plan
+from shiftkit.pipelines.work import PartStore, WorkUnit
 
 
 class Executor(Protocol):
     def describe(self) -> dict[str, Any]:
         """The executor fields of the provenance (name, workers, ...)."""
 
-    def run(self, plan: Any, units: list[Any], parts: Any, bar: Any) -> bool:
-        """Transform every unit's unfinished episodes (into `parts` or the executor's own store).
-        False when the work was handed to a scheduler and the dataset cannot be assembled yet."""
-
-    def assemble(self, plan: Any, parts: Any, bar: Any) -> Path:
-        """Write the destination dataset atomically from the finished work; returns its path."""
+    def run(self, plan: Plan, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
+        """Transform every unit's unfinished episodes into `parts`. False when the work was handed
+        to a scheduler and the dataset cannot be written yet."""
 
 
 class LocalExecutor:
@@ -45,17 +44,14 @@ class LocalExecutor:
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "workers": self.workers}
 
-    def run(self, plan: Any, units: list[Any], parts: Any, bar: Any) -> bool:
-        from shiftkit.pipelines import runner
-
+    def run(self, plan: Plan, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
         units = [u for u in units if not all(parts.done(u.source, i) for i in u.episodes)]
         if not units:
             return True
-        config = plan.config
-        if self.workers == 1:
-            runner.init_worker(config)
+        if self.workers == 1:  # in this process, on the plan the runner built
+            work.set_up_worker(plan)
             for unit in units:
-                bar.update(runner.process_unit(unit))
+                bar.update(work.process_unit(unit))
             return True
         # The main process only waits for the pool: meanwhile it imports what the writer needs
         # (lerobot and torch, seconds), which would otherwise come after the last episode.
@@ -65,9 +61,9 @@ class LocalExecutor:
         ctx = multiprocessing.get_context("spawn")
         try:
             with ProcessPoolExecutor(
-                self.workers, mp_context=ctx, initializer=runner.init_worker, initargs=(config, os.getpid())
+                self.workers, mp_context=ctx, initializer=work.init_worker, initargs=(plan.config, os.getpid())
             ) as pool:
-                futures = [pool.submit(runner.process_unit, unit) for unit in units]
+                futures = [pool.submit(work.process_unit, unit) for unit in units]
                 try:
                     for future in as_completed(futures):
                         bar.update(future.result())
@@ -78,11 +74,6 @@ class LocalExecutor:
         finally:
             imports.join()
         return True
-
-    def assemble(self, plan: Any, parts: Any, bar: Any) -> Path:
-        from shiftkit.pipelines.runner import write_dataset
-
-        return write_dataset(plan, parts, self.describe(), bar)
 
 
 def _import_writer() -> None:

@@ -28,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
-from shiftkit.pipelines.lerobot_io import find_local_dataset, lerobot_home
+from shiftkit.pipelines.local_datasets import find_local_dataset, lerobot_home
 from shiftkit.pipelines.staging import remove_dead_staging, staging_path
 
 log = logging.getLogger(__name__)

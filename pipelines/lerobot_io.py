@@ -59,6 +59,7 @@ from shiftkit.pipelines.features import (
     user_features,
 )
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.local_datasets import find_local_dataset, lerobot_home
 from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 from shiftkit.pipelines.stats import RunningStats, image_stats, numeric_stats
 from shiftkit.pipelines.video import decode_episode, encode_frames
@@ -798,18 +799,6 @@ def fingerprint(root: str | Path) -> str:
             h.update(path.relative_to(root).as_posix().encode())
             h.update(path.read_bytes())
     return h.hexdigest()[:16]
-
-
-def lerobot_home() -> Path:
-    return Path(os.environ.get("HF_LEROBOT_HOME", Path.home() / ".cache" / "huggingface" / "lerobot")).expanduser()
-
-
-def find_local_dataset(ref: str | Path) -> Path | None:
-    """The dataset directory `ref` names locally: the directory itself, or `$HF_LEROBOT_HOME/<ref>`."""
-    for path in (Path(ref).expanduser(), lerobot_home() / str(ref)):
-        if (path / "meta" / "info.json").is_file():
-            return path
-    return None
 
 
 def _not_a_dataset(path: Path) -> str:

@@ -53,7 +53,7 @@ def make_provenance(
 def build_provenance(
     plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int, report: Any
 ) -> dict[str, Any]:
-    """A pipeline run's provenance. `report` (`runner.RunReport`): the run's totals of the events
+    """A pipeline run's provenance. `report` (`assembly.RunReport`): the run's totals of the events
     each stage counted (`Stage.report`), stored as the stage entry's "report" when it counted any,
     and the output episodes per source. Each source entry records its fps, its own stages and
     the range of output episodes it became (`episodes`: [first, end))."""

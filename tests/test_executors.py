@@ -14,8 +14,9 @@ import pytest
 
 from shiftkit.pipelines.config import load_pipeline_config
 from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.runner import run_pipeline, work_dir_for
+from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.pipelines.work import work_dir_for
 from tests.helpers import dataset_bytes
 
 PIPELINE = """
@@ -92,7 +93,7 @@ def test_ray_and_datatrove_local_match_the_local_executor(tmp_path, raw, local_r
         assert_same_dataset(local, other)  # provenance included
         assert not work_dir_for(other).exists()
     prov = json.loads((ray_out / "meta/shiftkit_provenance.json").read_text())
-    assert prov["executor"] == {"name": "ray", "workers": 2, "address": None}
+    assert prov["executor"] == {"name": "ray", "workers": 2, "nodes": 1, "address": None}
     kept = prov["output"]["episodes"]
     assert 0 < kept < 6 and prov["stages"][1]["report"] == {"episodes_dropped": 6 - kept}
     from lerobot.datasets.lerobot_dataset import LeRobotDataset

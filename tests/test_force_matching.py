@@ -318,7 +318,8 @@ def test_docs_pipelines_resume_after_sigkill(tmp_path, caplog):
 
     from shiftkit.pipelines.cli import main
     from shiftkit.pipelines.config import load_pipeline_config
-    from shiftkit.pipelines.runner import run_pipeline, work_dir_for
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.work import work_dir_for
     from tests.helpers import dataset_bytes, finished_parts, shiftkit_process, sigkill_when, survivors
 
     raw, episodes = tmp_path / "raw", 4

@@ -71,7 +71,7 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
     with the driver; its agents notice the dead raylet within about a minute (measured ~70 s)."""
     import psutil
 
-    from shiftkit.pipelines.runner import work_dir_for
+    from shiftkit.pipelines.work import work_dir_for
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=40, length=20, seed=5, camera=(16, 24))
     config = _config(tmp_path, raw, "ray_out")
@@ -144,10 +144,10 @@ def test_stale_lock_of_a_dead_run_is_taken_over(tmp_path, rel_raw):
 
 
 def test_disk_full_is_one_line_and_restart_discards_work(tmp_path, rel_raw, monkeypatch):
-    from shiftkit.pipelines import runner
+    from shiftkit.pipelines import work
 
     config = _config(tmp_path, rel_raw, "out")
-    real = runner.PartStore.write
+    real = work.PartStore.write
     calls = {"n": 0}
 
     def write(self, *args, **kwargs):
@@ -156,11 +156,11 @@ def test_disk_full_is_one_line_and_restart_discards_work(tmp_path, rel_raw, monk
             raise OSError(errno.ENOSPC, "No space left on device", str(self.dir / "x.pkl"))
         return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(runner.PartStore, "write", write)
+    monkeypatch.setattr(work.PartStore, "write", write)
     outcome = cli(["run", str(config), "--no-progress"])
     assert outcome.code == 2 and "no space left" in outcome.error_line and ".out.shiftkit-work" in outcome.error_line
     assert " MB" in outcome.error_line and "--restart" in outcome.error_line
-    monkeypatch.setattr(runner.PartStore, "write", real)
+    monkeypatch.setattr(work.PartStore, "write", real)
     outcome = cli(["run", str(config), "--no-progress", "--restart"])
     assert outcome.code == 0, outcome
     assert not (tmp_path / ".out.shiftkit-work").exists()
@@ -293,10 +293,10 @@ def test_watchdog_ends_a_worker_whose_parent_was_killed():
     """The parent-death watchdog that every executor's workers arm (init_worker, datatrove's step)."""
     code = (
         "import os, sys, time\n"
-        "from shiftkit.pipelines import runner\n"
+        "from shiftkit.pipelines import work\n"
         "pid = os.fork()\n"
         "if pid == 0:\n"
-        "    runner._WORKER.clear(); runner.exit_with_parent(os.getppid(), period=0.1)\n"
+        "    work._WORKER.clear(); work.exit_with_parent(os.getppid(), period=0.1)\n"
         "    print(os.getpid(), flush=True); time.sleep(60); sys.exit(0)\n"
         "time.sleep(60)\n"
     )

@@ -100,8 +100,8 @@ def _run_sources(source: Path, dest: Path) -> None:
     """What `shiftkit run` does with a source before writing: plan, read and transform every episode."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.planner import plan_pipeline
-    from shiftkit.pipelines.runner import transform_episode
     from shiftkit.pipelines.sources import SourceConfig
+    from shiftkit.pipelines.work import transform_episode
 
     plan = plan_pipeline(PipelineConfig([SourceConfig(path=str(source))], DestinationConfig(root=str(dest))))
     for s, src in enumerate(plan.sources):

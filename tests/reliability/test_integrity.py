@@ -124,9 +124,9 @@ def test_subsample_keeps_success_in_readme_tour(tmp_path):
 
 def _interrupted_run(config, monkeypatch, after: int) -> None:
     """A run that dies (not a user error) after `after` finished parts, leaving its work directory."""
-    from shiftkit.pipelines import runner
+    from shiftkit.pipelines import runner, work
 
-    real = runner.PartStore.write
+    real = work.PartStore.write
     calls = {"n": 0}
 
     def write(self, *args, **kwargs):
@@ -135,14 +135,15 @@ def _interrupted_run(config, monkeypatch, after: int) -> None:
         calls["n"] += 1
         return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(runner.PartStore, "write", write)
+    monkeypatch.setattr(work.PartStore, "write", write)
     with pytest.raises(RuntimeError):
         runner.run_pipeline(config, progress=False)
-    monkeypatch.setattr(runner.PartStore, "write", real)
+    monkeypatch.setattr(work.PartStore, "write", real)
 
 
 def test_stale_parts_are_not_reused_after_the_source_changed(tmp_path, monkeypatch):
-    from shiftkit.pipelines.runner import run_pipeline, work_dir_for
+    from shiftkit.pipelines.runner import run_pipeline
+    from shiftkit.pipelines.work import work_dir_for
 
     raw = tmp_path / "raw"
     write_synthetic_raw(raw, episodes=5, length=10, seed=1)
