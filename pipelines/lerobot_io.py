@@ -35,7 +35,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
