@@ -8,7 +8,7 @@ folders and cannot put them under `shiftkit.`.
 
 from setuptools import find_packages, setup
 
-TOP_LEVEL = ("pipelines", "transforms", "policies", "envs", "cards")
+TOP_LEVEL = ("pipelines", "transforms", "policies", "envs", "cards", "app")
 
 setup(
     package_dir={f"shiftkit.{folder}": folder for folder in TOP_LEVEL},

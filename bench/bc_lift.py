@@ -42,9 +42,9 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("HF_DATASETS_CACHE", str(work / "hf-cache"))
 
+    from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.envs import make
     from shiftkit.envs.panda_play.experts import ExpertPolicy
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
     from shiftkit.policies.bc import BCArgs, load_policy, train
     from shiftkit.policies.evaluation import evaluate, record_evaluation, run_episodes, wilson_interval
 

@@ -19,9 +19,9 @@ import sys
 import time
 
 COMMANDS = {
-    "help": ["-m", "shiftkit.pipelines.cli", "--help"],
-    "train_help": ["-m", "shiftkit.pipelines.cli", "train", "--help"],
-    "fire_help": ["-m", "shiftkit.pipelines.cli", "fire", "--help"],
+    "help": ["-m", "shiftkit.app.cli", "--help"],
+    "train_help": ["-m", "shiftkit.app.cli", "train", "--help"],
+    "fire_help": ["-m", "shiftkit.app.cli", "fire", "--help"],
     "pass": ["-c", "pass"],
 }
 HEAVY = ("torch", "mujoco")

@@ -203,7 +203,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="short run (< 1 minute)")
     parser.add_argument("--episodes", type=int, default=None)
     args = parser.parse_args()
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     episodes = max(2, args.episodes or (2 if args.quick else 4))  # split and delete need 2
     results = {}

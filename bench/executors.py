@@ -104,7 +104,7 @@ class Rerender(Stage):
 
 
 def make_source(root: Path, episodes: int) -> Path:
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     path, _ = collect(CollectConfig(env="panda-play", task="lift", episodes=episodes, seed=0, out=str(root)))
     return path

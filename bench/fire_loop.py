@@ -47,8 +47,8 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("HF_DATASETS_CACHE", str(work / "hf-cache"))
 
+    from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.envs import make
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
     from shiftkit.policies.bc import load_policy
     from shiftkit.policies.evaluation import run_episodes
     from shiftkit.policies.fire import FireArgs, read_episode_lines

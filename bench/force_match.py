@@ -45,7 +45,7 @@ TASKS = ("flat-handle-open", "flat-handle-close", "knob-open", "knob-close")
 
 
 def record(out: Path, task: str, episodes: int, seed: int = 0, cameras: tuple[str, ...] = ()) -> Path:
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     config = CollectConfig(
         env="door-tactile", task=task, episodes=episodes, seed=seed, expert="kinesthetic", cameras=cameras

@@ -36,7 +36,7 @@ from tqdm import tqdm  # noqa: E402
 
 
 def record(out: Path, episodes: int) -> Path:
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     path, _ = collect(
         CollectConfig(env="mv-lift", task="lift", episodes=episodes, out=str(out), env_kwargs={"view": "fixed"})
@@ -230,7 +230,7 @@ def pipeline(raw: Path, dest: Path, views: int, workers: int) -> tuple[float, fl
         f'[[sources]]\npath = "{raw}"\n[[stages]]\nname = "multiview"\nparams = {{ num_views = {views} }}\n'
         f'[destination]\nroot = "{dest}"\n'
     )
-    command = [sys.executable, "-m", "shiftkit.pipelines.cli", "run", str(config), "--workers", str(workers)]
+    command = [sys.executable, "-m", "shiftkit.app.cli", "run", str(config), "--workers", str(workers)]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     subprocess.run([*command, "--no-progress"], check=True, capture_output=True)

@@ -44,10 +44,10 @@ COLLECT_EPISODES = 240  # scripted episodes per task (failures skipped), enough 
 def scene_examples(dest: Path, work: Path, tasks: list[str]) -> None:
     """200 final states per task of successful scripted-expert episodes at 5 Hz, one example dataset at
     `dest`; the raw episodes are kept in `work` (written atomically, so a rerun reuses them)."""
+    from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     raws = []
     for i, task in enumerate(tasks):
@@ -115,9 +115,9 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("HF_DATASETS_CACHE", str(work / "hf-cache"))
 
+    from shiftkit.app.importers.vpace import import_vpace
     from shiftkit.envs import make
     from shiftkit.envs.panda_play.experts import ExpertPolicy
-    from shiftkit.pipelines.sources.vpace import import_vpace
     from shiftkit.policies.evaluation import evaluate, run_episodes, wilson_interval
     from shiftkit.policies.run_dir import RunDir, load_checkpoint
     from shiftkit.policies.vpace import VPACEArgs, load_policy, train

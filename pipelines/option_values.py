@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
 import math
 import types
 import typing
@@ -70,31 +69,6 @@ non_negative_float = option_type("non_negative_float")
 integer = option_type("any_int")
 positive_float = option_type("positive_float")
 finite_float = option_type("finite_float")
-
-
-def check_env_kwargs(env_name: str, kwargs: dict[str, Any]) -> None:
-    """Every numeric env constructor argument (rates, sizes, durations) is positive, and an integer
-    where the constructor's default is one; ConfigError with the rule's message otherwise. Unknown
-    envs and arguments are left to the env (its own one-line error)."""
-    from importlib import import_module
-
-    from shiftkit.envs import env_family
-
-    try:
-        module, _, cls = env_family(env_name).entry_point.partition(":")
-    except ValueError:
-        return
-    params = inspect.signature(getattr(import_module(module), cls)).parameters
-    for key, value in kwargs.items():
-        default = params[key].default if key in params else None
-        numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
-        if key not in params or not (numeric or isinstance(default, (int, float))) or isinstance(default, bool):
-            continue
-        if params[key].default is None and value is None:
-            continue
-        rule = "positive_int" if isinstance(default, int) else "positive_float"
-        if not meets(rule, value):
-            raise ConfigError(rule_error(f"--env-kwarg {key}", rule, value))
 
 
 class _ExtendItems(argparse.Action):

@@ -90,7 +90,7 @@ def shiftkit_process(*args: str, cwd: Path) -> subprocess.Popen:
     """`shiftkit ARGS` in a child process with its own session (process group), so that killing it
     does not take the test down."""
     return subprocess.Popen(
-        [sys.executable, "-m", "shiftkit.pipelines.cli", *args],
+        [sys.executable, "-m", "shiftkit.app.cli", *args],
         cwd=cwd,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -299,7 +299,7 @@ def test_resume_after_kill_equals_uninterrupted_run(state_ds, tmp_path):
     cli = [
         sys.executable,
         "-m",
-        "shiftkit.pipelines.cli",
+        "shiftkit.app.cli",
         "train",
         "bc",
         "--dataset",
@@ -432,6 +432,6 @@ def test_user_errors_are_one_line(state_ds, tmp_path):
     with pytest.raises(ConfigError, match="different 'steps'"):
         train(small_args(state_ds, tmp_path / "r3", steps=40, resume=True))
 
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
 
     assert main(["train", "bc", "--dataset", str(tmp_path / "nowhere"), "--output", str(tmp_path / "r4")]) == 2

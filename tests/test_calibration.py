@@ -108,7 +108,7 @@ def test_bad_files_are_one_line_errors(tmp_path):
 def test_calibrate_command_on_the_simulated_sensor(tmp_path, capsys):
     """`shiftkit calibrate` pushes the door-tactile STS, fits it and writes the file and the plot;
     the fit recovers the sensor's hidden normal gain on held-out pushes."""
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
 
     out = tmp_path / "calib.json"
     assert main(["calibrate", "--env", "door-tactile", "--out", str(out), "--pushes", "1", "--held-out", "1"]) == 0
@@ -125,7 +125,7 @@ def test_calibrate_command_on_the_simulated_sensor(tmp_path, capsys):
 def test_plan_executed_by_the_simulated_robot_fits_like_the_simulated_pushes(tmp_path, capsys):
     """`calibrate --plan` -> the door-tactile robot executes and records it (`sim-robot`) ->
     `calibrate --from` fits every slope within 2% of `calibrate`'s simulated pushes (same seeds)."""
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
 
     assert main(["calibrate", "--out", str(tmp_path / "sim.json"), "--pushes", "2", "--held-out", "0"]) == 0
     assert main(["calibrate", "--plan", str(tmp_path / "plan"), "--pushes", "2", "--held-out", "1"]) == 0
@@ -145,7 +145,7 @@ def test_plan_executed_by_the_simulated_robot_fits_like_the_simulated_pushes(tmp
 
 
 def test_bad_plans_and_recordings_are_one_line_errors(tmp_path, capsys):
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
     from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
     assert main(["calibrate", "--plan", str(tmp_path / "plan"), "--pushes", "1", "--held-out", "0"]) == 0

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.app.cli import main
 from shiftkit.pipelines.camera_meta import episode_cameras, factor_cameras
-from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset

@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 import pytest
 
-from shiftkit.pipelines.cli import Parser, build_parser, main
+from shiftkit.app.cli import Parser, build_parser, main
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.option_values import DataclassOptions
 
@@ -113,7 +113,7 @@ def test_no_parser_takes_abbreviations(capsys):
 
 
 def test_fire_options_mirror_every_field_of_its_args(tmp_path):
-    from shiftkit.pipelines.commands import fire as fire_command
+    from shiftkit.app.commands import fire as fire_command
     from shiftkit.policies.fire import FireArgs
 
     options = fire_command._fire_options()
@@ -130,7 +130,7 @@ def test_fire_options_mirror_every_field_of_its_args(tmp_path):
 @pytest.mark.parametrize("argv", [["--help"], ["train", "--help"], ["plan", "--help"], ["eval", "--help"]])
 def test_help_imports_no_torch_or_mujoco(argv):
     code = (
-        "import sys\nfrom shiftkit.pipelines.cli import main\n"
+        "import sys\nfrom shiftkit.app.cli import main\n"
         f"assert main({argv!r}) == 0\n"
         "print(sorted(m for m in ('torch', 'mujoco', 'lerobot') if m in sys.modules))"
     )

@@ -141,7 +141,7 @@ def test_ray_cluster_runs_tasks_on_both_nodes_and_writes_the_local_bytes(ray_clu
     for args in (["run", str(configs["local"])], ["run", str(configs["ray"]), "--executor", "ray", "--workers", "2",
                                                     "--ray-address", ray_cluster.address]):  # fmt: skip
         proc = subprocess.run(
-            [sys.executable, "-m", "shiftkit.pipelines.cli", *args, "--no-progress"],
+            [sys.executable, "-m", "shiftkit.app.cli", *args, "--no-progress"],
             env=env,
             capture_output=True,
             text=True,

@@ -187,7 +187,7 @@ def _config(tmp_path: Path, raw: Path, name: str) -> Path:
 
 def shiftkit(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
     proc = subprocess.run(
-        [sys.executable, "-m", "shiftkit.pipelines.cli", *args], env=env, capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "shiftkit.app.cli", *args], env=env, capture_output=True, text=True, timeout=300
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc

@@ -163,7 +163,7 @@ def test_diffusion_trains_on_depth(native, tmp_path):
 @pytest.fixture(scope="module")
 def collected(tmp_path_factory):
     """`shiftkit collect --cameras front --depth` (2 episodes) as a LeRobot dataset."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     tmp = tmp_path_factory.mktemp("collect")
     config = CollectConfig(task="lift", episodes=2, cameras=("front",), depth=True, out=str(tmp / "raw"))

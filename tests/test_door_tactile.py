@@ -136,7 +136,7 @@ def test_kinesthetic_dataset_converts_to_lerobot(tmp_path, capsys):
     dataset with STS and wrist images, x_raw and F~_raw that LeRobotDataset loads."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
     from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     raw, out = tmp_path / "raw", tmp_path / "lerobot"
@@ -221,8 +221,8 @@ def test_fixed_sensor_mode_holds_for_the_whole_episode(fixed):
 def test_collect_in_a_fixed_sensor_mode(tmp_path, expert, fixed):
     """`collect --env-kwarg sensor_mode=...` records the fixed-mode env: 6-dim actions named as the
     env names them, every frame in that mode (state and STS image)."""
+    from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.pipelines.sources.raw import open_raw_dataset
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     kwargs = {"sensor_mode": fixed}
     out, _ = collect(

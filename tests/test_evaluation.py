@@ -77,8 +77,8 @@ def test_run_episodes_with_results_and_videos(tmp_path):
 
 
 def test_eval_cli_runs_a_trained_bc_policy(tmp_path, capsys):
-    from shiftkit.pipelines.cli import main
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.cli import main
+    from shiftkit.app.collect import CollectConfig, collect
 
     collect(CollectConfig(task="lift", episodes=3, seed=0, lerobot="local/lift3", root=str(tmp_path / "lift3")))
     run = tmp_path / "run"
@@ -206,8 +206,8 @@ def test_policy_action_must_be_the_envs():
 def test_eval_cli_fixed_mode_baseline_from_a_mode_label_dataset(tmp_path, capsys):
     """A BC policy trained on a `mode_label` source="visual" dataset (6-dim action) evaluates with
     `--env-kwarg sensor_mode=visual`; on the mode-switching env (7 dims) it is a one-line error."""
+    from shiftkit.app.cli import main
     from shiftkit.envs.door_tactile.env import ACTION_NAMES, OBSERVATION_NAMES
-    from shiftkit.pipelines.cli import main
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shiftkit.app.cli import main
 from shiftkit.envs import families, make
-from shiftkit.pipelines.cli import main
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
 from tests.helpers import lerobot_train_two_steps
@@ -262,7 +262,7 @@ def test_fire_resumes_after_sigkill_as_if_never_stopped(demo, fire_run, tmp_path
     reference, _ = fire_run
     out = tmp_path / "run"
     args = _fire_cli(env_name, task, root, out, "--dataset-root", str(tmp_path / "agg"), "--predictor", "gda+doubt")
-    code = "import sys; from shiftkit.pipelines.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from shiftkit.app.cli import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.Popen([sys.executable, "-c", code, *args], start_new_session=True)
     last = out / "checkpoints" / "last.txt"
     deadline = time.time() + 300

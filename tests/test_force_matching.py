@@ -81,7 +81,7 @@ SENSOR = "door-tactile-v1:sts"
 @pytest.fixture(scope="module")
 def kinesthetic(tmp_path_factory):
     """Two simulated kinesthetic demonstrations (flat handle) with wrist and STS images."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     out = tmp_path_factory.mktemp("kin") / "raw"
     collect(CollectConfig(env="door-tactile", task="flat-handle-open", episodes=2, expert="kinesthetic", out=str(out)))
@@ -206,7 +206,7 @@ def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):
 def test_a_fixed_mode_recording_replays_without_the_mode_dim(tmp_path):
     """A demonstration recorded with `sensor_mode=visual` (6-dim actions, no wrist camera) replays
     into 6-dim actions at the recording's STS image size."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     out, _ = collect(
         CollectConfig(
@@ -264,7 +264,7 @@ def test_docs_pipelines_run_with_two_workers_and_train_act(kinesthetic, tmp_path
     LeRobotDataset (action with `sts_mode`, one STS image) and lerobot-train (ACT) trains 2 steps."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
 
     roots = {}
     for name in ("force_matched", "position_replay"):
@@ -316,7 +316,7 @@ def test_docs_pipelines_resume_after_sigkill(tmp_path, caplog):
     import json
     import shutil
 
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
     from shiftkit.pipelines.config import load_pipeline_config
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.work import work_dir_for
@@ -376,7 +376,7 @@ def run_stages(source: Path, dest: Path, *stages: tuple[str, dict]) -> Path:
 @pytest.fixture(scope="module")
 def four_demos(tmp_path_factory):
     """Four short kinesthetic door demonstrations (2 s, small images, wrist camera)."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     out = tmp_path_factory.mktemp("four") / "raw"
     config = CollectConfig(
@@ -399,7 +399,7 @@ def test_replay_plan_executed_by_the_robot_joins_into_the_simulated_replay(four_
     gives the in-simulator force_match output: the same features, episodes and frames (to 1e-6,
     float32 rounding of the action; the simulated robot runs the same physics, so in practice
     exactly), the same replay outcome and first contact."""
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
     from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 
     fm = {"calibration": str(CALIBRATION), "slowdown": 2, "damping_time": 0.25}
@@ -430,7 +430,7 @@ def test_replay_plan_executed_by_the_robot_joins_into_the_simulated_replay(four_
 
 
 def test_bad_replay_plans_and_recordings_are_one_line_errors(four_demos, tmp_path, capsys):
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
     from shiftkit.pipelines.errors import ConfigError, DatasetError
     from shiftkit.pipelines.sources.raw import RawDatasetWriter
     from shiftkit.pipelines.stage import StageContext, build_stage

@@ -79,7 +79,7 @@ def _env(hub_endpoint: str, home: Path) -> dict[str, str]:
 # the library API); HF_TOKEN is set per case (huggingface_hub reads it on every call).
 _BATCH = textwrap.dedent("""
     import contextlib, io, json, os, sys
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
     results = []
     for case in json.loads(sys.argv[1]):
         os.environ.pop("HF_TOKEN", None)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from shiftkit.pipelines.cli import main
+from shiftkit.app.cli import main
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.sources.lerobot_v21 import import_lerobot_v21
 

@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.cli import main
+from shiftkit.app.cli import main
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.sources.robomimic import import_robomimic
 

@@ -12,7 +12,7 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from shiftkit.pipelines.cli import main
+from shiftkit.app.cli import main
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.sources.ros2 import _fetch, _plan, _scan, import_ros2, load_mapping

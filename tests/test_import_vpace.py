@@ -12,16 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.cli import main
-from shiftkit.pipelines.errors import DatasetError, ShiftkitError
-from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
-from shiftkit.pipelines.sources.vpace import (
+from shiftkit.app.cli import main
+from shiftkit.app.importers.vpace import (
     ReferenceName,
     import_vpace,
     parse_reference_name,
     read_vpace_buffer,
     task_from_filename,
 )
+from shiftkit.pipelines.errors import DatasetError, ShiftkitError
+from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vpace"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"published VPACE data not found at {DATA}")

@@ -72,7 +72,7 @@ def _pipeline(path: Path, sources: list[tuple[Path, str]], dest: Path, repo_id: 
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "shiftkit.pipelines.cli", *args], capture_output=True, text=True)
+    return subprocess.run([sys.executable, "-m", "shiftkit.app.cli", *args], capture_output=True, text=True)
 
 
 def _episodes(root: Path) -> list[dict[str, list]]:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from shiftkit.pipelines.demo import run_demo
+from shiftkit.app.demo import run_demo
 from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 
 

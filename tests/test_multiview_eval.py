@@ -64,8 +64,8 @@ def test_yaw_sweep_needs_a_mobile_base():
 
 
 def test_eval_cli_env_kwarg_and_yaw_sweep(tmp_path, capsys):
-    from shiftkit.pipelines.cli import main
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.cli import main
+    from shiftkit.app.collect import CollectConfig, collect
 
     collect(CollectConfig(env="mv-lift", task="lift", episodes=2, lerobot="local/mv2", root=str(tmp_path / "mv2")))
     run = tmp_path / "run"

@@ -8,6 +8,7 @@ import logging
 import numpy as np
 import pytest
 
+from shiftkit.app.collect import CollectConfig, collect
 from shiftkit.envs import make
 from shiftkit.envs.base_pose import BasePose
 from shiftkit.envs.multiview.physics import SAMPLER
@@ -16,7 +17,6 @@ from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.planner import plan_pipeline
 from shiftkit.pipelines.sources import SourceConfig
 from shiftkit.pipelines.sources.raw import open_raw_dataset
-from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 from shiftkit.pipelines.stage import StageContext
 from shiftkit.transforms.multiview import Multiview, MultiviewConfig
 

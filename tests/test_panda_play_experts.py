@@ -9,9 +9,9 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.app.cli import main as cli
 from shiftkit.envs import ENV_TASKS, make
 from shiftkit.envs.panda_play.experts import PLAY_SEQUENCES, play_rollout, rollout
-from shiftkit.pipelines.cli import main as cli
 
 TASKS = ENV_TASKS["panda-play"]
 

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.cli import main
+from shiftkit.app.cli import main
 from tests.helpers import lerobot_train_two_steps, tree_hashes
 
 PIPELINE = """
@@ -36,7 +36,7 @@ def write_config(tmp_path, raw, dest, text=PIPELINE, name="p.toml"):
 
 def shiftkit(*args, **kw):
     return subprocess.run(
-        [sys.executable, "-m", "shiftkit.pipelines.cli", *map(str, args)], capture_output=True, text=True, **kw
+        [sys.executable, "-m", "shiftkit.app.cli", *map(str, args)], capture_output=True, text=True, **kw
     )
 
 
@@ -88,7 +88,7 @@ def test_sigkill_then_resume(tmp_path):
     config = write_config(tmp_path, raw, dest)
     work = tmp_path / ".out.shiftkit-work" / "parts"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "shiftkit.pipelines.cli", "run", str(config), "--no-progress"],
+        [sys.executable, "-m", "shiftkit.app.cli", "run", str(config), "--no-progress"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )

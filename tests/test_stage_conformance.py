@@ -77,7 +77,7 @@ def test_every_stage_has_an_example():
 @pytest.fixture(scope="module")
 def kinesthetic_raw(tmp_path_factory):
     """One simulated kinesthetic door demonstration with wrist and STS images."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     out = tmp_path_factory.mktemp("kinesthetic") / "raw"
     collect(CollectConfig(env="door-tactile", task="knob-open", episodes=1, expert="kinesthetic", out=str(out)))
@@ -99,7 +99,7 @@ def replay_recording(kinesthetic_raw, tmp_path_factory):
 @pytest.fixture
 def mv_lift_raw(tmp_path):
     """Two mv-lift expert episodes with simulator state, base-camera RGB-D and camera metadata."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     out, _ = collect(
         CollectConfig(env="mv-lift", task="lift", episodes=2, out=str(tmp_path / "mv"), cameras=("base",), depth=True)

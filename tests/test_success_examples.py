@@ -41,7 +41,7 @@ def _examples(root):
 @pytest.fixture(scope="module")
 def play_raw(tmp_path_factory):
     """Three real play episodes of the Panda env (reach, grasp, lift, move-object, close) at 5 Hz."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     out = tmp_path_factory.mktemp("play") / "raw"
     collect(CollectConfig(task="lift", play=True, episodes=3, control_hz=5, out=str(out)))

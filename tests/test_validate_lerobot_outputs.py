@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.cli import main
+from shiftkit.app.cli import main
 from shiftkit.pipelines.dataset_check import validate_dataset
 from shiftkit.pipelines.errors import DatasetError
 from tests.helpers import write_raw_as_lerobot

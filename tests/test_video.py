@@ -133,7 +133,7 @@ def test_lerobot_train_diffusion_on_outputs(outputs, variant, tmp_path):
 def test_collect_writes_videos(tmp_path):
     """`collect --video`: the RGB camera as a lerobot video and depth through lerobot's depth
     encoder, decodable (depth within its quantisation of the recorded metres) and valid."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     root, counts = collect(
         CollectConfig(
@@ -162,8 +162,8 @@ def test_collect_writes_videos(tmp_path):
 
 
 def test_video_needs_lerobot_output(tmp_path):
+    from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.pipelines.errors import ConfigError
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
 
     with pytest.raises(ConfigError, match="--video applies to LeRobot output"):
         collect(CollectConfig(task="lift", episodes=1, cameras=("front",), video=True, out=str(tmp_path / "raw")))

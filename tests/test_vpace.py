@@ -433,7 +433,7 @@ def test_examples_from_lerobot_dataset(tmp_path, monkeypatch):
 def test_cli_train_and_plot(tmp_path, monkeypatch):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     if "ShiftkitTestPointMass-v0" not in gym.registry:
@@ -543,7 +543,7 @@ PUBLISHED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vp
 @pytest.mark.skipif(not PUBLISHED.is_dir(), reason=f"published VPACE data not found at {PUBLISHED}")
 def test_panda_run_from_imported_examples_evaluates_with_shiftkit_eval(tmp_path, capsys):
     """Published examples -> `shiftkit import vpace` -> `train vpace` on Panda reach -> `shiftkit eval`."""
-    from shiftkit.pipelines.cli import main
+    from shiftkit.app.cli import main
 
     assert (
         main(

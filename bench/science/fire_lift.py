@@ -24,7 +24,7 @@ from pathlib import Path
 
 from scipy.stats import binomtest
 
-SHIFTKIT = [sys.executable, "-m", "shiftkit.pipelines.cli"]
+SHIFTKIT = [sys.executable, "-m", "shiftkit.app.cli"]
 
 
 def shiftkit(*args: str, env: dict[str, str]) -> None:

@@ -15,9 +15,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any, Protocol
 
 from shiftkit.pipelines.config import SourceConfig
@@ -99,13 +101,15 @@ class Importer:
     """Lines printed before the closing summary line (per-file details)."""
 
 
-def importers() -> dict[str, Importer]:
-    """Every importer module under `shiftkit.pipelines.sources`, by format name."""
+def importers(*packages: ModuleType) -> dict[str, Importer]:
+    """Every importer module under `shiftkit.pipelines.sources` and the given `packages` (importers
+    above the core, e.g. `shiftkit.app.importers`), by format name."""
     found: dict[str, Importer] = {}
-    for module in pkgutil.iter_modules(__path__):
-        importer = getattr(importlib.import_module(f"{__name__}.{module.name}"), "IMPORTER", None)
-        if isinstance(importer, Importer):
-            found[importer.name] = importer
+    for package in (sys.modules[__name__], *packages):
+        for module in pkgutil.iter_modules(package.__path__):
+            importer = getattr(importlib.import_module(f"{package.__name__}.{module.name}"), "IMPORTER", None)
+            if isinstance(importer, Importer):
+                found[importer.name] = importer
     return found
 
 

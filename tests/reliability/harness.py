@@ -13,7 +13,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
-from shiftkit.pipelines.cli import main
+from shiftkit.app.cli import main
 from shiftkit.pipelines.errors import ShiftkitError
 
 

@@ -77,7 +77,7 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
     config = _config(tmp_path, raw, "ray_out")
     parts_dir = work_dir_for(tmp_path / "ray_out") / "parts"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "shiftkit.pipelines.cli", "run", str(config), "--no-progress", "--executor", "ray"]
+        [sys.executable, "-m", "shiftkit.app.cli", "run", str(config), "--no-progress", "--executor", "ray"]
         + ["--workers", str(WORKERS)],
         cwd=tmp_path,
         stdout=subprocess.DEVNULL,

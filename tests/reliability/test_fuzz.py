@@ -238,7 +238,7 @@ def test_vpace_importer_on_mutated_buffers(tmp_path_factory, key, value):
     import gzip
     import pickle
 
-    from shiftkit.pipelines.sources.vpace import import_vpace
+    from shiftkit.app.importers.vpace import import_vpace
 
     tmp = tmp_path_factory.mktemp("vp")
     n = 4

@@ -247,7 +247,7 @@ def test_vpace_examples_must_be_an_example_set(tmp_path, rel_ds):
 
 
 def test_vpace_buffer_negative_pointer(tmp_path):
-    from shiftkit.pipelines.sources.vpace import read_vpace_buffer
+    from shiftkit.app.importers.vpace import read_vpace_buffer
     from tests.reliability.test_cli_errors import _buffer
 
     with pytest.raises(DatasetError, match="pointer -3"):

@@ -1,6 +1,7 @@
 """`shiftkit import FORMAT INPUT... --repo-id ID --root DIR`: third-party data -> LeRobot dataset.
 
-The formats are the importer modules under `shiftkit.pipelines.sources` (see `importers()`).
+The formats are the importer modules under `shiftkit.pipelines.sources` and `shiftkit.app.importers`
+(see `importers()`).
 """
 
 from __future__ import annotations
@@ -11,10 +12,11 @@ HELP = "import third-party data as a LeRobot dataset (`shiftkit import FORMAT --
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from shiftkit.app import importers as app_importers
     from shiftkit.pipelines.sources import importers
 
     sub = parser.add_subparsers(dest="format", metavar="FORMAT", required=True)
-    for name, importer in importers().items():
+    for name, importer in importers(app_importers).items():
         p = sub.add_parser(name, help=importer.help, description=importer.help)
         importer.add_arguments(p)
         p.add_argument("--repo-id", required=True, help="dataset ID of the new dataset, e.g. me/vpace_lift")

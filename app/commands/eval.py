@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {args.out}: a parent of it is a file, not a folder")
     if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
         raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
-    from shiftkit.pipelines.option_values import check_env_kwargs
+    from shiftkit.app.env_kwargs import check_env_kwargs
 
     check_env_kwargs(args.env, dict(args.env_kwarg))
     if args.yaw_sweep:

@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from shiftkit.pipelines.commands.plot import check_figure_path
+    from shiftkit.app.commands.plot import check_figure_path
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.transforms import force_calibration as fc
 

@@ -42,8 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shiftkit.pipelines.option_values import check_env_kwargs
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
+    from shiftkit.app.env_kwargs import check_env_kwargs
 
     check_env_kwargs(args.env, dict(args.env_kwarg))
 

@@ -1,4 +1,4 @@
-"""The `shiftkit` command line: a thin dispatcher over `shiftkit.pipelines.commands.*`.
+"""The `shiftkit` command line: a thin dispatcher over `shiftkit.app.commands.*`.
 
 Each command module defines `HELP` (one line, plain text), `add_arguments(parser)` and `run(args) -> int`, and
 imports its heavy dependencies inside `run`. Only the command named on the command line gets its
@@ -20,7 +20,7 @@ import typing
 
 from shiftkit.pipelines.errors import ShiftkitError
 
-# command name -> module under shiftkit.pipelines.commands
+# command name -> module under shiftkit.app.commands
 COMMANDS: dict[str, str] = {
     "demo": "demo",
     "collect": "collect",
@@ -45,9 +45,9 @@ def _available_commands() -> dict[str, object]:
     modules = {}
     for name, module in COMMANDS.items():
         try:
-            modules[name] = importlib.import_module(f"shiftkit.pipelines.commands.{module}")
+            modules[name] = importlib.import_module(f"shiftkit.app.commands.{module}")
         except ModuleNotFoundError as exc:
-            if exc.name != f"shiftkit.pipelines.commands.{module}":
+            if exc.name != f"shiftkit.app.commands.{module}":
                 raise
     return modules
 

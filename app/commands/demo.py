@@ -16,8 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from shiftkit.app.demo import run_demo
     from shiftkit.pipelines.dataset_check import format_summary
-    from shiftkit.pipelines.demo import run_demo
 
     result = run_demo(Path(args.out), args.episodes, args.seed, args.overwrite)
     print(format_summary(result["summary"]))

@@ -76,7 +76,7 @@ def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: boo
 
 def record(raw_dir: Path, episodes: int, seed: int) -> None:
     """Write the demo's raw episodes: fixed-view mv-lift, RGB-D of the base camera, simulator state."""
-    from shiftkit.pipelines.sources.simulator import CollectConfig, collect
+    from shiftkit.app.collect import CollectConfig, collect
 
     collect(
         CollectConfig(

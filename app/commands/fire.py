@@ -96,8 +96,8 @@ def _run_aggregate(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from shiftkit.app.env_kwargs import check_env_kwargs
     from shiftkit.pipelines.hub import validate_repo_id
-    from shiftkit.pipelines.option_values import check_env_kwargs
     from shiftkit.pipelines.staging import DestinationLock
     from shiftkit.policies.fire import run as run_fire
 
