@@ -49,10 +49,11 @@ def main() -> None:
 
     from shiftkit.envs import make
     from shiftkit.pipelines.sources.simulator import CollectConfig, collect
-    from shiftkit.policies.bc import load_policy
+    from shiftkit.policies.bc_policy import load_policy
     from shiftkit.policies.evaluation import run_episodes
-    from shiftkit.policies.fire import FireArgs, read_episode_lines
     from shiftkit.policies.fire import run as run_fire
+    from shiftkit.policies.fire_config import FireArgs
+    from shiftkit.policies.fire_runs import read_episode_lines
 
     dataset, run = work / f"lift5-{demos}", work / f"fire-{episodes}"
     if not dataset.exists():

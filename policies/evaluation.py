@@ -36,7 +36,11 @@ from shiftkit.pipelines.depth import clean_metres, is_legacy_depth, legacy_grey
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 
 # trainer name (config.json / checkpoint) -> module with `load_policy(path, device)`
-POLICY_LOADERS = {"bc": "shiftkit.policies.bc", "vpace": "shiftkit.policies.vpace", "lfgp": "shiftkit.policies.vpace"}
+POLICY_LOADERS = {
+    "bc": "shiftkit.policies.bc_policy",
+    "vpace": "shiftkit.policies.vpace",
+    "lfgp": "shiftkit.policies.vpace",
+}
 
 
 class Policy(Protocol):

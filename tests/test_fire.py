@@ -389,8 +389,8 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
 
     from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
-    from shiftkit.policies.fire import recorded_episodes
     from shiftkit.policies.fire_predictor import FailurePredictor, FailurePredictorStep
+    from shiftkit.policies.fire_recording import recorded_episodes
 
     _, _, demo_root = demo
     run, _ = fire_run
@@ -444,7 +444,7 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
 def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_path, capsys):
     from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
-    from shiftkit.policies.fire import recorded_episodes
+    from shiftkit.policies.fire_recording import recorded_episodes
 
     _, _, demo_root = demo
     run, _ = fire_run
