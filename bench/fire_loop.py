@@ -82,14 +82,15 @@ def main() -> None:
     lines = read_episode_lines(run)
     fire_steps = sum(x["length"] for x in lines)
     fire_exec_s = sum(x["episode_exec_s"] for x in lines)
+    fire_cpu_s = sum(x["episode_cpu_s"] for x in lines)
     fire_wall_s = lines[-1]["wall_time_s"]
     look_ahead = lines[-1]["look_ahead_steps"]
 
     policy = load_policy(run / "policy")
     env = make("panda-play", "lift", control_hz=5)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     plain = run_episodes(policy, env, episodes, seed=fire_args.env_seed)
-    plain_s = time.perf_counter() - t0
+    plain_s, plain_cpu_s = time.perf_counter() - t0, time.process_time() - c0
     env.close()
     plain_steps = sum(r.steps for r in plain)
 
@@ -109,6 +110,9 @@ def main() -> None:
                 "higher_is_better": True,
                 "fire_steps_per_s": round(fire_rate, 1),
                 "plain_steps_per_s": round(plain_rate, 1),
+                # the same ratio in CPU time of this process: on a shared machine, other processes
+                # stretch the two phases' wall times differently
+                "cpu_time_ratio": round((fire_steps / fire_cpu_s) / (plain_steps / plain_cpu_s), 3),
                 "with_learning_ratio": round(fire_steps / fire_wall_s / plain_rate, 3),
                 # every simulated step (executed + the oracle's look-ahead): the cost of D, doubt,
                 # prediction, forks and recording per step, apart from how far the oracle looks ahead

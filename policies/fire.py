@@ -338,10 +338,11 @@ def run(args: FireArgs) -> dict:
     budget = args.budget_expert_samples
     bar = tqdm(total=budget, initial=min(counters["corrections"], budget), unit="correction", disable=not args.progress)
     while counters["corrections"] < budget and (args.max_episodes is None or counters["episode"] < args.max_episodes):
-        i, started = counters["episode"], time.perf_counter()
+        i, started, started_cpu = counters["episode"], time.perf_counter(), time.process_time()
         d_ready = learner.disc.ready(len(learner.policy_set))
         ep = run_episode(env, args.env_seed + i, agent, learner.predictor, oracle, d_ready, observed, args.fp_cooldown)
         exec_time = time.perf_counter() - started
+        exec_cpu = time.process_time() - started_cpu  # unlike wall time, not stretched by other processes
         learned = _learn(learner, ep, args, device)
         bar.update(min(learned["episode_expert_samples"], budget - bar.n))
         counters["wall_time"] += time.perf_counter() - started
@@ -375,6 +376,7 @@ def run(args: FireArgs) -> dict:
             "execution_time_s": counters["env_steps"] / fps,
             "wall_time_s": counters["wall_time"],
             "episode_exec_s": exec_time,
+            "episode_cpu_s": exec_cpu,
             "look_ahead_steps": oracle.look_ahead_steps,
             "forks": oracle.forks,
             "d_ready": d_ready,
