@@ -9,11 +9,13 @@ Steps, through shiftkit's own entry points:
 3. the run's final policy rolled out plainly (`evaluation.run_episodes`) on the FIRE episodes' seeds.
 
 The headline ratio counts the episodes' execution time (what the loop adds to running the policy);
-the learning between episodes (D, BC updates, retraining), which any online learner pays, is reported
-separately as `with_learning_ratio`. The simulated oracle's look-ahead runs the policy to the end of
-the episode (or its success) from the first question, so an early-failing policy with early
-predictions costs up to a whole extra episode per executed one; `simulated_steps_ratio` counts the
-look-ahead steps too, i.e. the per-step overhead of D, doubt, prediction, forks and recording.
+the learning between episodes (D, BC updates, retraining), which any online learner pays, is
+reported separately as `with_learning_ratio`. `cpu_time_ratio` is the headline ratio in the
+process's CPU time, which other processes on a shared machine stretch less than wall time. The
+simulated oracle's look-ahead runs the policy to the end of the episode (or its success) from the
+first question, so an early-failing policy with early predictions costs up to a whole extra episode
+per executed one; `simulated_steps_ratio` counts the look-ahead steps too, i.e. the per-step
+overhead of D, doubt, prediction, forks and recording.
 
     python bench/fire_loop.py [--quick] [--workdir DIR]
 
