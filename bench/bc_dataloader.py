@@ -75,7 +75,8 @@ def main() -> None:
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.policies.bc import BCPolicy, PolicySpec, _merged_stats, update_members
+    from shiftkit.policies.bc import _merged_stats, update_members
+    from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
     from shiftkit.policies.data import FrameTable, Prefetcher, epoch_batches
 
     steps = args.steps or (60 if args.quick else 300)

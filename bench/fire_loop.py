@@ -9,11 +9,13 @@ Steps, through shiftkit's own entry points:
 3. the run's final policy rolled out plainly (`evaluation.run_episodes`) on the FIRE episodes' seeds.
 
 The headline ratio counts the episodes' execution time (what the loop adds to running the policy);
-the learning between episodes (D, BC updates, retraining), which any online learner pays, is reported
-separately as `with_learning_ratio`. The simulated oracle's look-ahead runs the policy to the end of
-the episode (or its success) from the first question, so an early-failing policy with early
-predictions costs up to a whole extra episode per executed one; `simulated_steps_ratio` counts the
-look-ahead steps too, i.e. the per-step overhead of D, doubt, prediction, forks and recording.
+the learning between episodes (D, BC updates, retraining), which any online learner pays, is
+reported separately as `with_learning_ratio`. `cpu_time_ratio` is the headline ratio in the
+process's CPU time, which other processes on a shared machine stretch less than wall time. The
+simulated oracle's look-ahead runs the policy to the end of the episode (or its success) from the
+first question, so an early-failing policy with early predictions costs up to a whole extra episode
+per executed one; `simulated_steps_ratio` counts the look-ahead steps too, i.e. the per-step
+overhead of D, doubt, prediction, forks and recording.
 
     python bench/fire_loop.py [--quick] [--workdir DIR]
 
@@ -49,10 +51,11 @@ def main() -> None:
 
     from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.envs import make
-    from shiftkit.policies.bc import load_policy
+    from shiftkit.policies.bc_policy import load_policy
     from shiftkit.policies.evaluation import run_episodes
-    from shiftkit.policies.fire import FireArgs, read_episode_lines
     from shiftkit.policies.fire import run as run_fire
+    from shiftkit.policies.fire_config import FireArgs
+    from shiftkit.policies.fire_runs import read_episode_lines
 
     dataset, run = work / f"lift5-{demos}", work / f"fire-{episodes}"
     if not dataset.exists():
@@ -81,14 +84,15 @@ def main() -> None:
     lines = read_episode_lines(run)
     fire_steps = sum(x["length"] for x in lines)
     fire_exec_s = sum(x["episode_exec_s"] for x in lines)
+    fire_cpu_s = sum(x["episode_cpu_s"] for x in lines)
     fire_wall_s = lines[-1]["wall_time_s"]
     look_ahead = lines[-1]["look_ahead_steps"]
 
     policy = load_policy(run / "policy")
     env = make("panda-play", "lift", control_hz=5)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     plain = run_episodes(policy, env, episodes, seed=fire_args.env_seed)
-    plain_s = time.perf_counter() - t0
+    plain_s, plain_cpu_s = time.perf_counter() - t0, time.process_time() - c0
     env.close()
     plain_steps = sum(r.steps for r in plain)
 
@@ -108,6 +112,9 @@ def main() -> None:
                 "higher_is_better": True,
                 "fire_steps_per_s": round(fire_rate, 1),
                 "plain_steps_per_s": round(plain_rate, 1),
+                # the same ratio in CPU time of this process: on a shared machine, other processes
+                # stretch the two phases' wall times differently
+                "cpu_time_ratio": round((fire_steps / fire_cpu_s) / (plain_steps / plain_cpu_s), 3),
                 "with_learning_ratio": round(fire_steps / fire_wall_s / plain_rate, 3),
                 # every simulated step (executed + the oracle's look-ahead): the cost of D, doubt,
                 # prediction, forks and recording per step, apart from how far the oracle looks ahead

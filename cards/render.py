@@ -120,7 +120,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
 
 
 def _normalization(norm: dict[str, Any] | None) -> str:
-    """The card's input-normalisation section (BC policies: `policies.bc.Normalization`)."""
+    """The card's input-normalisation section (BC policies: `policies.bc_policy.Normalization`)."""
     if not norm:
         return ""
     clip = f"clipped to +-{norm['clip']:g} stds" if norm.get("clip") is not None else "not clipped"

@@ -1,7 +1,7 @@
 """FIRE's discriminator D(s, a) (thesis 5.3.1, docs/fire.md): the probability that a state-action pair
 comes from the expert rather than the policy.
 
-Inputs are the BC policy's features, normalised with the same dataset statistics (`bc.Normalizer`);
+Inputs are the BC policy's features, normalised with the same dataset statistics (`bc_policy.Normalizer`);
 cameras go through the BC image encoder (`networks.image_encoder`, CNN + spatial soft-argmax), the
 keypoints join the numeric state and the action in a 2x256 tanh MLP (Kostrikov et al. 2019, as in
 the thesis, 5.4.2). Training: binary cross-entropy, expert = 1 and policy = 0, plus the gradient
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from shiftkit.policies.bc import Normalizer, PolicySpec
+from shiftkit.policies.bc_policy import Normalizer, PolicySpec
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.networks import image_encoder, mlp, orthogonal_init_
 

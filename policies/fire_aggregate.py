@@ -41,7 +41,8 @@ from shiftkit.pipelines.hub import validate_repo_id
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, resolve_dataset
 from shiftkit.pipelines.provenance import make_provenance
-from shiftkit.policies.bc import BCArgs, PolicySpec, is_image_feature, load_policy
+from shiftkit.policies.bc import BCArgs
+from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
 from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule, roc_curve

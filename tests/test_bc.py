@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
-from shiftkit.policies.bc import BCArgs, BCPolicy, Normalization, PolicySpec, load_policy, train, update_members
+from shiftkit.policies.bc import BCArgs, train, update_members
+from shiftkit.policies.bc_policy import BCPolicy, Normalization, PolicySpec, load_policy
 from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
 
 

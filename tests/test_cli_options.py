@@ -114,7 +114,7 @@ def test_no_parser_takes_abbreviations(capsys):
 
 def test_fire_options_mirror_every_field_of_its_args(tmp_path):
     from shiftkit.app.commands import fire as fire_command
-    from shiftkit.policies.fire import FireArgs
+    from shiftkit.policies.fire_config import FireArgs
 
     options = fire_command._fire_options()
     parser = Parser(prog="fire")
@@ -146,7 +146,7 @@ def test_trainers_register_themselves_and_a_new_module_is_found(tmp_path, monkey
     module.write_text(
         "from shiftkit.policies.trainers import Trainer, register\n"
         "register(Trainer(name='throwaway', help='a trainer made by a test', args='shiftkit.policies.bc:BCArgs',"
-        " cli='shiftkit.policies.trainers.bc', load_policy='shiftkit.policies.bc:load_policy', citation='Me, 2026.'))\n"
+        " cli='shiftkit.policies.trainers.bc', load_policy='shiftkit.policies.bc_policy:load_policy', citation='Me, 2026.'))\n"
     )
     monkeypatch.setattr(registry, "__path__", [*registry.__path__, str(tmp_path)])
     monkeypatch.setattr(registry, "_DISCOVERED", False)

@@ -5,6 +5,7 @@ Environments come from the registry: every family whose scripted expert acts fro
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import signal
@@ -89,6 +90,60 @@ def test_oracle_look_ahead_leaves_the_episode_bit_identical(env_name, task):
     assert isinstance(failed, bool)
     env.close()
     twin.close()
+
+
+def _reference_look_ahead(env, obs, agent_step) -> tuple[bool, list, list]:
+    """The look-ahead as a plain deep copy of the env runs it (nothing shared with the original):
+    (failed, actions, (qpos, qvel) per step)."""
+    sim = copy.deepcopy(env)
+    actions, states = [], []
+    while True:
+        states.append(sim_state(sim))
+        action, _ = agent_step(sim, obs)
+        obs, _, terminated, truncated, info = sim.step(action)
+        actions.append(action)
+        if info.get("is_success", False):
+            return False, actions, states
+        if terminated or truncated:
+            return True, actions, states
+
+
+@pytest.mark.parametrize(("env_name", "task"), EXPERT_ENVS)
+def test_oracle_decisions_equal_a_plain_deep_copy_look_ahead(env_name, task):
+    """Seeded episodes, a closed-loop policy that fails and the scripted expert that succeeds: the
+    oracle's forks give the same verdict, actions and states, bit for bit, as a look-ahead on a plain
+    deep copy of the env."""
+    env = make(env_name, task)
+    weights = np.random.default_rng(1).normal(0.0, 0.3, (env.action_space.shape[0], env.observation_space.shape[0]))
+    experts = {}
+
+    def linear(sim, o):  # deterministic and state-dependent: any difference in the fork would grow
+        return np.tanh(weights @ np.nan_to_num(np.asarray(o, dtype=np.float64))).astype(np.float32), {}
+
+    def expert(sim, o):  # one scripted expert per simulator copy, acting from that copy's state
+        if id(sim) not in experts:
+            experts[id(sim)] = scripted_expert(env_name, sim)
+            experts[id(sim)].reset()
+        return np.asarray(experts[id(sim)].act(o), dtype=np.float32), {}
+
+    verdicts = []
+    for seed, agent_step in ((11, linear), (12, linear), (13, expert)):
+        obs, _ = env.reset(seed=seed)
+        for _ in range(3):
+            obs, *_ = env.step(linear(env, obs)[0])
+        experts.clear()
+        failed, actions, states = _reference_look_ahead(env, obs, agent_step)
+        experts.clear()
+        oracle = SimulatedOracle(env_name, agent_step, check_step=3)
+        assert oracle.will_fail(env, obs, 3) is failed
+        ahead = oracle.look_ahead
+        assert oracle.look_ahead_steps == len(actions) == len(ahead.states)
+        for (q1, v1), (q2, v2) in zip(ahead.states, states, strict=True):
+            np.testing.assert_array_equal(q1, q2)
+            np.testing.assert_array_equal(v1, v2)
+        verdicts.append(failed)
+    assert verdicts == [True, True, False]
+    env.close()
 
 
 @pytest.mark.parametrize(("env_name", "task"), EXPERT_ENVS)
@@ -253,7 +308,7 @@ def test_lerobot_train_act_on_the_aggregated_dataset(fire_run, tmp_path):
 
 
 def _comparable(lines: list[dict]) -> list[dict]:
-    timing = ("wall_time_s", "episode_exec_s")
+    timing = ("wall_time_s", "episode_exec_s", "episode_cpu_s")
     return [{k: v for k, v in x.items() if k not in timing} for x in lines]
 
 
@@ -389,8 +444,8 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
 
     from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
-    from shiftkit.policies.fire import recorded_episodes
     from shiftkit.policies.fire_predictor import FailurePredictor, FailurePredictorStep
+    from shiftkit.policies.fire_recording import recorded_episodes
 
     _, _, demo_root = demo
     run, _ = fire_run
@@ -444,7 +499,7 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
 def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_path, capsys):
     from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
-    from shiftkit.policies.fire import recorded_episodes
+    from shiftkit.policies.fire_recording import recorded_episodes
 
     _, _, demo_root = demo
     run, _ = fire_run

@@ -145,7 +145,7 @@ def test_roc_curve_and_quantile_or():
 
 
 def _spec():
-    from shiftkit.policies.bc import PolicySpec
+    from shiftkit.policies.bc_policy import PolicySpec
 
     return PolicySpec(
         features={"observation.state": {"dtype": "float32", "shape": [3], "names": ["a", "b", "c"]}},

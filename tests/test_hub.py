@@ -256,7 +256,7 @@ def test_pulled_dataset_trains_by_id_and_checkpoint_round_trips(hub, dataset, tm
 
     import torch
 
-    from shiftkit.policies.bc import load_policy
+    from shiftkit.policies.bc_policy import load_policy
 
     obs = {"observation.state": torch.zeros(1, 3)}
     with torch.no_grad():

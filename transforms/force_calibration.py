@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.envs.door_tactile.lab import PUSH_KINDS, PushConfig, pose_error
+from shiftkit.envs.door_tactile.lab import simulate_push as lab_push
 from shiftkit.pipelines.errors import ConfigError, ShiftkitError
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.staging import staging_path
@@ -316,39 +318,7 @@ def plot_calibration(
 
 
 # ----------------------------------------------------------------------------- autonomous pushes
-PUSH_KINDS = ("normal", "shear_x", "shear_y", "torque")
-
-
-@dataclass
-class PushConfig:
-    """The autonomous calibration procedure (thesis §4.4.1): pushes of the sensor pad against a
-    fixed object through the impedance controller, sampled once settled after every step."""
-
-    step: float = 0.001
-    """Normal step of the commanded pose (m)."""
-    travel: float = 0.035
-    """Normal travel of a push (m)."""
-    start_gap: tuple[float, float] = (0.001, 0.003)
-    """Range of the distance between pad and object at a push's start (m)."""
-    jitter: float = 0.001
-    """Lateral start perturbation (m, uniform +-) that makes pushes differ."""
-    press: tuple[float, float] = (0.004, 0.015)
-    """Range of the commanded depth past first contact at which shear / torque moves start (m)."""
-    shear: float = 0.01
-    """Lateral travel of a shear move (m), in steps of `step`."""
-    rotation: float = 1.0
-    """Rotation of a torque move about the pad normal (rad)."""
-    rotation_step: float = 0.05
-    """Rotation per step of a torque move (rad)."""
-    settle_periods: int = 3
-    """Control periods waited after each step before sampling."""
-    contact_reading: float = 0.5
-    """Rise of the raw normal reading over its start value that counts as contact."""
-    contact_depth: float = 0.0035
-    """Depth past the object's face at which a plan (`plan_push`) expects the reading to have risen
-    by `contact_reading` (m; the simulated STS behind the impedance controller: about 3.5 mm)."""
-
-
+# the procedure (`PushConfig`) and the simulated pushes live with the simulated lab (envs.door_tactile.lab)
 @dataclass
 class Push:
     kind: str
@@ -366,13 +336,6 @@ class Push:
 def sensor_id(sim_model_id: str) -> str:
     """The id of a simulated scene's STS (calibrations name the sensor they belong to)."""
     return f"{sim_model_id}:sts"
-
-
-def pose_error(target_pos: np.ndarray, target_rot: np.ndarray, pos: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """e = x_d - x in the sensor frame of the measured pose (rot): ex, ey, ez (m), erz (rad)."""
-    from shiftkit.envs.controllers import rotation_vector
-
-    return np.append(rot.T @ (target_pos - pos), rotation_vector(rot.T @ target_rot)[2])
 
 
 MOVED_AXIS = {"shear_x": 0, "shear_y": 1, "torque": 3}
@@ -393,60 +356,12 @@ def push_mask(kind: str, moving: np.ndarray, wrench: np.ndarray, config: PushCon
 
 
 def simulate_push(env: Any, kind: str, seed: int, config: PushConfig) -> Push:
-    """One push of the env's tactile sensor against its calibration object (the door-tactile knob or
-    handle, door shut against its stop), reacting to contact as the thesis' robot does (shear and
-    torque moves start a drawn depth past the first contact). `env` is a door-tactile environment
-    (`physics` with `grasp_pose`, `reset`, `simulate`, the impedance targets; `sensor` with the raw
-    reading)."""
-    from shiftkit.envs.door_tactile.env import rotation_from_vector
-
+    """One simulated push (`envs.door_tactile.lab.simulate_push`) with the samples each axis is
+    fitted on (`push_mask`)."""
     if kind not in PUSH_KINDS:
         raise ConfigError(f"unknown push kind {kind!r}; known: {', '.join(PUSH_KINDS)}")
-    rng = np.random.default_rng([seed, PUSH_KINDS.index(kind)])
-    env.reset(seed=int(rng.integers(2**31)))  # seeds the sensor's noise
-    p, sensor = env.physics, env.sensor
-    contact_pos, rot = p.grasp_pose(0.0)
-    normal, lateral = rot[:, 2], rot[:, :2]
-    start = contact_pos - normal * rng.uniform(*config.start_gap) + lateral @ rng.uniform(-1, 1, 2) * config.jitter
-    p.reset(start, rot, 0.0)
-    samples_e, samples_f, moving = [], [], []
-
-    def sample(move: bool = False) -> np.ndarray:
-        p.simulate(p.n_substeps * config.settle_periods)
-        f = sensor.raw_wrench(sensor.contact_wrench(p.data))
-        samples_e.append(pose_error(p.target_pos, p.target_rot, p.ee_pos(), p.ee_rot()))
-        samples_f.append(f)
-        moving.append(move)
-        return f
-
-    rest = sample()[NORMAL]
-    steps = int(round(config.travel / config.step))
-    press_after = None
-    for k in range(1, steps + 1):
-        p.target_pos = start + normal * config.step * k
-        reading = sample()[2]
-        if kind == "normal":
-            continue
-        if press_after is None and reading - rest > config.contact_reading:
-            press_after = int(round(rng.uniform(*config.press) / config.step))
-        if press_after is not None:
-            press_after -= 1
-            if press_after <= 0:
-                break
-    if kind in ("shear_x", "shear_y"):
-        direction = lateral[:, 0 if kind == "shear_x" else 1] * rng.choice([-1.0, 1.0])
-        base = p.target_pos.copy()
-        for k in range(1, int(round(config.shear / config.step)) + 1):
-            p.target_pos = base + direction * config.step * k
-            sample(True)
-    elif kind == "torque":
-        sign = rng.choice([-1.0, 1.0])
-        base = p.target_rot.copy()
-        for k in range(1, int(round(config.rotation / config.rotation_step)) + 1):
-            p.target_rot = base @ rotation_from_vector(np.array([0.0, 0.0, sign * config.rotation_step * k]))
-            sample(True)
-    wrench = np.array(samples_f)
-    return Push(kind, seed, np.array(samples_e), wrench, push_mask(kind, np.array(moving), wrench, config))
+    displacement, wrench, moving = lab_push(env, kind, seed, config)
+    return Push(kind, seed, displacement, wrench, push_mask(kind, moving, wrench, config))
 
 
 def fit_pushes(

@@ -47,7 +47,7 @@ _RULES = {
 
 def _fire_options() -> DataclassOptions:
     from shiftkit.policies.failure_predictors import PREDICTORS
-    from shiftkit.policies.fire import FireArgs
+    from shiftkit.policies.fire_config import FireArgs
 
     return DataclassOptions(
         FireArgs,

@@ -65,8 +65,8 @@ def _run_roc(args: argparse.Namespace) -> int:
 
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.policies.failure_predictors import roc_curve
-    from shiftkit.policies.fire import read_episode_lines, roc_scores
     from shiftkit.policies.fire_aggregate import ROC_FILE, read_roc
+    from shiftkit.policies.fire_runs import read_episode_lines, roc_scores
 
     check_figure_path(args.out)
     pooled: dict[str, list] = {}
@@ -112,7 +112,7 @@ def _run_fire(args: argparse.Namespace) -> int:
 
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.policies.curves import Curve, plot_curves
-    from shiftkit.policies.fire import read_episode_lines, success_curve
+    from shiftkit.policies.fire_runs import read_episode_lines, success_curve
 
     if args.window < 1:
         raise ConfigError(f"--window must be >= 1, got {args.window}")

@@ -14,7 +14,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from shiftkit.envs.door_tactile.env import ENVIRONMENT_STATE_INDICES, STATE_INDICES, DoorTactileEnv
+from shiftkit.envs.controllers import rotation_vector
+from shiftkit.envs.door_tactile.env import (
+    ENVIRONMENT_STATE_INDICES,
+    STATE_INDICES,
+    DoorTactileEnv,
+    rotation_from_vector,
+)
 from shiftkit.envs.door_tactile.experts import relative_action
 from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 
@@ -25,6 +31,101 @@ CAMERA_PREFIX = "observation.images."
 
 
 # ----------------------------------------------------------------------------- calibration pushes
+PUSH_KINDS = ("normal", "shear_x", "shear_y", "torque")
+
+
+@dataclass
+class PushConfig:
+    """The autonomous calibration procedure (thesis §4.4.1): pushes of the sensor pad against a
+    fixed object through the impedance controller, sampled once settled after every step."""
+
+    step: float = 0.001
+    """Normal step of the commanded pose (m)."""
+    travel: float = 0.035
+    """Normal travel of a push (m)."""
+    start_gap: tuple[float, float] = (0.001, 0.003)
+    """Range of the distance between pad and object at a push's start (m)."""
+    jitter: float = 0.001
+    """Lateral start perturbation (m, uniform +-) that makes pushes differ."""
+    press: tuple[float, float] = (0.004, 0.015)
+    """Range of the commanded depth past first contact at which shear / torque moves start (m)."""
+    shear: float = 0.01
+    """Lateral travel of a shear move (m), in steps of `step`."""
+    rotation: float = 1.0
+    """Rotation of a torque move about the pad normal (rad)."""
+    rotation_step: float = 0.05
+    """Rotation per step of a torque move (rad)."""
+    settle_periods: int = 3
+    """Control periods waited after each step before sampling."""
+    contact_reading: float = 0.5
+    """Rise of the raw normal reading over its start value that counts as contact."""
+    contact_depth: float = 0.0035
+    """Depth past the object's face at which a plan (`plan_push`) expects the reading to have risen
+    by `contact_reading` (m; the simulated STS behind the impedance controller: about 3.5 mm)."""
+
+
+def pose_error(target_pos: np.ndarray, target_rot: np.ndarray, pos: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """e = x_d - x in the sensor frame of the measured pose (rot): ex, ey, ez (m), erz (rad)."""
+    return np.append(rot.T @ (target_pos - pos), rotation_vector(rot.T @ target_rot)[2])
+
+
+def simulate_push(
+    env: DoorTactileEnv, kind: str, seed: int, config: PushConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One push of the env's tactile sensor against its calibration object (the door-tactile knob or
+    handle, door shut against its stop), reacting to contact as the thesis' robot does (shear and
+    torque moves start a drawn depth past the first contact). `env` is a door-tactile environment
+    (`physics` with `grasp_pose`, `reset`, `simulate`, the impedance targets; `sensor` with the raw
+    reading). Returns per settled sample the sensor-frame e = x_d - x (n, 4), the raw reading (n, 4)
+    and whether it was taken during the shear / torque move (n,)."""
+    if kind not in PUSH_KINDS:
+        raise ValueError(f"unknown push kind {kind!r}; known: {', '.join(PUSH_KINDS)}")
+    rng = np.random.default_rng([seed, PUSH_KINDS.index(kind)])
+    env.reset(seed=int(rng.integers(2**31)))  # seeds the sensor's noise
+    p, sensor = env.physics, env.sensor
+    contact_pos, rot = p.grasp_pose(0.0)
+    normal, lateral = rot[:, 2], rot[:, :2]
+    start = contact_pos - normal * rng.uniform(*config.start_gap) + lateral @ rng.uniform(-1, 1, 2) * config.jitter
+    p.reset(start, rot, 0.0)
+    samples_e, samples_f, moving = [], [], []
+
+    def sample(move: bool = False) -> np.ndarray:
+        p.simulate(p.n_substeps * config.settle_periods)
+        f = sensor.raw_wrench(sensor.contact_wrench(p.data))
+        samples_e.append(pose_error(p.target_pos, p.target_rot, p.ee_pos(), p.ee_rot()))
+        samples_f.append(f)
+        moving.append(move)
+        return f
+
+    rest = sample()[2]  # the normal axis
+    steps = int(round(config.travel / config.step))
+    press_after = None
+    for k in range(1, steps + 1):
+        p.target_pos = start + normal * config.step * k
+        reading = sample()[2]
+        if kind == "normal":
+            continue
+        if press_after is None and reading - rest > config.contact_reading:
+            press_after = int(round(rng.uniform(*config.press) / config.step))
+        if press_after is not None:
+            press_after -= 1
+            if press_after <= 0:
+                break
+    if kind in ("shear_x", "shear_y"):
+        direction = lateral[:, 0 if kind == "shear_x" else 1] * rng.choice([-1.0, 1.0])
+        base = p.target_pos.copy()
+        for k in range(1, int(round(config.shear / config.step)) + 1):
+            p.target_pos = base + direction * config.step * k
+            sample(True)
+    elif kind == "torque":
+        sign = rng.choice([-1.0, 1.0])
+        base = p.target_rot.copy()
+        for k in range(1, int(round(config.rotation / config.rotation_step)) + 1):
+            p.target_rot = base @ rotation_from_vector(np.array([0.0, 0.0, sign * config.rotation_step * k]))
+            sample(True)
+    return np.array(samples_e), np.array(samples_f), np.array(moving, bool)
+
+
 def execute_pushes(env: DoorTactileEnv, seed: int, commanded: np.ndarray) -> dict[str, np.ndarray]:
     """Execute one calibration push against the handle / knob (door shut against its stop): the
     controller holds commanded pose t (T, 7), given in the sensor frame of the contact pose (pad

@@ -13,7 +13,7 @@ TRAINER = register(
         help="behavioural cloning (MSE, ensembles, CNN + spatial soft-argmax)",
         args="shiftkit.policies.bc:BCArgs",
         cli=__name__,
-        load_policy="shiftkit.policies.bc:load_policy",
+        load_policy="shiftkit.policies.bc_policy:load_policy",
     )
 )
 

@@ -1,0 +1,135 @@
+"""The settings of a FIRE run (`shiftkit fire`; defaults: thesis 5.4.2)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from shiftkit.pipelines.errors import ConfigError
+from shiftkit.policies.failure_predictors import PREDICTORS
+
+
+@dataclass
+class FireArgs:
+    """Arguments of `shiftkit fire` (defaults: thesis 5.4.2)."""
+
+    dataset: str
+    """Dataset ID or local folder of the initial demonstrations."""
+    env: str
+    """Registered environment (`shiftkit.envs`) with a scripted expert."""
+    task: str
+    """Task of the environment."""
+    output_dir: str
+    """Run folder (config, metrics, checkpoints, policy, episodes)."""
+    root: str | None = None
+    """Local folder of the dataset (else resolved by ID)."""
+    predictor: str = "gda"
+    """Failure predictor: beta, gda, doubt or gda+doubt."""
+    budget_expert_samples: int = 2000
+    """Stop once the expert's corrections hold this many samples."""
+    max_episodes: int | None = None
+    """Stop after this many episodes at the latest."""
+    repo_id: str | None = None
+    """Repo ID of the aggregated dataset (default: local/<output folder name>)."""
+    dataset_root: str | None = None
+    """Where the aggregated dataset is written (default: $HF_LEROBOT_HOME/<repo_id>)."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Environment constructor arguments (control_hz defaults to the dataset's fps)."""
+    seed: int = 0
+    """Seed of BC, D, sampling and the hold-outs."""
+    env_seed: int = 10_000
+    """Episode i resets the environment with env_seed + i."""
+    # --- BC
+    bc_regime: str = "early-stop"
+    """Initial BC regime (`shiftkit train bc --regime`)."""
+    bc_steps: int | None = None
+    """Initial BC steps (fixed regime; a bound for early-stop)."""
+    ensemble_size: int = 5
+    """BC ensemble members (their spread is the doubt)."""
+    hidden: list[int] = field(default_factory=lambda: [256, 256])
+    """BC hidden widths."""
+    batch_size: int = 64
+    """BC batch per member (initial training, updates, retraining)."""
+    online_lr: float = 1e-4
+    """Learning rate of the per-episode BC updates."""
+    retrain_every: int = 500
+    """d: full warm-started BC retraining every this many new expert samples."""
+    retrain_lr: float = 1e-3
+    """Learning rate of the full retraining."""
+    retrain_max_epochs: int = 100
+    """Most epochs of a full retraining."""
+    retrain_patience: int = 10
+    """Epochs without hold-out improvement before a retraining member stops."""
+    # --- discriminator and predictors
+    d_start: int = 10_000
+    """Policy samples before D trains and D-based predictions begin."""
+    d_lr: float = 1e-3
+    """Discriminator learning rate."""
+    d_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    """Discriminator tanh MLP widths."""
+    grad_penalty: float = 10.0
+    """Discriminator gradient-penalty weight."""
+    beta: int = 20
+    """Initial beta of the beta rule."""
+    gamma: float = 0.5
+    """Initial posterior threshold of the GDA rule."""
+    doubt_threshold: float | None = None
+    """Initial doubt threshold (default: the largest doubt over the demonstrations' frames)."""
+    fp_cooldown: int = 5
+    """Steps without predictions after a false positive."""
+    expert_margin: int | None = None
+    """Steps the expert needs to finish from anywhere: the oracle stops unpredicted failures this many
+    steps before the episode's end (default: 1.5x the longest demonstration)."""
+    # --- evaluation and bookkeeping
+    eval_every: int = 0
+    """Evaluate the policy every this many episodes (0: never), on seeds from 100000."""
+    eval_episodes: int = 10
+    """Episodes per evaluation."""
+    device: str = "auto"
+    """auto, cpu or cuda."""
+    threads: int | None = None
+    """CPU threads for torch."""
+    resume: bool = False
+    """Continue the run in output_dir after its last finished episode."""
+    progress: bool = False
+    """Show a progress bar over the expert budget."""
+
+    def resolved(self) -> FireArgs:
+        """A checked copy; raises ConfigError on bad values."""
+        if self.predictor not in PREDICTORS:
+            raise ConfigError(f"unknown predictor {self.predictor!r} (choose from {', '.join(PREDICTORS)})")
+        positive = {
+            "budget_expert_samples": self.budget_expert_samples,
+            "ensemble_size": self.ensemble_size,
+            "batch_size": self.batch_size,
+            "retrain_every": self.retrain_every,
+            "retrain_max_epochs": self.retrain_max_epochs,
+            "retrain_patience": self.retrain_patience,
+            "beta": self.beta,
+            "eval_episodes": self.eval_episodes,
+            "online_lr": self.online_lr,
+            "retrain_lr": self.retrain_lr,
+            "d_lr": self.d_lr,
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise ConfigError(f"{name} must be positive, got {value}")
+        for name in ("d_start", "fp_cooldown", "eval_every", "grad_penalty"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.max_episodes is not None and self.max_episodes <= 0:
+            raise ConfigError(f"max_episodes must be positive, got {self.max_episodes}")
+        if not 0.0 < self.gamma < 1.0:
+            raise ConfigError(f"gamma must be in (0, 1), got {self.gamma}")
+        if self.doubt_threshold is not None and not self.doubt_threshold > 0:
+            raise ConfigError(f"doubt_threshold must be positive, got {self.doubt_threshold}")
+        if self.expert_margin is not None and self.expert_margin < 0:
+            raise ConfigError(f"expert_margin must be >= 0, got {self.expert_margin}")
+        if any(h <= 0 for h in [*self.hidden, *self.d_hidden]):
+            raise ConfigError("hidden widths must be positive")
+        repo_id = self.repo_id or f"local/{Path(self.output_dir).name}"
+        if repo_id.count("/") != 1 or not all(repo_id.split("/")):
+            raise ConfigError(f"repo_id must look like ORG/NAME, got {repo_id!r}")
+        return dataclasses.replace(self, repo_id=repo_id, hidden=list(self.hidden), d_hidden=list(self.d_hidden))

@@ -1,0 +1,72 @@
+"""FIRE's BC learning between episodes (thesis Algorithm 2, lines 36-39): a few gradient steps on the
+expert set after every episode, and a full warm-started retraining every `retrain_every` samples.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from shiftkit.policies.bc import update_members
+from shiftkit.policies.bc_policy import BCPolicy
+from shiftkit.policies.data import epoch_batches
+from shiftkit.policies.fire_config import FireArgs
+from shiftkit.policies.frame_buffer import FrameBuffer
+
+
+def online_update(
+    policy: BCPolicy, optimizers: list, expert: FrameBuffer, steps: int, args: FireArgs, rng, device
+) -> float | None:
+    """Algorithm 2 line 36: `steps` gradient steps of every member on batches of the expert set."""
+    m, b = len(policy.members), args.batch_size
+    policy.train()
+    losses = []
+    for _ in range(steps):
+        batch = expert.sample(m * b, rng, device)
+        losses += update_members(policy, optimizers, batch, b, [True] * m, args.online_lr)
+    policy.eval()
+    return float(np.mean(losses)) if losses else None
+
+
+def retrain(policy: BCPolicy, optimizers: list, expert: FrameBuffer, args: FireArgs, seed: int, device) -> dict:
+    """Algorithm 2 line 39: BC on the whole expert set, warm-started; each member keeps its weights of
+    lowest loss on a seeded 20% hold-out of frames and stops after `retrain_patience` epochs without
+    improvement."""
+    n = len(expert)
+    perm = np.random.default_rng([seed, n, 0xB0]).permutation(n)
+    n_val = max(1, n // 5)
+    val, train_rows = perm[:n_val], perm[n_val:]
+    m = len(policy.members)
+    b = min(args.batch_size, len(train_rows))
+    val_batch = expert.gather(val, device)
+
+    @torch.no_grad()
+    def val_losses() -> list[float]:
+        obs, target = policy.normalizer(val_batch), policy.normalizer.action(val_batch["action"])
+        return [((net(obs) - target) ** 2).mean().item() for net in policy.members]
+
+    policy.eval()
+    best = val_losses()
+    best_weights = [{k: v.clone() for k, v in net.state_dict().items()} for net in policy.members]
+    bad, active, epoch = [0] * m, [True] * m, 0
+    for epoch in range(args.retrain_max_epochs):
+        policy.train()
+        batches = [epoch_batches(len(train_rows), b, seed, member, epoch) for member in range(m)]
+        for i in range(len(batches[0])):
+            rows = np.concatenate([train_rows[batches[member][i]] for member in range(m)])
+            update_members(policy, optimizers, expert.gather(rows, device), b, active, args.retrain_lr)
+        policy.eval()
+        for member, loss in enumerate(val_losses()):
+            if not active[member]:
+                continue
+            if loss < best[member]:
+                best[member], bad[member] = loss, 0
+                best_weights[member] = {k: v.clone() for k, v in policy.members[member].state_dict().items()}
+            else:
+                bad[member] += 1
+                active[member] = bad[member] < args.retrain_patience
+        if not any(active):
+            break
+    for net, weights in zip(policy.members, best_weights, strict=True):
+        net.load_state_dict(weights)
+    return {"retrain_epochs": epoch + 1, "retrain_val_loss": float(np.mean(best)), "retrain_frames": n}

@@ -1,0 +1,76 @@
+"""Reading a FIRE run folder back: its per-episode lines, final summary, ROC scores and success curves
+(`shiftkit plot fire`, the docs' figures).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from shiftkit.policies.evaluation import wilson_interval
+from shiftkit.policies.run_dir import RunDir
+
+
+def summary(run_dir: RunDir, counters: dict, expert_samples: int) -> dict:
+    """The final summary of a run: episodes, outcomes, the expert's answers and samples."""
+    lines = [x for x in run_dir.read_metrics() if x["split"] == "episode"]
+    feedback = [f for x in lines for f in x["feedback"]]
+    return {
+        "episodes": counters["episode"],
+        "successes": sum(x["success"] for x in lines),
+        "policy_successes": sum(x["policy_success"] for x in lines),
+        "corrections": counters["corrections"],
+        "expert_samples": expert_samples,
+        "env_steps": counters["env_steps"],
+        "true_positives": feedback.count("tp"),
+        "false_positives": feedback.count("fp"),
+        "false_negatives": feedback.count("fn"),
+        "retrains": counters["retrains"],
+    }
+
+
+def read_episode_lines(run_path: str | Path) -> list[dict]:
+    """The per-episode metric lines of a FIRE run; ShiftkitError (one line) for anything else."""
+    from shiftkit.pipelines.errors import ShiftkitError
+
+    run_dir = RunDir(Path(run_path), resume=True)
+    config = run_dir.read_config() if (Path(run_path) / "config.json").is_file() else None
+    if config is None or config.get("trainer") != "fire":
+        raise ShiftkitError(f"{run_path} is not a FIRE run folder (no config.json of trainer 'fire')")
+    try:
+        lines = [x for x in run_dir.read_metrics() if x.get("split") == "episode"]
+    except (json.JSONDecodeError, KeyError) as exc:
+        raise ShiftkitError(f"{run_path}: unreadable metrics.jsonl ({exc})") from None
+    if not lines:
+        raise ShiftkitError(f"FIRE run {run_path} has no finished episode yet")
+    return lines
+
+
+def roc_scores(lines: list[dict]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Per-predictor episode scores (beta, gda, doubt and the quantile OR of gda and doubt) and the
+    labels (the policy's uninterrupted run failed) of the episodes after D started."""
+    from shiftkit.policies.failure_predictors import quantile_or
+
+    ready = [x for x in lines if x["d_ready"]]
+    scores = {name: np.array([x["scores"][name] for x in ready], dtype=float) for name in ("beta", "gda", "doubt")}
+    scores["gda+doubt"] = quantile_or(scores["gda"], scores["doubt"])
+    return scores, np.array([not x["policy_success"] for x in ready])
+
+
+def success_curve(
+    lines: list[dict], x_key: str, window: int = 10
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(x, success rate, 95% low, high) of the policy's own outcome over a moving window of episodes
+    (each FIRE episode's label is an evaluation of the policy of that time, see `run_episode`)."""
+    x = np.array([line[x_key] for line in lines], dtype=float)
+    ok = np.array([line["policy_success"] for line in lines], dtype=float)
+    rate, low, high = [], [], []
+    for i in range(len(ok)):
+        part = ok[max(0, i - window + 1) : i + 1]
+        lo, hi = wilson_interval(int(part.sum()), len(part))
+        rate.append(part.mean())
+        low.append(lo)
+        high.append(hi)
+    return x, np.array(rate), np.array(low), np.array(high)
