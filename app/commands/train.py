@@ -41,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser, argv: list[str] | None = None
 
 
 def run(args: argparse.Namespace) -> int:
+    """Train with the chosen trainer, holding the run folder against a second run; return the exit code."""
     from pathlib import Path
 
     from shiftkit.pipelines.staging import DestinationLock
