@@ -25,7 +25,7 @@ from shiftkit.pipelines.work import PartStore, WorkUnit
 
 
 class Executor(Protocol):
-    """Runs a plan's work units into parts: in this process, a pool, or datatrove (`EXECUTORS`)."""
+    """What transforms a plan's work units into parts: this process, a process pool or datatrove (`EXECUTORS`)."""
 
     def describe(self) -> dict[str, Any]:
         """The executor fields of the provenance (name, workers, ...)."""

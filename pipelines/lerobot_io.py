@@ -529,7 +529,7 @@ class LeRobotDatasetReader:
 
     @property
     def features(self) -> Features:
-        """The user features (without lerobot's index and timestamp columns)."""
+        """The features without the writer-derived columns (timestamp, frame_index, episode_index, ...)."""
         return user_features(self.info["features"])
 
     @property

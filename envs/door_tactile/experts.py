@@ -140,7 +140,7 @@ class KinestheticTeacher:
         self.pressed = 0
 
     def __call__(self, p: DoorTactilePhysics) -> np.ndarray:
-        """The wrench (force N, torque Nm; world frame, 6,) the person's hand applies to the sensor now."""
+        """The (6,) wrench the person's hand applies to the sensor now: force (N), torque (Nm), world frame."""
         vel = np.zeros(6)
         mujoco.mj_objectVelocity(p.model, p.data, mujoco.mjtObj.mjOBJ_SITE, p.ee_site, vel, 0)
         ang, lin = vel[:3], vel[3:]
