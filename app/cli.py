@@ -62,10 +62,12 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
 
+    @typing.override
     def parse_known_args(self, args=None, namespace=None):  # noqa: ANN001, ANN201 - argparse's signature
         self._words = list(sys.argv[1:] if args is None else args)
         return super().parse_known_args(args, namespace)
 
+    @typing.override
     def error(self, message: str) -> typing.NoReturn:
         # an unknown option's value is otherwise taken for a subcommand ("invalid choice: 'local/exp'")
         unknown = [
@@ -128,6 +130,8 @@ def _fail(command: str, message: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command named in `argv` (default: `sys.argv[1:]`); return its exit code (2 and one line on stderr for a
+    user mistake)."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     argv = sys.argv[1:] if argv is None else list(argv)
     try:

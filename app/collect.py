@@ -73,6 +73,8 @@ class CollectConfig:
     """Play sequence override; default `PLAY_SEQUENCES[task]`."""
 
     def validate(self) -> None:
+        """Check the options against the registered envs and tasks (`ConfigError` on a bad one) and fill in `control_hz`
+        from the env family."""
         from shiftkit.envs import ENV_TASKS, env_family
 
         if self.env not in ENV_TASKS:

@@ -49,6 +49,8 @@ repo_id = "shiftkit/demo"
 
 
 def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: bool = True, views: int = 2) -> dict:
+    """Record mv-lift episodes into `out`, run the demo pipeline over them and draw the views figure; return the paths
+    written, the dataset's counts and its summary."""
     from shiftkit.pipelines.config import load_pipeline_config
     from shiftkit.pipelines.dataset_check import summarize, validate_dataset
     from shiftkit.pipelines.runner import run_pipeline

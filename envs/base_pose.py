@@ -42,6 +42,7 @@ class BasePose:
 
     @classmethod
     def from_dict(cls, d: dict[str, float]) -> BasePose:
+        """The pose in its camera-metadata form `{"x", "y", "yaw"}` (`to_dict`'s inverse)."""
         return cls(float(d["x"]), float(d["y"]), float(d["yaw"]))
 
 

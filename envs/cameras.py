@@ -25,6 +25,8 @@ def look_at(pos, target) -> tuple[float, ...]:
 
 
 def scene_option(quality: str) -> mujoco.MjvOption:
+    """MuJoCo visual options for a render quality: "fast" shows the collision geoms, "full" the visual
+    meshes (ValueError otherwise)."""
     if quality not in QUALITIES:
         raise ValueError(f"render quality must be one of {QUALITIES}, got {quality!r}")
     opt = mujoco.MjvOption()
@@ -53,11 +55,13 @@ class CameraRenderer:
         self._model = model
 
     def rgb(self, data: mujoco.MjData, camera: str) -> np.ndarray:
+        """(H, W, 3) uint8 RGB image from `camera`."""
         self._renderer.update_scene(data, camera=camera, scene_option=self._option)
         disable_costly_flags(self._renderer.scene)
         return self._renderer.render()
 
     def depth(self, data: mujoco.MjData, camera: str) -> np.ndarray:
+        """(H, W) float32 depth image (m) from `camera`; the depth renderer is built on first use."""
         if self._depth is None:
             self._depth = mujoco.Renderer(self._model, height=self.height, width=self.width)
             self._depth.enable_depth_rendering()
@@ -65,6 +69,7 @@ class CameraRenderer:
         return self._depth.render().astype(np.float32)
 
     def close(self) -> None:
+        """Free the renderers."""
         self._renderer.close()
         if self._depth is not None:
             self._depth.close()
@@ -104,15 +109,19 @@ class SceneRendering:
         return self._renderer
 
     def render_rgb(self, camera: str | None = None) -> np.ndarray:
+        """(H, W, 3) uint8 RGB image from `camera` (default: the env's camera)."""
         return self._get_renderer().rgb(self.physics.data, camera or self.camera)
 
     def render_depth(self, camera: str | None = None) -> np.ndarray:
+        """(H, W) float32 depth image (m) from `camera` (default: the env's camera)."""
         return self._get_renderer().depth(self.physics.data, camera or self.camera)
 
     def render(self):
+        """The default camera's image for `render_mode`: depth for "depth_array", else RGB."""
         return self.render_depth() if self.render_mode == "depth_array" else self.render_rgb()
 
     def close(self) -> None:
+        """Free the renderer (a later render builds a new one)."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None

@@ -63,6 +63,7 @@ class EnvFamily:
     (`reset()`, `act(obs)`), if the family has one: FIRE's simulated oracle takes over with it."""
 
     def gym_id(self, task: str) -> str:
+        """The gymnasium id of `task` (`shiftkit/<gym_prefix>-<Task>-v0`)."""
         return f"shiftkit/{self.gym_prefix}-{self.tasks[task]}-v0"
 
 

@@ -32,6 +32,7 @@ class Rollout:
 
     @property
     def succeeded(self) -> bool:
+        """Whether success held after any action."""
         return bool(self.success.any())
 
 
@@ -54,6 +55,8 @@ class RolloutRecorder:
         self.depth: dict[str, list[np.ndarray]] = {c: [] for c in self.depth_cameras}
 
     def frame(self, obs: np.ndarray, info: dict[str, Any], **sensor_images: np.ndarray) -> None:
+        """Record the frame before an action: observation, qpos/qvel, camera images (and depth), sensor
+        images (from their callables, or given here)."""
         self.obs.append(obs)
         self.qpos.append(info["qpos"])
         self.qvel.append(info["qvel"])
@@ -65,6 +68,7 @@ class RolloutRecorder:
             self.images[name].append(sensor_images[name] if name in sensor_images else read())
 
     def done(self, **extra: Any) -> Rollout:
+        """The recorded `Rollout`, frames beyond the last action dropped (`extra`: further fields)."""
         n = len(self.actions)
         return Rollout(
             observations=np.array(self.obs[:n], dtype=np.float32),

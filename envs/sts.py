@@ -136,16 +136,19 @@ class STSSensor:
         self._option.geomgroup[3] = 0
 
     def reset(self, seed: int, mode: str = "tactile") -> None:
+        """Restart the noise stream from `seed` and set the mode."""
         self._rng = np.random.default_rng(seed)
         self.set_mode(mode)
 
     def set_mode(self, mode: str) -> None:
+        """Switch to "tactile" or "visual" (ValueError otherwise)."""
         if mode not in MODES:
             raise ValueError(f"STS mode must be one of {MODES}, got {mode!r}")
         self.mode = mode
 
     # ----------------------------------------------------------------- contact
     def contacts(self, data: mujoco.MjData) -> PadContacts:
+        """The pad's contacts now, in the sensor frame."""
         pos, force, torsion = pad_contacts(self.model, data, self.pad_geom)
         rot = data.site_xmat[self.site].reshape(3, 3)
         local_f = force @ rot
@@ -154,6 +157,7 @@ class STSSensor:
         return PadContacts(xy=xy, force=local_f, torsion=torsion @ rot[:, 2])
 
     def contact_wrench(self, data: mujoco.MjData) -> np.ndarray:
+        """The true contact wrench (Fx, Fy, Fz, tau_z) about the sensor origin (N, Nm)."""
         return self.contacts(data).wrench()
 
     def raw_wrench(self, wrench: np.ndarray) -> np.ndarray:
@@ -196,6 +200,8 @@ class STSSensor:
         return self.render_markers(self.marker_positions(contacts), contacts)
 
     def render_markers(self, markers_mm: np.ndarray, contacts: PadContacts) -> np.ndarray:
+        """The tactile image (H, W, 3) uint8: markers at `markers_mm` (membrane mm) over the contacts'
+        glow, with noise."""
         mem = self.membrane
         img = np.full((self.height, self.width), 200.0)
         # pressed gel scatters more LED light: a soft bright blob around each contact
@@ -221,6 +227,7 @@ class STSSensor:
         return (self.width - 1) / 2 + mm[0] * self.px_per_mm, (self.height - 1) / 2 + mm[1] * self.px_per_mm
 
     def visual_image(self, data: mujoco.MjData) -> np.ndarray:
+        """The visual-mode image (H, W, 3) uint8: the scene through the clear gel."""
         if self._renderer is None:
             self._renderer = mujoco.Renderer(self.model, height=self.height, width=self.width)
         self._renderer.update_scene(data, camera=self.camera, scene_option=self._option)
@@ -232,6 +239,7 @@ class STSSensor:
         return self.tactile_image(data) if self.mode == "tactile" else self.visual_image(data)
 
     def close(self) -> None:
+        """Free the visual-mode renderer."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None

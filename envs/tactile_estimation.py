@@ -53,6 +53,7 @@ class MarkerWrenchEstimator:
         self._prev: np.ndarray | None = None
 
     def reset(self, reference_image: np.ndarray) -> None:
+        """Start an episode: detect the markers of the undeformed `reference_image`."""
         self.reference = detect_markers(reference_image)
         d = _distances(self.reference, self.reference)
         np.fill_diagonal(d, np.inf)

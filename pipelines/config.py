@@ -45,6 +45,8 @@ class SourceConfig:
 
 @dataclass
 class StageSpec:
+    """One `[[stages]]` entry: a registered stage by name, with its parameters."""
+
     name: str
     """Registered stage name (see `shiftkit plan --stages`)."""
     params: dict[str, Any] = field(default_factory=dict)
@@ -64,6 +66,8 @@ class PipelineSource(SourceConfig):
 
 @dataclass
 class DestinationConfig:
+    """The `[destination]` table: where the output dataset goes and whether it is pushed."""
+
     root: str
     """Output dataset directory; must not exist yet."""
     repo_id: str | None = None
@@ -82,6 +86,8 @@ class DestinationConfig:
 
 @dataclass
 class PipelineConfig:
+    """A whole pipeline config: sources, stages, destination and seed."""
+
     sources: list[PipelineSource]
     """Input datasets; their episodes are processed in order."""
     destination: DestinationConfig
@@ -101,6 +107,8 @@ class PipelineConfig:
 
 
 def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConfig:
+    """A `PipelineConfig` from a config file's plain data (`where` names it in errors); relative paths
+    are made relative to `base_dir`."""
     if isinstance(data, dict) and "source" in data:
         if "sources" in data:
             raise ConfigError(f"{where}: give either 'source' or 'sources', not both")
@@ -151,5 +159,6 @@ def read_config_file(path: str | Path, what: str = "pipeline config") -> Any:
 
 
 def load_pipeline_config(path: str | Path) -> PipelineConfig:
+    """The `PipelineConfig` in a .toml, .yaml or .json file."""
     path = Path(path)
     return parse_pipeline_config(read_config_file(path), path.parent.resolve(), str(path))

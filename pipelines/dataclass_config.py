@@ -64,6 +64,7 @@ def from_dict[T](cls: type[T], data: Any, where: str) -> T:
 
 
 def to_dict(obj: Any) -> dict[str, Any]:
+    """The dataclass `obj` as plain data (what `from_dict` reads back)."""
     return dataclasses.asdict(obj)
 
 

@@ -44,6 +44,8 @@ def summarize(root: str | Path) -> dict[str, Any]:
 
 
 def format_summary(summary: dict[str, Any]) -> str:
+    """The `summarize` summary as the text `shiftkit info` prints."""
+
     def short(v: Any) -> str:
         flat = np.asarray(v, dtype=float).ravel()
         return "[" + ", ".join(f"{x:.3g}" for x in flat[:4]) + (", ..." if flat.size > 4 else "") + "]"

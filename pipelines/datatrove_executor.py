@@ -19,7 +19,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, override
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.planner import Plan
@@ -48,9 +48,11 @@ class DatatroveExecutor:
         self.nodes: int | None = None  # how many nodes did the work, once it is done
 
     def describe(self) -> dict[str, Any]:
+        """The executor fields of the provenance (name, workers, nodes once known)."""
         return {"name": self.name, "workers": self.workers, **({"nodes": self.nodes} if self.nodes else {})}
 
     def run(self, plan: Plan, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
+        """Transform the unfinished shards with datatrove; False when they were handed to a scheduler."""
         done = self._run(plan, units, parts, bar)
         if done:
             self.nodes = nodes_used(parts.dir.parent)
@@ -144,6 +146,8 @@ def _datatrove_logs_to(logdir: Path) -> Iterator[None]:
 
 
 class DatatroveLocalExecutor(DatatroveExecutor):
+    """`datatrove-local`: datatrove's local process pool on this machine."""
+
     name = "datatrove-local"
 
     def _execute(self, step: ShardStep, tasks: int, logdir: Path) -> None:
@@ -158,6 +162,8 @@ class DatatroveLocalExecutor(DatatroveExecutor):
 
 
 class RayExecutor(DatatroveExecutor):
+    """`ray`: datatrove tasks on a Ray cluster (`address` or $RAY_ADDRESS; default: a local instance)."""
+
     name = "ray"
     # What Ray workers need from the driver's environment (offline hub, caches, headless MuJoCo).
     FORWARDED_ENV = ("HF_HUB_OFFLINE", "HF_LEROBOT_HOME", "HF_HOME", "HF_DATASETS_CACHE", "MUJOCO_GL")
@@ -170,6 +176,7 @@ class RayExecutor(DatatroveExecutor):
         self.address = address or os.environ.get("RAY_ADDRESS") or None
         self.mem_per_cpu_gb = mem_per_cpu_gb
 
+    @override
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "address": self.address}
 
@@ -244,6 +251,7 @@ class SlurmExecutor(DatatroveExecutor):
         self.cpus_per_task, self.mem_per_cpu_gb = cpus_per_task, mem_per_cpu_gb
         self.setup, self.submit = setup, submit
 
+    @override
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "partition": self.partition}
 

@@ -35,6 +35,7 @@ class EncodedFrames(np.ndarray):
 
     @classmethod
     def wrap(cls, frames: np.ndarray, encoded: list[bytes]) -> EncodedFrames:
+        """`frames` as `EncodedFrames`, each frame remembering `encoded`, its source bytes (one per frame)."""
         out = np.asarray(frames).view(cls)
         out.encoded = {_key(f): (np.array(f), b) for f, b in zip(frames, encoded, strict=True)}
         return out

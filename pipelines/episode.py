@@ -33,6 +33,7 @@ class Episode:
         return Episode({k: np.array(v[index], subok=True) for k, v in self.frames.items()}, dict(self.meta))
 
     def with_frames(self, **updates: np.ndarray) -> Episode:
+        """A new episode with some feature arrays replaced or added (meta copied)."""
         frames = dict(self.frames)
         frames.update(updates)
         return Episode(frames, dict(self.meta))

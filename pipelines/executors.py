@@ -25,6 +25,8 @@ from shiftkit.pipelines.work import PartStore, WorkUnit
 
 
 class Executor(Protocol):
+    """What transforms a plan's work units into parts: this process, a process pool or datatrove (`EXECUTORS`)."""
+
     def describe(self) -> dict[str, Any]:
         """The executor fields of the provenance (name, workers, ...)."""
 
@@ -34,6 +36,8 @@ class Executor(Protocol):
 
 
 class LocalExecutor:
+    """`local`: this process (one worker) or a pool of worker processes."""
+
     name = "local"
 
     def __init__(self, workers: int = 1) -> None:
@@ -42,9 +46,11 @@ class LocalExecutor:
         self.workers = workers
 
     def describe(self) -> dict[str, Any]:
+        """The executor fields of the provenance (name, workers)."""
         return {"name": self.name, "workers": self.workers}
 
     def run(self, plan: Plan, units: list[WorkUnit], parts: PartStore, bar: Any) -> bool:
+        """Transform every unit's unfinished episodes into `parts`; always True (nothing is scheduled)."""
         units = [u for u in units if not all(parts.done(u.source, i) for i in u.episodes)]
         if not units:
             return True
@@ -101,6 +107,7 @@ EXECUTORS = {
 
 
 def get_executor(name: str, workers: int = 1, **options: Any) -> Executor:
+    """The executor registered as `name`; a ConfigError for an unknown name or an option it does not take."""
     if name not in EXECUTORS:
         raise ConfigError(f"unknown executor {name!r} (available: {', '.join(EXECUTORS)})")
     try:

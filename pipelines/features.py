@@ -61,6 +61,7 @@ def flag_array(arr: np.ndarray, where: str) -> np.ndarray:
 
 
 def vector_feature(dtype: str, names: list[str], **info: Any) -> dict[str, Any]:
+    """A 1-D feature of `dtype` with one entry per name (`info` kept under "info")."""
     feature: dict[str, Any] = {"dtype": dtype, "shape": (len(names),), "names": list(names)}
     if info:
         feature["info"] = info

@@ -395,6 +395,7 @@ class DatasetWriter:
         write_stats({k: stats[k] for k in self._meta.features if k in stats}, self.tmp)
 
     def abort(self) -> None:
+        """Drop what was written so far (the staging folder); nothing reaches the destination."""
         if self._closed:
             return
         if self._writer is not None:
@@ -523,18 +524,22 @@ class LeRobotDatasetReader:
 
     @property
     def fps(self) -> int:
+        """Frames per second."""
         return int(self.info["fps"])
 
     @property
     def features(self) -> Features:
+        """The features without the writer-derived columns (timestamp, frame_index, episode_index, ...)."""
         return user_features(self.info["features"])
 
     @property
     def num_episodes(self) -> int:
+        """Number of episodes."""
         return len(self.episodes)
 
     @property
     def robot_type(self) -> str | None:
+        """The `robot_type` in info.json, if any."""
         return self.info.get("robot_type")
 
     def episode_groups(self) -> list[list[int]]:
@@ -780,6 +785,8 @@ def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
 
 @dataclass(frozen=True)
 class ResolvedDataset:
+    """A dataset ID resolved to a local folder, with the revision pulled and its content fingerprint."""
+
     repo_id: str
     root: Path
     revision: str | None

@@ -10,6 +10,7 @@ from pathlib import Path
 
 
 def lerobot_home() -> Path:
+    """`$HF_LEROBOT_HOME`, where local dataset IDs live (lerobot's default: ~/.cache/huggingface/lerobot)."""
     return Path(os.environ.get("HF_LEROBOT_HOME", Path.home() / ".cache" / "huggingface" / "lerobot")).expanduser()
 
 

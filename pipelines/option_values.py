@@ -33,6 +33,7 @@ def rule_error(name: str, rule: str, value: Any) -> str:
 
 
 def meets(rule: str, value: Any) -> bool:
+    """Whether `value` is a number that meets `rule` (a `RULES` key); bools never do."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return False
     if rule.endswith("_int") and not (isinstance(value, int) or (math.isfinite(value) and value == int(value))):
@@ -113,9 +114,11 @@ class DataclassOptions[T]:
     """Field -> default on the command line where it differs from the dataclass's."""
 
     def fields(self) -> list[dataclasses.Field]:
+        """The dataclass fields that get an option (init fields not in `skip`)."""
         return [f for f in dataclasses.fields(self.cls) if f.init and f.name not in self.skip]
 
     def flag(self, name: str) -> str:
+        """The option of field `name`, with its dashes."""
         return "--" + self.flags.get(name, name.replace("_", "-"))
 
     def _required(self) -> tuple[str, ...]:

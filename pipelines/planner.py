@@ -29,6 +29,8 @@ from shiftkit.pipelines.stage import Stage, StageContext, build_stage, selecting
 
 @dataclass
 class Plan:
+    """A checked pipeline: its open sources, built stages, and the input and output schema and fps."""
+
     config: PipelineConfig
     sources: list[Source]
     stages: list[Stage]
@@ -46,14 +48,17 @@ class Plan:
 
     @property
     def destination(self) -> Path:
+        """The output dataset's folder."""
         return Path(self.config.destination.root)
 
     @property
     def repo_id(self) -> str:
+        """The output dataset's ID (default: local/<folder name>)."""
         return self.config.destination.repo_id or f"local/{self.destination.name}"
 
     @property
     def num_source_episodes(self) -> int:
+        """Episodes over all sources."""
         return sum(s.num_episodes for s in self.sources)
 
     def chain(self, source: int) -> list[Stage]:
@@ -74,6 +79,8 @@ def build_chain(specs: list[StageSpec], features: Features, fps: int, where: str
 
 
 def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Plan:
+    """Open the sources and build the stage chains, checking that the sources match after their own
+    stages and that the destination is free and outside them."""
     sources = [open_source(s) for s in config.sources]
     chains = []
     for i, (spec, src) in enumerate(zip(config.sources, sources, strict=True)):
@@ -210,6 +217,7 @@ def _feature_mismatch(key: str, ref: dict[str, Any], ft: dict[str, Any], any_cam
 
 
 def format_plan(plan: Plan) -> str:
+    """The plan as the text `shiftkit plan` prints: sources, stages and the output schema."""
     lines = [f"sources: {len(plan.sources)} ({plan.num_source_episodes} episodes, {plan.input_fps} fps)"]
     for s, own in enumerate(plan.source_stages):
         if own:

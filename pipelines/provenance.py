@@ -14,6 +14,7 @@ PROVENANCE_VERSION = 1
 
 
 def versions() -> dict[str, str]:
+    """Installed versions of shiftkit and lerobot ("unknown" when not installed)."""
     out = {}
     for dist in ("shiftkit", "lerobot"):
         try:

@@ -21,7 +21,7 @@ import socket
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, override
 
 from datatrove.pipeline.base import PipelineStep
 
@@ -42,12 +42,15 @@ class Shard:
 
     @property
     def episodes(self) -> list[tuple[int, int]]:
+        """The shard's (source, episode) pairs, in order."""
         return [(u.source, i) for u in self.units for i in u.episodes]
 
     def done(self, parts: PartStore) -> bool:
+        """Whether every episode of the shard has its part."""
         return all(parts.done(s, i) for s, i in self.episodes)
 
     def describe(self) -> str:
+        """The shard in words, from its first to its last episode (for failure reports)."""
         eps = self.episodes
         return (
             f"shard {self.index} (source {eps[0][0]} episode {eps[0][1]} .. source {eps[-1][0]} episode {eps[-1][1]})"
@@ -78,15 +81,18 @@ class FailureStore:
         return self.dir / f"{k:05d}.json"
 
     def record(self, k: int, where: str, reason: str, attempts: int) -> None:
+        """Record that shard `k` failed `attempts` times, at `where` for `reason` (atomically)."""
         self.dir.mkdir(parents=True, exist_ok=True)
         tmp = self._path(k).with_suffix(f".tmp-{os.getpid()}")
         tmp.write_text(json.dumps({"where": where, "reason": reason, "attempts": attempts}))
         os.rename(tmp, self._path(k))
 
     def clear(self, k: int) -> None:
+        """Forget shard `k`'s failure (it succeeded)."""
         self._path(k).unlink(missing_ok=True)
 
     def get(self, k: int) -> dict[str, Any] | None:
+        """Shard `k`'s failure record, or None."""
         path = self._path(k)
         return json.loads(path.read_text()) if path.is_file() else None
 
@@ -119,6 +125,7 @@ class ShardStep(PipelineStep):
         self.stage_classes = stage_classes
         self.main_pid = os.getpid()  # workers of a local pool exit when this process dies
 
+    @override
     def run(self, data: Any = None, rank: int = 0, world_size: int = 1) -> Any:
         work.exit_with_parent(getattr(self, "main_pid", None))
         known = registered_stages()

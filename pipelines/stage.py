@@ -75,6 +75,7 @@ class Stage(ABC):
         """Load simulators/models once per worker before the first episode."""
 
     def transform_fps(self, fps: int) -> int:
+        """The output frame rate for an input one (default: unchanged)."""
         return fps
 
     @abstractmethod
@@ -164,11 +165,13 @@ def import_modules(package: str, path: Iterable[str]) -> None:
 
 
 def load_builtin_stages() -> None:
+    """Import shiftkit's stage packages, so their stages are registered."""
     for package in BUILTIN_STAGE_PACKAGES:
         importlib.import_module(package)
 
 
 def registered_stages() -> dict[str, type[Stage]]:
+    """Every registered stage class by name, sorted (shiftkit's own loaded first)."""
     load_builtin_stages()
     return dict(sorted(_REGISTRY.items()))
 

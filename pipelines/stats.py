@@ -282,6 +282,7 @@ class RunningStats:
         self._max: list[np.ndarray] = []
 
     def add(self, stats: dict[str, Stats]) -> None:
+        """Fold in one episode's statistics (the same features every time)."""
         if self._first is None and not self._keys:
             self._first = stats
             return

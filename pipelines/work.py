@@ -64,14 +64,18 @@ class PartStore:
         self.dir = work_dir / "parts"
 
     def path(self, source: int, episode: int) -> Path:
+        """The part file of one source episode."""
         return self.dir / f"s{source:03d}_e{episode:07d}.pkl"
 
     def done(self, source: int, episode: int) -> bool:
+        """Whether that source episode is finished (its part file exists)."""
         return self.path(source, episode).is_file()
 
     def write(
         self, source: int, episode: int, outputs: list[Episode], features: dict, report: list[dict[str, int]]
     ) -> None:
+        """Store one source episode's outputs (images encoded, with their statistics) and the stages'
+        event counts, the metas first; the part file appears last, marking it done."""
         from shiftkit.pipelines.lerobot_io import encode_images, episode_stats
 
         records = [(encode_images(ep, features).frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
@@ -83,6 +87,7 @@ class PartStore:
         _atomic_pickle(self.path(source, episode), records)
 
     def meta_path(self, source: int, episode: int) -> Path:
+        """The small file with that source episode's metas and event counts."""
         return self.dir.parent / "metas" / self.path(source, episode).name
 
     def _small(self, source: int, episode: int) -> dict[str, Any]:
@@ -98,6 +103,7 @@ class PartStore:
         return self._small(source, episode)["report"]
 
     def read(self, source: int, episode: int) -> Iterator[tuple[Episode, dict]]:
+        """That source episode's output episodes, each with its statistics."""
         with open(self.path(source, episode), "rb") as f:
             records = pickle.load(f)
         for frames, meta, stats in records:
@@ -105,6 +111,7 @@ class PartStore:
 
 
 def work_dir_for(destination: Path) -> Path:
+    """The work directory of a run to `destination` (a hidden sibling folder)."""
     return sibling(destination, "shiftkit-work")
 
 

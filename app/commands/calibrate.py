@@ -12,6 +12,7 @@ HELP = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `calibrate`."""
     parser.add_argument(
         "--env", default="door-tactile", help="environment with a tactile sensor (default: door-tactile)"
     )
@@ -33,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Fit and write the calibration (or write the push plan with `--plan`); return the exit code."""
     from pathlib import Path
 
     import numpy as np

@@ -11,6 +11,7 @@ HELP = "record scripted-expert episodes from a simulated env (raw episodes or a 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `collect`."""
     parser.add_argument("--env", default="panda-play", help="environment name (default: panda-play)")
     parser.add_argument("--task", required=True, help="task, e.g. lift, stack, insert")
     parser.add_argument("--episodes", type=positive_int, default=10, help="number of episodes (default: 10)")
@@ -42,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Record the episodes and print where they went; return the exit code."""
     from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.app.env_kwargs import check_env_kwargs
 

@@ -9,6 +9,7 @@ HELP = "record demo episodes, re-render them from new base poses (multiview), va
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `demo`."""
     parser.add_argument("--out", default="outputs/demo", help="output directory (default outputs/demo)")
     parser.add_argument("--episodes", type=int, default=4, help="episodes to record (default 4)")
     parser.add_argument("--seed", type=int, default=0)
@@ -16,6 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run the demo and print the dataset's summary and where its files are; return the exit code."""
     from shiftkit.app.demo import run_demo
     from shiftkit.pipelines.dataset_check import format_summary
 

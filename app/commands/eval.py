@@ -11,6 +11,7 @@ HELP = "evaluate a trained policy in a registered environment (success rate with
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `eval`."""
     parser.add_argument("--policy", required=True, help="run folder or checkpoint file of a trained policy")
     parser.add_argument("--env", default="panda-play", help="environment name (default: panda-play)")
     parser.add_argument("--task", required=True, help="task, e.g. lift")
@@ -37,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Roll out the policy (or sweep the camera yaw) and print the success rate; return the exit code."""
     from pathlib import Path
 
     from shiftkit.pipelines.errors import ConfigError

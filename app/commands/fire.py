@@ -94,6 +94,7 @@ def _run_aggregate(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run FIRE (or `fire aggregate`) and print its counts; return the exit code."""
     from pathlib import Path
 
     from shiftkit.app.env_kwargs import check_env_kwargs

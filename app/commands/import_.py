@@ -12,6 +12,7 @@ HELP = "import third-party data as a LeRobot dataset (`shiftkit import FORMAT --
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """One subcommand per registered importer, each with the importer's own options."""
     from shiftkit.app import importers as app_importers
     from shiftkit.pipelines.sources import importers
 
@@ -25,6 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run the chosen importer and print what it wrote; return the exit code."""
     importer = args._importer
     summary = importer.run(args)
     for line in importer.report(summary):

@@ -9,12 +9,14 @@ HELP = "describe a dataset (path or dataset ID): features, episodes, tasks, stat
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `info`."""
     parser.add_argument("dataset", help="dataset directory or dataset ID")
     parser.add_argument("--revision", help="hub revision when the ID is pulled")
     parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
 
 
 def run(args: argparse.Namespace) -> int:
+    """Print the dataset's summary (as JSON with `--json`); return the exit code."""
     from shiftkit.pipelines.dataset_check import format_summary, summarize
     from shiftkit.pipelines.lerobot_io import resolve_dataset
 

@@ -18,6 +18,7 @@ HELP = "merge datasets that differ (fps, features, cameras): write, print and ru
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `merge`."""
     parser.add_argument("sources", nargs="+", help="dataset directories or dataset IDs, in output order")
     parser.add_argument("--fps", type=int, required=True, help="frame rate of the merged dataset")
     parser.add_argument("--out", required=True, help="output dataset directory (must not exist)")
@@ -100,6 +101,7 @@ def merge_pipeline(refs: list[str], fps: int, out: str, repo_id: str, size: tupl
 
 
 def run(args: argparse.Namespace) -> int:
+    """Write and print the merging pipeline, then run it unless `--dry-run`; return the exit code."""
     import tomllib
 
     from shiftkit.pipelines.config import parse_pipeline_config

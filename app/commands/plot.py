@@ -12,6 +12,7 @@ PREDICTOR_LABELS = {"beta": "beta rule", "gda": "GDA", "doubt": "ensemble doubt"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """One subcommand per figure (`roc`, `fire`), each with its options."""
     sub = parser.add_subparsers(dest="figure", metavar="FIGURE", required=True)
     roc = sub.add_parser(
         "roc",
@@ -157,4 +158,5 @@ def _run_fire(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Draw the chosen figure; return the exit code."""
     return args._plot(args)

@@ -8,6 +8,7 @@ HELP = "Pull a LeRobot dataset (or, with --checkpoint, a policy checkpoint) from
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `pull`."""
     parser.add_argument("repo_id", metavar="ORG/NAME", help="hub repository to pull")
     parser.add_argument(
         "--revision",
@@ -27,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Pull the dataset (or checkpoint with `--checkpoint`) and print where it went; return the exit code."""
     from shiftkit.pipelines import hub
 
     pull = hub.pull_checkpoint if args.checkpoint else hub.pull_dataset

@@ -8,6 +8,7 @@ HELP = "Push a LeRobot dataset (or, with --checkpoint, a policy checkpoint) to t
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `push`."""
     parser.add_argument(
         "source",
         metavar="DATASET",
@@ -27,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Push the dataset (or checkpoint with `--checkpoint`) and print the commit; return the exit code."""
     from shiftkit.pipelines import hub
 
     push = hub.push_checkpoint if args.checkpoint else hub.push_dataset

@@ -11,6 +11,7 @@ HELP = "run a pipeline config; re-running after an interruption resumes it"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `run`."""
     parser.add_argument("config", help="pipeline config (.toml, .yaml or .json)")
     parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument(
@@ -46,6 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run (or resume, or submit) the pipeline and print its provenance report; return the exit code."""
     from shiftkit.pipelines.config import load_pipeline_config
     from shiftkit.pipelines.jsonutil import read_json_file
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH

@@ -10,6 +10,7 @@ HELP = "execute a calibration or replay plan on a simulated robot and record it 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `sim-robot`."""
     parser.add_argument("plan", help="calibration plan (raw format) or replay plan (LeRobot dataset) folder")
     parser.add_argument("--out", required=True, help="raw-format recording to write (must not exist)")
     parser.add_argument(
@@ -21,6 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Execute the plan on the simulated robot and record it in the raw format; return the exit code."""
     from pathlib import Path
 
     from shiftkit.pipelines.errors import ConfigError

@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser, argv: list[str] | None = None
 
 
 def run(args: argparse.Namespace) -> int:
+    """Train with the chosen trainer, holding its run folder against a second run (`train plot` has
+    none); return the exit code."""
     from pathlib import Path
 
     from shiftkit.pipelines.staging import DestinationLock

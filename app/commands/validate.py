@@ -8,6 +8,7 @@ HELP = "check a dataset end to end; exits non-zero naming the first problem"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `validate`."""
     parser.add_argument("dataset", help="dataset directory or dataset ID")
     parser.add_argument("--revision", help="hub revision when the ID is pulled")
     parser.add_argument(
@@ -18,6 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Validate the dataset (and recompute its statistics with `--deep`) and print the counts; return the exit code."""
     from shiftkit.pipelines.dataset_check import validate_dataset
     from shiftkit.pipelines.lerobot_io import resolve_dataset
 

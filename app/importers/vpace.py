@@ -96,6 +96,7 @@ class VpaceBuffer:
 
     @property
     def obs_dim(self) -> int:
+        """Length of one observation row."""
         return int(self.observations.shape[1])
 
     def kind(self) -> str:

@@ -20,7 +20,7 @@ image of the active mode), both `height` x `width`.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, override
 
 import gymnasium as gym
 import numpy as np
@@ -113,6 +113,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         self._tactile_steps, self._first_tactile_step, self._first_contact_step = 0, None, None
 
     # ----------------------------------------------------------------- gymnasium API
+    @override
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         p = self.physics
@@ -131,6 +132,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         self._tactile_steps, self._first_tactile_step, self._first_contact_step = 0, None, None
         return self._observation(), self._info()
 
+    @override
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != (len(self.action_names),) or not np.isfinite(a).all():
@@ -179,6 +181,7 @@ class DoorTactileEnv(SceneRendering, gym.Env):
         truncated = self._steps >= self.max_episode_steps
         return self._observation(), float(info["is_success"]), False, truncated, info
 
+    @override
     def close(self) -> None:
         super().close()
         self.sensor.close()

@@ -81,6 +81,7 @@ class ScriptedDoorExpert:
         self.pressed = 0
 
     def act(self) -> np.ndarray:
+        """The next action, without the mode dim when the env's sensor mode is fixed."""
         return self._act()[: len(self.env.action_names)]
 
     def _act(self) -> np.ndarray:
@@ -139,6 +140,7 @@ class KinestheticTeacher:
         self.pressed = 0
 
     def __call__(self, p: DoorTactilePhysics) -> np.ndarray:
+        """The (6,) wrench the person's hand applies to the sensor now: force (N), torque (Nm), world frame."""
         vel = np.zeros(6)
         mujoco.mj_objectVelocity(p.model, p.data, mujoco.mjtObj.mjOBJ_SITE, p.ee_site, vel, 0)
         ang, lin = vel[:3], vel[3:]

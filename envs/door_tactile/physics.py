@@ -257,15 +257,19 @@ class DoorTactilePhysics:
 
     # ----------------------------------------------------------------- state access
     def ee_pos(self) -> np.ndarray:
+        """Sensor site position (3,), world frame (m)."""
         return self.data.site_xpos[self.ee_site].copy()
 
     def ee_rot(self) -> np.ndarray:
+        """Sensor site rotation (3, 3), world frame."""
         return self.data.site_xmat[self.ee_site].reshape(3, 3).copy()
 
     def door_angle(self) -> float:
+        """Door hinge angle (rad)."""
         return float(self.data.qpos[self.door_qpos])
 
     def door_velocity(self) -> float:
+        """Door hinge velocity (rad/s)."""
         return float(self.data.qvel[self.door_dof])
 
     # ----------------------------------------------------------------- reset

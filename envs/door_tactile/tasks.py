@@ -29,6 +29,8 @@ START_OFFSET_BACK = 0.07  # away from the door face
 
 @dataclass(frozen=True)
 class DoorTask:
+    """One door task: handle variant, direction (open or close) and the reset ranges."""
+
     name: str
     gym_name: str
     variant: str
@@ -38,6 +40,7 @@ class DoorTask:
     """Door angle range at reset (rad)."""
 
     def succeeded(self, door_angle: float, slammed: bool) -> bool:
+        """Whether the door is open past `OPEN_ANGLE` (opening tasks), or closed and not slammed."""
         if self.opening:
             return door_angle >= OPEN_ANGLE
         return door_angle <= CLOSED_ANGLE and not slammed
@@ -55,6 +58,7 @@ TASKS: dict[str, DoorTask] = {
 
 
 def get_task(name: str) -> DoorTask:
+    """The door task `name`; ValueError for an unknown one."""
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; known: {', '.join(TASKS)}")
     return TASKS[name]

@@ -12,7 +12,7 @@ Reward 1.0 while success holds; episodes are truncated after `max_episode_second
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, override
 
 import gymnasium as gym
 import numpy as np
@@ -65,6 +65,7 @@ class MultiviewEnv(SceneRendering, gym.Env):
         self._steps = 0
 
     # ----------------------------------------------------------------- gymnasium API
+    @override
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         rng = self.np_random
@@ -84,6 +85,7 @@ class MultiviewEnv(SceneRendering, gym.Env):
         now = self.task.predicate(self.physics)
         return self._observation(), self._info(False, now)
 
+    @override
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != self.action_space.shape or not np.isfinite(a).all():
@@ -115,6 +117,7 @@ class MultiviewEnv(SceneRendering, gym.Env):
 
     @property
     def base_pose(self) -> BasePose:
+        """The robot base's pose in the world for this episode."""
         return self.physics.base_pose
 
     def camera_metadata(self) -> dict[str, dict[str, Any]]:

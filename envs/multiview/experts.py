@@ -50,6 +50,7 @@ class MultiviewExpert:
 
     @property
     def p(self) -> MultiviewPhysics:
+        """The env's physics."""
         return self.env.physics
 
     def _action(self, move: np.ndarray, gripper: float, yaw_rate: float = 0.0) -> np.ndarray:
@@ -96,6 +97,7 @@ class MultiviewExpert:
         return self._action(np.zeros(3), -1.0)
 
     def act(self) -> np.ndarray:
+        """The next action of the task's script."""
         return getattr(self, "_" + self.task.name.replace("-", "_"))()
 
     # ----------------------------------------------------------------- tasks
@@ -190,9 +192,10 @@ class ExpertPolicy:
         self.expert = MultiviewExpert(env)
 
     def reset(self) -> None:
-        pass
+        """Nothing to reset: the expert reads the simulator state."""
 
     def act(self, obs: Any) -> np.ndarray:
+        """The expert's next action (`obs` unused)."""
         return self.expert.act()
 
 

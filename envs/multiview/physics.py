@@ -209,6 +209,7 @@ def _add_objects(spec: mujoco.MjSpec, names: tuple[str, ...]) -> None:
 
 
 def build_spec(model_id: str, task: str, objects: tuple[str, ...]) -> mujoco.MjSpec:
+    """The scene's MjSpec: the Panda with its camera, the task frame and `objects`."""
     spec = panda_spec(model_id, timestep=PHYSICS_DT, impratio=10.0)
     spec.visual.quality.numslices = 10
     spec.visual.quality.numstacks = 4
@@ -268,34 +269,44 @@ class MultiviewPhysics:
         mujoco.mj_forward(self.model, self.data)
 
     def world_to_base(self, points: np.ndarray) -> np.ndarray:
+        """World-frame points (..., 3) in the base frame."""
         return self.base_pose.to_base(points)
 
     # ----------------------------------------------------------------- state access
     def tcp_pos(self) -> np.ndarray:
+        """TCP position (3,), base frame (m)."""
         return self.data.site_xpos[self.tcp_site].copy()
 
     def tcp_rot(self) -> np.ndarray:
+        """TCP rotation (3, 3), base frame."""
         return self.data.site_xmat[self.tcp_site].reshape(3, 3).copy()
 
     def object_pos(self, name: str) -> np.ndarray:
+        """Position (3,) of object `name`, base frame (m)."""
         return self.data.xpos[self.object_body[name]].copy()
 
     def object_rot(self, name: str) -> np.ndarray:
+        """Rotation (3, 3) of object `name`, base frame."""
         return self.data.xmat[self.object_body[name]].reshape(3, 3).copy()
 
     def door_angle(self) -> float:
+        """Door hinge angle (rad)."""
         return float(self.data.qpos[self.door_qpos])
 
     def handle_pos(self) -> np.ndarray:
+        """Door handle position (3,), base frame (m)."""
         return self.data.geom_xpos[self.model.geom("door_handle").id].copy()
 
     def hinge_pos(self) -> np.ndarray:
+        """Door body origin (on its hinge) (3,), base frame (m)."""
         return self.data.xpos[self.model.body("door").id].copy()
 
     def fingers(self) -> np.ndarray:
+        """Finger joint positions as a fraction of fully open (1: open)."""
         return self.data.qpos[self.finger_qpos] / FINGER_OPEN
 
     def touching(self, geom: int, side: str) -> bool:
+        """Whether `geom` touches the finger on `side` ("left" or "right")."""
         d = self.data
         fingers = self.finger_geoms[side]
         for c in d.contact[: d.ncon] if d.ncon else ():
@@ -304,9 +315,11 @@ class MultiviewPhysics:
         return False
 
     def holding(self, geom: int) -> bool:
+        """Whether the closed gripper holds `geom` between both fingers."""
         return self.gripper_closed and self.touching(geom, "left") and self.touching(geom, "right")
 
     def in_contact(self, geom_a: int, geom_b: int) -> bool:
+        """Whether geoms `geom_a` and `geom_b` are in contact."""
         d = self.data
         for i in range(d.ncon):
             pair = (d.contact.geom1[i], d.contact.geom2[i])

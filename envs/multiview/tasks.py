@@ -51,11 +51,13 @@ class MultiviewTask:
 
     @property
     def action_names(self) -> tuple[str, ...]:
+        """Action dims: translation velocities, rotation rates when `rotation`, gripper."""
         move = ("vel_x", "vel_y", "vel_z")
         return (*move, "rot_x", "rot_y", "rot_z", "gripper_open") if self.rotation else (*move, "gripper_open")
 
     @property
     def model_id(self) -> str:
+        """Simulator model id (`<env>-v1`)."""
         return f"{self.env}-v1"
 
 
@@ -95,10 +97,12 @@ def _reset_door(p: MultiviewPhysics, rng: np.random.Generator) -> np.ndarray:
 
 
 def lifted(p: MultiviewPhysics) -> bool:
+    """Whether the block is more than `LIFT_HEIGHT` above its rest height."""
     return bool(p.object_pos("block")[2] > BLOCK_REST_Z + LIFT_HEIGHT)
 
 
 def stacked(p: MultiviewPhysics) -> bool:
+    """Whether blue rests on green and the gripper has let go of it."""
     blue, green = p.object_pos("blue"), p.object_pos("green")
     on_top = np.linalg.norm(blue[:2] - green[:2]) < 0.02 and abs(blue[2] - green[2] - 2 * BLOCK_HALF) < 0.005
     return bool(on_top and not p.touching(p.object_geom["blue"], "left") and not p.gripper_closed)
@@ -110,6 +114,7 @@ def hole_centre(p: MultiviewPhysics) -> np.ndarray:
 
 
 def inserted(p: MultiviewPhysics) -> bool:
+    """Whether the cylinder's bottom is down in the hole, within its radius of the centre."""
     c = p.object_pos("cylinder")
     hole = hole_centre(p)
     bottom = c[2] - CYLINDER_HALF_LENGTH
@@ -119,6 +124,7 @@ def inserted(p: MultiviewPhysics) -> bool:
 
 
 def door_open(p: MultiviewPhysics) -> bool:
+    """Whether the door is open past `DOOR_OPEN_ANGLE`."""
     return p.door_angle() > DOOR_OPEN_ANGLE
 
 
@@ -181,6 +187,7 @@ STATE_NAMES = (
 
 
 def get_task(name: str) -> MultiviewTask:
+    """The multiview task `name`; ValueError for an unknown one."""
     if name not in TASKS:
         raise ValueError(f"unknown multiview task {name!r}; known: {', '.join(TASKS)}")
     return TASKS[name]

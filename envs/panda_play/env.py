@@ -11,7 +11,7 @@ else 0. Episodes never terminate on their own; they are truncated after `max_epi
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, override
 
 import gymnasium as gym
 import numpy as np
@@ -59,6 +59,7 @@ class PandaPlayEnv(SceneRendering, gym.Env):
         self._steps = 0
 
     # ----------------------------------------------------------------- gymnasium API
+    @override
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         self.physics.reset(self.np_random, green_on_blue=self.task.green_on_blue)
@@ -70,6 +71,7 @@ class PandaPlayEnv(SceneRendering, gym.Env):
         now = self.task.predicate(self.facts())
         return self.physics.observation(), self._info(False, now)
 
+    @override
     def step(self, action):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != (4,) or not np.isfinite(a).all():

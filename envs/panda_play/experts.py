@@ -56,6 +56,7 @@ class PandaPlayExpert:
         self.reset()
 
     def reset(self) -> None:
+        """Back to the start of the task's script."""
         self.phase = "start"
         self.timer = 0
         self.aim = np.zeros(3)
@@ -68,9 +69,11 @@ class PandaPlayExpert:
     # ----------------------------------------------------------------- state helpers
     @property
     def p(self):
+        """The env's physics."""
         return self.env.physics
 
     def holding(self, i: int) -> bool:
+        """Whether both fingers touch block `i` (0: blue, 1: green) with the gripper closed."""
         c = self.p.contacts()
         left, right = (
             (c.blue_left_finger, c.blue_right_finger) if i == 0 else (c.green_left_finger, c.green_right_finger)
@@ -141,6 +144,7 @@ class PandaPlayExpert:
 
     # ----------------------------------------------------------------- tasks
     def act(self) -> np.ndarray:
+        """The next action of the task's script."""
         return getattr(self, "_task_" + self.task.replace("-", "_"))()
 
     def _task_open(self) -> np.ndarray:
@@ -332,9 +336,11 @@ class ExpertPolicy:
         self.expert = PandaPlayExpert(env)
 
     def reset(self) -> None:
+        """A fresh expert for the next episode."""
         self.expert = PandaPlayExpert(self.env)
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The expert's next action (`obs` unused)."""
         return self.expert.act()
 
 

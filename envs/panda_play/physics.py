@@ -371,12 +371,15 @@ class PandaPlayPhysics:
 
     # ----------------------------------------------------------------- state access
     def tcp_pos(self) -> np.ndarray:
+        """TCP position (3,), world frame (m)."""
         return self.data.site_xpos[self.tcp_site].copy()
 
     def block_pos(self, i: int) -> np.ndarray:
+        """Position (3,) of block `i` (0: blue, 1: green), world frame (m)."""
         return self.data.xpos[self.block_body[i]].copy()
 
     def block_quat_wxyz(self, i: int) -> np.ndarray:
+        """Orientation of block `i` as a (w, x, y, z) quaternion, world frame."""
         return self.data.xquat[self.block_body[i]].copy()
 
     def block_tilt(self, i: int) -> float:
@@ -400,6 +403,7 @@ class PandaPlayPhysics:
         return self.data.qpos[self.finger_qpos] / FINGER_OPEN
 
     def tcp_velocity(self) -> np.ndarray:
+        """TCP linear velocity (3,), world frame (m/s)."""
         mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.tcp_site, self._vel6, 0)
         return self._vel6[3:].copy()
 
@@ -524,6 +528,7 @@ class PandaPlayPhysics:
 
     # ----------------------------------------------------------------- sensing
     def contacts(self) -> ContactFlags:
+        """Which of the tracked geom pairs touch now."""
         d = self.data
         n = d.ncon
         mask = 0

@@ -115,9 +115,11 @@ class Task:
 
     @property
     def description(self) -> str:
+        """What success means: the predicate's docstring."""
         return (self.predicate.__doc__ or "").strip()
 
     def hold_steps(self, control_hz: int) -> int:
+        """Steps the predicate must hold at `control_hz` to last `hold_seconds` (at least 1)."""
         return max(1, math.ceil(self.hold_seconds * control_hz - 1e-9))
 
 
@@ -154,8 +156,10 @@ class HoldTimer:
         self.count = 0
 
     def reset(self) -> None:
+        """Start counting again."""
         self.count = 0
 
     def update(self, holds: bool) -> bool:
+        """Count this step (or start over when `holds` is false); whether the predicate has held `steps` steps."""
         self.count = self.count + 1 if holds else 0
         return self.count >= self.steps

@@ -47,9 +47,14 @@ class Source(Protocol):
     robot_type: str | None
     num_episodes: int
 
-    def episode_groups(self) -> list[list[int]]: ...
-    def iter_episodes(self, indices: list[int]) -> Iterator[Episode]: ...
-    def describe(self) -> dict[str, Any]: ...
+    def episode_groups(self) -> list[list[int]]:
+        """Episode indices in groups read together (one file's episodes)."""
+
+    def iter_episodes(self, indices: list[int]) -> Iterator[Episode]:
+        """The episodes at `indices`, in that order."""
+
+    def describe(self) -> dict[str, Any]:
+        """The source fields of the provenance (kind, path, episodes, ...)."""
 
 
 def open_source(config: SourceConfig, base_dir: Path | None = None) -> Source:

@@ -195,6 +195,8 @@ class RawDatasetWriter:
 
 
 def validate_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
+    """Check one episode's arrays (required ones present, equal lengths, allowed dtypes, finite, at
+    most 2-D); a DatasetError names the first problem."""
     for name in REQUIRED_ARRAYS:
         if name not in arrays:
             raise DatasetError(f"{where}: required array {name!r} is missing")
@@ -230,16 +232,20 @@ class RawDataset:
 
     @property
     def fps(self) -> int:
+        """Frames per second."""
         return int(self.index["fps"])
 
     @property
     def num_episodes(self) -> int:
+        """Number of episodes."""
         return len(self.index["episodes"])
 
     def episode_dir(self, i: int) -> Path:
+        """Folder of episode `i`."""
         return self.root / self.index["episodes"][i]["name"]
 
     def features(self) -> Features:
+        """The dataset's features, from the first episode's files."""
         ep = self.episode_dir(0)
         arrays = {p.stem: _load_npy(p, mmap=True) for p in sorted((ep / "arrays").glob("*.npy"))}
         images = {d.name: _read_png(d / "frame_000000.png")[None] for d in _children(ep / "images")}
@@ -247,6 +253,7 @@ class RawDataset:
         return raw_features(arrays, images, depth, self.index.get("names", {}), f"{self.root}/dataset.json")
 
     def read_episode(self, i: int) -> Episode:
+        """Episode `i`, validated."""
         ep = self.episode_dir(i)
         where = f"{ep}"
         meta = read_json_file(ep / "meta.json", "episode metadata")
@@ -270,6 +277,7 @@ class RawDataset:
         return raw_episode(arrays, images, depth, meta, i, self.index.get("info", {}).get("cameras"), where)
 
     def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:
+        """The episodes at `indices` (default: all), read one at a time."""
         for i in range(self.num_episodes) if indices is None else indices:
             yield self.read_episode(i)
 
@@ -461,10 +469,13 @@ def _check_index_types(index: dict[str, Any], where: Path) -> None:
 
 
 def is_raw_dataset(path: str | Path) -> bool:
+    """Whether `path` holds a raw dataset (a dataset.json)."""
     return (Path(path) / "dataset.json").is_file()
 
 
 class RawSource:
+    """A raw dataset as a pipeline source."""
+
     def __init__(self, root: Path) -> None:
         self._raw = open_raw_dataset(root)
         self.root = root
@@ -474,12 +485,15 @@ class RawSource:
         self.num_episodes = self._raw.num_episodes
 
     def episode_groups(self) -> list[list[int]]:
+        """One group per episode (each episode is its own folder)."""
         return [[i] for i in range(self.num_episodes)]  # one directory per episode
 
     def iter_episodes(self, indices: list[int]) -> Iterator[Episode]:
+        """The episodes at `indices`, read in that order."""
         return self._raw.iter_episodes(indices)
 
     def describe(self) -> dict[str, Any]:
+        """The source fields of the provenance (path, episodes, env, format version)."""
         return {
             "kind": "raw",
             "path": str(self.root),

@@ -92,11 +92,13 @@ class Ros2Mapping:
                 raise ValueError(f"camera feature {key!r} takes exactly one image topic and no field")
 
     def topics(self) -> list[str]:
+        """The topics the mapping reads, each once, in order of first use."""
         names = [p.topic for parts in self.sources.values() for p in parts]
         return list(dict.fromkeys(names))
 
 
 def load_mapping(path: str | Path) -> Ros2Mapping:
+    """The `Ros2Mapping` in a .toml, .yaml or .json mapping file."""
     from shiftkit.pipelines.config import read_config_file
     from shiftkit.pipelines.dataclass_config import from_dict
 
