@@ -92,6 +92,7 @@ class PolicySpec:
         return [k for k, ft in self.features.items() if is_image_feature(ft)]
 
     def numeric_keys(self) -> list[str]:
+        """The non-image input features (vectors, normalised and concatenated)."""
         return [k for k, ft in self.features.items() if not is_image_feature(ft)]
 
 
@@ -142,6 +143,8 @@ class Normalizer(nn.Module):
         return getattr(self, f"mean{i}"), getattr(self, f"std{i}")
 
     def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Every input but the action normalised by its statistics (images channel-first, uint8 scaled
+        to [0, 1] first) and clipped to +-`clip` stds."""
         out = {}
         for key in self.keys[:-1]:
             mean, std = self._ms(key)
@@ -161,10 +164,12 @@ class Normalizer(nn.Module):
         )
 
     def action(self, action: torch.Tensor) -> torch.Tensor:
+        """An action in the units of the normalised policy output."""
         mean, std = self._ms("action")
         return (action - mean) / std
 
     def unaction(self, action: torch.Tensor) -> torch.Tensor:
+        """A normalised policy output back in the dataset's action units."""
         mean, std = self._ms("action")
         return action * std + mean
 
@@ -184,6 +189,7 @@ class BCNet(nn.Module):
         self.head = mlp(in_dim, int(np.prod(spec.action["shape"])), tuple(spec.hidden))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The (B, A) normalised action of normalised observations `obs`."""
         parts = [obs[k].flatten(1) for k in self.numeric_keys]
         parts += [enc(obs[k]) for enc, k in zip(self.encoders, self.image_keys, strict=True)]
         return self.head(torch.cat(parts, dim=-1))

@@ -54,6 +54,7 @@ class DiscriminatorNet(nn.Module):
         self.head = mlp(in_dim, 1, tuple(hidden), act=nn.Tanh)
 
     def forward(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The (B, 1) logit of D(s, a) for normalised inputs `x` (observation features and `action`)."""
         parts = [x[k].flatten(1) for k in self.numeric_keys]
         parts += [enc(x[k]) for enc, k in zip(self.encoders, self.image_keys, strict=True)]
         parts.append(x["action"].flatten(1))
@@ -127,9 +128,11 @@ class Discriminator:
         return torch.sigmoid(self.net(self._inputs(batch))).cpu().numpy().astype(np.float64)
 
     def state_dict(self) -> dict:
+        """The network, its optimiser and the update count, for checkpoints."""
         return {"net": self.net.state_dict(), "optimizer": self.optimizer.state_dict(), "updates": self.updates}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores what `state_dict` saved."""
         self.net.load_state_dict(state["net"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = state["updates"]

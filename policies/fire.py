@@ -101,6 +101,7 @@ class Learner:
         return [self.roc_gda, *(r for r in own if isinstance(r, GDARule))]
 
     def state_dict(self) -> dict[str, Any]:
+        """Everything a checkpoint holds to resume the loop exactly."""
         return {
             "policy": self.policy.state_dict(),
             "optimizers": [o.state_dict() for o in self.optimizers],
@@ -117,6 +118,7 @@ class Learner:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores what `state_dict` saved (the RNGs included)."""
         self.policy.load_state_dict(state["policy"])
         for opt, s in zip(self.optimizers, state["optimizers"], strict=True):
             opt.load_state_dict(s)

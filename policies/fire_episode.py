@@ -28,6 +28,7 @@ class Agent:
         self.keys = list(policy.features)
 
     def observe(self, env: Any, obs: np.ndarray) -> dict[str, np.ndarray]:
+        """The policy's input features of the env observation `obs`."""
         return self.obs_map(env, obs)
 
     @torch.no_grad()
@@ -38,6 +39,7 @@ class Agent:
         return outs.mean(dim=0)[0].cpu().numpy().astype(np.float32), float(ensemble_doubt(outs)[0])
 
     def d_score(self, features: dict[str, np.ndarray], action: np.ndarray) -> float:
+        """D(s, a) of one frame's features and action, in [0, 1]."""
         frame = {k: features[k][None] for k in self.keys}
         return float(self.disc.score({**frame, "action": action[None]})[0])
 

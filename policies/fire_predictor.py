@@ -169,6 +169,7 @@ class FailurePredictorStep(ProcessorStep):
         self.predictor = FailurePredictor.load(self.path, self.rule, self.device)
 
     def __call__(self, transition: dict) -> dict:
+        """The transition with `failure_score` and `intervention_request` in its info."""
         out = dict(transition)
         observation, action = out.get(TransitionKey.OBSERVATION), out.get(TransitionKey.ACTION)
         if observation is None or action is None:
@@ -189,9 +190,11 @@ class FailurePredictorStep(ProcessorStep):
         return out
 
     def reset(self) -> None:
+        """Starts a new episode: the rule's per-episode state is cleared."""
         self.predictor.reset()
 
     def get_config(self) -> dict[str, Any]:
+        """What `from_pretrained` rebuilds the step from."""
         return {"path": self.path, "rule": self.rule, "device": self.device, "bell": self.bell}
 
     def transform_features(self, features: dict) -> dict:

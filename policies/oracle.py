@@ -110,6 +110,7 @@ class SimulatedOracle:
         self.look_ahead_steps = 0
 
     def start_episode(self) -> None:
+        """Forgets the previous episode's look-ahead."""
         self.look_ahead = None
 
     def _future(self, env: Any, obs: np.ndarray, t: int) -> LookAhead:

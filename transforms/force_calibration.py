@@ -106,6 +106,7 @@ class Calibration:
         return np.stack([self.axes[a].displacement(w[..., k]) for k, a in enumerate(WRENCH_AXES)], axis=-1)
 
     def to_json(self) -> dict[str, Any]:
+        """The calibration as the JSON document it is saved as."""
         return {
             "format": FORMAT,
             "version": VERSION,
@@ -321,6 +322,8 @@ def plot_calibration(
 # the procedure (`PushConfig`) and the simulated pushes live with the simulated lab (envs.door_tactile.lab)
 @dataclass
 class Push:
+    """One recorded calibration push: its kind, seed and what was measured."""
+
     kind: str
     seed: int
     displacement: np.ndarray
