@@ -15,11 +15,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("pipelines", "transforms", "policies", "envs", "cards", "app")
 
-# Cycles owned by work under way elsewhere; each entry goes when that work lands.
-KNOWN_CYCLES: list[list[str]] = [
-    # The force calibration moves out of transforms (its simulator driver into an application).
-    ["shiftkit.transforms.force_calibration", "shiftkit.transforms.force_matching"],
-]
 
 # The strongly connected components (Tarjan) of grimp's graph of direct imports, module level and
 # function level alike: each one with more than one module is an import cycle.
@@ -66,7 +61,7 @@ def test_no_import_cycles(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     cycles = json.loads(proc.stdout)
-    assert [c for c in cycles if c not in KNOWN_CYCLES] == []
+    assert cycles == []
 
 
 def _repo_copy(dest: Path) -> Path:

@@ -534,9 +534,9 @@ def recorded_pushes(root: str | Path, push: PushConfig | None = None) -> tuple[l
     """The fit and held-out pushes of a recorded calibration plan: per settled sample, e from the
     commanded pose (`action`) and the measured pose (`ee_pose`, the same frame) and the raw reading
     (`wrench_raw`). Returns them and the recording's `info`."""
+    from shiftkit.envs.geometry import quat_xyzw_to_matrix
     from shiftkit.pipelines.errors import DatasetError
     from shiftkit.pipelines.sources.raw import open_raw_dataset
-    from shiftkit.transforms.force_matching import quat_xyzw_to_matrix
 
     raw = open_raw_dataset(root)
     info = raw.index.get("info", {})
