@@ -195,7 +195,7 @@ def exit_with_parent(main_pid: int | None, period: float = 1.0) -> None:
     _WORKER["watchdog"] = True
 
 
-# One plan per worker process: sources opened and stages set up once (SPEC §4).
+# One plan per worker process: sources opened and stages set up once (docs/executors.md).
 _WORKER: dict[str, Any] = {}
 
 

@@ -1,4 +1,4 @@
-"""FIRE: failure identification to reduce expert burden (thesis ch. 5, Algorithm 2; SPEC 5.4).
+"""FIRE: failure identification to reduce expert burden (thesis ch. 5, Algorithm 2; docs/fire.md).
 
 A BC policy, initialised from a dataset, runs episodes in a registered environment. At every step a
 failure predictor (beta rule, GDA, ensemble doubt or GDA-or-doubt) looks at the discriminator score

@@ -1,4 +1,4 @@
-"""Tactile force calibration (thesis §4.3.6, SPEC §5.2): the map between a tactile sensor's unscaled
+"""Tactile force calibration (thesis §4.3.6; docs/force_matching.md): the map between a tactile sensor's unscaled
 wrench F~ = (Fx, Fy, Fz, tau_z) and the impedance controller's pose error e = x_d - x, both in the
 sensor frame (e = (ex, ey, ez) in metres, erz in radians).
 
