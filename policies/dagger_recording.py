@@ -94,6 +94,7 @@ class Recording:
 
     @property
     def name(self) -> str:
+        """The recording's repo id."""
         return self.resolved.repo_id
 
 

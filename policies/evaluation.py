@@ -36,9 +36,12 @@ from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 
 
 class Policy(Protocol):
+    """What `shiftkit eval` runs: a policy with its input `features` (name -> LeRobot feature) and `act`."""
+
     features: dict[str, dict]
 
-    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray: ...
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The action (act_dim,) for one observation dict (feature name -> array, no batch dim)."""
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -103,6 +106,7 @@ class ObservationMap:
                 self.vectors[key] = np.asarray([index[n] for n in names])
 
     def __call__(self, env: Any, obs: np.ndarray) -> dict[str, np.ndarray]:
+        """The policy's observation dict for the env's flat observation `obs`, cameras rendered from `env`."""
         out = {key: np.asarray(obs, dtype=np.float32)[idx] for key, idx in self.vectors.items()}
         for key, (kind, cam) in self.cameras.items():
             if kind == "rgb":
@@ -142,13 +146,16 @@ class EvalReport:
 
     @property
     def successes(self) -> int:
+        """Episodes that succeeded."""
         return sum(e.success for e in self.episodes)
 
     @property
     def success_rate(self) -> float:
+        """Fraction of episodes that succeeded (0 with no episodes)."""
         return self.successes / len(self.episodes) if self.episodes else 0.0
 
     def summary(self) -> dict[str, Any]:
+        """Env, task, counts, success rate and its 95% Wilson interval, as a JSON-ready dict."""
         lo, hi = wilson_interval(self.successes, len(self.episodes))
         return {
             "env": self.env,
@@ -163,6 +170,7 @@ class EvalReport:
         }
 
     def to_json(self) -> str:
+        """The summary plus every episode's result, as indented JSON."""
         return json.dumps({**self.summary(), "results": [asdict(e) for e in self.episodes]}, indent=2) + "\n"
 
 

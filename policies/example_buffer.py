@@ -134,6 +134,7 @@ class ExampleBuffer:
         self.obs_dim = dims.pop()
 
     def sizes(self) -> dict[str, int]:
+        """Examples held per task."""
         return {t: len(o) for t, o in zip(self.tasks, self.obs, strict=True)}
 
     def sample(self, rng: np.random.Generator, batch_size: int) -> tuple[np.ndarray, np.ndarray | None]:

@@ -62,15 +62,18 @@ class BetaRule:
         self.watching = False
 
     def reset(self) -> None:
+        """Starts a new episode: the run of low-D steps restarts."""
         self.run = 0
         self.watching = False
 
     def predict(self, t: int, d_t: float | None, doubt_t: float = 0.0) -> bool:
+        """Whether step `t` (discriminator output `d_t`, None before it is available) is a predicted failure."""
         self.watching = self.watching or d_t is not None
         self.run = self.run + 1 if d_t is not None and d_t < self.threshold else 0
         return self.run >= self.beta
 
     def feedback(self, kind: str) -> None:
+        """Adapts beta to the person's verdict on the last prediction: "fp" (false positive) or "fn" (missed failure)."""
         _check_feedback(kind)
         if kind == "fn" and not self.watching:
             return
@@ -92,9 +95,11 @@ class BetaRule:
         return float(best)
 
     def state_dict(self) -> dict[str, Any]:
+        """The adapted state, for a checkpoint."""
         return {"beta": self.beta}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores what `state_dict` returned."""
         self.beta = state["beta"]
 
 
@@ -148,6 +153,7 @@ class GDARule:
             self._stats[name] = (mean, np.maximum(std, self.min_std), count)
 
     def update(self, episode: EpisodeTrace, failed: bool) -> None:
+        """Adds a finished episode's D trace to the failed or succeeded statistics and refits."""
         (self.failed if failed else self.succeeded).append(np.asarray(episode.d, dtype=np.float64))
         self.n_failed += int(failed)
         self.n_total += 1
@@ -176,12 +182,14 @@ class GDARule:
 
     # --- prediction
     def reset(self) -> None:
+        """Starts a new episode (and the beta counter, when the rule has one)."""
         self.run = 0
         self.watching = False
         if self.beta is not None:
             self.beta.reset()
 
     def predict(self, t: int, d_t: float | None, doubt_t: float = 0.0) -> bool:
+        """Whether step `t` is a predicted failure: posterior > gamma (for beta consecutive steps, with a beta counter)."""
         p = self.posterior(t, d_t)
         self.watching = self.watching or p is not None
         above = p is not None and p > self.gamma
@@ -191,6 +199,7 @@ class GDARule:
         return self.run >= self.beta.beta
 
     def feedback(self, kind: str) -> None:
+        """Adapts gamma (and beta) to the person's verdict: "fp" raises it, "fn" lowers it."""
         _check_feedback(kind)
         if kind == "fn" and not self.watching:
             return
@@ -209,6 +218,7 @@ class GDARule:
         return max((p for p in ps if p is not None), default=0.0)
 
     def state_dict(self) -> dict[str, Any]:
+        """Gamma, the per-episode statistics and beta, for a checkpoint."""
         return {
             "gamma": self.gamma,
             "failed": list(self.failed),
@@ -219,6 +229,7 @@ class GDARule:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores what `state_dict` returned and refits the class statistics."""
         self.gamma, self.n_failed, self.n_total = state["gamma"], state["n_failed"], state["n_total"]
         if self.beta is not None:
             self.beta.load_state_dict(state["beta"])
@@ -239,9 +250,11 @@ class DoubtRule:
         """Doubt looks at one step at a time."""
 
     def predict(self, t: int, d_t: float | None, doubt_t: float = 0.0) -> bool:
+        """Whether step `t` is a predicted failure: the ensemble doubt `doubt_t` exceeds the threshold."""
         return bool(doubt_t > self.threshold)
 
     def feedback(self, kind: str) -> None:
+        """Scales the threshold by the person's verdict: up after "fp", down after "fn"."""
         _check_feedback(kind)
         if kind == "fp":
             self.threshold *= 1.0 + self.delta_fp
@@ -252,12 +265,15 @@ class DoubtRule:
         """Doubt keeps no statistics."""
 
     def score(self, episode: EpisodeTrace) -> float:
+        """The episode's highest doubt (0 for an empty trace)."""
         return float(np.max(episode.doubt)) if len(episode.doubt) else 0.0
 
     def state_dict(self) -> dict[str, Any]:
+        """The adapted threshold, for a checkpoint."""
         return {"threshold": self.threshold}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores what `state_dict` returned."""
         self.threshold = state["threshold"]
 
 
@@ -269,26 +285,32 @@ class OrRule:
         self.name = f"{a.name}+{b.name}"
 
     def reset(self) -> None:
+        """Resets both predictors."""
         self.a.reset()
         self.b.reset()
 
     def predict(self, t: int, d_t: float | None, doubt_t: float = 0.0) -> bool:
+        """Whether either predictor fires at step `t` (both are stepped)."""
         fa = self.a.predict(t, d_t, doubt_t)  # both run: each keeps its own counters
         fb = self.b.predict(t, d_t, doubt_t)
         return fa or fb
 
     def feedback(self, kind: str) -> None:
+        """Passes the verdict to both predictors."""
         self.a.feedback(kind)
         self.b.feedback(kind)
 
     def update(self, episode: EpisodeTrace, failed: bool) -> None:
+        """Passes the finished episode to both predictors."""
         self.a.update(episode, failed)
         self.b.update(episode, failed)
 
     def state_dict(self) -> dict[str, Any]:
+        """Both predictors' states, for a checkpoint."""
         return {"a": self.a.state_dict(), "b": self.b.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores what `state_dict` returned."""
         self.a.load_state_dict(state["a"])
         self.b.load_state_dict(state["b"])
 

@@ -47,9 +47,11 @@ class FrameBuffer:
         return self.gather(rng.integers(0, self._len, batch_size), device)
 
     def state_dict(self) -> dict[str, np.ndarray]:
+        """The frames held, one array per key (empty when none), for a checkpoint."""
         return dict(self.arrays()) if self._len else {}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        """Replaces the frames by what `state_dict` returned."""
         self._parts = {k: [] for k in self.keys}
         self._arrays, self._len = None, 0
         if state:

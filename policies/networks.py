@@ -14,6 +14,7 @@ keypoint an expected (x, y) image position in [-1, 1] (Levine et al., 2016). Two
 from __future__ import annotations
 
 from pathlib import Path
+from typing import override
 
 import torch
 from torch import nn
@@ -46,6 +47,7 @@ class SpatialSoftArgmax(nn.Module):
         self.register_buffer("grid", torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1), persistent=False)
         self.log_temperature = nn.Parameter(torch.zeros(()))
 
+    @override
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         b, k, h, w = features.shape
         weights = torch.softmax(features.reshape(b, k, h * w) / self.log_temperature.exp(), dim=-1)
@@ -103,6 +105,7 @@ class KeypointCNN(nn.Module):
         """`(B, C, H, W)` -> `(B, K, 2)` keypoints in [-1, 1]."""
         return self.ssam(self.convs(self.conv1(images)))
 
+    @override
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.keypoints(images).flatten(1)
 
@@ -152,6 +155,7 @@ class ResNet18Keypoints(nn.Module):
         """`(B, C, H, W)` -> `(B, K, 2)` keypoints in [-1, 1]."""
         return self.ssam(self.head(self.trunk(images)))
 
+    @override
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.keypoints(images).flatten(1)
 

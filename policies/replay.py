@@ -42,12 +42,14 @@ class ReplayBuffer:
         return self.size
 
     def add(self, obs: np.ndarray, act: np.ndarray, next_obs: np.ndarray, episode_end: bool) -> None:
+        """Writes one transition, overwriting the oldest once the buffer is full."""
         i = self.pointer
         self.obs[i], self.act[i], self.next_obs[i], self.episode_end[i] = obs, act, next_obs, episode_end
         self.pointer = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
     def sample(self, rng: np.random.Generator, batch_size: int, n_step: int = 1) -> ReplaySample:
+        """A uniform batch of `batch_size` transitions, with up to `n_step` rewarded steps each (fewer where the episode ends)."""
         idx = rng.integers(0, self.size, batch_size)
         rows = np.empty((batch_size, n_step), np.int64)
         rows[:, 0] = idx
@@ -66,6 +68,7 @@ class ReplayBuffer:
     _ARRAYS = ("obs", "act", "next_obs", "episode_end")
 
     def state_dict(self) -> dict:
+        """The written rows and the write position, for a checkpoint."""
         # Only the written rows (a checkpoint early in training stays small), as tensors for torch.save.
         return {k: torch.from_numpy(getattr(self, k)[: self.size].copy()) for k in self._ARRAYS} | {
             "pointer": self.pointer,

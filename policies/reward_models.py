@@ -27,9 +27,11 @@ class SQILReward:
         self.policy_label, self.example_label = policy_label, example_label
 
     def buffer_reward(self, x: torch.Tensor) -> torch.Tensor:
+        """The constant policy label for every input in `x`, (..., in_dim) -> (...)."""
         return torch.full(x.shape[:-1], self.policy_label, device=x.device)
 
     def example_reward(self, x: torch.Tensor) -> torch.Tensor:
+        """The constant example label for every input in `x`, (..., in_dim) -> (...)."""
         return torch.full(x.shape[:-1], self.example_label, device=x.device)
 
 
@@ -51,6 +53,7 @@ class DACReward(nn.Module):
 
     @torch.no_grad()
     def buffer_reward(self, x: torch.Tensor) -> torch.Tensor:
+        """The discriminators' logits log D - log(1 - D), (T, ..., in_dim) -> (T, ...)."""
         return self.logit(x)  # log D - log(1 - D) of a sigmoid is its logit
 
     example_reward = buffer_reward

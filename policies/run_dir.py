@@ -157,6 +157,7 @@ class RunDir:
 
     @property
     def checkpoint_dir(self) -> Path:
+        """The run's checkpoints folder."""
         return self.path / CHECKPOINTS
 
     def read_config(self) -> dict | None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Iterable, Sequence
+from typing import override
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +34,7 @@ class NarrowProduct(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """x @ weight + bias per member, (M, B, in) -> (M, B, out), saving what `backward` needs."""
         ctx.save_for_backward(x, weight)
         # A fresh (batch, out) tensor, not a view: a following in-place activation must not rewrite
         # this function's output behind autograd (and it is small).
@@ -40,6 +42,7 @@ class NarrowProduct(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        """Gradients for x, weight and bias (None where not needed)."""
         x, weight = ctx.saved_tensors
         grad_x = grad_weight = grad_bias = None
         if ctx.needs_input_grad[0]:
@@ -61,6 +64,7 @@ class BatchedLinear(nn.Module):
         self.weight = nn.Parameter(torch.empty(members, in_dim, out_dim).uniform_(-bound, bound))
         self.bias = nn.Parameter(torch.empty(members, 1, out_dim).uniform_(-bound, bound))
 
+    @override
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.weight.shape[-1] < NARROW_OUT:
             return NarrowProduct.apply(x, self.weight, self.bias)
@@ -112,6 +116,7 @@ class Intentions(nn.Module):
 
     @property
     def alpha(self) -> torch.Tensor:
+        """The entropy temperature per task (num_tasks,), exp(log_alpha)."""
         return self.log_alpha.exp()
 
     def _gaussian(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -14,6 +14,7 @@ Both schedulers first pick, per episode, one of the handcrafted sequences unifor
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import override
 
 import numpy as np
 
@@ -84,9 +85,11 @@ class _Scheduler:
         """Learn from an episode that followed `plan` (only learned schedulers use this)."""
 
     def state_dict(self) -> dict:
+        """What the scheduler learned, for a checkpoint (nothing for a fixed one)."""
         return {}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores what `state_dict` returned."""
         pass
 
 
@@ -166,9 +169,11 @@ class QTableScheduler(_Scheduler):
             q = self.table.setdefault(tuple(plan[:h]), np.zeros(self.num_tasks))
             q[task] += self.ema_rate * (returns[h * period] - q[task])
 
+    @override
     def state_dict(self) -> dict:
         return {"table": {k: v.copy() for k, v in self.table.items()}, "temperature": self.temperature}
 
+    @override
     def load_state_dict(self, state: dict) -> None:
         self.table = {tuple(k): np.array(v, dtype=np.float64) for k, v in state["table"].items()}
         self.temperature = float(state["temperature"])

@@ -38,9 +38,11 @@ class MedianFilter:
         return window.median(dim=0).values.to(values.device)
 
     def state_dict(self) -> dict:
+        """The history window and count, for a checkpoint."""
         return {"history": self.history.clone(), "count": self.count}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores what `state_dict` returned."""
         self.history = state["history"].clone()
         self.count = int(state["count"])
 
@@ -70,8 +72,10 @@ class ValueBounds:
         return q_max, q_min
 
     def state_dict(self) -> dict:
+        """Both filters' states, for a checkpoint."""
         return {"q_max": self.q_max_filter.state_dict(), "min_reward": self.min_reward_filter.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores what `state_dict` returned."""
         self.q_max_filter.load_state_dict(state["q_max"])
         self.min_reward_filter.load_state_dict(state["min_reward"])

@@ -157,11 +157,13 @@ class VPACEArgs:
 
     @classmethod
     def for_variant(cls, variant: str, **overrides: Any) -> VPACEArgs:
+        """The args of a named variant (VARIANTS), with `overrides` on top."""
         if variant not in VARIANTS:
             raise ConfigError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
         return cls(variant=variant, **(VARIANTS[variant] | overrides))
 
     def validate(self) -> None:
+        """Raises ConfigError naming the first invalid or inconsistent setting."""
         if not self.main_task:
             raise ConfigError("--main-task is required")
         if self.reward_model not in ("sqil", "dac", "rce"):
@@ -189,6 +191,7 @@ class VPACEArgs:
 
     @property
     def tasks(self) -> list[str]:
+        """The tasks trained, main first (only the main task when not multitask)."""
         return [self.main_task, *self.aux_tasks] if self.multitask else [self.main_task]
 
 
@@ -401,6 +404,7 @@ class Agent:
     # -- checkpoints --------------------------------------------------------------------------------
 
     def state_dict(self) -> dict:
+        """Intentions, optimizers, value bounds (and a learned reward with its optimizer), for a checkpoint."""
         state = {
             "intentions": self.intentions.state_dict(),
             "actor_opt": self.actor_opt.state_dict(),
@@ -413,6 +417,7 @@ class Agent:
         return state
 
     def load_state_dict(self, state: dict) -> None:
+        """Restores what `state_dict` returned."""
         self.intentions.load_state_dict(state["intentions"])
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
@@ -602,6 +607,7 @@ class MainIntentionPolicy:
         self.features = {"observation.state": {"shape": (len(observation_names),), "names": list(observation_names)}}
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The env action for one observation: the main intention's mean action, mapped to the env's action bounds."""
         action = self.agent.act(np.asarray(obs["observation.state"], np.float32), self.task, deterministic=True)
         return self.agent.env_action(action)
 

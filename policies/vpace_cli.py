@@ -86,6 +86,7 @@ def build_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    """Trains VPACE / LfGP from the parsed options; returns the exit code."""
     from shiftkit.policies.vpace import train
 
     config = build_args(args)
@@ -110,6 +111,7 @@ def add_plot_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_plot(args: argparse.Namespace) -> int:
+    """Plots the IQM success curves of the LABEL=RUN[,RUN...] groups and prints each one's final IQM; returns 0."""
     from pathlib import Path
 
     from shiftkit.pipelines.errors import ConfigError

@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, override
 
 import numpy as np
 
@@ -19,17 +19,22 @@ NumericDtype = Literal["float32", "float64", "int64", "int32", "bool"]
 
 @dataclass
 class CastConfig:
+    """Parameters of `cast`."""
+
     dtypes: dict[str, NumericDtype] = field(default_factory=dict)
     """Feature name -> new dtype."""
 
 
 @register_stage
 class Cast(Stage):
+    """Changes the dtype of the named numeric features, in the schema and in every frame."""
+
     name = "cast"
     version = 1
     example_params = {"dtypes": {"action": "float64"}}
     Config = CastConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         out = copy.deepcopy(features)
         for key, dtype in self.config.dtypes.items():
@@ -40,6 +45,7 @@ class Cast(Stage):
             out[key]["dtype"] = dtype
         return out
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         frames = dict(episode.frames)
         for key, dtype in self.config.dtypes.items():

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, override
 
 import numpy as np
 
@@ -27,6 +27,8 @@ from shiftkit.pipelines.stage import Stage, register_stage
 
 @dataclass
 class DepthImageConfig:
+    """Parameters of `depth_image`."""
+
     unit: Literal["m", "mm"] = DEFAULT_UNIT
     """Unit the migrated depth is stored in: "m" (float32 metres, exact) or "mm" (uint16
     millimetres, half the size, 0.5 mm steps)."""
@@ -34,11 +36,14 @@ class DepthImageConfig:
 
 @register_stage
 class DepthImage(Stage):
+    """Rewrites legacy depth features (grey RGB images, float arrays) as native (H, W, 1) depth in `unit`."""
+
     name = "depth_image"
     version = 2
     example_params = {"unit": "mm"}
     Config = DepthImageConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         out = dict(features)  # idempotent: a dataset with native depth passes unchanged
         for key in [k for k, ft in features.items() if is_legacy_depth(k, ft)]:
@@ -47,6 +52,7 @@ class DepthImage(Stage):
             out[key] = depth_feature(h, w, dtype, self.config.unit)
         return out
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         frames, cameras = dict(episode.frames), dict(episode.meta.get("cameras") or {})
         for key in [k for k in frames if k.startswith(DEPTH_PREFIX)]:

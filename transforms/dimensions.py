@@ -7,7 +7,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, override
 
 import numpy as np
 
@@ -37,6 +37,8 @@ def _with_names(features: Features, key: str, names: list[str]) -> Features:
 
 @dataclass
 class SelectConfig:
+    """Parameters of `select`."""
+
     feature: str
     """The vector feature (e.g. `observation.state`)."""
     names: list[str]
@@ -53,11 +55,14 @@ class SelectConfig:
 
 @register_stage
 class Select(Stage):
+    """Keeps the named dimensions of one vector feature, in the given order, optionally renamed."""
+
     name = "select"
     version = 1
     example_params = {"feature": "observation.state", "names": ["gripper", "ee_x"], "rename": {"ee_x": "x"}}
     Config = SelectConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         names = _names("select", features, self.config.feature)
         missing = [n for n in self.config.names if n not in names]
@@ -75,6 +80,7 @@ class Select(Stage):
         self._index = np.array([names.index(n) for n in self.config.names], dtype=np.int64)
         return _with_names(features, self.config.feature, out_names)
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         arr = episode.frames[self.config.feature]
         yield episode.with_frames(**{self.config.feature: np.ascontiguousarray(arr[:, self._index])})
@@ -82,6 +88,8 @@ class Select(Stage):
 
 @dataclass
 class PadConfig:
+    """Parameters of `pad`."""
+
     feature: str
     """The vector feature (e.g. `observation.state`)."""
     names: list[str]
@@ -96,6 +104,8 @@ class PadConfig:
 
 @register_stage
 class Pad(Stage):
+    """Puts one vector feature's dimensions in the given order, adding the missing ones as the constant `value`."""
+
     name = "pad"
     version = 1
     example_params = {
@@ -105,6 +115,7 @@ class Pad(Stage):
     }
     Config = PadConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         names = _names("pad", features, self.config.feature)
         dropped = [n for n in names if n not in self.config.names]
@@ -116,6 +127,7 @@ class Pad(Stage):
         self._index = np.array([names.index(n) if n in names else -1 for n in self.config.names], dtype=np.int64)
         return _with_names(features, self.config.feature, self.config.names)
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         arr = episode.frames[self.config.feature]
         out = np.full((len(arr), len(self._index)), self.config.value, dtype=arr.dtype)
@@ -123,6 +135,7 @@ class Pad(Stage):
         out[:, have] = arr[:, self._index[have]]
         yield episode.with_frames(**{self.config.feature: out})
 
+    @override
     def describe(self) -> dict[str, Any]:
         # The provenance says which dimensions hold no recorded data.
         padded = getattr(self, "_padded", None)

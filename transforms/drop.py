@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import override
 
 import numpy as np
 
@@ -15,17 +16,22 @@ from shiftkit.pipelines.stage import Stage, register_stage
 
 @dataclass
 class DropConfig:
+    """Parameters of `drop`."""
+
     features: list[str] = field(default_factory=list)
     """Feature names to remove."""
 
 
 @register_stage
 class Drop(Stage):
+    """Removes the named features from the schema and every frame."""
+
     name = "drop"
     version = 1
     example_params = {"features": ["observation.environment_state"]}
     Config = DropConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         for key in self.config.features:
             if key not in features:
@@ -35,6 +41,7 @@ class Drop(Stage):
             raise ConfigError("drop: would remove every feature")
         return out
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         drop = set(self.config.features)
         yield Episode({k: v for k, v in episode.frames.items() if k not in drop}, dict(episode.meta))

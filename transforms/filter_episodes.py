@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import override
 
 import numpy as np
 
@@ -14,6 +15,8 @@ from shiftkit.pipelines.stage import Stage, register_stage
 
 @dataclass
 class FilterConfig:
+    """Parameters of `filter`; an episode is kept when it meets every criterion."""
+
     indices: list[int] | None = None
     """Keep only these source episode indices (None: all)."""
     tasks: list[str] | None = None
@@ -36,14 +39,18 @@ class FilterConfig:
 
 @register_stage
 class FilterEpisodes(Stage):
+    """Keeps or drops whole episodes by source index, task, outcome, length and a seeded draw."""
+
     name = "filter"
     version = 1
     example_params = {"min_length": 2, "keep_fraction": 0.7}
     Config = FilterConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         return features
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         c = self.config
         # Draw first so the decision for one episode never depends on the other criteria.

@@ -27,7 +27,7 @@ import hashlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, override
 
 import numpy as np
 
@@ -104,6 +104,8 @@ def interpolate_poses(poses: np.ndarray, factor: int) -> np.ndarray:
 
 @dataclass
 class ForceMatchConfig:
+    """Parameters of `force_match`."""
+
     calibration: str | None = None
     """Calibration file (`shiftkit calibrate`); needed for mode "force_matched"."""
     mode: Literal["force_matched", "position"] = "force_matched"
@@ -169,6 +171,8 @@ REPLAYED = (
 
 @register_stage
 class ForceMatch(Stage):
+    """Replays kinesthetic episodes in the simulator with the force-matched (or plain position) offset and records the replay."""
+
     name = "force_match"
     version = 1
     citation = papers.FORCE_MATCHING
@@ -185,6 +189,7 @@ class ForceMatch(Stage):
         except ValueError as exc:
             raise ConfigError(f"force_match: {exc}") from None
 
+    @override
     def transform_features(self, features: Features) -> Features:
         family = self._family()
         for key in ("observation.ee_pose", "observation.wrench"):
@@ -218,6 +223,7 @@ class ForceMatch(Stage):
                 out[key] = copy.deepcopy(features[STS_IMAGE])
         return out
 
+    @override
     def describe(self) -> dict[str, Any]:
         """The parameters and the calibration file's content digest: a calibration re-made at the
         same path is another job (an interrupted run's parts are not resumed with it) and the
@@ -227,6 +233,7 @@ class ForceMatch(Stage):
             out["calibration_sha256"] = hashlib.sha256(Path(self.config.calibration).read_bytes()).hexdigest()[:16]
         return out
 
+    @override
     def setup(self) -> None:
         self._envs: dict[str, Any] = {}
         family = self._family()
@@ -264,6 +271,7 @@ class ForceMatch(Stage):
             targets[:, :3] += self.config.damping_time * velocity
         return targets
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         meta = episode.meta
         where = f"force_match: episode {meta.get('source_episode_index', '?')}"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import override
 
 import numpy as np
 
@@ -17,6 +18,8 @@ from shiftkit.pipelines.stage import Stage, register_stage
 
 @dataclass
 class MapTasksConfig:
+    """Parameters of `map_tasks`."""
+
     mapping: dict[str, str] = field(default_factory=dict)
     """Task as recorded -> task in the output."""
     default: str | None = None
@@ -31,11 +34,14 @@ class MapTasksConfig:
 
 @register_stage
 class MapTasks(Stage):
+    """Rewrites each episode's task strings through `mapping` (and `default`)."""
+
     name = "map_tasks"
     version = 1
     example_params = {"mapping": {"reach": "reach the goal"}}
     Config = MapTasksConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         return features
 
@@ -46,6 +52,7 @@ class MapTasks(Stage):
             raise DatasetError(f"map_tasks: {where} has task {task!r}, which the mapping does not list")
         return self.config.default if self.config.default is not None else task
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         where = f"episode {episode.meta.get('source_episode_index')}"
         mapped = {t: self._map(t, where) for t in episode.tasks}

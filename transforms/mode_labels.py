@@ -34,7 +34,7 @@ import copy
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, override
 
 import numpy as np
 
@@ -52,6 +52,8 @@ FIXED_SOURCES = ("visual", "tactile")
 
 @dataclass
 class ModeLabelConfig:
+    """Parameters of `mode_label`."""
+
     source: Literal["contact", "operator", "visual", "tactile"] = "contact"
     """Where labels come from: "contact" (the tactile signal, with hysteresis) or "operator" (the
     mode-switch presses in the episode's `labels`); "visual" / "tactile": that mode on every frame,
@@ -114,6 +116,8 @@ class ModeLabelConfig:
 
 @register_stage
 class ModeLabel(Stage):
+    """Adds the `sts_mode` action dimension (1 tactile / 0 visual) and keeps the active mode's STS image."""
+
     name = "mode_label"
     version = 2
     citation = papers.FORCE_MATCHING
@@ -125,6 +129,7 @@ class ModeLabel(Stage):
     }
     Config = ModeLabelConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         c = self.config
         action = features.get("action")
@@ -166,6 +171,7 @@ class ModeLabel(Stage):
             out[c.image] = merged
         return out
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         c = self.config
         n = len(episode)

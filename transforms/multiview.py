@@ -31,7 +31,7 @@ import dataclasses
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, override
 
 import mujoco
 import numpy as np
@@ -65,6 +65,8 @@ STATE_POS, STATE_QUAT = slice(0, 3), slice(3, 7)
 
 @dataclass
 class MultiviewConfig:
+    """Parameters of `multiview`."""
+
     num_views: int = 3
     """Base poses sampled per episode (with `matched`: poses tried until one works)."""
     yaw_range: tuple[float, float] = SAMPLER.yaw_range
@@ -107,6 +109,7 @@ class MultiviewConfig:
         self.sampler()  # the sampler checks range, noise and distance
 
     def sampler(self):
+        """The base-pose sampler with this config's yaw range, noise and distance."""
         return dataclasses.replace(
             SAMPLER,
             yaw_range=self.yaw_range,
@@ -138,6 +141,8 @@ def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
 
 @register_stage
 class Multiview(Stage):
+    """Re-renders each episode from `num_views` sampled mobile-base poses, the arm re-solved to follow the recorded world trajectory."""
+
     name = "multiview"
     version = 2  # 2: depth is native (H, W, 1) metres
     citation = papers.MULTIVIEW
@@ -145,10 +150,12 @@ class Multiview(Stage):
     example_input = "mv-lift"
     Config = MultiviewConfig
 
+    @override
     def setup(self) -> None:
         self._envs: dict[str, Any] = {}
         self._sampler = self.config.sampler()
 
+    @override
     def transform_features(self, features: Features) -> Features:
         missing = [k for k in REQUIRED if k not in features]
         if missing:
@@ -198,6 +205,7 @@ class Multiview(Stage):
             )
         return self._envs[key]
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         if not hasattr(self, "_envs"):  # direct use without a runner
             self.setup()

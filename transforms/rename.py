@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import override
 
 import numpy as np
 
@@ -15,17 +16,22 @@ from shiftkit.pipelines.stage import Stage, register_stage
 
 @dataclass
 class RenameConfig:
+    """Parameters of `rename`."""
+
     mapping: dict[str, str] = field(default_factory=dict)
     """Old feature name -> new feature name."""
 
 
 @register_stage
 class Rename(Stage):
+    """Renames features in the schema and every frame."""
+
     name = "rename"
     version = 1
     example_params = {"mapping": {"observation.environment_state": "observation.goal"}}
     Config = RenameConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         mapping = self.config.mapping
         for old, new in mapping.items():
@@ -38,6 +44,7 @@ class Rename(Stage):
             raise ConfigError("rename: two features would get the same name")
         return out
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         mapping = self.config.mapping
         yield Episode({mapping.get(k, k): v for k, v in episode.frames.items()}, dict(episode.meta))

@@ -19,7 +19,7 @@ import copy
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, override
 
 import numpy as np
 
@@ -36,6 +36,8 @@ POSE = "observation.ee_pose"
 
 @dataclass
 class ReplayJoinConfig:
+    """Parameters of `replay_join`."""
+
     env: str = "door-tactile"
     """Environment whose action convention (relative pose in the sensor frame, its scale) the
     joined `action` follows."""
@@ -43,6 +45,8 @@ class ReplayJoinConfig:
 
 @register_stage
 class ReplayJoin(Stage):
+    """Replaces a recorded replay plan's sent action by the env's relative-pose action (from the measured pose) plus the mode label."""
+
     name = "replay_join"
     version = 1
     citation = papers.FORCE_MATCHING
@@ -50,6 +54,7 @@ class ReplayJoin(Stage):
     example_input = "door-replay"
     Config = ReplayJoinConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         from shiftkit.envs import env_family
 
@@ -72,6 +77,7 @@ class ReplayJoin(Stage):
         out["action"] = {**copy.deepcopy(action), "dtype": "float32", "shape": (len(names),), "names": names}
         return out
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         from shiftkit.envs.door_tactile.experts import relative_action
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, override
 
 import numpy as np
 
@@ -23,6 +23,8 @@ from shiftkit.transforms.episode_events import or_events
 
 @dataclass
 class ResampleConfig:
+    """Parameters of `resample`."""
+
     fps: int
     """Output frame rate (frames per second)."""
     method: Literal["linear", "previous"] = "linear"
@@ -35,18 +37,23 @@ class ResampleConfig:
 
 @register_stage
 class Resample(Stage):
+    """Puts each episode on the regular grid `k / fps`, interpolating floats and holding the rest."""
+
     name = "resample"
     version = 2  # v2: episode events OR-ed over the dropped frames
     example_params = {"fps": 5}
     resampling_params = {"fps": [1, 2, 7, 13, 30, 90]}
     Config = ResampleConfig
 
+    @override
     def transform_fps(self, fps: int) -> int:
         return self.config.fps
 
+    @override
     def transform_features(self, features: Features) -> Features:
         return features
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         ts = episode.frames["timestamp"].astype(np.float64)
         ts = ts - ts[0]

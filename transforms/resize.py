@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, override
 
 import numpy as np
 
@@ -28,6 +28,8 @@ CAMERA_PREFIXES = ("observation.images.", "observation.depth.")
 
 @dataclass
 class ResizeConfig:
+    """Parameters of `resize`."""
+
     width: int
     """Output image width in pixels."""
     height: int
@@ -42,11 +44,14 @@ class ResizeConfig:
 
 @register_stage
 class Resize(Stage):
+    """Resizes camera features (all, or the named ones) to `width` x `height` pixels."""
+
     name = "resize"
     version = 1
     example_params = {"width": 32, "height": 24}
     Config = ResizeConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         cameras = [k for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES]
         for key in self.config.features:
@@ -64,6 +69,7 @@ class Resize(Stage):
                 ft["info"] = {k: v for k, v in ft["info"].items() if not k.startswith("video.")}
         return out
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         size = (self.config.height, self.config.width)
         updates, scaled = {}, {}

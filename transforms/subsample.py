@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import override
 
 import numpy as np
 
@@ -19,6 +20,8 @@ from shiftkit.transforms.episode_events import or_events
 
 @dataclass
 class SubsampleConfig:
+    """Parameters of `subsample`."""
+
     every: int = 2
     """Keep one frame out of `every`; it must divide the input fps (LeRobot fps are integers)."""
     offset: int = 0
@@ -31,20 +34,25 @@ class SubsampleConfig:
 
 @register_stage
 class Subsample(Stage):
+    """Keeps every `every`-th frame from `offset`; the output fps is the input fps / `every`."""
+
     name = "subsample"
     version = 2  # v2: episode events OR-ed over the dropped frames
     example_params = {"every": 2, "offset": 1}
     resampling_params = {"every": [2, 3, 4, 5], "offset": [0, 1, 2]}
     Config = SubsampleConfig
 
+    @override
     def transform_fps(self, fps: int) -> int:
         if fps % self.config.every:
             raise ConfigError(f"subsample: every={self.config.every} does not divide the input fps {fps}")
         return fps // self.config.every
 
+    @override
     def transform_features(self, features: Features) -> Features:
         return features
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         if len(episode) <= self.config.offset:
             return

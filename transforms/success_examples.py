@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, override
 
 import numpy as np
 
@@ -34,6 +34,8 @@ SUCCESS_KEY = "next.success"
 
 @dataclass
 class SuccessExamplesConfig:
+    """Parameters of `success_examples`."""
+
     n_per_task: int | None = 200
     """Examples kept per task, a seeded uniform sample of all candidates in the dataset (thesis: 200 in
     simulation, 50 real); None keeps every candidate."""
@@ -51,12 +53,15 @@ class SuccessExamplesConfig:
 
 @register_stage
 class SuccessExamples(Stage):
+    """Turns each success state into a one-frame candidate episode; `select` keeps a seeded `n_per_task` of them per task."""
+
     name = "success_examples"
     version = 1
     citation = papers.VPACE
     example_params = {"n_per_task": 3, "states": "success"}
     Config = SuccessExamplesConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         ft = features.get(SUCCESS_KEY)
         if ft is None or ft["dtype"] != "bool" or tuple(ft["shape"]) != (1,):
@@ -65,6 +70,7 @@ class SuccessExamples(Stage):
             )
         return features
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         n = len(episode)
         success = np.asarray(episode.frames[SUCCESS_KEY]).reshape(n)
@@ -87,6 +93,7 @@ class SuccessExamples(Stage):
             out.meta = {"task": task, "selection_key": float(key), "source": {**source, "frame_index": int(frame)}}
             yield out
 
+    @override
     def select(self, metas: list[dict[str, Any]]) -> list[bool] | None:
         n = self.config.n_per_task
         if n is None:

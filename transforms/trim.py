@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import override
 
 import numpy as np
 
@@ -14,6 +15,8 @@ from shiftkit.pipelines.stage import Stage, register_stage
 
 @dataclass
 class TrimConfig:
+    """Parameters of `trim`."""
+
     head: int = 0
     """Frames removed from the start."""
     tail: int = 0
@@ -26,14 +29,18 @@ class TrimConfig:
 
 @register_stage
 class Trim(Stage):
+    """Drops `head` frames at the start and `tail` at the end of each episode; an episode of at most `head + tail` frames is dropped."""
+
     name = "trim"
     version = 1
     example_params = {"head": 1, "tail": 2}
     Config = TrimConfig
 
+    @override
     def transform_features(self, features: Features) -> Features:
         return features
 
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         n = len(episode)
         start, stop = self.config.head, n - self.config.tail

@@ -37,12 +37,15 @@ class Trainer:
     """The method's reference, cited by the model cards of its runs (the thesis is always cited)."""
 
     def args_class(self) -> type:
+        """The args dataclass `args` names."""
         return _resolve(self.args)
 
     def cli_module(self) -> Any:
+        """The imported `cli` module."""
         return importlib.import_module(self.cli)
 
     def policy_loader(self) -> Any:
+        """The function `load_policy` names."""
         return _resolve(self.load_policy)
 
 

@@ -53,6 +53,7 @@ def options() -> DataclassOptions:
 
 
 def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
+    """Adds the options of `shiftkit train bc` to `parser`."""
     options().add_to(parser)
     parser.add_argument(
         "--progress", action=argparse.BooleanOptionalAction, default=True, help="show a progress bar (default: on)"
@@ -60,6 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Trains a BC ensemble from the parsed options; returns the exit code."""
     from shiftkit.policies.bc import train
 
     config = options().build(args)
