@@ -423,5 +423,7 @@ def run(args: FireArgs) -> dict:
         aggregate(aggregate_args(args, [str(rollouts)], str(bc_dir), dataset_root))
     summary["dataset"] = str(dataset_root)
     checkpoint(summary)
+    # The policy folder is a finished BC run: `shiftkit eval` takes it as final, and it has a card.
+    policy_run.write_model_card({k: v for k, v in summary.items() if isinstance(v, int | float | str)})
     env.close()
     return summary

@@ -288,6 +288,8 @@ def test_fire_writes_the_aggregated_dataset(demo, fire_run):
     assert main(["info", str(ds_root)]) == 0 and main(["validate", str(ds_root)]) == 0
     # the current policy is a BC run folder that `shiftkit eval` understands
     assert (run / "policy" / "config.json").is_file() and (run / "policy" / "checkpoints" / "last.txt").is_file()
+    # ... and a finished one (eval does not warn of an unfinished run), with its model card
+    assert (run / "policy" / "card.json").is_file() and (run / "policy" / "README.md").is_file()
 
 
 def test_shiftkit_train_bc_on_the_aggregated_dataset_by_id(fire_run, tmp_path, monkeypatch):
