@@ -23,7 +23,16 @@ import pytest
 from tests.test_cluster_slurm import _free_port, _wait
 from tests.test_executors import assert_same_dataset
 
-pytestmark = pytest.mark.cluster
+# Opt-in: on a loaded 2-core machine (load 100+) the rank workers' process pool was seen to spin
+# without progress for over 10 minutes (twice on 2026-12-02), where a quiet run takes ~2.5 min;
+# until that is understood it would hang CI. Run it with SHIFTKIT_RAY_CLUSTER_TEST=1.
+pytestmark = [
+    pytest.mark.cluster,
+    pytest.mark.skipif(
+        os.environ.get("SHIFTKIT_RAY_CLUSTER_TEST") != "1",
+        reason="two-node Ray cluster test is opt-in (SHIFTKIT_RAY_CLUSTER_TEST=1): it can stall under heavy load",
+    ),
+]
 
 PIPELINE = """
 seed = 3
