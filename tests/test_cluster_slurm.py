@@ -226,9 +226,14 @@ def test_slurm_job_array_writes_the_local_executors_bytes(slurm, raw, tmp_path):
     assert_same_dataset(tmp_path / "local", dest)
 
 
-def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, raw, tmp_path):
+def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, tmp_path):
+    from shiftkit.pipelines.synthetic import write_synthetic_raw
     from shiftkit.pipelines.work import work_dir_for
 
+    # Enough episodes that the job is still running when the first part appears: with 24, an idle
+    # machine finished them all between that moment and the suspend.
+    episodes = 240
+    raw = write_synthetic_raw(tmp_path / "raw", episodes=episodes, length=12, seed=4, camera=(24, 32))
     shiftkit(slurm.env, "run", str(_config(tmp_path, raw, "local")), "--no-progress")
     dest = tmp_path / "slurm"
     config = _config(tmp_path, raw, "slurm")
@@ -241,7 +246,7 @@ def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, raw, tmp_path):
     assert slurm.cmd("scancel", job).returncode == 0
     _until_job_ends(slurm, job)
     done = len(list(parts.glob("*.pkl")))
-    assert 1 <= done < EPISODES
+    assert 1 <= done < episodes
     resumed = _run_slurm(slurm, config, dest)
     assert "submitted again" in resumed.stderr, resumed.stderr
     new = _job_id(dest)
