@@ -22,7 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from scipy.stats import binomtest
+from shiftkit.policies.evaluation import wilson_interval
+from shiftkit.policies.fire_runs import read_episode_lines
 
 SHIFTKIT = [sys.executable, "-m", "shiftkit.app.cli"]
 
@@ -39,11 +40,6 @@ def evaluate(policy: Path, episodes: int, env: dict[str, str]) -> dict:
         "--episodes", str(episodes), "--seed", "100000", "--out", str(out), env=env,
     )  # fmt: skip
     return json.loads(out.read_text())
-
-
-def wilson(successes: int, n: int) -> list[float]:
-    ci = binomtest(successes, n).proportion_ci(method="wilson")
-    return [round(ci.low, 4), round(ci.high, 4)]
 
 
 def main() -> None:
@@ -76,11 +72,11 @@ def main() -> None:
                 run = work / f"bc{n}-s{seed}"
                 shiftkit("train", "bc", "--dataset", f"local/lift5-{n}", "--output", str(run),
                          "--hidden", "256,256", *common, env=env)  # fmt: skip
-                frames = json.loads((work / "lerobot" / "local" / f"lift5-{n}" / "meta" / "info.json").read_text())
+                info = json.loads((work / "lerobot" / "local" / f"lift5-{n}" / "meta" / "info.json").read_text())
                 result = evaluate(run, episodes, env)
                 rows.setdefault(f"BC, {n} demos", []).append(
                     {"seed": seed, "successes": result["successes"], "episodes": result["episodes"],
-                     "expert_samples": frames["total_frames"], "execution_s": frames["total_frames"] / 5}
+                     "expert_samples": info["total_frames"], "execution_s": info["total_frames"] / 5}
                 )  # fmt: skip
             for predictor in ("gda", "beta"):
                 run = work / f"fire-{predictor}-s{seed}"
@@ -90,8 +86,7 @@ def main() -> None:
                     "--d-start", "300", "--env-seed", str(10000 + 1000 * seed), "--output", str(run),
                     "--repo-id", f"local/fire-{predictor}-s{seed}", *common, env=env,
                 )  # fmt: skip
-                last = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-                last = [m for m in last if m.get("split") == "episode"][-1]
+                last = read_episode_lines(run)[-1]
                 result = evaluate(run / "policy", episodes, env)
                 rows.setdefault(f"FIRE {predictor}, from {demos['small']} demos", []).append(
                     {"seed": seed, "successes": result["successes"], "episodes": result["episodes"],
@@ -108,7 +103,7 @@ def main() -> None:
         k, n = sum(r["successes"] for r in runs), sum(r["episodes"] for r in runs)
         samples = sum(r["expert_samples"] for r in runs) / len(runs)
         exec_s = sum(r["execution_s"] for r in runs) / len(runs)
-        summary[name] = {"success": round(k / n, 4), "ci95": wilson(k, n), "runs": runs}
+        summary[name] = {"success": round(k / n, 4), "ci95": [round(c, 4) for c in wilson_interval(k, n)], "runs": runs}
         per_seed = ", ".join(f"{r['successes']}/{r['episodes']}" for r in runs)
         ci = summary[name]["ci95"]
         print(
