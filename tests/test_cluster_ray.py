@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from tests.test_cluster_slurm import _free_port, _wait
-from tests.test_executors import assert_same_dataset
+from tests.test_executors import assert_same_dataset, write_config
 
 # Opt-in: on a loaded 2-core machine (load 100+) the rank workers' process pool was seen to spin
 # without progress for over 10 minutes (twice on 2026-12-02), where a quiet run takes ~2.5 min;
@@ -33,18 +33,6 @@ pytestmark = [
         reason="two-node Ray cluster test is opt-in (SHIFTKIT_RAY_CLUSTER_TEST=1): it can stall under heavy load",
     ),
 ]
-
-PIPELINE = """
-seed = 3
-[[sources]]
-path = "{raw}"
-[[stages]]
-name = "trim"
-params = {{ head = 1 }}
-[destination]
-root = "{dest}"
-repo_id = "test/ray-cluster"
-"""
 
 # 40 episodes: three shards of at most 16, so both tasks (one per 1-CPU node) have work.
 EPISODES = 40
@@ -142,10 +130,7 @@ def test_ray_cluster_runs_tasks_on_both_nodes_and_writes_the_local_bytes(ray_clu
     from shiftkit.pipelines.synthetic import write_synthetic_raw
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=EPISODES, length=6, seed=4, camera=(12, 16))
-    configs = {}
-    for name in ("local", "ray"):
-        configs[name] = tmp_path / f"{name}.toml"
-        configs[name].write_text(PIPELINE.format(raw=raw, dest=tmp_path / name))
+    configs = {name: write_config(tmp_path, raw, name) for name in ("local", "ray")}
     env = ray_cluster.env
     for args in (["run", str(configs["local"])], ["run", str(configs["ray"]), "--executor", "ray", "--workers", "2",
                                                     "--ray-address", ray_cluster.address]):  # fmt: skip

@@ -18,27 +18,17 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_executors import assert_same_dataset
+from tests.test_executors import assert_same_dataset, write_config
 
 pytestmark = pytest.mark.cluster
 
 EPISODES = 24
 DAEMONS = ("munged", "slurmctld", "slurmd", "sbatch", "squeue", "scancel", "sinfo", "scontrol")
 
-PIPELINE = """
-seed = 3
-[[sources]]
-path = "{raw}"
-[[stages]]
-name = "trim"
-params = {{ head = 1 }}
-[[stages]]
+# the executor tests' pipeline, with a stage that drops episodes
+FILTER = """[[stages]]
 name = "filter"
-params = {{ keep_fraction = 0.6 }}
-[destination]
-root = "{dest}"
-repo_id = "test/slurm"
-"""
+params = { keep_fraction = 0.6 }"""
 
 
 def _binary(name: str) -> str | None:
@@ -180,9 +170,7 @@ def raw(tmp_path_factory) -> Path:
 
 
 def _config(tmp_path: Path, raw: Path, name: str) -> Path:
-    path = tmp_path / f"{name}.toml"
-    path.write_text(PIPELINE.format(raw=raw, dest=tmp_path / name))
-    return path
+    return write_config(tmp_path, raw, name, FILTER)
 
 
 def shiftkit(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:

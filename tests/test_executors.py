@@ -41,10 +41,15 @@ def raw(tmp_path):
     return write_synthetic_raw(tmp_path / "raw", episodes=6, length=8, seed=4, camera=(12, 16), tasks=("reach", "push"))
 
 
-def config_for(tmp_path, raw, name, extra=""):
+def write_config(tmp_path: Path, raw: Path, name: str, extra: str = "") -> Path:
+    """`tmp_path/<name>.toml`: `raw` trimmed (plus the stages in `extra`) into `tmp_path/<name>`."""
     path = tmp_path / f"{name}.toml"
     path.write_text(PIPELINE.format(raw=raw, dest=tmp_path / name, extra=extra))
-    return load_pipeline_config(path)
+    return path
+
+
+def config_for(tmp_path, raw, name, extra=""):
+    return load_pipeline_config(write_config(tmp_path, raw, name, extra))
 
 
 def assert_same_dataset(a: Path, b: Path) -> None:
