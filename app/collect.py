@@ -16,7 +16,7 @@ import logging
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -33,7 +33,7 @@ class CollectConfig:
     env: str = "panda-play"
     """Environment name (`shiftkit.envs.ENV_TASKS`)."""
     task: str = "lift"
-    """Task; with `play`, the main task whose play sequence is recorded."""
+    """Task, e.g. lift, stack, insert; with `play`, the main task whose play sequence is recorded."""
     episodes: int = 10
     """Number of episodes."""
     seed: int = 0
@@ -63,8 +63,8 @@ class CollectConfig:
     """Image width in pixels."""
     height: int = 48
     """Image height in pixels."""
-    render_quality: str = "fast"
-    """"fast" (collision geometry) or "full" (visual meshes)."""
+    render_quality: Literal["fast", "full"] = "fast"
+    """Geometry shown: "fast" (collision geometry) or "full" (visual meshes)."""
     extra_steps: int = 0
     """Frames kept after success first holds (reset-based episodes)."""
     only_successful: bool = False

@@ -1,7 +1,8 @@
 """BC training throughput: batches read from a LeRobot dataset vs the same model fed from memory.
 
-Both paths run the trainer's own update (`shiftkit.policies.bc.update_members`: a 5-member ensemble,
-one batch of 64 per member and step) on the same dataset, in alternating rounds of one run:
+Both paths run the trainer's own update (`update_members` of `shiftkit.policies.trainers.bc.training`:
+a 5-member ensemble, one batch of 64 per member and step) on the same dataset, in alternating rounds
+of one run:
 * `lerobot`: `FrameTable` + `Prefetcher` (what `shiftkit train bc` uses), reading the dataset files;
 * `memory`: every frame preloaded as torch tensors, batches by tensor indexing (the upper bound).
 For context it also times lerobot's own per-frame `LeRobotDataset` through a torch `DataLoader`.
@@ -75,9 +76,9 @@ def main() -> None:
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.policies.bc import _merged_stats, update_members
     from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
     from shiftkit.policies.data import FrameTable, Prefetcher, epoch_batches
+    from shiftkit.policies.trainers.bc.training import _merged_stats, update_members
 
     steps = args.steps or (60 if args.quick else 300)
     members, batch_size = 5, 64

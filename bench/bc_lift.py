@@ -45,9 +45,10 @@ def main() -> None:
     from shiftkit.app.collect import CollectConfig, collect
     from shiftkit.envs import make
     from shiftkit.envs.panda_play.experts import ExpertPolicy
-    from shiftkit.policies.bc import BCArgs, train
     from shiftkit.policies.bc_policy import load_policy
     from shiftkit.policies.evaluation import evaluate, record_evaluation, run_episodes, wilson_interval
+    from shiftkit.policies.trainers.bc.args import BCArgs
+    from shiftkit.policies.trainers.bc.training import train
 
     dataset, run = work / f"lift{episodes}", work / f"bc-{args.regime}"
     t0 = time.perf_counter()

@@ -1,9 +1,10 @@
 """Start-up of the `shiftkit` command line: `shiftkit --help` wall time vs `python -c pass`.
 
 Both run as fresh processes of this interpreter, interleaved round by round (so machine load
-affects both alike); the medians are compared. `shiftkit train --help` and `shiftkit fire --help`
-are timed beside it, and each command's `sys.modules` is checked for torch and mujoco, which a
-`--help` must not import (only the command named on the command line builds its options).
+affects both alike); the medians are compared. `shiftkit train --help`, `shiftkit fire --help` and
+`shiftkit plan --stages` are timed beside it, and each command's imports are checked for torch and
+mujoco, which none of them needs (only the command named on the command line builds its options,
+and env families load when a stage asks for one).
 
     python bench/cli_startup.py [--quick]
 """
@@ -22,6 +23,7 @@ COMMANDS = {
     "help": ["-m", "shiftkit.app.cli", "--help"],
     "train_help": ["-m", "shiftkit.app.cli", "train", "--help"],
     "fire_help": ["-m", "shiftkit.app.cli", "fire", "--help"],
+    "plan_stages": ["-m", "shiftkit.app.cli", "plan", "--stages"],
     "pass": ["-c", "pass"],
 }
 HEAVY = ("torch", "mujoco")

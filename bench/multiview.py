@@ -46,10 +46,10 @@ def record(out: Path, episodes: int) -> Path:
 
 def bare(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
     """The same IK + RGB-D rendering with plain mujoco calls: per episode, frames and seconds."""
-    from shiftkit.envs.base_pose import BasePose
+    from shiftkit.envs.base_pose import SAMPLER, BasePose
     from shiftkit.envs.cameras import disable_costly_flags, scene_option
     from shiftkit.envs.geometry import rotation_z
-    from shiftkit.envs.multiview.physics import SAMPLER, MultiviewPhysics, rebase_state
+    from shiftkit.envs.multiview.physics import MultiviewPhysics, rebase_state
     from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     dataset = open_raw_dataset(raw)
@@ -96,9 +96,9 @@ def bare(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
 def ik_targets(raw: Path, views: int, episodes: int):
     """Per (episode, view): the physics at the new base pose, the arm's start and the re-expressed
     TCP targets, as the stage computes them."""
-    from shiftkit.envs.base_pose import BasePose
+    from shiftkit.envs.base_pose import SAMPLER, BasePose
     from shiftkit.envs.geometry import quat_xyzw_to_matrix, rotation_z
-    from shiftkit.envs.multiview.physics import SAMPLER, MultiviewPhysics, rebase_state
+    from shiftkit.envs.multiview.physics import MultiviewPhysics, rebase_state
     from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     dataset = open_raw_dataset(raw)

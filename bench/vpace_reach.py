@@ -120,7 +120,8 @@ def main() -> None:
     from shiftkit.envs.panda_play.experts import ExpertPolicy
     from shiftkit.policies.evaluation import evaluate, run_episodes, wilson_interval
     from shiftkit.policies.run_dir import RunDir, load_checkpoint
-    from shiftkit.policies.vpace import VPACEArgs, load_policy, train
+    from shiftkit.policies.trainers.vpace.args import VPACEArgs
+    from shiftkit.policies.trainers.vpace.training import load_policy, train
 
     aux = AUX_TASK[args.examples]
     examples, run = work / f"{args.examples}-examples", work / f"vpace-reach-{args.examples}-seed{args.seed}"

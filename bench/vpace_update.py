@@ -35,7 +35,8 @@ import torch
 
 from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.replay import ReplayBuffer
-from shiftkit.policies.vpace import Agent, VPACEArgs
+from shiftkit.policies.trainers.vpace.args import VPACEArgs
+from shiftkit.policies.trainers.vpace.training import Agent
 
 OBS_DIM, ACT_DIM = 59, 4
 # operator-name prefixes of the profile's element-wise class (beside matmuls, ReLU and optimizers)

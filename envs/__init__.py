@@ -2,25 +2,38 @@
 
 Imports nothing else of shiftkit. Shared pieces (the Panda model, Cartesian controllers, cameras,
 the family registry) are modules here; each environment family is a package of its own
-(`panda_play/`, ...) that registers itself. Importing this package imports every family and
-registers its gymnasium ids (`shiftkit/PandaPlay-<Task>-v0`, ...); `make(env_name, task, **kw)`
-builds envs by CLI name and `env_family(name)` gives a family's dataset facts.
+(`panda_play/`, ...) that registers itself with its gymnasium ids (`shiftkit/PandaPlay-<Task>-v0`,
+...). The families are imported on the first question asked of the registry, not with this package,
+so the shared modules load without MuJoCo; `make(env_name, task, **kw)` builds envs by CLI name,
+`env_family(name)` gives a family's dataset facts and `ENV_TASKS` every env's tasks.
 """
 
-import importlib
-import pkgutil
+from shiftkit.envs.registry import (
+    EnvFamily,
+    env_family,
+    env_tasks,
+    families,
+    gym_id,
+    import_families,
+    make,
+    register_family,
+)
 
-from shiftkit.envs.registry import EnvFamily, env_family, env_tasks, families, gym_id, make, register_family
+
+def __getattr__(name: str) -> dict[str, tuple[str, ...]]:
+    if name == "ENV_TASKS":  # computed on use: it needs every family imported
+        return env_tasks()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def import_families(path: list[str] | None = None) -> None:
-    """Import every family package on `path` (default: this package's folder), which registers it."""
-    for module in pkgutil.iter_modules(__path__ if path is None else path):
-        if module.ispkg:
-            importlib.import_module(f"{__name__}.{module.name}")
-
-
-import_families()
-ENV_TASKS: dict[str, tuple[str, ...]] = env_tasks()
-
-__all__ = ["ENV_TASKS", "EnvFamily", "env_family", "env_tasks", "families", "gym_id", "make", "register_family"]
+__all__ = [
+    "ENV_TASKS",
+    "EnvFamily",
+    "env_family",
+    "env_tasks",
+    "families",
+    "gym_id",
+    "import_families",
+    "make",
+    "register_family",
+]

@@ -129,3 +129,21 @@ class BasePoseSampler:
             + self.yaw_noise * np.hypot(aim[0], aim[1])
             + abs(aim[2] - self.centre[2])
         )
+
+
+# The multiview rig (thesis ch. 3; docs/multiview.md): where the base-mounted camera sits and the
+# base poses sampled. The scene (`envs/multiview/physics.py`) is built around it; it lives here so that
+# the multiview stage's defaults load without the scene and MuJoCo.
+TABLE_Z = 0.125
+AIM = np.array([0.0, 0.5, TABLE_Z])  # the task centre's place in the base frame
+CAMERA_NAME = "base"
+CAMERA_POS = np.array([0.3, -0.05, 0.6])
+YAW_RANGE = (-0.6, 0.2)  # 45.8 deg, the reference's simulated range (docs/multiview.md)
+WORLD_CENTRE = (0.0, 0.0, TABLE_Z)
+SAMPLER = BasePoseSampler(
+    centre=WORLD_CENTRE,
+    camera_position=tuple(CAMERA_POS),
+    camera_axis=tuple(AIM - CAMERA_POS),
+    distance=float(np.linalg.norm(AIM - CAMERA_POS)),
+    yaw_range=YAW_RANGE,
+)

@@ -3,15 +3,21 @@ dataset tools need (how an observation splits into LeRobot features, cameras, ex
 
 A family is a package under `shiftkit/envs/` whose `__init__` calls `register_family(EnvFamily(...))`
 with everything the rest of shiftkit uses of it (dataset layout, recorders, the expert as a policy);
-`shiftkit.envs` imports every such package (pkgutil), so a new family only adds a folder. Gymnasium ids are
-`shiftkit/<gym_prefix>-<TaskName>-v0` (e.g. `shiftkit/PandaPlay-Lift-v0`); `gymnasium.make(id,
-control_hz=5, render_mode="rgb_array")` passes keyword arguments through.
+the first question asked of the registry imports every such package under `shiftkit/envs/` (pkgutil),
+so a new family only adds a folder, and importing a shared module (`geometry`, `base_pose`) loads no
+family and no MuJoCo. Gymnasium ids are `shiftkit/<gym_prefix>-<TaskName>-v0` (e.g.
+`shiftkit/PandaPlay-Lift-v0`), registered with the family; `gymnasium.make(id, control_hz=5,
+render_mode="rgb_array")` passes keyword arguments through once the family is imported
+(`gymnasium.make("shiftkit.envs.panda_play:shiftkit/PandaPlay-Lift-v0")` imports it).
 """
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -68,6 +74,24 @@ class EnvFamily:
 
 
 _FAMILIES: dict[str, EnvFamily] = {}
+_DISCOVERED = False
+
+
+def import_families(path: list[str] | None = None) -> None:
+    """Import every family package on `path` (default: the `shiftkit.envs` folder), which registers it."""
+    package = __name__.rpartition(".")[0]
+    for module in pkgutil.iter_modules([str(Path(__file__).parent)] if path is None else path):
+        if module.ispkg:
+            importlib.import_module(f"{package}.{module.name}")
+
+
+def _registered() -> dict[str, EnvFamily]:
+    """The registered families, after importing every family package of `shiftkit.envs` once."""
+    global _DISCOVERED
+    if not _DISCOVERED:
+        import_families()
+        _DISCOVERED = True
+    return _FAMILIES
 
 
 def register_family(family: EnvFamily) -> EnvFamily:
@@ -82,24 +106,25 @@ def register_family(family: EnvFamily) -> EnvFamily:
 
 def env_family(env_name: str) -> EnvFamily:
     """The registered family `env_name`; ValueError (one line) for unknown names."""
-    if env_name not in _FAMILIES:
-        raise ValueError(f"unknown env {env_name!r}; known: {', '.join(_FAMILIES)}")
-    return _FAMILIES[env_name]
+    known = _registered()
+    if env_name not in known:
+        raise ValueError(f"unknown env {env_name!r}; known: {', '.join(known)}")
+    return known[env_name]
 
 
 def families() -> dict[str, EnvFamily]:
     """Every registered family by CLI name."""
-    return dict(_FAMILIES)
+    return dict(_registered())
 
 
 def env_tasks() -> dict[str, tuple[str, ...]]:
     """CLI env name -> its task names."""
-    return {name: tuple(f.tasks) for name, f in _FAMILIES.items()}
+    return {name: tuple(f.tasks) for name, f in _registered().items()}
 
 
 def gym_id(env_name: str, task: str) -> str:
     """The gymnasium id of a registered env/task pair."""
-    family = _FAMILIES.get(env_name)
+    family = _registered().get(env_name)
     if family is None or task not in family.tasks:
         raise ValueError(f"unknown env/task {env_name}/{task}")
     return family.gym_id(task)
@@ -112,6 +137,4 @@ def make(env_name: str, task: str, **kwargs: Any) -> gym.Env:
     if task not in family.tasks:
         raise ValueError(f"unknown task {task!r} for env {env_name}; known: {', '.join(family.tasks)}")
     module, _, cls = family.entry_point.partition(":")
-    import importlib
-
     return getattr(importlib.import_module(module), cls)(task=task, **kwargs)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, ClassVar, override
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.pipelines.executor_settings import RaySettings, SlurmSettings
 from shiftkit.pipelines.planner import Plan
 from shiftkit.pipelines.shards import FailureStore, Shard, ShardStep, nodes_used, plan_shards
 from shiftkit.pipelines.work import PartStore, WorkUnit
@@ -169,7 +170,11 @@ class RayExecutor(DatatroveExecutor):
     FORWARDED_ENV = ("HF_HUB_OFFLINE", "HF_LEROBOT_HOME", "HF_HOME", "HF_DATASETS_CACHE", "MUJOCO_GL")
 
     def __init__(
-        self, workers: int = 1, address: str | None = None, mem_per_cpu_gb: float = 1.0, **options: Any
+        self,
+        workers: int = 1,
+        address: str | None = RaySettings.address,
+        mem_per_cpu_gb: float = RaySettings.mem_per_cpu_gb,
+        **options: Any,
     ) -> None:
         super().__init__(workers, **options)
         # RAY_ADDRESS is what `ray.init` reads itself; taken here so the provenance names the cluster.
@@ -229,12 +234,12 @@ class SlurmExecutor(DatatroveExecutor):
     def __init__(
         self,
         workers: int = 1,
-        partition: str | None = None,
-        time: str = "04:00:00",
-        cpus_per_task: int = 1,
-        mem_per_cpu_gb: int = 2,
-        setup: str | None = None,
-        submit: bool = True,
+        partition: str | None = SlurmSettings.partition,
+        time: str = SlurmSettings.time,
+        cpus_per_task: int = SlurmSettings.cpus_per_task,
+        mem_per_cpu_gb: int = SlurmSettings.mem_per_cpu_gb,
+        setup: str | None = SlurmSettings.setup,
+        submit: bool = SlurmSettings.submit,
         **options: Any,
     ) -> None:
         super().__init__(workers, **options)

@@ -146,6 +146,19 @@ def encode_images(episode: Episode, features: Features) -> Episode:
     )
 
 
+def preload_writer() -> None:
+    """Import what `DatasetWriter` needs from lerobot (which pulls in torch: seconds of start-up), so a
+    caller can do it in a thread while other work runs; an import that fails here fails again, with
+    its message, where the writer imports it."""
+    import importlib
+
+    for module in ("lerobot.configs", "lerobot.datasets.dataset_writer", "lerobot.datasets.feature_utils"):
+        try:
+            importlib.import_module(module)
+        except Exception:  # noqa: BLE001 - reported by the writer's own import
+            return
+
+
 class DatasetWriter:
     """Writes episodes into a new LeRobot v3.0 dataset at `root`, atomically.
 

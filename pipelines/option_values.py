@@ -112,6 +112,8 @@ class DataclassOptions[T]:
     """Fields the command needs (default: those without a default); checked by `build`."""
     cli_defaults: dict[str, Any] = dataclasses.field(default_factory=dict)
     """Field -> default on the command line where it differs from the dataclass's."""
+    metavars: dict[str, str] = dataclasses.field(default_factory=dict)
+    """Field -> metavar where the flag's name in capitals says less (`--from RAW_DIR`)."""
 
     def fields(self) -> list[dataclasses.Field]:
         """The dataclass fields that get an option (init fields not in `skip`)."""
@@ -133,16 +135,19 @@ class DataclassOptions[T]:
         for f in self.fields():
             default = self.cli_defaults.get(f.name, _default(f))
             settings = self._settings(f.name, hints[f.name])
-            if "metavar" not in settings and "choices" not in settings and "action" not in settings:
-                settings["metavar"] = self.flag(f.name)[2:].upper().replace("-", "_")
+            numeric = settings.pop("numeric", False)
+            named = self.flag(f.name)[2:].upper().replace("-", "_")
+            if f.name in self.metavars:
+                settings["metavar"] = self.metavars[f.name]
             elif settings.get("action") is _ExtendItems:
-                settings["metavar"] = (
-                    "N" if settings.pop("numeric") else self.flag(f.name)[2:].upper().replace("-", "_")
-                )
-            shown = _shown(default)
-            text = docs.get(f.name, "") + (f" (default: {shown})" if shown else "")
-            if f.name in self._required():
-                text += " (required)"
+                settings["metavar"] = "N" if numeric else named
+            elif "metavar" not in settings and "choices" not in settings and "action" not in settings:
+                settings["metavar"] = named
+            required = f.name in self._required()  # a dataclass default the command does not use is not shown
+            shown = "" if required else _shown(default)
+            text = (
+                docs.get(f.name, "") + (f" (default: {shown})" if shown else "") + (" (required)" if required else "")
+            )
             parser.add_argument(
                 self.flag(f.name), dest=f.name, default=argparse.SUPPRESS, help=text.replace("%", "%%"), **settings
             )
@@ -152,10 +157,10 @@ class DataclassOptions[T]:
         optional = get_origin(tp) in (Union, types.UnionType) and len(args) < len(get_args(tp))
         base = args[0] if optional else tp
         origin = get_origin(base)
-        if name in self.choices:
-            return {"choices": self.choices[name]}
-        if origin is Literal:
-            return {"choices": get_args(base)}
+        if name in self.choices or origin is Literal:
+            values = self.choices[name] if name in self.choices else get_args(base)
+            kinds = {type(v) for v in values}  # numbers are parsed before they are compared
+            return {"choices": values, **({"type": kinds.pop()} if kinds in ({int}, {float}) else {})}
         if base is bool:
             return {"action": argparse.BooleanOptionalAction}
         if base in (int, float):
@@ -189,6 +194,10 @@ class DataclassOptions[T]:
         for name, value in given.items():
             origin = get_origin(hints.get(name))
             if origin is dict and isinstance(value, list):
+                keys = [key for key, _ in value]
+                twice = next((key for key in keys if keys.count(key) > 1), None)
+                if twice is not None:  # a later KEY=VALUE would silently replace the earlier one
+                    raise ConfigError(f"{self.flag(name)} {twice}=...: {twice!r} is given twice")
                 given[name] = dict(value)
             elif origin is tuple and isinstance(value, list):
                 given[name] = tuple(value)
@@ -208,9 +217,11 @@ def _default(f: dataclasses.Field) -> Any:
 
 
 def _shown(default: Any) -> str:
-    """A default as the help shows it (nothing for none / empty / missing / off)."""
+    """A default as the help shows it (nothing for none / empty / missing / off; "on" for true)."""
     if default is dataclasses.MISSING or default is None or default is False or default in ("", [], (), {}):
         return ""
+    if default is True:
+        return "on"
     if isinstance(default, (list, tuple)):
         return ",".join(map(str, default))
     return str(default)

@@ -15,6 +15,7 @@ import errno
 import logging
 import os
 import shutil
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,7 @@ from shiftkit.pipelines.assembly import write_dataset
 from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.executors import Executor, get_executor
-from shiftkit.pipelines.lerobot_io import require_utf8_path
+from shiftkit.pipelines.lerobot_io import preload_writer, require_utf8_path
 from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.staging import DestinationLock, remove_dead_staging
 from shiftkit.pipelines.work import PartStore, plan_units, run_key, work_dir_for
@@ -78,9 +79,14 @@ def _run_locked(config: PipelineConfig, plan: Plan, engine: Executor, work: Path
         logging.getLogger("shiftkit").warning(
             "resuming: %d of %d source episodes were already transformed", done, plan.num_source_episodes
         )
+    # The writer's imports (lerobot, torch) take seconds; made while the executor transforms they
+    # overlap the work instead of adding to it afterwards, when the workers would be idle.
+    preload = threading.Thread(target=preload_writer, name="shiftkit-preload-writer", daemon=True)
+    preload.start()
     with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
         if not engine.run(plan, units, parts, bar):
             return None
+    preload.join()
     try:
         with _progress(plan.num_source_episodes, 0, "write", progress) as bar:
             path = write_dataset(plan, parts, engine.describe(), bar)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import os
 import pickle
 import threading
@@ -183,7 +184,12 @@ def exit_with_parent(main_pid: int | None, period: float = 1.0) -> None:
     SIGKILL, which gives it no chance to stop its pool): a daemon thread watches the parent pid.
     Nothing happens in the main process itself or in a worker someone else started (Ray)."""
     parent = os.getppid()
-    if main_pid is None or os.getpid() == main_pid or parent != main_pid or _WORKER.get("watchdog"):
+    if main_pid is None or os.getpid() == main_pid or _WORKER.get("watchdog"):
+        return
+    if parent != main_pid:
+        spawner = multiprocessing.parent_process()
+        if spawner is not None and spawner.pid == main_pid:
+            os._exit(1)  # spawned by `main_pid`, which died while this worker was starting
         return
 
     def watch() -> None:

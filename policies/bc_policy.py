@@ -2,7 +2,7 @@
 (or ResNet-18 trunk) ending in a spatial soft-argmax and regress the action from those keypoints and
 the normalised numeric state; the policy outputs the members' mean, their spread is FIRE's ensemble
 doubt (thesis 5.4). `PolicySpec` rebuilds one without the data; `load_policy` reads a checkpoint.
-The trainer is `policies.bc`; FIRE and the discriminator build on these classes.
+The trainer is `policies/trainers/bc/`; FIRE and the discriminator build on these classes.
 """
 
 from __future__ import annotations

@@ -48,6 +48,8 @@ class Curve:
     low: np.ndarray
     high: np.ndarray
     runs: int
+    tasks: tuple[str, ...] = ()
+    """The tasks its runs trained on (named in the default title)."""
 
 
 def read_success(run_dir: Path, metric: str = "success_rate") -> tuple[str, dict[int, float]]:
@@ -72,18 +74,31 @@ def aggregate(label: str, run_dirs: list[Path], reps: int = 2000, seed: int = 0)
     scores = np.array([[points[s] for s in steps] for _, points in runs])
     strata = np.array([task for task, _ in runs])
     low, high = stratified_bootstrap_ci(scores, strata, reps, seed=seed)
-    return Curve(label, np.array(steps), iqm(scores, axis=0), low, high, len(runs))
+    tasks = tuple(sorted({task for task, _ in runs if task}))
+    return Curve(label, np.array(steps), iqm(scores, axis=0), low, high, len(runs), tasks)
 
 
-def plot_curves(
+@dataclass
+class Point:
+    """A single policy's result drawn as a point with a vertical 95% CI (e.g. BC on FIRE's figures)."""
+
+    label: str
+    x: float
+    rate: float
+    low: float
+    high: float
+    episodes: int
+
+
+def draw_curves(
     curves: list[Curve],
-    out: Path,
     title: str = "",
     xlabel: str = "environment steps",
     ylabel: str = "success rate (IQM, 95% CI)",
-) -> Path:
-    """Draw IQM lines with shaded CIs into a PNG; without `title`, the title names the curves (each
-    legend entry gives its n)."""
+    points: tuple[Point, ...] = (),
+):
+    """A matplotlib Figure of IQM lines with shaded CIs and `points` with error bars; without
+    `title`, the title names the curves, points and tasks (each legend entry gives its n)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -93,13 +108,36 @@ def plot_curves(
     for c in curves:
         (line,) = ax.plot(c.steps, c.iqm, label=f"{c.label} (n = {c.runs} run{'s' if c.runs != 1 else ''})")
         ax.fill_between(c.steps, c.low, c.high, color=line.get_color(), alpha=0.25, linewidth=0)
+    for p in points:
+        ax.errorbar(
+            [p.x], [p.rate], yerr=[[p.rate - p.low], [p.high - p.rate]], fmt="D", capsize=4,
+            label=f"{p.label} (n = {p.episodes} episodes)",
+        )  # fmt: skip
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="best")
-    ax.set_title(title or f"{' vs '.join(c.label for c in curves)}: {ylabel}", fontsize=9)
+    names = [c.label for c in curves] + [p.label for p in points]
+    tasks = sorted({t for c in curves for t in c.tasks})
+    on = f" on {', '.join(tasks)}" if tasks else ""
+    ax.set_title(title or f"{' vs '.join(names)}{on}: {ylabel}", fontsize=9)
     fig.tight_layout()
+    return fig
+
+
+def plot_curves(
+    curves: list[Curve],
+    out: Path,
+    title: str = "",
+    xlabel: str = "environment steps",
+    ylabel: str = "success rate (IQM, 95% CI)",
+    points: tuple[Point, ...] = (),
+) -> Path:
+    """Draw `draw_curves`' figure into a PNG."""
+    import matplotlib.pyplot as plt
+
+    fig = draw_curves(curves, title, xlabel, ylabel, points)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)
     plt.close(fig)

@@ -386,30 +386,69 @@ def yaw_sweep(
                 on_bin(row)
     finally:
         env.close()
-    return {"env": env_name, "task": task, "policy": policy_name, "seed": seed, "ci_method": "wilson", "bins": rows}
+    return {
+        "env": env_name,
+        "task": task,
+        "policy": policy_name,
+        "seed": seed,
+        "ci_method": "wilson",
+        "bins": rows,
+        "training_yaw": training_yaw(policy_name) if policy_name else None,
+    }
 
 
-def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
-    """Write the sweep's JSON at `path` and a PNG of success rate (with 95% intervals) per yaw bin
-    beside it; returns both paths."""
+def training_yaw(policy_path: str | Path) -> dict[str, Any] | None:
+    """The base yaws a policy was trained at, from its training datasets' camera metadata
+    (`meta/cameras.json` base poses): {"episodes", "low", "high"} (low == high: a fixed-view policy),
+    or None when the run records no dataset with base poses."""
+    from shiftkit.pipelines.camera_meta import episode_cameras, read_cameras_file
+    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.policies.run_dir import RunDir, run_folder
+
+    folder = run_folder(policy_path)
+    config = RunDir(folder, resume=True).read_config() if (folder / "config.json").is_file() else None
+    yaws = []
+    for record in (config or {}).get("datasets") or []:
+        root = Path(str(record.get("root", "")))
+        if not (root / "meta" / "info.json").is_file():
+            continue
+        doc = read_cameras_file(root)
+        for i in range(int(read_json_file(root / "meta" / "info.json", "the dataset's info")["total_episodes"])):
+            poses = [cam["base_pose"] for cam in episode_cameras(doc, i).values() if "base_pose" in cam]
+            yaws += [float(pose["yaw"]) for pose in poses[:1]]
+    if not yaws:
+        return None
+    return {"episodes": len(yaws), "low": min(yaws), "high": max(yaws)}
+
+
+def draw_yaw_sweep(sweep: dict[str, Any]):
+    """A matplotlib Figure of the sweep's success per yaw bin (Wilson 95% error bars), its training
+    yaws marked (a band, a line for a fixed-view policy, else the envs' range) and named in the title."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    path = Path(path)
-    png = path.with_suffix(".png")
-    if png == path:
-        raise ConfigError(f"{path}: the sweep's JSON and PNG would be one file; give a .json path")
-    path.parent.mkdir(parents=True, exist_ok=True)
     rows = sweep["bins"]
     centres = [(r["yaw"][0] + r["yaw"][1]) / 2 for r in rows]
     rates = np.array([r["success_rate"] for r in rows])
     err = np.array([[r["success_rate"] - r["ci95"][0], r["ci95"][1] - r["success_rate"]] for r in rows]).T
-    from shiftkit.envs.multiview.physics import YAW_RANGE
+    from shiftkit.envs.base_pose import YAW_RANGE
 
     fig, ax = plt.subplots(figsize=(6, 3.2))
-    ax.axvspan(*YAW_RANGE, color="0.9", zorder=0, label=f"training yaw U[{YAW_RANGE[0]:g}, {YAW_RANGE[1]:g}]")
+    trained = sweep.get("training_yaw")
+    kind = "policy"
+    if trained is None:  # a policy whose run names no dataset with base poses: the envs' sampling range
+        label = f"the envs' base-yaw range U[{YAW_RANGE[0]:g}, {YAW_RANGE[1]:g}] (training yaws not recorded)"
+        ax.axvspan(*YAW_RANGE, color="0.9", zorder=0, label=label)
+    elif trained["low"] == trained["high"]:
+        kind = "fixed-view policy"
+        label = f"trained at yaw {trained['low']:.3g} only ({trained['episodes']} episodes)"
+        ax.axvline(trained["low"], color="0.5", linestyle="--", zorder=0, label=label)
+    else:
+        kind = "multiview policy"
+        label = f"training yaws [{trained['low']:.3g}, {trained['high']:.3g}] ({trained['episodes']} episodes)"
+        ax.axvspan(trained["low"], trained["high"], color="0.9", zorder=0, label=label)
     ax.bar(centres, rates, width=0.08, yerr=err, capsize=3, color="tab:blue")
     ax.set_xlabel("base yaw (rad), bin centre")
     ax.set_ylabel("success rate")
@@ -417,12 +456,26 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
     ax.legend(loc="upper right", fontsize=7)
     per_bin = sorted({r["episodes"] for r in rows})
     ax.set_title(
-        f"{Path(sweep.get('policy') or 'policy').name} on {sweep['env']} / {sweep['task']}: success per base-yaw bin\n"
+        f"{' '.join(filter(None, (kind, Path(sweep.get('policy') or '').name)))} on {sweep['env']} / {sweep['task']}: success per base-yaw bin\n"
         f"n = {'/'.join(map(str, per_bin))} episodes per bin ({sum(r['episodes'] for r in rows)} in all), "
         f"seeds from {sweep['seed']}, Wilson 95% CI",
         fontsize=8,
     )
     fig.tight_layout()
+    return fig
+
+
+def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path]:
+    """Write the sweep's JSON at `path` and a PNG of success rate (with 95% intervals) per yaw bin
+    beside it; returns both paths."""
+    path = Path(path)
+    png = path.with_suffix(".png")
+    if png == path:
+        raise ConfigError(f"{path}: the sweep's JSON and PNG would be one file; give a .json path")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig = draw_yaw_sweep(sweep)
+    import matplotlib.pyplot as plt
+
     fig.savefig(png, dpi=100)  # the figure first: a failure leaves no JSON without its PNG
     plt.close(fig)
     path.write_text(json.dumps(sweep, indent=2) + "\n")

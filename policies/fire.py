@@ -40,8 +40,6 @@ from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.features import user_features
 from shiftkit.pipelines.lerobot_io import lerobot_home, open_lerobot_dataset
 from shiftkit.pipelines.provenance import recorded_envs
-from shiftkit.policies.bc import BCArgs
-from shiftkit.policies.bc import train as train_bc
 from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt, load_policy
 from shiftkit.policies.dagger_recording import rollout_repo_id, write_recording
 from shiftkit.policies.data import FrameTable, open_datasets, refuse_example_sets
@@ -57,6 +55,8 @@ from shiftkit.policies.fire_runs import summary as run_summary
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.oracle import SimulatedOracle, scripted_expert
 from shiftkit.policies.run_dir import RunDir, dataset_records, torch_device, versions
+from shiftkit.policies.trainers.bc.args import BCArgs
+from shiftkit.policies.trainers.bc.training import train as train_bc
 
 EVAL_SEED = 100_000
 

@@ -41,7 +41,6 @@ from shiftkit.pipelines.hub import validate_repo_id
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, resolve_dataset
 from shiftkit.pipelines.provenance import make_provenance
-from shiftkit.policies.bc import BCArgs
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
 from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
@@ -49,6 +48,7 @@ from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule
 from shiftkit.policies.fire_predictor import RULES, FailurePredictor
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.run_dir import torch_device
+from shiftkit.policies.trainers.bc.args import BCArgs
 
 SOURCE_DEMO, SOURCE_POLICY, SOURCE_EXPERT = 0, 1, 2
 # per-frame features of the aggregated dataset besides the recordings' own

@@ -74,3 +74,43 @@ def success_curve(
         low.append(lo)
         high.append(hi)
     return x, np.array(rate), np.array(low), np.array(high)
+
+
+def bc_reference(run_paths: list[str | Path]) -> dict:
+    """The point a BC policy stands at on FIRE's figures, pooled over `run_paths` (e.g. one run per
+    seed): expert samples = the frames of its training datasets (mean over the runs), execution time =
+    those frames / fps, success = its evaluations' episodes (the one eval/*.json of each run) with the
+    Wilson 95% interval."""
+    from shiftkit.pipelines.errors import ShiftkitError
+    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.policies.run_dir import EVAL
+
+    samples, seconds, successes, episodes = [], [], 0, 0
+    for path in map(Path, run_paths):
+        config = RunDir(path, resume=True).read_config() if (path / "config.json").is_file() else None
+        if config is None or not config.get("datasets"):
+            raise ShiftkitError(f"{path} is not a run folder that names its training datasets (config.json)")
+        frames = time_s = 0.0
+        for record in config["datasets"]:
+            info = read_json_file(Path(str(record.get("root", ""))) / "meta" / "info.json", "the dataset's info")
+            frames += info["total_frames"]
+            time_s += info["total_frames"] / (record.get("fps") or info["fps"])
+        evals = sorted((path / EVAL).glob("*.json"))
+        if len(evals) != 1:
+            found = ", ".join(e.name for e in evals) or "none"
+            raise ShiftkitError(f"{path}: needs exactly one evaluation in {path / EVAL} (found {found})")
+        result = read_json_file(evals[0], "the run's evaluation")
+        samples.append(frames)
+        seconds.append(time_s)
+        successes += int(result["successes"])
+        episodes += int(result["episodes"])
+    low, high = wilson_interval(successes, episodes)
+    return {
+        "runs": len(samples),
+        "expert_samples": float(np.mean(samples)),
+        "execution_time_s": float(np.mean(seconds)),
+        "successes": successes,
+        "episodes": episodes,
+        "success": successes / episodes if episodes else 0.0,
+        "ci95": [low, high],
+    }

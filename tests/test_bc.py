@@ -15,9 +15,10 @@ import pytest
 import torch
 
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
-from shiftkit.policies.bc import BCArgs, train, update_members
 from shiftkit.policies.bc_policy import BCPolicy, Normalization, PolicySpec, load_policy
 from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
+from shiftkit.policies.trainers.bc.args import BCArgs
+from shiftkit.policies.trainers.bc.training import train, update_members
 
 
 def make_dataset(

@@ -75,8 +75,19 @@ def test_file_round_trip_and_plot(tmp_path):
     assert loaded.axes == cal.axes and loaded.provenance == {"seeds": [0, 1]}
     assert loaded.displacement(f) == pytest.approx(cal.displacement(f))
     held_e, held_f = synthetic_pushes(3, n=50)
-    png = plot_calibration(cal, e, f, tmp_path / "fit.png", held_out=(held_e, held_f, np.ones(held_e.shape, bool)))
+    from matplotlib.figure import Figure
+
+    drawn = []
+    save = Figure.savefig
+    with pytest.MonkeyPatch.context() as mp:  # keep the figure the function writes, to read its titles
+        mp.setattr(Figure, "savefig", lambda fig, *a, **k: (drawn.append(fig), save(fig, *a, **k))[1])
+        png = plot_calibration(cal, e, f, tmp_path / "fit.png", held_out=(held_e, held_f, np.ones(held_e.shape, bool)))
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (fig,) = drawn
+    assert fig.get_suptitle().startswith("force calibration of sensor sts-A") and "200 fit samples, 50 held-out" in (
+        fig.get_suptitle()
+    )
+    assert fig.axes[0].get_title().startswith("Fx vs ex: n = 200 fit, 50 held-out")
 
 
 def test_bad_files_are_one_line_errors(tmp_path):
@@ -120,6 +131,28 @@ def test_calibrate_command_on_the_simulated_sensor(tmp_path, capsys):
     assert "held_out displacement RMSE" in capsys.readouterr().out
     assert main(["calibrate", "--env", "panda-play", "--task", "lift", "--out", str(tmp_path / "x.json")]) == 2
     assert "has no tactile sensor" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_committed_calibration_is_what_its_documented_command_makes_today(tmp_path):
+    """docs/force_matching_calibration.json (which the force-matched pipelines and figures use) is
+    what `shiftkit calibrate` writes from the current scene with the command docs/force_matching.md
+    gives: a change to the scene or the fit fails here until the file is regenerated."""
+    from pathlib import Path
+
+    from shiftkit.app.cli import main
+
+    committed = Path(__file__).resolve().parents[1] / "docs" / "force_matching_calibration.json"
+    out = tmp_path / "calib.json"
+    argv = ["calibrate", "--env", "door-tactile", "--out", str(out), "--pushes", "3", "--held-out", "3"]
+    assert main(argv) == 0
+    fresh, kept = json.loads(out.read_text()), json.loads(committed.read_text())
+    assert fresh["provenance"] == kept["provenance"]
+    for axis, fit in kept["axes"].items():
+        for key in ("slopes", "breakpoints", "offset"):
+            np.testing.assert_allclose(
+                fresh["axes"][axis][key], fit[key], rtol=1e-6, atol=1e-9, err_msg=f"{axis} {key}"
+            )
 
 
 def test_plan_executed_by_the_simulated_robot_fits_like_the_simulated_pushes(tmp_path, capsys):

@@ -86,6 +86,18 @@ def test_out_of_range_values_are_refused_with_the_rule_message(argv, message, ca
     assert exc.value.code == 2 and len(errors) == 1 and message in errors[0], errors
 
 
+def test_numeric_choices_are_parsed_before_they_are_compared():
+    # `eval --control-hz 5` is the int 5 the env takes, and 7 is refused as no allowed rate
+    from shiftkit.app.commands import eval as eval_command
+
+    parser = Parser(prog="eval")
+    eval_command.OPTIONS.add_to(parser)
+    built = eval_command.OPTIONS.build(parser.parse_args(["--policy", "p", "--task", "lift", "--control-hz", "5"]))
+    assert built.control_hz == 5 and built.episodes == 50 and built.env_kwargs == {}
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--control-hz", "7"])
+
+
 def test_a_missing_required_option_names_its_flag():
     with pytest.raises(ConfigError, match="required: --name"):
         _options().build(_parse([]))
@@ -127,8 +139,28 @@ def test_fire_options_mirror_every_field_of_its_args(tmp_path):
     assert {f.name for f in dataclasses.fields(FireArgs)} <= flags
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["train", "--help"], ["plan", "--help"], ["eval", "--help"]])
-def test_help_imports_no_torch_or_mujoco(argv):
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--help"],
+        ["train", "--help"],
+        ["train", "bc", "--help"],
+        ["train", "vpace", "--help"],
+        ["plan", "--help"],
+        ["eval", "--help"],
+        ["collect", "--help"],
+        ["calibrate", "--help"],
+        ["run", "--help"],
+        ["plan", "--stages"],
+        ["plan", "PIPELINE"],
+    ],
+)
+def test_help_imports_no_torch_or_mujoco(argv, synthetic_raw, tmp_path):
+    """`--help` of the commands, listing the stages and planning a pipeline whose stages need no env
+    load neither torch nor MuJoCo (nor lerobot): env families load when a stage asks for one."""
+    from tests.test_executors import write_config
+
+    argv = [str(write_config(tmp_path, synthetic_raw, "planned")) if a == "PIPELINE" else a for a in argv]
     code = (
         "import sys\nfrom shiftkit.app.cli import main\n"
         f"assert main({argv!r}) == 0\n"
@@ -138,22 +170,61 @@ def test_help_imports_no_torch_or_mujoco(argv):
     assert out.strip().splitlines()[-1] == "[]", out[-500:]
 
 
-def test_trainers_register_themselves_and_a_new_module_is_found(tmp_path, monkeypatch, capsys):
+THROWAWAY_INIT = """
+import argparse
+
+from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.policies.trainers import Trainer, register
+
+TRAINER = register(Trainer(name="throwaway", help="a trainer made by a test", args=f"{__name__}.args:Args",
+    cli=__name__, load_policy="shiftkit.policies.bc_policy:load_policy", citation="Me, 2026."))
+
+
+def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
+    DataclassOptions(trainer.args_class(), flags={"output_dir": "output"}).add_to(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    return 0
+"""
+
+THROWAWAY_ARGS = '''
+from dataclasses import dataclass
+
+
+@dataclass
+class Args:
+    output_dir: str
+    """Where the throwaway run goes."""
+    depth: int = 3
+    """How deep the throwaway network is."""
+'''
+
+
+def test_trainers_register_themselves_and_a_new_folder_is_found(tmp_path, monkeypatch, capsys):
+    """Adding a trainer is one new folder under policies/trainers/: discovery registers it, `train
+    --help` lists it and `train NAME` takes the options of the args dataclass in its folder."""
     import shiftkit.policies.trainers as registry
 
     assert {"bc", "vpace", "lfgp"} <= set(registry.trainers())
-    module = tmp_path / "throwaway.py"
-    module.write_text(
-        "from shiftkit.policies.trainers import Trainer, register\n"
-        "register(Trainer(name='throwaway', help='a trainer made by a test', args='shiftkit.policies.bc:BCArgs',"
-        " cli='shiftkit.policies.trainers.bc', load_policy='shiftkit.policies.bc_policy:load_policy', citation='Me, 2026.'))\n"
-    )
+    (tmp_path / "throwaway").mkdir()
+    (tmp_path / "throwaway" / "__init__.py").write_text(THROWAWAY_INIT)
+    (tmp_path / "throwaway" / "args.py").write_text(THROWAWAY_ARGS)
+    (tmp_path / "stray.py").write_text("raise AssertionError('a lone module is not a trainer')\n")
     monkeypatch.setattr(registry, "__path__", [*registry.__path__, str(tmp_path)])
     monkeypatch.setattr(registry, "_DISCOVERED", False)
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
-    assert registry.trainer("throwaway").citation == "Me, 2026."
-    assert main(["train", "--help"]) == 0
-    assert "a trainer made by a test" in capsys.readouterr().out
+    try:
+        found = registry.trainer("throwaway")
+        assert found.citation == "Me, 2026."
+        assert found.args_class().__module__ == "shiftkit.policies.trainers.throwaway.args"
+        assert main(["train", "--help"]) == 0
+        assert "a trainer made by a test" in capsys.readouterr().out
+        assert main(["train", "throwaway", "--help"]) == 0
+        assert "How deep the throwaway network is." in capsys.readouterr().out
+    finally:
+        for name in ("shiftkit.policies.trainers.throwaway", "shiftkit.policies.trainers.throwaway.args"):
+            sys.modules.pop(name, None)
     with pytest.raises(ConfigError, match="unknown trainer 'nope'"):
         registry.trainer("nope")
 

@@ -218,10 +218,10 @@ def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, tmp_path):
     from shiftkit.pipelines.synthetic import write_synthetic_raw
     from shiftkit.pipelines.work import work_dir_for
 
-    # Enough episodes that the job is still running when the first part appears: with 24, an idle
-    # machine finished them all between that moment and the suspend.
+    # Enough work that the job is still running when the first part appears: 24 small episodes
+    # finished between that moment and the suspend on an idle machine, and 240 of them under load.
     episodes = 240
-    raw = write_synthetic_raw(tmp_path / "raw", episodes=episodes, length=12, seed=4, camera=(24, 32))
+    raw = write_synthetic_raw(tmp_path / "raw", episodes=episodes, length=24, seed=4, camera=(64, 80))
     shiftkit(slurm.env, "run", str(_config(tmp_path, raw, "local")), "--no-progress")
     dest = tmp_path / "slurm"
     config = _config(tmp_path, raw, "slurm")

@@ -239,3 +239,23 @@ def test_dataset_level_selection_spans_shards(tmp_path, raw):
     local = run_pipeline(config_for(tmp_path, raw, "sel-local", extra), progress=False)
     assert json.loads((out / "meta/info.json").read_text())["total_episodes"] == 3
     assert_same_dataset(local, out)
+
+
+def test_run_command_gives_the_slurm_executor_only_the_options_given(tmp_path, raw, capsys):
+    # the job asks for the executor's own defaults (`SlurmSettings`) unless the command line sets one
+    from shiftkit.app.cli import main
+
+    argv = [
+        "run",
+        str(write_config(tmp_path, raw, "out")),
+        "--executor",
+        "slurm",
+        "--partition",
+        "cpu",
+        "--no-submit",
+        "--no-progress",
+    ]
+    assert main([*argv, "--cpus-per-task", "3"]) == 0
+    script = (work_dir_for(tmp_path / "out") / "datatrove" / "slurm" / "launch_script.slurm").read_text()
+    assert "#SBATCH --time=04:00:00" in script and "#SBATCH --cpus-per-task=3" in script
+    assert "not written yet" in capsys.readouterr().out

@@ -333,18 +333,82 @@ def test_fire_resumes_after_sigkill_as_if_never_stopped(demo, fire_run, tmp_path
     assert main([*args, "--resume"]) == 0  # a finished run resumes to its summary
 
 
-def test_plots_of_a_fire_run(fire_run, tmp_path, capsys):
+def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):
+    from matplotlib.figure import Figure
+
+    drawn = []
+    save = Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: (drawn.append(fig), save(fig, *a, **k))[1])
     run, _ = fire_run
     assert main(["plot", "fire", f"mine={run}", "--out", str(tmp_path / "fire.png"), "--window", "2"]) == 0
     assert (tmp_path / "fire-expert.png").stat().st_size > 0 and (tmp_path / "fire-time.png").stat().st_size > 0
     lines = _episode_lines(run)
+    expert, time = (fig.axes[0] for fig in drawn)
+    assert [t.get_text() for t in expert.get_legend().get_texts()] == [f"mine, {len(lines)} episodes (n = 1 run)"]
+    assert expert.get_title().startswith("mine, ") and time.get_xlabel() == "total execution time (s)"
     labels = [not x["policy_success"] for x in lines if x["d_ready"]]
     code = main(["plot", "roc", str(run), "--out", str(tmp_path / "roc.png")])
     if 0 < sum(labels) < len(labels):
         assert code == 0 and (tmp_path / "roc.png").stat().st_size > 0
         assert "gda: AUC" in capsys.readouterr().out
+        title = drawn[-1].axes[0].get_title()
+        assert (
+            f"failure prediction, {run.name}" in title and f"n = {len(labels)} episodes, {sum(labels)} failed" in title
+        )
     else:  # too few episodes for both outcomes: a one-line error, no figure
         assert code == 2 and not (tmp_path / "roc.png").exists()
+
+
+def test_plot_fire_draws_bc_at_its_training_frames(demo, fire_run, tmp_path, capsys):
+    """`plot fire --bc`: BC is a point at its dataset's frames (and frames / fps on the time panel),
+    at its evaluation's success with the Wilson interval; a label's runs pool their episodes."""
+    import shutil
+
+    from shiftkit.policies.curves import Point, draw_curves
+    from shiftkit.policies.evaluation import EpisodeResult, EvalReport, record_evaluation, wilson_interval
+    from shiftkit.policies.fire_runs import bc_reference
+
+    env_name, task, root = demo
+    bc = tmp_path / "bc-s0"
+    train = ["train", "bc", "--dataset", str(root), "--output", str(bc), "--regime", "fixed", "--steps", "2"]
+    assert main([*train, "--ensemble", "1", "--hidden", "8", "--device", "cpu", "--no-progress"]) == 0
+    other = tmp_path / "bc-s1"
+    shutil.copytree(bc, other)
+    for run, wins in ((bc, [True, False, False]), (other, [True, True, False, False])):
+        results = [EpisodeResult(i, 100 + i, w, 5, 0.0) for i, w in enumerate(wins)]
+        record_evaluation(EvalReport(env_name, task, str(run), 100, results), run)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    ref = bc_reference([bc, other])
+    assert ref["expert_samples"] == info["total_frames"]
+    assert ref["execution_time_s"] == pytest.approx(info["total_frames"] / info["fps"])
+    assert (ref["successes"], ref["episodes"]) == (3, 7)
+    assert ref["ci95"] == list(wilson_interval(3, 7))
+
+    fire, _ = fire_run
+    capsys.readouterr()
+    args = ["plot", "fire", f"fire={fire}", "--bc", f"BC 3 demos={bc},{other}"]
+    assert main([*args, "--out", str(tmp_path / "f.png"), "--window", "2"]) == 0
+    out = capsys.readouterr().out
+    assert f"BC 3 demos: 2 BC run(s), {info['total_frames']} expert samples" in out and "3/7" in out
+    assert (tmp_path / "f-expert.png").stat().st_size > 0 and (tmp_path / "f-time.png").stat().st_size > 0
+
+    point = Point("BC 3 demos", ref["execution_time_s"], ref["success"], *ref["ci95"], ref["episodes"])
+    ax = draw_curves([], xlabel="total execution time (s)", points=(point,)).axes[0]
+    (bar,) = ax.containers
+    line = bar.lines[0]
+    assert line.get_xdata()[0] == ref["execution_time_s"] and line.get_ydata()[0] == pytest.approx(3 / 7)
+    assert ax.get_legend().get_texts()[0].get_text() == "BC 3 demos (n = 7 episodes)"
+    assert "BC 3 demos" in ax.get_title()
+
+    # one run without its evaluation: a one-line error naming the folder
+    shutil.rmtree(other / "eval")
+    assert main([*args, "--out", str(tmp_path / "g.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bc-s1" in err[0] and "exactly one evaluation" in err[0]
+    assert not (tmp_path / "g-expert.png").exists()
+    # a label given twice would silently drop a run: refused
+    assert main(["plot", "fire", str(fire), "--bc", f"a={bc}", "--bc", f"a={other}", "--out", "h.png"]) == 2
+    assert "'a' is given twice" in capsys.readouterr().err
 
 
 def test_fire_user_errors_are_one_line(demo, tmp_path, capsys):

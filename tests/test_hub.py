@@ -7,7 +7,6 @@ server from `hub_server.py`; nothing here reaches beyond 127.0.0.1.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import socket
@@ -215,10 +214,6 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
     assert results[7]["stdout"].strip() == "hf_xet loaded: False"
 
 
-@pytest.mark.skipif(
-    importlib.util.find_spec("shiftkit.policies.bc") is None,
-    reason="BC trainer (shiftkit.policies.bc) not written yet; train-by-ID needs it",
-)
 def test_pulled_dataset_trains_by_id_and_checkpoint_round_trips(hub, dataset, tmp_path):
     home, run, model = tmp_path / "home", tmp_path / "run", "shiftkit-test/bc-tiny"
     bare = tmp_path / "bare"  # a checkpoint folder without a model card
@@ -226,7 +221,7 @@ def test_pulled_dataset_trains_by_id_and_checkpoint_round_trips(hub, dataset, tm
     (bare / "weights.bin").write_bytes(b"\x00" * 64)
     seed = [] if hub.store.exists("dataset", REPO) else [(["push", str(dataset), "--repo-id", REPO], WRITE)]
     train = (
-        "from shiftkit.policies.bc import BCArgs, train\n"
+        "from shiftkit.policies.trainers.bc.args import BCArgs\nfrom shiftkit.policies.trainers.bc.training import train\n"
         f"train(BCArgs(datasets=[{REPO!r}], output_dir={str(run)!r}, regime='fixed', steps=3, "
         "ensemble_size=1, hidden=[16], checkpoint_every=3, log_every=1))"
     )

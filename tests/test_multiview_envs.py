@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import shiftkit.envs as envs
-from shiftkit.envs.base_pose import BasePose
+from shiftkit.envs.base_pose import AIM, SAMPLER, BasePose
 from shiftkit.envs.multiview.experts import rollout
-from shiftkit.envs.multiview.physics import AIM, SAMPLER, rebase_state
+from shiftkit.envs.multiview.physics import rebase_state
 
 TASKS = [("mv-lift", "lift"), ("mv-stack", "stack"), ("mv-pick-insert", "pick-insert"), ("mv-door", "door")]
 

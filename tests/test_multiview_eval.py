@@ -10,7 +10,7 @@ import pytest
 from shiftkit.envs import env_family
 from shiftkit.envs.multiview.experts import ExpertPolicy
 from shiftkit.pipelines.errors import ConfigError
-from shiftkit.policies.evaluation import YAW_BINS, write_yaw_sweep, yaw_sweep
+from shiftkit.policies.evaluation import YAW_BINS, draw_yaw_sweep, write_yaw_sweep, yaw_sweep
 
 
 class ExpertWithFeatures(ExpertPolicy):
@@ -57,6 +57,22 @@ def test_yaw_sweep_runs_each_bin_at_its_yaws_and_writes_json_and_png(tmp_path, m
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_yaw_sweep_figure_marks_the_training_yaws():
+    bins = [{"yaw": [-0.8, -0.7], "episodes": 4, "successes": 1, "success_rate": 0.25, "ci95": [0.05, 0.7]}]
+    sweep = {"env": "mv-lift", "task": "lift", "policy": "runs/bc", "seed": 0, "bins": bins}
+    fixed = draw_yaw_sweep({**sweep, "training_yaw": {"episodes": 5, "low": -0.2, "high": -0.2}}).axes[0]
+    assert fixed.get_title().startswith("fixed-view policy bc on mv-lift / lift") and "n = 4" in fixed.get_title()
+    line = fixed.lines[0]  # drawn first, under the bars
+    assert list(line.get_xdata()) == [-0.2, -0.2]
+    assert fixed.get_legend().get_texts()[0].get_text() == "trained at yaw -0.2 only (5 episodes)"
+    multi = draw_yaw_sweep({**sweep, "training_yaw": {"episodes": 9, "low": -0.6, "high": 0.2}}).axes[0]
+    assert multi.get_title().startswith("multiview policy bc")
+    band = multi.patches[0]  # drawn first, under the bars
+    assert band.get_x() == pytest.approx(-0.6) and band.get_width() == pytest.approx(0.8)
+    unknown = draw_yaw_sweep({**sweep, "training_yaw": None}).axes[0]
+    assert "training yaws not recorded" in unknown.get_legend().get_texts()[0].get_text()
+
+
 def test_yaw_sweep_needs_a_mobile_base():
     policy = ExpertWithFeatures()
     with pytest.raises(ConfigError, match="mobile base"):
@@ -77,5 +93,11 @@ def test_eval_cli_env_kwarg_and_yaw_sweep(tmp_path, capsys):
     assert main([*base, "--env-kwarg", "view=multiview", "--yaw-sweep", "--out", str(tmp_path / "s.json")]) == 0
     sweep = json.loads((tmp_path / "s.json").read_text())
     assert len(sweep["bins"]) == 12 and (tmp_path / "s.png").exists()
+    # the figure marks the base yaws of the training episodes (from the dataset's camera metadata)
+    trained = sweep["training_yaw"]
+    assert trained["episodes"] == 2 and -0.7 <= trained["low"] <= trained["high"] <= 0.3
+    ax = draw_yaw_sweep(sweep).axes[0]
+    assert ax.get_title().startswith(f"{'fixed-view' if trained['low'] == trained['high'] else 'multiview'} policy run")
+    assert "(2 episodes)" in ax.get_legend().get_texts()[0].get_text() and "n = 1 episodes per bin" in ax.get_title()
     assert main([*base, "--env-kwarg", "view=sideways"]) == 2
     assert "yaw sweep written" in capsys.readouterr().out

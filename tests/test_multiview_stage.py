@@ -10,8 +10,7 @@ import pytest
 
 from shiftkit.app.collect import CollectConfig, collect
 from shiftkit.envs import make
-from shiftkit.envs.base_pose import BasePose
-from shiftkit.envs.multiview.physics import SAMPLER
+from shiftkit.envs.base_pose import SAMPLER, BasePose
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.planner import plan_pipeline

@@ -10,7 +10,10 @@ from pathlib import Path
 
 import pytest
 
-SCRIPTS = sorted((Path(__file__).resolve().parents[1] / "bench" / "science").glob("*.py"))
+# `_`-prefixed modules are the scripts' shared helpers, not scripts
+SCRIPTS = sorted(
+    p for p in (Path(__file__).resolve().parents[1] / "bench" / "science").glob("*.py") if p.name[0] != "_"
+)
 
 
 @pytest.mark.slow

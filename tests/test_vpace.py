@@ -20,7 +20,8 @@ from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
 from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, clip_grad_norm_per_member
 from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
-from shiftkit.policies.vpace import Agent, VPACEArgs, make_env, train
+from shiftkit.policies.trainers.vpace.args import VPACEArgs
+from shiftkit.policies.trainers.vpace.training import Agent, make_env, train
 
 GOAL = np.array([0.5, 0.5], np.float32)
 
@@ -117,7 +118,7 @@ def test_resume_gives_the_same_result(tmp_path):
 
 
 def test_best_checkpoint_holds_the_intentions_of_the_best_evaluation(tmp_path):
-    from shiftkit.policies.vpace import load_policy
+    from shiftkit.policies.trainers.vpace.training import load_policy
 
     run(tiny_args(tmp_path, "long", total_steps=400, eval_every=50, eval_episodes=3, seed=3))
     evals = [
@@ -287,7 +288,7 @@ def test_first_layer_by_parts_is_the_product_of_the_concatenated_input():
 def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
     # Coupled L2 in Adam normalises the decay term to lr-sized steps and zeroes an idle critic within a
     # few thousand updates (it killed early Panda reach runs); decoupled decay shrinks by lr * wd per step.
-    from shiftkit.policies.vpace import Agent
+    from shiftkit.policies.trainers.vpace.training import Agent
 
     args = VPACEArgs.for_variant("vpace", main_task="m", aux_tasks=["a"], hidden=(8, 8))
     agent = Agent(args, 3, gym.spaces.Box(-1.0, 1.0, (2,), np.float32), torch.device("cpu"))
@@ -514,7 +515,7 @@ def test_cli_train_and_plot(tmp_path, monkeypatch):
 
     import argparse
 
-    from shiftkit.policies import vpace_cli
+    from shiftkit.policies.trainers import vpace as vpace_cli
 
     parser = argparse.ArgumentParser()
     vpace_cli.add_plot_arguments(parser)

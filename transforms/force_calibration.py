@@ -18,15 +18,16 @@ from __future__ import annotations
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from shiftkit.envs.door_tactile.lab import PUSH_KINDS, PushConfig, pose_error
-from shiftkit.envs.door_tactile.lab import simulate_push as lab_push
 from shiftkit.pipelines.errors import ConfigError, ShiftkitError
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.staging import staging_path
+
+if TYPE_CHECKING:
+    from shiftkit.envs.door_tactile.lab import PushConfig
 
 FORMAT = "shiftkit-force-calibration"
 VERSION = 1
@@ -304,14 +305,20 @@ def plot_calibration(
             ax.axvline(bp, c="tab:blue", ls=":", lw=1)
         res = calibration.residuals.get("held_out", calibration.residuals.get("fit", {})).get(a, {})
         rel = res.get("relative_rmse_displacement")
-        title = f"{a} vs {DISPLACEMENT_AXES[k]}"
+        title = f"{a} vs {DISPLACEMENT_AXES[k]}: n = {int(m.sum())} fit"
+        if held_out is not None:
+            title += f", {int(hm.sum())} held-out"
         if rel is not None:
             title += f"  (displacement RMSE {100 * rel:.1f}%)"
         ax.set_title(title, fontsize=9)
         ax.set_xlabel(f"{DISPLACEMENT_AXES[k]} = x_d - x ({DISPLACEMENT_UNITS[k]})")
         ax.set_ylabel(f"raw {a}")
     axs[0].legend(fontsize=7)
-    fig.suptitle(f"force calibration of sensor {calibration.sensor_id}", fontsize=10)
+    fig.suptitle(
+        f"force calibration of sensor {calibration.sensor_id}: raw wrench vs displacement, "
+        f"{len(displacement)} fit samples{f', {len(held_out[0])} held-out' if held_out is not None else ''}",
+        fontsize=10,
+    )
     path = Path(path)
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -319,7 +326,8 @@ def plot_calibration(
 
 
 # ----------------------------------------------------------------------------- autonomous pushes
-# the procedure (`PushConfig`) and the simulated pushes live with the simulated lab (envs.door_tactile.lab)
+# the procedure (`PushConfig`, `PUSH_KINDS`) and the simulated pushes live with the simulated lab
+# (envs.door_tactile.lab), imported where used so that the force_match stage loads without the env
 @dataclass
 class Push:
     """One recorded calibration push: its kind, seed and what was measured."""
@@ -361,6 +369,9 @@ def push_mask(kind: str, moving: np.ndarray, wrench: np.ndarray, config: PushCon
 def simulate_push(env: Any, kind: str, seed: int, config: PushConfig) -> Push:
     """One simulated push (`envs.door_tactile.lab.simulate_push`) with the samples each axis is
     fitted on (`push_mask`)."""
+    from shiftkit.envs.door_tactile.lab import PUSH_KINDS
+    from shiftkit.envs.door_tactile.lab import simulate_push as lab_push
+
     if kind not in PUSH_KINDS:
         raise ConfigError(f"unknown push kind {kind!r}; known: {', '.join(PUSH_KINDS)}")
     displacement, wrench, moving = lab_push(env, kind, seed, config)
@@ -423,13 +434,17 @@ def calibrate_env(
     fit_seeds: list[int],
     held_out_seeds: list[int],
     push: PushConfig | None = None,
-    kinds: tuple[str, ...] = PUSH_KINDS,
+    kinds: tuple[str, ...] | None = None,
     breakpoints: tuple[int, ...] = DEFAULT_BREAKPOINTS,
     max_offset: tuple[float, ...] = DEFAULT_MAX_OFFSET,
 ) -> tuple[Calibration, list[Push], list[Push]]:
     """Push (every kind, once per seed), fit on the `fit_seeds` pushes and report the residuals on
-    the `held_out_seeds` pushes. Returns the calibration and both push lists."""
+    the `held_out_seeds` pushes (`kinds`: default every kind of `PUSH_KINDS`). Returns the
+    calibration and both push lists."""
+    from shiftkit.envs.door_tactile.lab import PUSH_KINDS, PushConfig
+
     push = push or PushConfig()
+    kinds = PUSH_KINDS if kinds is None else kinds
     family, env = _tactile_env(env_name, task)
     try:
         fit = [simulate_push(env, k, s, push) for s in fit_seeds for k in kinds]
@@ -464,6 +479,8 @@ def plan_push(kind: str, seed: int, config: PushConfig) -> dict[str, np.ndarray]
     the object: a plan cannot watch the reading), then shears or rotates. Every step is held
     `settle_periods` periods; `sample` marks each step's last period (its reading joins the
     fit), `move` the periods of the shear / torque move."""
+    from shiftkit.envs.door_tactile.lab import PUSH_KINDS
+
     if kind not in PUSH_KINDS:
         raise ConfigError(f"unknown push kind {kind!r}; known: {', '.join(PUSH_KINDS)}")
     rng = np.random.default_rng([seed, PUSH_KINDS.index(kind)])
@@ -500,14 +517,17 @@ def write_calibration_plan(
     sensor: str,
     control_hz: int = 10,
     push: PushConfig | None = None,
-    kinds: tuple[str, ...] = PUSH_KINDS,
+    kinds: tuple[str, ...] | None = None,
 ) -> Path:
     """The push sequence for a robot to execute, in the raw episode format (docs/raw_format.md):
     one episode per push, `action` the commanded pose per control period (start-pose frame),
-    `sample` / `move` flags, metadata with the push kind, seed and split (fit / held_out)."""
+    `sample` / `move` flags, metadata with the push kind, seed and split (fit / held_out); `kinds`:
+    default every kind of `PUSH_KINDS`."""
+    from shiftkit.envs.door_tactile.lab import PUSH_KINDS, PushConfig
     from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
     push = push or PushConfig()
+    kinds = PUSH_KINDS if kinds is None else kinds
     info = {
         "kind": PLAN_KIND,
         "sensor_id": sensor,
@@ -534,6 +554,7 @@ def recorded_pushes(root: str | Path, push: PushConfig | None = None) -> tuple[l
     """The fit and held-out pushes of a recorded calibration plan: per settled sample, e from the
     commanded pose (`action`) and the measured pose (`ee_pose`, the same frame) and the raw reading
     (`wrench_raw`). Returns them and the recording's `info`."""
+    from shiftkit.envs.door_tactile.lab import PUSH_KINDS, PushConfig, pose_error
     from shiftkit.envs.geometry import quat_xyzw_to_matrix
     from shiftkit.pipelines.errors import DatasetError
     from shiftkit.pipelines.sources.raw import open_raw_dataset
@@ -595,7 +616,7 @@ def calibrate_recording(
 def execute_calibration_plan(plan: str | Path, out: str | Path, env_name: str, task: str) -> Path:
     """The simulated lab: the env's arm executes a calibration plan and its logger records the
     plan's arrays plus `ee_pose` (measured, start frame), `wrench_raw` and the simulator state."""
-    from shiftkit.envs.door_tactile.lab import execute_pushes
+    from shiftkit.envs.door_tactile.lab import PUSH_KINDS, execute_pushes
     from shiftkit.pipelines.errors import DatasetError
     from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
 

@@ -31,13 +31,6 @@ from typing import Any, Literal, override
 
 import numpy as np
 
-from shiftkit.envs.door_tactile.lab import (
-    CAMERA_PREFIX,
-    STS_IMAGE,
-    STS_TACTILE,
-    STS_VISUAL,
-    replay_targets,
-)
 from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, rotation_from_vector
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
@@ -191,6 +184,8 @@ class ForceMatch(Stage):
 
     @override
     def transform_features(self, features: Features) -> Features:
+        from shiftkit.envs.door_tactile.lab import CAMERA_PREFIX, STS_IMAGE, STS_TACTILE, STS_VISUAL
+
         family = self._family()
         for key in ("observation.ee_pose", "observation.wrench"):
             if key not in features:
@@ -273,6 +268,8 @@ class ForceMatch(Stage):
 
     @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        from shiftkit.envs.door_tactile.lab import STS_TACTILE, STS_VISUAL, replay_targets
+
         meta = episode.meta
         where = f"force_match: episode {meta.get('source_episode_index', '?')}"
         if meta.get("seed") is None:

@@ -33,14 +33,11 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Literal, override
 
-import mujoco
 import numpy as np
 
-from shiftkit.envs import make
-from shiftkit.envs.base_pose import BasePose
+# the rig and geometry load without MuJoCo; the scene is imported by the methods that render it
+from shiftkit.envs.base_pose import CAMERA_NAME, SAMPLER, BasePose
 from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, rotation_z
-from shiftkit.envs.multiview.physics import CAMERA_NAME, SAMPLER, rebase_state
-from shiftkit.envs.multiview.tasks import TASKS
 from shiftkit.pipelines.depth import (
     as_metres,
     clean_metres,
@@ -133,6 +130,8 @@ def _project(points: np.ndarray, extrinsics: dict[str, Any], intrinsics: dict[st
 
 def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
     """Set a state for rendering: positions of bodies, geoms and cameras only (no dynamics)."""
+    import mujoco
+
     physics.data.qpos[:] = qpos
     physics.data.qvel[:] = qvel
     mujoco.mj_kinematics(physics.model, physics.data)
@@ -189,6 +188,9 @@ class Multiview(Stage):
 
     # ----------------------------------------------------------------- per episode
     def _env(self, sim_model: str, size: tuple[int, int]):
+        from shiftkit.envs import make
+        from shiftkit.envs.multiview.tasks import TASKS
+
         task = next((t for t in TASKS.values() if t.model_id == sim_model), None)
         if task is None:
             known = ", ".join(t.model_id for t in TASKS.values())
@@ -284,6 +286,8 @@ class Multiview(Stage):
 
     def _render_view(self, episode: Episode, env, old: BasePose, new: BasePose) -> dict[str, np.ndarray] | str:
         """The re-rendered, re-expressed frames at base pose `new`, or the reason it was dropped."""
+        from shiftkit.envs.multiview.physics import rebase_state
+
         cfg = self.config
         f = episode.frames
         with_depth = cfg.depth or DEPTH_KEY in f  # an input's depth is re-rendered too

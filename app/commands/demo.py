@@ -3,17 +3,36 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
+
+from shiftkit.pipelines.option_values import DataclassOptions
 
 HELP = "record demo episodes, re-render them from new base poses (multiview), validate the LeRobot dataset"
 
 
+@dataclass(frozen=True)
+class DemoArgs:
+    """Where `shiftkit demo` writes and how many episodes it records."""
+
+    out: str = "outputs/demo"
+    """Output directory."""
+    episodes: int = 4
+    """Episodes to record."""
+    seed: int = 0
+    """Episode i is recorded with seed `seed + i`."""
+    overwrite: bool = False
+    """Replace an earlier demo output."""
+
+
+OPTIONS = DataclassOptions(
+    DemoArgs, rules={"episodes": "positive_int", "seed": "non_negative_int"}, metavars={"out": "DIR"}
+)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `demo`."""
-    parser.add_argument("--out", default="outputs/demo", help="output directory (default outputs/demo)")
-    parser.add_argument("--episodes", type=int, default=4, help="episodes to record (default 4)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--overwrite", action="store_true", help="replace an earlier demo output")
+    OPTIONS.add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -21,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.app.demo import run_demo
     from shiftkit.pipelines.dataset_check import format_summary
 
-    result = run_demo(Path(args.out), args.episodes, args.seed, args.overwrite)
+    config = OPTIONS.build(args)
+    result = run_demo(Path(config.out), config.episodes, config.seed, config.overwrite)
     print(format_summary(result["summary"]))
     print(f"\nvalid LeRobot dataset: {result['dataset']} ({result['episodes']} episodes, {result['frames']} frames)")
     print(f"pipeline config: {result['config']} (try `shiftkit plan {result['config']}`)")

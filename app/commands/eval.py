@@ -3,38 +3,54 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
-from shiftkit.pipelines.dataclass_config import add_env_kwarg
-from shiftkit.pipelines.option_values import non_negative_int, positive_int
+from shiftkit.pipelines.option_values import DataclassOptions
 
 HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
 
 
+@dataclass(frozen=True)
+class EvalArgs:
+    """What `shiftkit eval` rolls out and where its results go."""
+
+    policy: str
+    """Run folder or checkpoint file of a trained policy."""
+    task: str
+    """Task, e.g. lift."""
+    env: str = "panda-play"
+    """Environment name."""
+    episodes: int = 50
+    """Number of episodes (with `yaw_sweep`: per yaw bin)."""
+    seed: int = 1000
+    """Episode i uses seed `seed + i`."""
+    out: str | None = None
+    """Per-episode results JSON; default: <run>/eval/<env>-<task>-seed<S>.json."""
+    videos: str | None = None
+    """Folder for one MP4 per episode; default: none."""
+    control_hz: Literal[5, 20] | None = None
+    """Env control rate; default: the fps of the policy's dataset (it must be that rate)."""
+    device: str = "cpu"
+    """Torch device for the policy."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Env constructor argument (JSON value), repeatable, e.g. view=fixed."""
+    yaw_sweep: bool = False
+    """Multiview envs: `episodes` per base-yaw bin over 12 bins [-0.8,-0.7]..[0.3,0.4] rad; writes JSON
+    (`out`, default <run>/eval/<env>-<task>-yawsweep-seed<S>.json) and a PNG beside it."""
+
+
+OPTIONS = DataclassOptions(
+    EvalArgs,
+    flags={"env_kwargs": "env-kwarg"},
+    rules={"episodes": "positive_int", "seed": "non_negative_int"},
+    metavars={"out": "FILE", "videos": "DIR"},
+)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `eval`."""
-    parser.add_argument("--policy", required=True, help="run folder or checkpoint file of a trained policy")
-    parser.add_argument("--env", default="panda-play", help="environment name (default: panda-play)")
-    parser.add_argument("--task", required=True, help="task, e.g. lift")
-    parser.add_argument("--episodes", type=positive_int, default=50, help="number of episodes (default: 50)")
-    parser.add_argument(
-        "--seed", type=non_negative_int, default=1000, help="episode i uses seed SEED+i (default: 1000)"
-    )
-    parser.add_argument("--out", help="per-episode results JSON (default: <run>/eval/<env>-<task>-seed<S>.json)")
-    parser.add_argument("--videos", help="folder for one MP4 per episode (default: none)")
-    parser.add_argument(
-        "--control-hz",
-        type=int,
-        choices=(5, 20),
-        help="env control rate (default: the fps of the policy's dataset; it must be that rate)",
-    )
-    parser.add_argument("--device", default="cpu", help="torch device for the policy (default: cpu)")
-    add_env_kwarg(parser, "view=fixed")
-    parser.add_argument(
-        "--yaw-sweep",
-        action="store_true",
-        help="multiview envs: --episodes per base-yaw bin over 12 bins [-0.8,-0.7]..[0.3,0.4] rad; "
-        "writes JSON (--out, default <run>/eval/<env>-<task>-yawsweep-seed<S>.json) and a PNG beside it",
-    )
+    OPTIONS.add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,58 +67,55 @@ def run(args: argparse.Namespace) -> int:
         yaw_sweep,
     )
 
+    config = OPTIONS.build(args)
     # Output paths are checked before the rollouts, which can take minutes.
-    if args.out and Path(args.out).is_dir():
-        raise ConfigError(f"--out {args.out} is a folder; give the JSON file to write")
-    if args.out and any(p.exists() and not p.is_dir() for p in Path(args.out).parents):
-        raise ConfigError(f"--out {args.out}: a parent of it is a file, not a folder")
-    if args.videos and Path(args.videos).exists() and not Path(args.videos).is_dir():
-        raise ConfigError(f"--videos {args.videos} is a file; give a folder for the MP4s")
+    if config.out and Path(config.out).is_dir():
+        raise ConfigError(f"--out {config.out} is a folder; give the JSON file to write")
+    if config.out and any(p.exists() and not p.is_dir() for p in Path(config.out).parents):
+        raise ConfigError(f"--out {config.out}: a parent of it is a file, not a folder")
+    if config.videos and Path(config.videos).exists() and not Path(config.videos).is_dir():
+        raise ConfigError(f"--videos {config.videos} is a file; give a folder for the MP4s")
     from shiftkit.app.env_kwargs import check_env_kwargs
 
-    check_env_kwargs(args.env, dict(args.env_kwarg))
-    if args.yaw_sweep:
-        if args.videos:
+    check_env_kwargs(config.env, config.env_kwargs)
+    if config.yaw_sweep:
+        if config.videos:
             raise ConfigError("--videos is not written by --yaw-sweep; evaluate without --yaw-sweep for videos")
-        if dict(args.env_kwarg).get("view") == "fixed":
+        if config.env_kwargs.get("view") == "fixed":
             raise ConfigError("--yaw-sweep sets the base yaw of every episode, which view=fixed would keep fixed")
-        if args.out and Path(args.out).suffix.lower() == ".png":
-            raise ConfigError(f"--out {args.out}: the sweep's JSON goes there and its PNG beside it; give a .json")
-    if args.seed < 0 or args.episodes < 1:
-        raise ConfigError(f"need --seed >= 0 and --episodes >= 1, got {args.seed} and {args.episodes}")
+        if config.out and Path(config.out).suffix.lower() == ".png":
+            raise ConfigError(f"--out {config.out}: the sweep's JSON goes there and its PNG beside it; give a .json")
     from shiftkit.policies.run_dir import EVAL, run_folder
 
-    _check_writable(Path(args.out).parent if args.out else run_folder(args.policy) / EVAL, "--out")
-    policy = load_policy(args.policy, device=args.device)
-    rate = policy_rate(args.policy)
-    _warn_if_unfinished(Path(args.policy))
-    env_kwargs = {**dict(args.env_kwarg), **({"control_hz": args.control_hz} if args.control_hz else {})}
-    if args.yaw_sweep:
-        from shiftkit.policies.run_dir import EVAL, run_folder
-
+    _check_writable(Path(config.out).parent if config.out else run_folder(config.policy) / EVAL, "--out")
+    policy = load_policy(config.policy, device=config.device)
+    rate = policy_rate(config.policy)
+    _warn_if_unfinished(Path(config.policy))
+    env_kwargs = {**config.env_kwargs, **({"control_hz": config.control_hz} if config.control_hz else {})}
+    if config.yaw_sweep:
         sweep = yaw_sweep(
             policy,
-            args.env,
-            args.task,
-            args.episodes,
-            args.seed,
-            policy_name=str(args.policy),
+            config.env,
+            config.task,
+            config.episodes,
+            config.seed,
+            policy_name=str(config.policy),
             env_kwargs=env_kwargs,
             rate=rate,
             on_bin=lambda r: print(f"yaw {r['yaw']}: {r['successes']}/{r['episodes']} ({r['success_rate']:.0%})"),
         )
-        default = run_folder(args.policy) / EVAL / f"{args.env}-{args.task}-yawsweep-seed{args.seed}.json"
-        json_path, png = write_yaw_sweep(sweep, args.out or default)
+        default = run_folder(config.policy) / EVAL / f"{config.env}-{config.task}-yawsweep-seed{config.seed}.json"
+        json_path, png = write_yaw_sweep(sweep, config.out or default)
         print(f"yaw sweep written to {json_path} and {png}")
         return 0
     report = evaluate(
         policy,
-        args.env,
-        args.task,
-        args.episodes,
-        args.seed,
-        video_dir=args.videos,
-        policy_name=str(args.policy),
+        config.env,
+        config.task,
+        config.episodes,
+        config.seed,
+        video_dir=config.videos,
+        policy_name=str(config.policy),
         env_kwargs=env_kwargs,
         rate=rate,
         on_episode=lambda r: print(
@@ -110,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
             + ("".join(f", {k} {v}" for k, v in r.extras.items()) if r.extras else "")
         ),
     )
-    out = record_evaluation(report, args.policy, args.out)
+    out = record_evaluation(report, config.policy, config.out)
     s = report.summary()
     print(
         f"success rate {s['success_rate']:.1%} ({s['successes']}/{s['episodes']}), "

@@ -11,22 +11,47 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from shiftkit.pipelines.dataclass_config import field_docs
+from shiftkit.pipelines.option_values import DataclassOptions
 
 HELP = "merge datasets that differ (fps, features, cameras): write, print and run the merging pipeline"
 
 
+@dataclass(frozen=True)
+class MergeArgs:
+    """What `shiftkit merge` merges, into what, and how it runs the pipeline."""
+
+    sources: list[str]
+    """Dataset directories or dataset IDs, in output order."""
+    fps: int
+    """Frame rate of the merged dataset."""
+    out: str
+    """Output dataset directory (must not exist)."""
+    repo_id: str
+    """Dataset ID of the merged dataset."""
+    size: str | None = None
+    """Camera size WIDTHxHEIGHT; default: the first source's."""
+    workers: int = 1
+    """Worker processes."""
+    dry_run: bool = False
+    """Only print the pipeline."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+OPTIONS = DataclassOptions(
+    MergeArgs, skip=("sources",), rules={"fps": "positive_int", "workers": "positive_int"}, metavars={"out": "DIR"}
+)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `merge`."""
-    parser.add_argument("sources", nargs="+", help="dataset directories or dataset IDs, in output order")
-    parser.add_argument("--fps", type=int, required=True, help="frame rate of the merged dataset")
-    parser.add_argument("--out", required=True, help="output dataset directory (must not exist)")
-    parser.add_argument("--repo-id", required=True, help="dataset ID of the merged dataset")
-    parser.add_argument("--size", help="camera size WIDTHxHEIGHT (default: the first source's)")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    parser.add_argument("--dry-run", action="store_true", help="only print the pipeline")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("sources", nargs="+", help=field_docs(MergeArgs)["sources"])
+    OPTIONS.add_to(parser)
 
 
 def _size(text: str | None) -> tuple[int, int] | None:
@@ -109,13 +134,14 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.planner import plan_pipeline
     from shiftkit.pipelines.runner import run_pipeline
 
-    validate_repo_id(args.repo_id)
-    text = merge_pipeline(args.sources, args.fps, args.out, args.repo_id, _size(args.size))
-    config = parse_pipeline_config(tomllib.loads(text), Path.cwd(), "merge pipeline")
-    plan_pipeline(config)  # a difference the choices above do not cover fails here, before printing
+    config = OPTIONS.build(args, sources=args.sources)
+    validate_repo_id(config.repo_id)
+    text = merge_pipeline(config.sources, config.fps, config.out, config.repo_id, _size(config.size))
+    pipeline = parse_pipeline_config(tomllib.loads(text), Path.cwd(), "merge pipeline")
+    plan_pipeline(pipeline)  # a difference the choices above do not cover fails here, before printing
     print(text)
-    if args.dry_run:
+    if config.dry_run:
         return 0
-    path = run_pipeline(config, workers=args.workers, progress=not args.no_progress)
+    path = run_pipeline(pipeline, workers=config.workers, progress=config.progress)
     print(f"wrote {path}")
     return 0

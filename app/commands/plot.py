@@ -3,16 +3,51 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass, field
 
-from shiftkit.pipelines.option_values import positive_int
+from shiftkit.pipelines.option_values import DataclassOptions
 
 HELP = "plot FIRE runs: ROC curves of the failure predictors (roc) or success vs expert samples and time (fire)"
 
 PREDICTOR_LABELS = {"beta": "beta rule", "gda": "GDA", "doubt": "ensemble doubt", "gda+doubt": "GDA or doubt"}
 
 
+@dataclass(frozen=True)
+class RocFigure:
+    """`plot roc`: ROC curves of every failure predictor, pooled over the runs' episodes after D started."""
+
+    out: str
+    """PNG file to write"""
+    runs: tuple[str, ...] = ()
+    """FIRE run folders or aggregated datasets (`fire aggregate`) (positional)"""
+    title: str = ""
+    """plot title (default: the runs, n episodes and n failed)"""
+
+
+@dataclass(frozen=True)
+class FireFigure:
+    """`plot fire`: policy success against expert samples and against execution time, BC as points."""
+
+    out: str
+    """PNG path; -expert and -time are added before .png"""
+    runs: tuple[str, ...] = ()
+    """FIRE run folders, each as [LABEL=]RUN (positional)"""
+    window: int = 10
+    """episodes per success estimate"""
+    bc: dict[str, str] = field(default_factory=dict)
+    """LABEL=RUN[,RUN...]: BC runs (each with its one eval/*.json) drawn as one point: x = their training
+    frames (/ fps on the time panel), y = their pooled evaluation episodes' success with the Wilson 95% CI;
+    list several runs (e.g. seeds) to pool them; repeatable, one LABEL each"""
+    title: str = ""
+    """plot title (default: the curves and points)"""
+
+
+ROC_OPTIONS = DataclassOptions(RocFigure, skip=("runs",))
+FIRE_OPTIONS = DataclassOptions(FireFigure, skip=("runs",), rules={"window": "positive_int"})
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """One subcommand per figure (`roc`, `fire`), each with its options."""
+    """One subcommand per figure (`roc`, `fire`), its options generated from its dataclass."""
     sub = parser.add_subparsers(dest="figure", metavar="FIGURE", required=True)
     roc = sub.add_parser(
         "roc",
@@ -20,23 +55,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         description="ROC curves of beta rule, GDA, ensemble doubt and GDA-or-doubt, pooled over the runs' "
         "episodes after D started; label: whether the policy's uninterrupted run failed.",
     )
-    roc.add_argument(
-        "runs", nargs="+", metavar="RUN", help="FIRE run folders or aggregated datasets (`fire aggregate`)"
-    )
-    roc.add_argument("--out", required=True, help="PNG file to write")
-    roc.add_argument("--title", default="", help="plot title")
-    roc.set_defaults(_plot=_run_roc)
+    roc.add_argument("runs", nargs="+", metavar="RUN", help=_doc(RocFigure, "runs"))
+    ROC_OPTIONS.add_to(roc)
+    roc.set_defaults(_plot=_run_roc, _options=ROC_OPTIONS)
     fire = sub.add_parser(
         "fire",
         help="policy success vs expert samples and vs execution time",
-        description="Success of each run's policy (moving window of episodes, Wilson 95%% CI) against the "
-        "expert samples and against the total execution time; writes OUT-expert.png and OUT-time.png.",
+        description="Success of each run's policy (moving window of episodes, Wilson 95% CI) against the "
+        "expert samples and against the total execution time, with BC runs as points at their training "
+        "frames; writes OUT-expert.png and OUT-time.png.",
     )
-    fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help="FIRE run folders")
-    fire.add_argument("--out", required=True, help="PNG path; -expert and -time are added before .png")
-    fire.add_argument("--window", type=positive_int, default=10, help="episodes per success estimate (default: 10)")
-    fire.add_argument("--title", default="", help="plot title")
-    fire.set_defaults(_plot=_run_fire)
+    fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help=_doc(FireFigure, "runs"))
+    FIRE_OPTIONS.add_to(fire)
+    fire.set_defaults(_plot=_run_fire, _options=FIRE_OPTIONS)
+
+
+def _doc(cls: type, name: str) -> str:
+    from shiftkit.pipelines.dataclass_config import field_docs
+
+    return field_docs(cls)[name]
 
 
 def check_figure_path(out: str, flag: str = "--out") -> None:
@@ -55,7 +92,7 @@ def check_figure_path(out: str, flag: str = "--out") -> None:
         )
 
 
-def _run_roc(args: argparse.Namespace) -> int:
+def _run_roc(args: RocFigure) -> int:
     from pathlib import Path
 
     import matplotlib
@@ -108,15 +145,14 @@ def _run_roc(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_fire(args: argparse.Namespace) -> int:
+def _run_fire(args: FireFigure) -> int:
     from pathlib import Path
 
+    from shiftkit.pipelines.dataclass_config import csv_list
     from shiftkit.pipelines.errors import ConfigError
-    from shiftkit.policies.curves import Curve, plot_curves
-    from shiftkit.policies.fire_runs import read_episode_lines, success_curve
+    from shiftkit.policies.curves import Curve, Point, plot_curves
+    from shiftkit.policies.fire_runs import bc_reference, read_episode_lines, success_curve
 
-    if args.window < 1:
-        raise ConfigError(f"--window must be >= 1, got {args.window}")
     check_figure_path(args.out)
     runs = []
     for item in args.runs:
@@ -127,6 +163,7 @@ def _run_fire(args: argparse.Namespace) -> int:
         twice = next(label for label in labels if labels.count(label) > 1)
         raise ConfigError(f"label {twice!r} is given to two runs; give each run its own LABEL=RUN")
     lines = {label: read_episode_lines(path) for label, path in runs}
+    bc = {label: bc_reference(csv_list(str(paths))) for label, paths in args.bc.items()}
     out = Path(args.out)
     written = []
     for suffix, key, xlabel in (
@@ -137,11 +174,15 @@ def _run_fire(args: argparse.Namespace) -> int:
         for label, episode_lines in lines.items():
             x, rate, low, high = success_curve(episode_lines, key, args.window)
             curves.append(Curve(f"{label}, {len(episode_lines)} episodes", x, rate, low, high, 1))
+        points = tuple(
+            Point(f"{label}, {p['runs']} run{'s' if p['runs'] != 1 else ''} pooled", p[key], p["success"], *p["ci95"],
+                  p["episodes"])
+            for label, p in bc.items()
+        )  # fmt: skip
         path = out.with_name(f"{out.stem}-{suffix}{out.suffix or '.png'}")
+        ylabel = f"policy success ({args.window}-episode window)"
         try:
-            written.append(
-                plot_curves(curves, path, args.title, xlabel, f"policy success ({args.window}-episode window)")
-            )
+            written.append(plot_curves(curves, path, args.title, xlabel, ylabel, points))
         except BaseException:  # both figures or neither
             for done in written:
                 done.unlink(missing_ok=True)
@@ -153,10 +194,16 @@ def _run_fire(args: argparse.Namespace) -> int:
             f"{last['execution_time_s']:.0f} s executed; policy success over the last {args.window}: "
             f"{success_curve(episode_lines, 'expert_samples', args.window)[1][-1]:.0%}"
         )
+    for label, p in bc.items():
+        print(
+            f"{label}: {p['runs']} BC run(s), {p['expert_samples']:.0f} expert samples, "
+            f"{p['execution_time_s']:.0f} s; success {p['successes']}/{p['episodes']} = {p['success']:.0%} "
+            f"[{p['ci95'][0]:.0%}, {p['ci95'][1]:.0%}]"
+        )
     print("wrote " + ", ".join(str(p) for p in written))
     return 0
 
 
 def run(args: argparse.Namespace) -> int:
-    """Draw the chosen figure; return the exit code."""
-    return args._plot(args)
+    """Draw the chosen figure from its options; return the exit code."""
+    return args._plot(args._options.build(args, runs=tuple(args.runs)))

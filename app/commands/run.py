@@ -1,49 +1,73 @@
-"""`shiftkit run FILE`: run a pipeline (resumable, atomic)."""
+"""`shiftkit run FILE`: run a pipeline (resumable, atomic).
+
+The options are generated (`option_values.DataclassOptions`) from `RunArgs` and from the executors'
+own settings (`executor_settings.RaySettings`, `executor_settings.SlurmSettings`), so an executor's defaults live
+once, in its settings; only the executor options given reach it.
+"""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+from dataclasses import dataclass
 
-from shiftkit.pipelines.option_values import positive_int
+from shiftkit.pipelines.dataclass_config import field_docs
+from shiftkit.pipelines.option_values import DataclassOptions
 
 HELP = "run a pipeline config; re-running after an interruption resumes it"
 
 
+@dataclass(frozen=True)
+class RunArgs:
+    """How `shiftkit run` runs a pipeline config and where it pushes the result."""
+
+    config: str
+    """Pipeline config (.toml, .yaml or .json)."""
+    workers: int = 1
+    """Worker processes."""
+    executor: str = "local"
+    """local (process pool), datatrove-local, ray or slurm (see docs/executors.md)."""
+    progress: bool = True
+    """Show a progress bar."""
+    restart: bool = False
+    """Discard the unfinished work of an earlier run instead of resuming it."""
+    push: str | None = None
+    """Push the result to the hub under this dataset ID."""
+    push_revision: str | None = None
+    """Hub branch for `push`; default: main."""
+    private: bool = False
+    """Create the hub repository as private."""
+
+
+OPTIONS = DataclassOptions(
+    RunArgs,
+    skip=("config",),
+    rules={"workers": "positive_int"},
+    metavars={"push": "ORG/NAME", "push_revision": "BRANCH"},
+)
+
+
+def _executor_options() -> tuple[DataclassOptions, ...]:
+    from shiftkit.pipelines.executor_settings import RaySettings, SlurmSettings
+
+    # `--mem-per-cpu` is the slurm setting's (ray's own default is kept unless it is given)
+    ray = DataclassOptions(RaySettings, skip=("mem_per_cpu_gb",), flags={"address": "ray-address"})
+    slurm = DataclassOptions(
+        SlurmSettings,
+        flags={"mem_per_cpu_gb": "mem-per-cpu"},
+        rules={"cpus_per_task": "positive_int", "mem_per_cpu_gb": "positive_int"},
+    )
+    return ray, slurm
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `run`."""
-    parser.add_argument("config", help="pipeline config (.toml, .yaml or .json)")
-    parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
-    parser.add_argument(
-        "--executor",
-        default="local",
-        help="local (default, process pool), datatrove-local, ray or slurm (see docs/executors.md)",
-    )
-    parser.add_argument(
-        "--ray-address",
-        "--address",
-        dest="address",
-        help="ray: address of the cluster to join (default: $RAY_ADDRESS, else start a local Ray instance)",
-    )
-    parser.add_argument("--partition", help="slurm: partition of the job array (required for slurm)")
-    parser.add_argument("--time", help="slurm: time limit per array task (default 04:00:00)")
-    parser.add_argument("--cpus-per-task", type=int, help="slurm: CPUs per array task (default 1)")
-    parser.add_argument("--mem-per-cpu", type=int, dest="mem_per_cpu_gb", help="slurm: GB per CPU (default 2)")
-    parser.add_argument(
-        "--setup",
-        help="slurm: shell command that prepares each task's environment, e.g. 'module load python; "
-        "source ~/venv/bin/activate' (default: activate this Python environment)",
-    )
-    parser.add_argument(
-        "--no-submit", dest="submit", action="store_false", default=None, help="slurm: write the job, do not sbatch it"
-    )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument(
-        "--restart", action="store_true", help="discard the unfinished work of an earlier run instead of resuming it"
-    )
-    parser.add_argument("--push", metavar="ORG/NAME", help="push the result to the hub under this dataset ID")
-    parser.add_argument("--push-revision", metavar="BRANCH", help="hub branch for --push (default main)")
-    parser.add_argument("--private", action="store_true", help="create the hub repository as private")
+    parser.add_argument("config", help=field_docs(RunArgs)["config"])
+    OPTIONS.add_to(parser)
+    ray, slurm = _executor_options()
+    ray.add_to(parser)
+    parser.add_argument("--address", dest="address", default=argparse.SUPPRESS, help="the same as --ray-address")
+    slurm.add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,27 +78,27 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.provenance import report_lines
     from shiftkit.pipelines.runner import run_pipeline
 
-    config = load_pipeline_config(args.config)
-    if args.push:
+    options = OPTIONS.build(args, config=args.config)
+    config = load_pipeline_config(options.config)
+    if options.push:
         from shiftkit.pipelines.hub import validate_repo_id
 
-        validate_repo_id(args.push)  # fail before any work, not after it
+        validate_repo_id(options.push)  # fail before any work, not after it
         config.destination = dataclasses.replace(
             config.destination,
-            repo_id=args.push,
+            repo_id=options.push,
             push=True,
-            revision=args.push_revision,
-            private=args.private or config.destination.private,
+            revision=options.push_revision,
+            private=options.private or config.destination.private,
         )
-    names = ("address", "partition", "time", "cpus_per_task", "mem_per_cpu_gb", "setup", "submit")
-    options = {k: v for k in names if (v := getattr(args, k)) is not None}
+    executor_options = {k: v for settings in _executor_options() for k, v in settings.values(args).items()}
     path = run_pipeline(
         config,
-        workers=args.workers,
-        executor=args.executor,
-        executor_options=options,
-        progress=not args.no_progress,
-        restart=args.restart,
+        workers=options.workers,
+        executor=options.executor,
+        executor_options=executor_options,
+        progress=options.progress,
+        restart=options.restart,
     )
     if path is None:  # handed to a scheduler; the executor said what to submit
         print(f"{config.destination.root} not written yet: run this command again when the job has finished")

@@ -5,20 +5,36 @@ records it as the lab's logger would (docs/real_robot.md): a calibration plan (`
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
+
+from shiftkit.app.calibrate import CalibrateConfig
+from shiftkit.pipelines.dataclass_config import field_docs
+from shiftkit.pipelines.option_values import DataclassOptions
 
 HELP = "execute a calibration or replay plan on a simulated robot and record it in the raw format"
 
 
+@dataclass(frozen=True)
+class SimRobotArgs:
+    """Which plan the simulated robot executes and where its recording goes."""
+
+    plan: str
+    """Calibration plan (raw format) or replay plan (LeRobot dataset) folder."""
+    out: str
+    """Raw-format recording to write (must not exist)."""
+    env: str = CalibrateConfig.env
+    """Environment whose robot executes (calibration plans: the one `calibrate` pushes in)."""
+    task: str = CalibrateConfig.task
+    """Calibration plans: task whose scene holds the object."""
+
+
+OPTIONS = DataclassOptions(SimRobotArgs, skip=("plan",), metavars={"out": "DIR"})
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `sim-robot`."""
-    parser.add_argument("plan", help="calibration plan (raw format) or replay plan (LeRobot dataset) folder")
-    parser.add_argument("--out", required=True, help="raw-format recording to write (must not exist)")
-    parser.add_argument(
-        "--env", default="door-tactile", help="environment whose robot executes (default: door-tactile)"
-    )
-    parser.add_argument(
-        "--task", default="knob-open", help="calibration plans: task whose scene holds the object (default: knob-open)"
-    )
+    parser.add_argument("plan", help=field_docs(SimRobotArgs)["plan"])
+    OPTIONS.add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,14 +44,15 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.pipelines.sources.raw import is_raw_dataset
 
-    plan, out = Path(args.plan), Path(args.out)
+    config = OPTIONS.build(args, plan=args.plan)
+    plan, out = Path(config.plan), Path(config.out)
     if out.exists() or not out.parent.is_dir():
         raise ConfigError(f"--out {out}: give a new folder in an existing one")
     if is_raw_dataset(plan):
         from shiftkit.transforms.force_calibration import execute_calibration_plan
 
-        execute_calibration_plan(plan, out, args.env, args.task)
-        print(f"executed calibration plan {plan} on the simulated {args.env} robot; recorded {out}")
+        execute_calibration_plan(plan, out, config.env, config.task)
+        print(f"executed calibration plan {plan} on the simulated {config.env} robot; recorded {out}")
     elif (plan / "meta" / "info.json").is_file():
         from shiftkit.transforms.replay_join import execute_replay_plan
 

@@ -11,8 +11,8 @@ import importlib.util
 
 HELP = "train a policy (bc, vpace, lfgp, ...) from LeRobot dataset IDs"
 
-# the success-curve plot of RL runs comes with the VPACE trainer's CLI module when it is installed
-VPACE_CLI = "shiftkit.policies.vpace_cli"
+# the success-curve plot of RL runs comes with the VPACE trainer's folder when it is installed
+VPACE_CLI = "shiftkit.policies.trainers.vpace"
 
 
 def add_arguments(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> None:

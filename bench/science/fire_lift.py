@@ -23,7 +23,8 @@ import tempfile
 from pathlib import Path
 
 from shiftkit.policies.evaluation import wilson_interval
-from shiftkit.policies.fire_runs import read_episode_lines
+from shiftkit.policies.fire_runs import bc_reference, read_episode_lines
+from shiftkit.policies.run_dir import EVAL
 
 SHIFTKIT = [sys.executable, "-m", "shiftkit.app.cli"]
 
@@ -34,7 +35,7 @@ def shiftkit(*args: str, env: dict[str, str]) -> None:
 
 
 def evaluate(policy: Path, episodes: int, env: dict[str, str]) -> dict:
-    out = policy.parent / f"{policy.name}-eval.json"
+    out = policy / EVAL / "lift-held-out.json"  # in the run, so `plot fire --bc` and the card find it
     shiftkit(
         "eval", "--policy", str(policy), "--task", "lift", "--control-hz", "5",
         "--episodes", str(episodes), "--seed", "100000", "--out", str(out), env=env,
@@ -47,6 +48,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="smoke test: one seed, a few episodes (< 5 min)")
     parser.add_argument("--seeds", default="0,1,2", help="training seeds (default: 0,1,2)")
     parser.add_argument("--eval-episodes", type=int, default=30, help="held-out episodes per policy (default: 30)")
+    parser.add_argument("--figure", help="PNG of `plot fire` (-expert/-time added; default: in the workdir)")
     parser.add_argument("--workdir", help="keep the datasets and runs here (default: a temporary folder)")
     args = parser.parse_args()
     seeds = [0] if args.quick else [int(s) for s in args.seeds.split(",")]
@@ -66,18 +68,21 @@ def main() -> None:
                     "--no-progress", env=env,
                 )  # fmt: skip
         rows: dict[str, list[dict]] = {}
+        bc_runs: dict[str, list[str]] = {}  # `plot fire --bc LABEL=RUN,RUN...`: one point per label
+        fire_runs: list[str] = []
         for seed in seeds:
             common = ["--threads", "1", "--device", "cpu", "--seed", str(seed), "--no-progress"]
             for n in demos.values():
                 run = work / f"bc{n}-s{seed}"
                 shiftkit("train", "bc", "--dataset", f"local/lift5-{n}", "--output", str(run),
                          "--hidden", "256,256", *common, env=env)  # fmt: skip
-                info = json.loads((work / "lerobot" / "local" / f"lift5-{n}" / "meta" / "info.json").read_text())
-                result = evaluate(run, episodes, env)
+                evaluate(run, episodes, env)
+                ref = bc_reference([run])
                 rows.setdefault(f"BC, {n} demos", []).append(
-                    {"seed": seed, "successes": result["successes"], "episodes": result["episodes"],
-                     "expert_samples": info["total_frames"], "execution_s": info["total_frames"] / 5}
+                    {"seed": seed, "successes": ref["successes"], "episodes": ref["episodes"],
+                     "expert_samples": int(ref["expert_samples"]), "execution_s": ref["execution_time_s"]}
                 )  # fmt: skip
+                bc_runs.setdefault(f"BC, {n} demos", []).append(str(run))
             for predictor in ("gda", "beta"):
                 run = work / f"fire-{predictor}-s{seed}"
                 shiftkit(
@@ -86,6 +91,7 @@ def main() -> None:
                     "--d-start", "300", "--env-seed", str(10000 + 1000 * seed), "--output", str(run),
                     "--repo-id", f"local/fire-{predictor}-s{seed}", *common, env=env,
                 )  # fmt: skip
+                fire_runs.append(f"FIRE {predictor} s{seed}={run}")
                 last = read_episode_lines(run)[-1]
                 result = evaluate(run / "policy", episodes, env)
                 rows.setdefault(f"FIRE {predictor}, from {demos['small']} demos", []).append(
@@ -93,6 +99,10 @@ def main() -> None:
                      "expert_samples": last["expert_samples"], "execution_s": last["execution_time_s"],
                      "fire_episodes": last["episode"] + 1}
                 )  # fmt: skip
+        # thesis Figs 5.3 / 5.9: FIRE's success curves with BC's points at its training frames
+        figure = Path(args.figure) if args.figure else work / "fire-lift.png"
+        shiftkit("plot", "fire", *fire_runs, *(x for label, runs in bc_runs.items() for x in ("--bc", f"{label}={','.join(runs)}")), "--out", str(figure),
+                 "--title", f"lift at 5 Hz: FIRE from {demos['small']} demos vs BC ({len(seeds)} seeds, BC on {episodes} held-out episodes each)", env=env)  # fmt: skip
 
     summary = {}
     print(

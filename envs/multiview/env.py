@@ -17,9 +17,9 @@ from typing import Any, override
 import gymnasium as gym
 import numpy as np
 
-from shiftkit.envs.base_pose import BasePose
+from shiftkit.envs.base_pose import CAMERA_NAME, SAMPLER, BasePose
 from shiftkit.envs.cameras import SceneRendering, camera_extrinsics, camera_intrinsics
-from shiftkit.envs.multiview.physics import CAMERA_NAME, CONTROL_HZ, SAMPLER, MultiviewPhysics
+from shiftkit.envs.multiview.physics import CONTROL_HZ, MultiviewPhysics
 from shiftkit.envs.multiview.tasks import STATE_NAMES, get_task
 
 VIEWS = ("multiview", "fixed")

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.envs.base_pose import TABLE_Z
 from shiftkit.envs.multiview.env import MultiviewEnv
 from shiftkit.envs.multiview.physics import (
     BLOCK_HALF,
@@ -19,7 +20,6 @@ from shiftkit.envs.multiview.physics import (
     HOLE_DEPTH,
     MAX_TCP_ROT_SPEED,
     MAX_TCP_SPEED,
-    TABLE_Z,
     MultiviewPhysics,
 )
 from shiftkit.envs.multiview.tasks import BLOCK_REST_Z, LIFT_HEIGHT, hole_centre

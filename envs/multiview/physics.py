@@ -20,7 +20,7 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
-from shiftkit.envs.base_pose import BasePose, BasePoseSampler
+from shiftkit.envs.base_pose import AIM, CAMERA_NAME, CAMERA_POS, SAMPLER, TABLE_Z, BasePose
 from shiftkit.envs.cameras import look_at
 from shiftkit.envs.controllers import FixedOrientationIK
 from shiftkit.envs.geometry import quat_wxyz_to_xyzw, quat_xyzw, rotation_from_vector, rotation_z, yaw_quat_wxyz
@@ -40,25 +40,12 @@ TCP_ROTATION = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 # IK solution for the TCP at (0, 0.5, 0.22) in TCP_ROTATION (kitchen_franka joint conventions)
 HOME_QPOS = np.array([1.5908, -0.0527, -0.0199, -2.3267, -0.001, 0.7041, 0.0013])
 
-TABLE_Z = 0.125
 TABLE_HALF = 0.3
-AIM = np.array([0.0, 0.5, TABLE_Z])
-CAMERA_NAME = "base"
-CAMERA_POS = np.array([0.3, -0.05, 0.6])
 CAMERA_FOVY = 70.0
 # TCP bounds in the base frame around the aim point (the base noise moves the centre by < 3 cm)
 WORKSPACE_LOW = AIM + [-0.22, -0.2, 0.005]
 WORKSPACE_HIGH = AIM + [0.22, 0.2, 0.3]
 
-YAW_RANGE = (-0.6, 0.2)  # 45.8 deg, the reference's simulated range (docs/multiview.md)
-WORLD_CENTRE = (0.0, 0.0, TABLE_Z)
-SAMPLER = BasePoseSampler(
-    centre=WORLD_CENTRE,
-    camera_position=tuple(CAMERA_POS),
-    camera_axis=tuple(AIM - CAMERA_POS),
-    distance=float(np.linalg.norm(AIM - CAMERA_POS)),
-    yaw_range=YAW_RANGE,
-)
 
 # geom groups: robot visual meshes 0, scene 1, robot collision 3 (the fast render mode shows 1 and 3)
 

@@ -13,15 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shiftkit.envs.base_pose import AIM, TABLE_Z
 from shiftkit.envs.multiview.physics import (
-    AIM,
     BLOCK_HALF,
     CYLINDER_HALF_LENGTH,
     CYLINDER_RADIUS,
     HOLE_CLEARANCE,
     HOLE_DEPTH,
     HOLE_XY,
-    TABLE_Z,
     MultiviewPhysics,
 )
 

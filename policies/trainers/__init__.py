@@ -1,11 +1,12 @@
 """The trainer registry: every `shiftkit train` trainer registers itself here once.
 
-A trainer is one module in this package that calls `register(Trainer(...))` with everything the rest
-of shiftkit needs: its name (the `train` subcommand and the `trainer` of its run's config.json), a
-one-line help, its args dataclass, its CLI glue (options and run), the loader `shiftkit eval` uses
-for its policies, and the citation its model cards carry. The heavy parts (torch) are named as
-`module:attribute` and imported only when used, so `shiftkit train --help` lists the trainers
-without importing any of them. `commands/train.py` builds its subcommands from `trainers()`,
+A trainer is one folder in this package (`bc/`, `vpace/`): its `__init__.py` calls
+`register(Trainer(...))` with everything the rest of shiftkit needs: its name (the `train`
+subcommand and the `trainer` of its run's config.json), a one-line help, its args dataclass, its CLI
+glue (options and run, in that `__init__.py`), the loader `shiftkit eval` uses for its policies, and
+the citation its model cards carry; the folder's other modules hold the training itself. The heavy
+parts (torch) are named as `module:attribute` and imported only when used, so `shiftkit train
+--help` lists the trainers without importing any of them. `commands/train.py` builds its subcommands from `trainers()`,
 `evaluation.load_policy` loads through `trainer(name)`, `run_dir` passes the citation to the card.
 """
 
@@ -54,7 +55,7 @@ _DISCOVERED = False
 
 
 def register(trainer: Trainer) -> Trainer:
-    """Add `trainer` to the registry (its module calls this once, at import)."""
+    """Add `trainer` to the registry (its folder's `__init__.py` calls this once, at import)."""
     known = _REGISTRY.get(trainer.name)
     if known is not None and known != trainer:
         raise ValueError(f"trainer {trainer.name!r} is registered twice")
@@ -63,11 +64,12 @@ def register(trainer: Trainer) -> Trainer:
 
 
 def trainers() -> dict[str, Trainer]:
-    """Every registered trainer by name, after importing each module of this package once."""
+    """Every registered trainer by name, after importing each trainer folder of this package once."""
     global _DISCOVERED
     if not _DISCOVERED:
         for info in pkgutil.iter_modules(__path__, f"{__name__}."):
-            importlib.import_module(info.name)
+            if info.ispkg:  # a trainer is a folder
+                importlib.import_module(info.name)
         _DISCOVERED = True
     return dict(sorted(_REGISTRY.items()))
 

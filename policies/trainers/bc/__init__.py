@@ -1,4 +1,4 @@
-"""Trainer `bc`: behavioural cloning by an ensemble (`policies/bc.py`), and its `shiftkit train bc` glue."""
+"""Trainer `bc`: behavioural cloning by an ensemble (`training.py`), and its `shiftkit train bc` glue."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ TRAINER = register(
     Trainer(
         name="bc",
         help="behavioural cloning (MSE, ensembles, CNN + spatial soft-argmax)",
-        args="shiftkit.policies.bc:BCArgs",
+        args=f"{__name__}.args:BCArgs",
         cli=__name__,
         load_policy="shiftkit.policies.bc_policy:load_policy",
     )
@@ -20,7 +20,7 @@ TRAINER = register(
 
 def options() -> DataclassOptions:
     """`BCArgs` as options: counts and widths positive, the seed >= 0, rates positive."""
-    from shiftkit.policies.bc import REGIMES
+    from shiftkit.policies.trainers.bc.args import REGIMES
 
     positive = (
         "steps",
@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Trains a BC ensemble from the parsed options; returns the exit code."""
-    from shiftkit.policies.bc import train
+    from shiftkit.policies.trainers.bc.training import train
 
     config = options().build(args)
     if config.regime == "early-stop":

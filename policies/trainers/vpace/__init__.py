@@ -1,7 +1,9 @@
-"""CLI glue for `shiftkit train vpace|lfgp` and the success-curve plot; the logic lives in vpace.py/curves.py.
+"""Trainers `vpace` and `lfgp`: scheduled auxiliary control from success examples or expert
+trajectories (`training.py`), their `shiftkit train vpace|lfgp` glue, and `shiftkit train plot`
+(success curves of RL runs, `policies/curves.py`).
 
 Every hyperparameter of `VPACEArgs` is an option generated from the dataclass
-(`dataclass_config.DataclassOptions`: `--total-steps`, `--main-rate`, ..., help from the field's
+(`option_values.DataclassOptions`: `--total-steps`, `--main-rate`, ..., help from the field's
 docstring); options left out keep the chosen `--variant`'s preset and the thesis defaults.
 """
 
@@ -11,7 +13,32 @@ import argparse
 
 from shiftkit.pipelines.dataclass_config import csv_list
 from shiftkit.pipelines.option_values import DataclassOptions
-from shiftkit.policies.trainers import Trainer
+from shiftkit.policies.trainers import Trainer, register
+
+for _name, _help, _citation in (
+    (
+        "vpace",
+        "VPACE / ACE / SQIL / DAC / RCE from success examples",
+        "Ablett et al., *Efficient imitation without demonstrations via value-penalized auxiliary control "
+        "from examples*, ICRA 2025.",
+    ),
+    (
+        "lfgp",
+        "Learning from Guided Play (expert trajectories, per-task DAC)",
+        "Ablett et al., *Learning from guided play: improving exploration for adversarial imitation learning "
+        "with simple auxiliary tasks*, RA-L 2023.",
+    ),
+):
+    register(
+        Trainer(
+            name=_name,
+            help=_help,
+            args=f"{__name__}.args:VPACEArgs",
+            cli=__name__,
+            load_policy=f"{__name__}.training:load_policy",
+            citation=_citation,
+        )
+    )
 
 _POSITIVE_INT = (
     "examples_per_task",
@@ -35,7 +62,7 @@ _NON_NEGATIVE_FLOAT = ("value_penalty", "aug_factor", "weight_decay", "gradient_
 def options() -> DataclassOptions:
     """`VPACEArgs` as options; `variant` and `handcrafted` are made by `add_arguments`, the
     preset-only `full_trajectories` has none."""
-    from shiftkit.policies.vpace import VPACEArgs
+    from shiftkit.policies.trainers.vpace.args import VPACEArgs
 
     return DataclassOptions(
         VPACEArgs,
@@ -55,7 +82,7 @@ def options() -> DataclassOptions:
 def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
     """Options of `train vpace` and `train lfgp` (the subcommand's name is the default variant)."""
     from shiftkit.pipelines.dataclass_config import field_docs
-    from shiftkit.policies.vpace import VARIANTS, VPACEArgs
+    from shiftkit.policies.trainers.vpace.args import VARIANTS, VPACEArgs
 
     docs = field_docs(VPACEArgs)
     options().add_to(parser)
@@ -77,7 +104,7 @@ def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
 
 def build_args(args: argparse.Namespace):
     """`VPACEArgs` from parsed options: the variant preset, then every option that was given."""
-    from shiftkit.policies.vpace import VPACEArgs
+    from shiftkit.policies.trainers.vpace.args import VPACEArgs
 
     given = options().values(args)
     if hasattr(args, "handcrafted"):
@@ -87,7 +114,7 @@ def build_args(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     """Trains VPACE / LfGP from the parsed options; returns the exit code."""
-    from shiftkit.policies.vpace import train
+    from shiftkit.policies.trainers.vpace.training import train
 
     config = build_args(args)
     metrics = train(config)

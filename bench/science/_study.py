@@ -1,0 +1,109 @@
+"""What the science scripts in bench/science/ share: running each step as a printed `shiftkit` (or
+bench) command, a work folder whose datasets a rerun reuses, the committed pipeline files run as
+they are, and the pooled summary (Wilson 95% interval over every seed's episodes) printed last as
+one JSON line. Not a script itself (tests/test_science_scripts.py runs every other file here)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from shiftkit.policies.evaluation import wilson_interval
+
+REPO = Path(__file__).resolve().parents[2]
+SHIFTKIT = [sys.executable, "-m", "shiftkit.app.cli"]
+
+
+def arguments(doc: str, seeds: str = "0,1,2") -> argparse.ArgumentParser:
+    """The options every science script takes: --quick, --seeds, --workdir."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke test of every command: one seed, tiny sizes")
+    parser.add_argument("--seeds", default=seeds, help=f"training seeds, comma-separated (default: {seeds})")
+    parser.add_argument("--workdir", help="keep the datasets and runs here (default: a temporary folder)")
+    return parser
+
+
+def seeds_of(args: argparse.Namespace) -> list[int]:
+    return [0] if args.quick else [int(s) for s in args.seeds.split(",")]
+
+
+@contextlib.contextmanager
+def workspace(workdir: str | None) -> Iterator[tuple[Path, dict[str, str]]]:
+    """(folder, environment of the commands): `workdir` if given, else a temporary folder."""
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(workdir or tmp).resolve()
+        work.mkdir(parents=True, exist_ok=True)
+        env = {
+            **os.environ,
+            "HF_LEROBOT_HOME": str(work / "lerobot"),
+            "HF_HUB_OFFLINE": "1",
+            "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+        }
+        yield work, env
+
+
+def shiftkit(*args: str, env: dict[str, str]) -> None:
+    """One `shiftkit` command, printed first; run from the repository root, where the committed
+    pipelines' calibration paths are relative to."""
+    print("+ shiftkit " + " ".join(args), flush=True)
+    subprocess.run([*SHIFTKIT, *args], env=env, cwd=REPO, check=True, stdout=subprocess.DEVNULL)
+
+
+def bench(script: str, *args: str, env: dict[str, str]) -> dict:
+    """`python bench/SCRIPT ARGS`, printed first; its last output line, the bench's JSON result."""
+    print(f"+ python bench/{script} " + " ".join(args), flush=True)
+    done = subprocess.run(
+        [sys.executable, str(REPO / "bench" / script), *args],
+        env=env,
+        cwd=REPO,
+        check=True,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def docs_pipeline(name: str, folder: Path) -> Path:
+    """docs/pipelines/NAME.toml copied unchanged to FOLDER/docs/pipelines/, so that its paths (relative
+    to the file: ../../data/..., ../../out/...) resolve inside FOLDER."""
+    copy = folder / "docs" / "pipelines" / f"{name}.toml"
+    copy.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(REPO / "docs" / "pipelines" / f"{name}.toml", copy)
+    return copy
+
+
+def evaluate(policy: Path, out: Path, *args: str, env: dict[str, str]) -> dict:
+    """`shiftkit eval --policy POLICY ARGS --out OUT` (reused when OUT exists); its per-episode JSON."""
+    if not out.exists():
+        shiftkit("eval", "--policy", str(policy), *args, "--out", str(out), env=env)
+    return json.loads(out.read_text())
+
+
+def pool(runs: list[dict]) -> dict:
+    """Success over every run's episodes with its Wilson 95% interval; each run holds successes, episodes."""
+    k, n = sum(r["successes"] for r in runs), sum(r["episodes"] for r in runs)
+    return {"success": round(k / n, 4), "ci95": [round(c, 4) for c in wilson_interval(k, n)], "runs": runs}
+
+
+def print_table(policies: dict[str, dict]) -> None:
+    print("\n| policy | runs | success per run | pooled (Wilson 95%) |")
+    print("|---|---|---|---|")
+    for name, p in policies.items():
+        per_run = ", ".join(f"{r['successes']}/{r['episodes']}" for r in p["runs"])
+        lo, hi = p["ci95"]
+        print(f"| {name} | {len(p['runs'])} | {per_run} | {p['success']:.1%} [{lo:.1%}, {hi:.1%}] |")
+
+
+def report(bench_name: str, metric: str, value: float, quick: bool, policies: dict[str, dict], **extra) -> None:
+    """The table, then the JSON result as the last line (what tests/test_science_scripts.py reads)."""
+    print_table(policies)
+    result = {"bench": f"science_{bench_name}", "metric": metric, "value": round(value, 4)}
+    print(json.dumps({**result, **extra, "quick": quick, "policies": policies}))

@@ -1,0 +1,160 @@
+"""The arguments of `shiftkit train vpace|lfgp` (`VPACEArgs`) and the named variants' presets: a module
+of their own without torch, so that the command's options are built without importing the trainer
+(`training.py`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from shiftkit.pipelines.errors import ConfigError
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "vpace": dict(reward_model="sqil", multitask=True, value_penalty=10.0, full_trajectories=False),
+    "ace": dict(reward_model="sqil", multitask=True, value_penalty=0.0, full_trajectories=False),
+    "vp-sqil": dict(reward_model="sqil", multitask=False, value_penalty=10.0, full_trajectories=False),
+    "sqil": dict(reward_model="sqil", multitask=False, value_penalty=0.0, full_trajectories=False),
+    "dac": dict(reward_model="dac", multitask=False, value_penalty=0.0, full_trajectories=False),
+    "rce": dict(reward_model="rce", multitask=False, value_penalty=0.0, full_trajectories=False),
+    "lfgp": dict(reward_model="dac", multitask=True, value_penalty=0.0, full_trajectories=True),
+}
+
+
+@dataclass
+class VPACEArgs:
+    """Arguments of `shiftkit train vpace|lfgp`; defaults are the thesis hyperparameters (docs/vpace.md)."""
+
+    examples: list[str] = field(default_factory=list)
+    """Example dataset IDs or local roots; each frame's `task` names the task it is an example of."""
+    env: str = "panda-play"
+    """Environment name for `shiftkit.envs.make` (or a registered gymnasium id)."""
+    main_task: str = ""
+    """Task the agent must learn; evaluation runs its intention."""
+    aux_tasks: list[str] = field(default_factory=list)
+    """Auxiliary tasks (multitask variants only), e.g. reach, grasp, lift, release."""
+    output_dir: str = "outputs/vpace"
+    """Run directory: config, checkpoints, metrics.jsonl, model card."""
+    variant: str = "vpace"
+    """Preset of reward_model / multitask / value_penalty / full_trajectories (see module docstring)."""
+    reward_model: str = "sqil"
+    """sqil | dac | rce."""
+    multitask: bool = True
+    """Scheduled auxiliary intentions (ACE/LfGP) rather than the main task alone."""
+    value_penalty: float = 10.0
+    """VP weight lambda; 0 turns value penalization off."""
+    full_trajectories: bool = False
+    """LfGP: examples are expert trajectories with actions; DAC on (s, a); critic on buffer data only."""
+    frames_as_examples: bool = False
+    """Use every frame of an `examples` dataset as a success example even if it holds trajectories."""
+    examples_per_task: int | None = None
+    """Use at most this many examples per task (thesis: 200 in simulation); None uses all."""
+    aug_factor: float = 0.1
+    """Example augmentation: Gaussian noise of this many per-dimension example stds; 0 turns it off."""
+    total_steps: int = 300_000
+    """Environment interactions to train for (also the replay capacity)."""
+    seed: int = 0
+    """Seeds networks, exploration, sampling and environment resets."""
+    device: str = "auto"
+    """torch device; auto picks cuda when available."""
+    torch_threads: int | None = None
+    """CPU threads for torch (None keeps torch's default); 1 is fastest on a busy or small machine."""
+    gamma: float = 0.99
+    """Discount."""
+    reward_scale: float = 0.1
+    """Multiplies every reward."""
+    batch_size: int = 128
+    """Replay rows per update (shared by all intentions)."""
+    example_batch_size: int = 128
+    """Example rows per task per update."""
+    lr: float = 3e-4
+    """Adam(W) learning rate of policies, critics, discriminators and temperatures."""
+    weight_decay: float = 1e-2
+    """Decoupled (AdamW) weight decay of policies, critics and discriminators. Adam's coupled L2 form must
+    not be used here: where a critic's data gradients are small, Adam normalises the decay term itself to
+    steps of size lr and shrinks the whole network to zero within a few thousand updates."""
+    initial_alpha: float = 1e-2
+    """Initial SAC temperature of every intention (target entropy is -dim(action))."""
+    polyak: float = 1e-3
+    """Target critic averaging rate."""
+    max_grad_norm: float = 10.0
+    """Gradient norm clip, per intention."""
+    buffer_warmup: int = 5_000
+    """Interactions before the first update."""
+    random_steps: int = 10_000
+    """Interactions with uniform random actions at the start."""
+    n_step: int = 1
+    """n-step returns for buffer rows (1: plain TD)."""
+    hidden: tuple[int, ...] = (256, 256)
+    """Hidden layer widths of every network."""
+    vp_filter_size: int = 50
+    """Median filter length for Q_max (and a learned reward's minimum)."""
+    vp_q_max: str = "mean"
+    """How Q_max is read from the example batch's Q(s*, a*): mean (thesis) or max (the reference code's
+    other choice, a looser bound)."""
+    gradient_penalty: float = 10.0
+    """DAC discriminator gradient penalty weight."""
+    num_periods: int = 8
+    """Scheduler periods per episode (8 Panda, 5 others)."""
+    main_rate: float = 0.5
+    """Weighted random scheduler probability of the main task."""
+    handcraft_rate: float = 0.5
+    """Probability that an episode follows a handcrafted sequence (when any are given)."""
+    handcrafted: list[str] = field(default_factory=list)
+    """Handcrafted sequences, comma-separated task names per period (`main` = main task), or the name of
+    one of the thesis' sets: panda (VPACE), panda-lfgp (LfGP), reach-grasp (Sawyer/Adroit)."""
+    scheduler: str = "wrs"
+    """wrs (weighted random + handcrafted) or learned (SAC-Q's Q-table over task histories, scored by the
+    main task's learned reward; needs the dac reward model)."""
+    episode_steps: int | None = None
+    """Episode length; None takes the environment's time limit."""
+    eval_every: int = 25_000
+    """Evaluate the main intention every this many interactions (0: never)."""
+    eval_episodes: int = 50
+    """Episodes per evaluation."""
+    checkpoint_every: int = 25_000
+    """Write a checkpoint at the first episode end after every this many interactions."""
+    log_every: int = 1_000
+    """Write training metrics every this many interactions."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Extra keyword arguments for the environment constructor."""
+    resume: bool = False
+    """Continue the run in output_dir from its newest checkpoint."""
+
+    @classmethod
+    def for_variant(cls, variant: str, **overrides: Any) -> VPACEArgs:
+        """The args of a named variant (VARIANTS), with `overrides` on top."""
+        if variant not in VARIANTS:
+            raise ConfigError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+        return cls(variant=variant, **(VARIANTS[variant] | overrides))
+
+    def validate(self) -> None:
+        """Raises ConfigError naming the first invalid or inconsistent setting."""
+        if not self.main_task:
+            raise ConfigError("--main-task is required")
+        if self.reward_model not in ("sqil", "dac", "rce"):
+            raise ConfigError(f"unknown reward model {self.reward_model!r}; choose sqil, dac or rce")
+        if self.reward_model == "rce" and self.value_penalty > 0:
+            raise ConfigError("RCE's classifier critic is bounded already; value penalty must be 0 with rce")
+        if self.full_trajectories and self.reward_model != "dac":
+            raise ConfigError("full trajectories (lfgp) need the dac reward model")
+        if (self.full_trajectories or self.reward_model == "rce") and self.n_step != 1:
+            raise ConfigError("n-step returns are only supported with state-only sqil/dac rewards; use n_step 1")
+        if self.vp_q_max not in ("mean", "max"):
+            raise ConfigError(f"unknown vp_q_max {self.vp_q_max!r}; choose mean or max")
+        if self.scheduler not in ("wrs", "learned"):
+            raise ConfigError(f"unknown scheduler {self.scheduler!r}; choose wrs or learned")
+        if self.scheduler == "learned" and not (self.multitask and self.reward_model == "dac"):
+            raise ConfigError(
+                "the learned scheduler needs several tasks and a learned reward (dac): it scores "
+                "plans by the main task's reward, which SQIL/RCE do not provide"
+            )
+        if self.multitask and self.main_task in self.aux_tasks:
+            raise ConfigError(f"main task {self.main_task!r} is also listed as an auxiliary task")
+        for name in ("total_steps", "batch_size", "example_batch_size", "n_step", "num_periods", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1")
+
+    @property
+    def tasks(self) -> list[str]:
+        """The tasks trained, main first (only the main task when not multitask)."""
+        return [self.main_task, *self.aux_tasks] if self.multitask else [self.main_task]
