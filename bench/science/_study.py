@@ -107,3 +107,41 @@ def report(bench_name: str, metric: str, value: float, quick: bool, policies: di
     print_table(policies)
     result = {"bench": f"science_{bench_name}", "metric": metric, "value": round(value, 4)}
     print(json.dumps({**result, **extra, "quick": quick, "policies": policies}))
+
+
+def iqm_ci(
+    scores: dict[str, list[float]] | list[float], reps: int = 2000, level: float = 0.95, seed: int = 0
+) -> tuple[float, float, float]:
+    """(IQM, low, high): the interquartile mean of every run's score and its stratified-bootstrap CI.
+
+    rliable's convention (Agarwal et al. 2021): the IQM is the mean of the middle 50% of all runs'
+    scores (scipy's `trim_mean(x, 0.25)`: floor(25%) of the values cut from each end, so 3 runs keep
+    all three); the interval is the percentile interval of `reps` bootstrap IQMs in which runs are
+    drawn with replacement separately within each task (`scores` = {task: [score per run]}; a plain
+    list is one task), so every task keeps its number of runs. The resampling is
+    `scipy.stats.bootstrap` with one sample per task (unpaired, so each is resampled on its own),
+    seeded with `np.random.default_rng(seed)`: the same scores and seed give the same interval. A
+    task with a single run has nothing to resample (scipy refuses such samples) and enters every
+    bootstrap IQM as it is; with no task of 2 or more runs the interval is the IQM itself."""
+    import numpy as np
+    from scipy.stats import bootstrap, trim_mean
+
+    strata = [np.asarray(s, float).reshape(-1) for s in (scores.values() if isinstance(scores, dict) else [scores])]
+    if not strata or any(len(s) == 0 for s in strata):
+        raise ValueError("iqm_ci needs at least one score per task")
+    point = float(trim_mean(np.concatenate(strata), 0.25))
+    varied = [s for s in strata if len(s) >= 2]
+    fixed = np.concatenate([s for s in strata if len(s) < 2] or [np.empty(0)])
+    if not varied:
+        return point, point, point
+
+    def statistic(*samples: np.ndarray, axis: int = -1) -> np.ndarray:
+        batch = samples[0].shape[:-1]  # scipy's resample batch; the runs are on the last axis
+        runs = np.concatenate([*samples, np.broadcast_to(fixed, (*batch, len(fixed)))], axis=-1)
+        return trim_mean(runs, 0.25, axis=-1)
+
+    ci = bootstrap(
+        varied, statistic, n_resamples=reps, vectorized=True, axis=-1, confidence_level=level,
+        method="percentile", rng=np.random.default_rng(seed),
+    ).confidence_interval  # fmt: skip
+    return point, float(ci.low), float(ci.high)
