@@ -24,7 +24,7 @@ from typing import Any, ClassVar, override
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.executor_settings import RaySettings, SlurmSettings
 from shiftkit.pipelines.planner import Plan
-from shiftkit.pipelines.shards import FailureStore, Shard, ShardStep, nodes_used, plan_shards
+from shiftkit.pipelines.shards import RAY_NODE_VAR, FailureStore, Shard, ShardStep, nodes_used, plan_shards
 from shiftkit.pipelines.work import PartStore, WorkUnit
 
 SHARD_EPISODES = 16
@@ -200,7 +200,7 @@ class RayExecutor(DatatroveExecutor):
                 address=self.address,
                 include_dashboard=False,
                 logging_level=logging.WARNING,
-                runtime_env={"env_vars": env},
+                runtime_env={"env_vars": env, "worker_process_setup_hook": spawn_rank_pools},
                 _system_config=system,
             )
         try:
@@ -219,6 +219,19 @@ class RayExecutor(DatatroveExecutor):
         finally:
             if started:
                 ray.shutdown()
+
+
+def spawn_rank_pools() -> None:
+    """Ray worker set-up: datatrove's rank actor runs its ranks in a `multiprocess` pool, which by
+    default forks the actor, a process with Ray's gRPC and event-loop threads; a fork child can
+    inherit a lock another thread held and never get past it (Python 3.12 warns of exactly this).
+    Spawned pool processes start clean, at ~1 s of imports per task; they are not Ray workers, so
+    the node they run on travels to them in the environment (`shards.RAY_NODE_VAR`)."""
+    import multiprocess
+    import ray
+
+    os.environ[RAY_NODE_VAR] = ray.get_runtime_context().get_node_id()
+    multiprocess.set_start_method("spawn", force=True)
 
 
 class SlurmExecutor(DatatroveExecutor):

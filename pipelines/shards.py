@@ -165,8 +165,14 @@ class ShardStep(PipelineStep):
         return data
 
 
+# The Ray node id of a process that a Ray worker spawned (`datatrove_executor.spawn_rank_pools`).
+RAY_NODE_VAR = "SHIFTKIT_RAY_NODE_ID"
+
+
 def _node() -> str:
     """This worker's node: its Ray node id on a Ray cluster, else the host name."""
+    if RAY_NODE_VAR in os.environ:
+        return os.environ[RAY_NODE_VAR]
     ray = sys.modules.get("ray")  # a Ray worker has imported it; nothing else needs to
     if ray is not None and ray.is_initialized():
         return ray.get_runtime_context().get_node_id()

@@ -48,8 +48,9 @@ def main() -> None:
                     "--out", str(folder / "data" / "mv_demos"), "--no-progress", env=env,
                 )  # fmt: skip
             for kind, pipeline in (("f", "multiview_fixed"), ("m", "multiview_matched")):
-                shiftkit("run", str(docs_pipeline(pipeline, folder)), "--no-progress", env=env)
                 dataset = folder / "out" / pipeline.replace("multiview", "mv")
+                if not dataset.exists():  # a dataset appears at its destination only once finished
+                    shiftkit("run", str(docs_pipeline(pipeline, folder)), "--no-progress", env=env)
                 for seed in seeds:
                     run = folder / f"pi_{kind}-s{seed}"
                     if not (run / "card.json").exists():  # the card is written when training ends
