@@ -68,7 +68,14 @@ def assert_same_dataset(a: Path, b: Path) -> None:
 def local_ray():
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=100 * 1024**2, logging_level="WARNING")
+    for attempt in range(3):
+        try:
+            ray.init(num_cpus=2, include_dashboard=False, object_store_memory=100 * 1024**2, logging_level="WARNING")
+            break
+        except Exception as exc:  # Ray waits 30 s for its raylet: at load 20 on 2 cores it can miss that
+            ray.shutdown()
+            if attempt == 2 or "timed out during startup" not in str(exc):
+                raise
     yield ray
     ray.shutdown()
 
