@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.errors import ConfigError, require_positive
 from shiftkit.policies.failure_predictors import PREDICTORS
 
 
@@ -100,25 +100,21 @@ class FireArgs:
         """A checked copy; raises ConfigError on bad values."""
         if self.predictor not in PREDICTORS:
             raise ConfigError(f"unknown predictor {self.predictor!r} (choose from {', '.join(PREDICTORS)})")
-        positive = {
-            "budget_expert_samples": self.budget_expert_samples,
-            "ensemble_size": self.ensemble_size,
-            "batch_size": self.batch_size,
-            "retrain_every": self.retrain_every,
-            "retrain_max_epochs": self.retrain_max_epochs,
-            "retrain_patience": self.retrain_patience,
-            "beta": self.beta,
-            "eval_episodes": self.eval_episodes,
-            "online_lr": self.online_lr,
-            "retrain_lr": self.retrain_lr,
-            "d_lr": self.d_lr,
-        }
-        for name, value in positive.items():
-            if not value > 0:
-                raise ConfigError(f"{name} must be positive, got {value}")
-        for name in ("d_start", "fp_cooldown", "eval_every", "grad_penalty"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        require_positive(
+            self,
+            "budget_expert_samples",
+            "ensemble_size",
+            "batch_size",
+            "retrain_every",
+            "retrain_max_epochs",
+            "retrain_patience",
+            "beta",
+            "eval_episodes",
+            "online_lr",
+            "retrain_lr",
+            "d_lr",
+        )
+        require_positive(self, "d_start", "fp_cooldown", "eval_every", "grad_penalty", allow_zero=True)
         if self.max_episodes is not None and self.max_episodes <= 0:
             raise ConfigError(f"max_episodes must be positive, got {self.max_episodes}")
         if not 0.0 < self.gamma < 1.0:

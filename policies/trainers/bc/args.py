@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.errors import ConfigError, require_positive
 
 if TYPE_CHECKING:
     from shiftkit.policies.bc_policy import Normalization
@@ -87,19 +87,17 @@ class BCArgs:
             datasets=list(self.datasets),
             hidden=list(self.hidden),
         )
-        positive = {
-            "batch_size": out.batch_size,
-            "ensemble_size": out.ensemble_size,
-            "max_epochs": out.max_epochs,
-            "patience": out.patience,
-            "checkpoint_every": out.checkpoint_every,
-            "log_every": out.log_every,
-            "num_keypoints": out.num_keypoints,
-            "lr": out.lr,
-        }
-        for name, value in positive.items():
-            if not value > 0:
-                raise ConfigError(f"{name} must be positive, got {value}")
+        require_positive(
+            out,
+            "batch_size",
+            "ensemble_size",
+            "max_epochs",
+            "patience",
+            "checkpoint_every",
+            "log_every",
+            "num_keypoints",
+            "lr",
+        )
         if out.root is not None and len(out.datasets) != 1:
             raise ConfigError("--root names one dataset's folder; with several datasets give their IDs or paths")
         if out.threads is not None and out.threads <= 0:
