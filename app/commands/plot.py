@@ -130,6 +130,8 @@ def _run_roc(args: RocFigure) -> int:
     ax.set_xlabel("false positive rate")
     ax.set_ylabel("true positive rate")
     names = ", ".join(Path(run).name for run in args.runs)
+    if len(names) > 50:  # what fits above a 5-inch figure
+        names = f"{len(args.runs)} runs ({Path(args.runs[0]).name}, ...)"
     ax.set_title(
         args.title or f"failure prediction, {names}\n(n = {len(failed)} episodes, {int(failed.sum())} failed)",
         fontsize=9,
