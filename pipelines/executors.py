@@ -10,11 +10,8 @@ bytes.
 
 from __future__ import annotations
 
-import contextlib
-import importlib
 import multiprocessing
 import os
-import threading
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Protocol
 
@@ -59,33 +56,20 @@ class LocalExecutor:
             for unit in units:
                 bar.update(work.process_unit(unit))
             return True
-        # The main process only waits for the pool: meanwhile it imports what the writer needs
-        # (lerobot and torch, seconds), which would otherwise come after the last episode.
-        imports = threading.Thread(target=_import_writer, name="shiftkit-writer-imports")
-        imports.start()
         # spawn, not fork: stages may hold threads (torch, EGL) that do not survive a fork.
         ctx = multiprocessing.get_context("spawn")
-        try:
-            with ProcessPoolExecutor(
-                self.workers, mp_context=ctx, initializer=work.init_worker, initargs=(plan.config, os.getpid())
-            ) as pool:
-                futures = [pool.submit(work.process_unit, unit) for unit in units]
-                try:
-                    for future in as_completed(futures):
-                        bar.update(future.result())
-                except BaseException:
-                    for f in futures:
-                        f.cancel()
-                    raise
-        finally:
-            imports.join()
+        with ProcessPoolExecutor(
+            self.workers, mp_context=ctx, initializer=work.init_worker, initargs=(plan.config, os.getpid())
+        ) as pool:
+            futures = [pool.submit(work.process_unit, unit) for unit in units]
+            try:
+                for future in as_completed(futures):
+                    bar.update(future.result())
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
         return True
-
-
-def _import_writer() -> None:
-    # A failure here is left to the writer's own import, which reports it.
-    with contextlib.suppress(Exception):
-        importlib.import_module("lerobot.datasets.lerobot_dataset")
 
 
 def _datatrove(name: str) -> Any:
