@@ -4,8 +4,8 @@
 Data, each made once with shiftkit's own commands (docs/vpace.md, docs/success_examples.md):
 * success examples for VPACE: `shiftkit collect --task T --control-hz 5 --only-successful` of
   `--example-episodes` (default 240) scripted-expert episodes for each of lift, reach and open, then
-  `shiftkit run` of a `success_examples` pipeline (`n_per_task = --examples-per-task`, default 200,
-  `states = "final"`): one example dataset of final states, as bench/vpace_reach.py's `--examples scene`;
+  `shiftkit run docs/pipelines/vpace_lift_examples.toml` (the `success_examples` stage, a seeded 200
+  final states per task): one example dataset, as bench/vpace_reach.py's `--examples scene`;
 * expert trajectories for LfGP and DAC: `--demos` (default 10) successful scripted episodes for each of
   stack, reach, lift, move-object and open (LeRobot datasets, each frame labelled with its task).
 
@@ -44,11 +44,10 @@ nothing.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
-from _study import arguments, evaluate, iqm_ci, pool, report, seeds_of, shiftkit, workspace
+from _study import arguments, docs_pipeline, evaluate, iqm_ci, pool, report, seeds_of, shiftkit, workspace
 
 from shiftkit.policies.curves import read_success
 
@@ -72,24 +71,6 @@ def collect(task: str, episodes: int, seed: int, root: Path, env: dict[str, str]
             *HZ, "--only-successful", "--lerobot", f"local/{root.name}", "--root", str(root), "--no-progress",
             env=env,
         )  # fmt: skip
-
-
-def example_pipeline(sources: list[Path], dest: Path, per_task: int, path: Path) -> Path:
-    """A pipeline file: the `success_examples` stage (final states, `per_task` per task) over `sources`."""
-    lines = ["seed = 0", ""]
-    for source in sources:
-        lines += ["[[sources]]", f"path = {json.dumps(str(source))}", ""]
-    lines += [
-        "[[stages]]",
-        'name = "success_examples"',
-        f'params = {{ n_per_task = {per_task}, states = "final" }}',
-        "",
-        "[destination]",
-        f"root = {json.dumps(str(dest))}",
-        'repo_id = "local/vpace-lift-examples"',
-    ]
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 def curve(runs: list[Path]) -> dict:
@@ -117,18 +98,17 @@ def main() -> None:
     parser.add_argument(
         "--example-episodes", type=int, default=240, help="scripted episodes per example task (default: 240)"
     )
-    parser.add_argument("--examples-per-task", type=int, default=200, help="success examples per task (default: 200)")
     parser.add_argument("--demos", type=int, default=10, help="expert trajectories per LfGP task (default: 10)")
     args = parser.parse_args()
     seeds = seeds_of(args)
     if args.quick:
         steps = {"lift": 200, "stack": 200}
-        every, episodes, final, example_episodes, per_task, demos = 100, 1, 1, 3, 3, 3
+        every, episodes, final, example_episodes, demos = 100, 1, 1, 3, 3
         startup = ["--buffer-warmup", "100", "--random-steps", "100", "--log-every", "100"]
     else:
         steps = {"lift": args.lift_steps, "stack": args.stack_steps}
         every, episodes, final = args.eval_every, args.eval_episodes, args.final_episodes
-        example_episodes, per_task, demos = args.example_episodes, args.examples_per_task, args.demos
+        example_episodes, demos = args.example_episodes, args.demos
         startup = []
 
     finals: dict[str, list[dict]] = {}
@@ -136,21 +116,18 @@ def main() -> None:
     cpu_s: dict[str, list[float]] = {}
     with workspace(args.workdir) as (work, env):
         data = work / "lerobot" / "local"
-        sources = []
-        for i, task in enumerate(EXAMPLE_TASKS):
-            sources.append(data / f"example-src-{task}")
-            collect(task, example_episodes, EXAMPLE_SEED + 10_000 * i, sources[-1], env)
-        examples = data / "vpace-lift-examples"
+        for i, task in enumerate(EXAMPLE_TASKS):  # the sources of docs/pipelines/vpace_lift_examples.toml
+            collect(task, example_episodes, EXAMPLE_SEED + 10_000 * i, data / f"example-src-{task}", env)
+        examples = data / "vpace-lift-examples"  # the destination of the committed pipeline
         if not examples.exists():
-            pipeline = example_pipeline(sources, examples, per_task, work / "lift_examples.toml")
-            shiftkit("run", str(pipeline), "--no-progress", env=env)
+            shiftkit("run", str(docs_pipeline("vpace_lift_examples", work)), "--no-progress", env=env)
         trajectories = {task: data / f"demos-{task}" for task in DEMO_TASKS}
         for i, (task, root) in enumerate(trajectories.items()):
             collect(task, demos, DEMO_SEED + 10_000 * i, root, env)
 
         for name, (task, trainer, own) in METHODS.items():
             if trainer == "vpace":
-                data_args = ["--examples", str(examples), "--examples-per-task", str(per_task)]
+                data_args = ["--examples", str(examples)]
             else:  # LfGP: every task's trajectories; single-task DAC: the main task's only
                 tasks = DEMO_TASKS if "--no-multitask" not in own else (task,)
                 data_args = ["--examples", *(str(trajectories[t]) for t in tasks)]
@@ -189,7 +166,7 @@ def main() -> None:
         "vpace_lfgp", "lfgp_minus_dac_final_success", gap, args.quick, pooled,
         vpace_minus_sqil_final_success=round(pooled["vpace"]["success"] - pooled["sqil"]["success"], 4),
         curves=curves, seeds=seeds, interactions=steps, eval_every=every, eval_episodes=episodes,
-        final_episodes=final, final_seeds=[FINAL_SEED, FINAL_SEED + final - 1], examples_per_task=per_task,
+        final_episodes=final, final_seeds=[FINAL_SEED, FINAL_SEED + final - 1], example_episodes=example_episodes,
         demos_per_task=demos, train_cpu_s=cpu_s,
     )  # fmt: skip
 
