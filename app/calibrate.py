@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from shiftkit.pipelines.errors import ConfigError
+from shiftkit.pipelines.staging import require_writable
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,8 @@ def calibrate(config: CalibrateConfig):  # noqa: ANN201 - a force_calibration.Ca
     check_figure_path(str(plot), "--plot" if config.plot else "the plot of --out")
     if plot.is_dir() or not plot.parent.is_dir():
         raise ConfigError(f"--plot {plot}: give a file in an existing folder")
+    require_writable(out.parent, "--out")
+    require_writable(plot.parent, "--plot" if config.plot else "the plot of --out")
     if config.recording:
         calibration, fit, held = fc.calibrate_recording(config.recording, config.sensor_id)
     else:

@@ -20,7 +20,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from shiftkit.pipelines.errors import DatasetError, ShiftkitError
+from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 
 _NAME_MAX = 255  # bytes per path component on Linux/macOS file systems
 _SUFFIX_BYTES = 48  # room for ".<kind>-<pid>-<hex>" or ".<suffix>" of every sibling shiftkit names
@@ -37,6 +37,20 @@ def sibling(target: str | Path, suffix: str) -> Path:
     """The hidden path `.<name>.<suffix>` beside `target` (a work folder, a lock)."""
     target = Path(target)
     return target.parent / f".{_stem(target)}.{suffix}"
+
+
+def require_writable(folder: str | Path, flag: str) -> None:
+    """The nearest existing folder on the way to `folder` must take new files (tried, not guessed), so
+    a command refuses an unwritable output before minutes of work rather than after them."""
+    import tempfile
+
+    folder = Path(folder).absolute()
+    existing = next(p for p in [folder, *folder.parents] if p.exists())
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{flag}: cannot write into {existing} ({exc.strerror})") from None
 
 
 def staging_path(target: str | Path, kind: str = "partial") -> Path:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -208,6 +209,8 @@ def test_bad_plans_and_recordings_are_one_line_errors(tmp_path, capsys):
         (["calibrate", "--plan", str(tmp_path / "plan")], "give a new folder"),
         (["calibrate", "--from", str(tmp_path / "plan")], "give --out"),
     ]
+    if Path("/proc/self").is_dir():  # a folder no one can create files in, root included: refused before the pushes
+        cases.append((["calibrate", "--pushes", "1", "--out", "/proc/c.json"], "--out: cannot write into /proc"))
     for argv, message in cases:
         assert main(argv) == 2, argv
         err = capsys.readouterr().err

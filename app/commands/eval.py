@@ -85,9 +85,10 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--yaw-sweep sets the base yaw of every episode, which view=fixed would keep fixed")
         if config.out and Path(config.out).suffix.lower() == ".png":
             raise ConfigError(f"--out {config.out}: the sweep's JSON goes there and its PNG beside it; give a .json")
+    from shiftkit.pipelines.staging import require_writable
     from shiftkit.policies.run_dir import EVAL, run_folder
 
-    _check_writable(Path(config.out).parent if config.out else run_folder(config.policy) / EVAL, "--out")
+    require_writable(Path(config.out).parent if config.out else run_folder(config.policy) / EVAL, "--out")
     policy = load_policy(config.policy, device=config.device)
     rate = policy_rate(config.policy)
     _warn_if_unfinished(Path(config.policy))
@@ -130,20 +131,6 @@ def run(args: argparse.Namespace) -> int:
         f"95% CI [{s['ci95'][0]:.1%}, {s['ci95'][1]:.1%}] (Wilson); results in {out}"
     )
     return 0
-
-
-def _check_writable(folder, flag: str) -> None:
-    """The nearest existing folder on the way to `folder` must take new files (tried, not guessed)."""
-    import tempfile
-
-    from shiftkit.pipelines.errors import ConfigError
-
-    existing = next(p for p in [folder, *folder.parents] if p.exists())
-    try:
-        with tempfile.TemporaryFile(dir=existing):
-            pass
-    except OSError as exc:
-        raise ConfigError(f"{flag}: cannot write into {existing} ({exc.strerror})") from None
 
 
 def _warn_if_unfinished(policy) -> None:
