@@ -403,12 +403,10 @@ def training_yaw(policy_path: str | Path) -> dict[str, Any] | None:
     or None when the run records no dataset with base poses."""
     from shiftkit.pipelines.camera_meta import episode_cameras, read_cameras_file
     from shiftkit.pipelines.jsonutil import read_json_file
-    from shiftkit.policies.run_dir import RunDir, run_folder
+    from shiftkit.policies.run_dir import trained_datasets
 
-    folder = run_folder(policy_path)
-    config = RunDir(folder, resume=True).read_config() if (folder / "config.json").is_file() else None
     yaws = []
-    for record in (config or {}).get("datasets") or []:
+    for record in trained_datasets(policy_path):
         root = Path(str(record.get("root", "")))
         if not (root / "meta" / "info.json").is_file():
             continue

@@ -83,15 +83,15 @@ def bc_reference(run_paths: list[str | Path]) -> dict:
     Wilson 95% interval."""
     from shiftkit.pipelines.errors import ShiftkitError
     from shiftkit.pipelines.jsonutil import read_json_file
-    from shiftkit.policies.run_dir import EVAL
+    from shiftkit.policies.run_dir import EVAL, trained_datasets
 
     samples, seconds, successes, episodes = [], [], 0, 0
     for path in map(Path, run_paths):
-        config = RunDir(path, resume=True).read_config() if (path / "config.json").is_file() else None
-        if config is None or not config.get("datasets"):
+        datasets = trained_datasets(path)
+        if not datasets:
             raise ShiftkitError(f"{path} is not a run folder that names its training datasets (config.json)")
         frames = time_s = 0.0
-        for record in config["datasets"]:
+        for record in datasets:
             info = read_json_file(Path(str(record.get("root", ""))) / "meta" / "info.json", "the dataset's info")
             frames += info["total_frames"]
             time_s += info["total_frames"] / (record.get("fps") or info["fps"])

@@ -107,6 +107,13 @@ def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | int
     ]
 
 
+def trained_datasets(path: str | Path) -> list[dict]:
+    """The `datasets` records of config.json of the run at `path` (a run folder or one of its
+    checkpoints): what it trained on; [] for a run that names none or a folder that is no run."""
+    config = RunDir(run_folder(path), resume=True).read_config() or {}
+    return [record for record in config.get("datasets") or [] if isinstance(record, dict)]
+
+
 def _atomic_write(path: Path, write) -> None:
     """Write through a temporary file renamed into place; a failed write (a full disk: torch.save
     reports it as a RuntimeError) leaves no temporary file and is one line."""
