@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 
+from shiftkit.pipelines.dataclass_config import field_docs
 from shiftkit.pipelines.option_values import DataclassOptions
 
 HELP = "plot FIRE runs: ROC curves of the failure predictors (roc) or success vs expert samples and time (fire)"
@@ -55,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         description="ROC curves of beta rule, GDA, ensemble doubt and GDA-or-doubt, pooled over the runs' "
         "episodes after D started; label: whether the policy's uninterrupted run failed.",
     )
-    roc.add_argument("runs", nargs="+", metavar="RUN", help=_doc(RocFigure, "runs"))
+    roc.add_argument("runs", nargs="+", metavar="RUN", help=field_docs(RocFigure)["runs"])
     ROC_OPTIONS.add_to(roc)
     roc.set_defaults(_plot=_run_roc, _options=ROC_OPTIONS)
     fire = sub.add_parser(
@@ -65,15 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "expert samples and against the total execution time, with BC runs as points at their training "
         "frames; writes OUT-expert.png and OUT-time.png.",
     )
-    fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help=_doc(FireFigure, "runs"))
+    fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help=field_docs(FireFigure)["runs"])
     FIRE_OPTIONS.add_to(fire)
     fire.set_defaults(_plot=_run_fire, _options=FIRE_OPTIONS)
-
-
-def _doc(cls: type, name: str) -> str:
-    from shiftkit.pipelines.dataclass_config import field_docs
-
-    return field_docs(cls)[name]
 
 
 def check_figure_path(out: str, flag: str = "--out") -> None:
