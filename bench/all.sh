@@ -35,6 +35,7 @@ export MUJOCO_GL="${MUJOCO_GL:-egl}" HF_HUB_OFFLINE="${HF_HUB_OFFLINE:-1}"
 
 for file in "$here"/*.py; do
     name="$(basename "$file" .py)"
+    [[ "$name" == _* ]] && continue  # a helper the benches share, not a bench
     reason="${skip[$name]:-$(sed -n 's/^# all\.sh: skip //p' "$file" | head -n 1)}"
     if [[ -n "$reason" ]]; then
         "$python" -c 'import json, sys; print(json.dumps({"bench": sys.argv[1], "skipped": sys.argv[2]}))' \

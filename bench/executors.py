@@ -46,6 +46,7 @@ os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 # already occupy both cores: one thread per renderer makes "workers" the unit of parallelism.
 os.environ.setdefault("LP_NUM_THREADS", "1")
 
+import _timing  # noqa: E402  (bench/, beside this file)
 import numpy as np  # noqa: E402
 
 from shiftkit.pipelines.episode import Episode  # noqa: E402
@@ -135,11 +136,8 @@ def gpu_info() -> dict[str, object]:
 
 
 def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episodes: int) -> dict[str, float]:
-    """Seconds of the whole run, of the processing span and of the start-up (see the module doc),
-    and where a span exceeds an even split of the work: how far apart the workers started
-    (`start_spread`), how unevenly the episodes' rendering time fell on them (`busy_imbalance`: the
-    busiest worker's minus the mean), the mean rendering time per episode (`episode`), and the
-    bytes the run wrote (`bytes_written`: work directory and dataset)."""
+    """The run's time split (`_timing.breakdown`: start-up, processing span, where a span exceeds an
+    even split of the work) and the bytes it wrote (`bytes_written`: work directory and dataset)."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig
@@ -157,19 +155,7 @@ def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episo
     total = time.time() - t0
     written = _REMOVED.pop(str(dest.parent / f".{dest.name}.shiftkit-work"), 0) + folder_bytes(dest)
     stamps = np.array([json.loads(m)["bench_t"] for m in open_lerobot_dataset(dest).episodes[META_COLUMN]])
-    start, end, pid = stamps[:, 0], stamps[:, 1], stamps[:, 2]
-    busy = [float((end - start)[pid == p].sum()) for p in np.unique(pid)]
-    first = [float(start[pid == p].min()) for p in np.unique(pid)]
-    return {
-        "total": total,
-        "span": end.max() - start.min(),
-        "startup": start.min() - t0,
-        "workers_used": len(busy),
-        "start_spread": max(first) - min(first),
-        "busy_imbalance": max(busy) - float(np.mean(busy)),
-        "episode": float(np.mean(end - start)),
-        "bytes_written": written,
-    }
+    return {**_timing.breakdown(stamps[:, 0], stamps[:, 1], stamps[:, 2], t0, total), "bytes_written": written}
 
 
 def main() -> None:

@@ -3,10 +3,11 @@
 Default (benchmark): records simulated kinesthetic door demonstrations, then runs the same
 `force_match` (position mode, both STS images) -> `mode_label` pipeline with 1 and with 2 workers;
 reports episodes/s and the speed-up (goal >= 1.6x; it needs two free cores). As in
-bench/executors.py, bench-only stages stamp when each episode's transform started and ended, so
-that the start-up (run start to first episode started: spawning and importing in the workers, the
-stages' set-up), the processing span (first start to last end) and the rest (the dataset write)
-are reported apart; the headline speed-up is the processing span's, the whole run's is beside it.
+bench/executors.py, the pipeline is stamped (`bench/_timing.py`) when each episode's transform
+started and ended, so that the start-up (spawning and importing in the workers, the stages'
+set-up), the processing span and the rest (the dataset write) are reported apart, with what keeps
+the 2-worker span above half the 1-worker one; the headline speed-up is the processing span's, the
+whole run's is beside it.
 Each worker renders with one llvmpipe thread (`LP_NUM_THREADS=1`), so that workers, not a
 renderer's threads, are the unit of parallelism.
 
@@ -22,23 +23,17 @@ mode-switch step minus true first-contact step per task (thesis Fig. 4.15); `--p
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import tempfile
-import time
-from collections.abc import Iterable
 from pathlib import Path
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("LP_NUM_THREADS", "1")
 
+import _timing  # noqa: E402  (bench/, beside this file; registers the bench-stamp stage)
 import numpy as np  # noqa: E402
-
-from shiftkit.pipelines.episode import Episode  # noqa: E402
-from shiftkit.pipelines.features import Features  # noqa: E402
-from shiftkit.pipelines.stage import Stage, register_stage  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TASKS = ("flat-handle-open", "flat-handle-close", "knob-open", "knob-close")
@@ -55,53 +50,24 @@ def record(out: Path, task: str, episodes: int, seed: int = 0, cameras: tuple[st
     return out
 
 
-@dataclasses.dataclass
-class StampConfig:
-    key: str = "bench_start"
-    """Episode metadata key that receives the wall-clock time the episode reached this stage."""
-
-
-@register_stage
-class Stamp(Stage):
-    """Record when an episode reaches this point of the pipeline (bench-only; the local executor's
-    spawned workers re-import this file, which registers it)."""
-
-    name = "bench-stamp"
-    version = 1
-    Config = StampConfig
-
-    def transform_features(self, features: Features) -> Features:
-        return features
-
-    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
-        yield Episode(episode.frames, {**episode.meta, self.config.key: time.time()})
-
-
 def run_pipeline_timed(raw: Path, dest: Path, workers: int) -> dict[str, float]:
-    """Seconds of the whole run, its start-up, processing span and write (see the module doc)."""
+    """The run's time split (`_timing.breakdown`: start-up, processing span, write, ...)."""
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-    from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
-    from shiftkit.pipelines.runner import run_pipeline
     from shiftkit.pipelines.sources import SourceConfig
 
     stages = [
-        StageSpec(name="bench-stamp", params={"key": "bench_start"}),
         StageSpec(name="force_match", params={"mode": "position", "hold_steps": 5}),
         StageSpec(
             name="mode_label",
             params={"visual_image": "observation.images.sts_visual", "tactile_image": "observation.images.sts_tactile"},
         ),
-        StageSpec(name="bench-stamp", params={"key": "bench_end"}),
     ]
     config = PipelineConfig(
-        sources=[SourceConfig(path=str(raw))], destination=DestinationConfig(root=str(dest)), stages=stages
+        sources=[SourceConfig(path=str(raw))],
+        destination=DestinationConfig(root=str(dest)),
+        stages=_timing.stamped(stages),
     )
-    t0 = time.time()
-    run_pipeline(config, workers=workers, progress=False)
-    total = time.time() - t0
-    metas = [json.loads(m) for m in open_lerobot_dataset(dest).episodes[META_COLUMN]]
-    start, end = min(m["bench_start"] for m in metas), max(m["bench_end"] for m in metas)
-    return {"total": total, "startup": start - t0, "span": end - start, "write": t0 + total - end}
+    return _timing.timed_run(config, workers)
 
 
 def throughput(quick: bool, episodes: int | None = None) -> dict:
@@ -116,10 +82,7 @@ def throughput(quick: bool, episodes: int | None = None) -> dict:
         for workers in (1, 2):
             times[workers] = t = run_pipeline_timed(raw, Path(tmp) / f"w{workers}", workers)
             loads.append(os.getloadavg()[0])
-            print(
-                f"{workers} worker(s): {t['total']:6.2f} s = start-up {t['startup']:5.2f} + span {t['span']:6.2f} "
-                f"+ write {t['write']:5.2f} ({episodes / t['span']:.3f} episodes/s in the span)"
-            )
+            print(_timing.describe(workers, t, episodes))
     speedup = times[1]["span"] / times[2]["span"]
     print(f"speed-up {speedup:.2f}x over the processing span (cores: {os.cpu_count()}, load {loads})")
     return {
