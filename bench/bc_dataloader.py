@@ -24,6 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import _device  # bench/, beside this file
+
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
@@ -186,6 +188,9 @@ def main() -> None:
                 "members": members,
                 "batch_size": batch_size,
                 "threads": args.threads,
+                # both paths train on the CPU: the bench compares data paths, not devices
+                "device": "cpu",
+                "gpu": _device.gpu_info(),
                 "dataset": str(args.dataset or "synthetic"),
                 "dataset_write_s": round(write_s, 2),
                 "quick": args.quick,

@@ -22,6 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import _device  # bench/, beside this file
+
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
@@ -110,6 +112,8 @@ def main() -> None:
                 "collect_s": round(collect_s, 1),
                 "train_s": round(train_s, 1),
                 "eval_s": round(eval_s, 1),
+                # the trainer's --device auto trains on it when present
+                "gpu": _device.gpu_info(),
                 "quick": args.quick,
             }
         )

@@ -46,7 +46,8 @@ os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 # already occupy both cores: one thread per renderer makes "workers" the unit of parallelism.
 os.environ.setdefault("LP_NUM_THREADS", "1")
 
-import _timing  # noqa: E402  (bench/, beside this file)
+import _device  # noqa: E402  (bench/, beside this file)
+import _timing  # noqa: E402
 import numpy as np  # noqa: E402
 
 from shiftkit.pipelines.episode import Episode  # noqa: E402
@@ -126,13 +127,6 @@ def _measuring_rmtree(path: str | os.PathLike, *args: object, **kwargs: object) 
 
 
 shutil.rmtree = _measuring_rmtree  # the runner removes its work directory with shutil.rmtree
-
-
-def gpu_info() -> dict[str, object]:
-    import torch
-
-    present = torch.cuda.is_available()
-    return {"present": present, "name": torch.cuda.get_device_name(0) if present else None}
 
 
 def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episodes: int) -> dict[str, float]:
@@ -238,7 +232,7 @@ def main() -> None:
                 "episodes": episodes,
                 "frames": frames,
                 "cpu_count": os.cpu_count(),
-                "gpu": gpu_info(),
+                "gpu": _device.gpu_info(),
                 "lp_num_threads": os.environ["LP_NUM_THREADS"],
                 "loadavg_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
                 "quick": args.quick,

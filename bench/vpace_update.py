@@ -29,6 +29,7 @@ import os
 import time
 from collections.abc import Callable
 
+import _device  # bench/, beside this file
 import gymnasium as gym
 import numpy as np
 import torch
@@ -235,6 +236,7 @@ def main() -> None:
                 "naive_linear_ratio": 5.0,
                 "reward_model": args.reward_model,
                 "device": str(device),
+                "gpu": _device.gpu_info(),
                 "threads": args.threads,
                 "updates": updates,
                 "loadavg_1min": round(os.getloadavg()[0], 2),

@@ -35,6 +35,16 @@ def seeds_of(args: argparse.Namespace) -> list[int]:
     return [0] if args.quick else [int(s) for s in args.seeds.split(",")]
 
 
+def choices_of(parser: argparse.ArgumentParser, option: str, value: str, known: tuple[str, ...]) -> list[str]:
+    """The comma-separated names of `value`, in `known`'s order; a usage error names any unknown one."""
+    names = [n for n in value.split(",") if n]
+    unknown = sorted(set(names) - set(known))
+    if unknown or not names:
+        problem = f"unknown {', '.join(unknown)}" if unknown else "no name given"
+        parser.error(f"{option}: {problem} (choose from {', '.join(known)})")
+    return [k for k in known if k in names]
+
+
 @contextlib.contextmanager
 def workspace(workdir: str | None) -> Iterator[tuple[Path, dict[str, str]]]:
     """(folder, environment of the commands): `workdir` if given, else a temporary folder."""
