@@ -78,8 +78,9 @@ def breakdown(start: np.ndarray, end: np.ndarray, pid: np.ndarray, t0: float, to
     }
 
 
-def timed_run(config, workers: int, executor: str = "local", options: dict | None = None) -> dict[str, float]:
-    """Run a pipeline built with `stamped` stages in this process and return its `breakdown`.
+def timed_run(config, workers: int) -> dict[str, float]:
+    """Run a pipeline built with `stamped` stages in this process (local executor) and return its
+    `breakdown`.
 
     A stage that makes several episodes of one (multiview's views) gives them the same start stamp:
     they count as one source episode, finished when its last output passed the end stamp."""
@@ -87,7 +88,7 @@ def timed_run(config, workers: int, executor: str = "local", options: dict | Non
     from shiftkit.pipelines.runner import run_pipeline
 
     t0 = time.time()
-    dest = run_pipeline(config, workers=workers, executor=executor, executor_options=options or {}, progress=False)
+    dest = run_pipeline(config, workers=workers, progress=False)
     total = time.time() - t0
     source_episodes: dict[tuple[float, int], float] = {}
     for meta in open_lerobot_dataset(Path(dest)).episodes[META_COLUMN]:
@@ -101,10 +102,10 @@ def timed_run(config, workers: int, executor: str = "local", options: dict | Non
     return breakdown(start, end, pid, t0, total)
 
 
-def describe(workers: int, t: dict[str, float], episodes: int) -> str:
-    """One line of a run's time split, for the bench's output."""
+def describe(label: str, t: dict[str, float], episodes: int) -> str:
+    """One line of a run's time split, for the bench's output ("LABEL: ...")."""
     return (
-        f"{workers} worker(s): {t['total']:6.2f} s = start-up {t['startup']:5.2f} + span {t['span']:6.2f} "
+        f"{label}: {t['total']:6.2f} s = start-up {t['startup']:5.2f} + span {t['span']:6.2f} "
         f"+ write {t['write']:5.2f} ({episodes / t['span']:.3f} episodes/s in the span; workers started "
         f"{t['start_spread']:.2f} s apart, busiest {t['busy_imbalance']:.2f} s over the mean, "
         f"{t['episode']:.2f} s per episode)"

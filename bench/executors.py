@@ -202,11 +202,7 @@ def main() -> None:
 
     for name, r in runs.items():
         for w, t in r.items():
-            print(
-                f"{name:5s} {w} worker(s): {t['total']:6.2f} s, start-up {t['startup']:5.2f} s, span {t['span']:6.2f} s"
-                f" (workers started {t['start_spread']:.2f} s apart, busiest {t['busy_imbalance']:.2f} s over the mean,"
-                f" {t['episode']:.2f} s per episode)"
-            )
+            print(_timing.describe(f"{name:5s} {w} worker(s)", t, episodes))
     print(
         json.dumps(
             {

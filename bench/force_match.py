@@ -82,7 +82,7 @@ def throughput(quick: bool, episodes: int | None = None) -> dict:
         for workers in (1, 2):
             times[workers] = t = run_pipeline_timed(raw, Path(tmp) / f"w{workers}", workers)
             loads.append(os.getloadavg()[0])
-            print(_timing.describe(workers, t, episodes))
+            print(_timing.describe(f"{workers} worker(s)", t, episodes))
     speedup = times[1]["span"] / times[2]["span"]
     print(f"speed-up {speedup:.2f}x over the processing span (cores: {os.cpu_count()}, load {loads})")
     return {

@@ -307,7 +307,7 @@ def main() -> None:
         )
     print(f"start-up: writer imports {imports:.1f} s (once per fresh run); 2-worker pool ready {startup:.1f} s")
     for w, t in runs.items():
-        print(f"{_timing.describe(w, t, episodes)}, {t['cpu']:.1f} CPU s")
+        print(f"{_timing.describe(f'{w} worker(s)', t, episodes)}, {t['cpu']:.1f} CPU s")
     speedup = runs[1]["span"] / runs[2]["span"]
     print(
         f"{episodes} episodes x {views} views: speed-up {speedup:.2f}x over the processing span, "

@@ -34,8 +34,10 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.replay import ReplayBuffer
+from shiftkit.policies.run_dir import torch_device
 from shiftkit.policies.trainers.vpace.args import VPACEArgs
 from shiftkit.policies.trainers.vpace.training import Agent
 
@@ -182,11 +184,10 @@ def main() -> None:
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="also profile N updates, batched and loop")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    device = torch.device(
-        "cuda"
-        if args.device == "auto" and torch.cuda.is_available()
-        else ("cpu" if args.device == "auto" else args.device)
-    )
+    try:
+        device = torch_device(args.device)
+    except ConfigError as exc:
+        parser.error(str(exc))
     updates, warmup = (40, 5) if args.quick else (args.updates, 20)
     if args.profile:
         print_profile(args.reward_model, device, args.profile)

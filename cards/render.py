@@ -44,6 +44,16 @@ def _flatten(values: Any) -> list[Any]:
     return [values]
 
 
+def shiftkit_version(versions: dict[str, Any]) -> str:
+    """shiftkit's version as a provenance records it, with the commit when it ran from a checkout:
+    `0.1.0 (commit 1a53137, uncommitted changes)`."""
+    text = str(versions.get("shiftkit", "?"))
+    commit = versions.get("shiftkit_commit")
+    if commit:
+        text += f" (commit {str(commit)[:7]}{', uncommitted changes' if versions.get('shiftkit_dirty') else ''})"
+    return text
+
+
 def _stage_lines(stages: list[dict[str, Any]], indent: str) -> list[str]:
     return [
         f"{indent}{i + 1}. `{s['name']}` v{s['version']}: `{json.dumps(s['params'], sort_keys=True)}`"
@@ -103,7 +113,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
         license=license,
         extra_tags="\n".join(f"- {n}" for n in dict.fromkeys(stage_names)),
         repo_id=provenance.get("output", {}).get("repo_id", root.name),
-        shiftkit_version=versions.get("shiftkit", "?"),
+        shiftkit_version=shiftkit_version(versions),
         lerobot_version=versions.get("lerobot", "?"),
         episodes=info["total_episodes"],
         frames=info["total_frames"],
@@ -151,7 +161,7 @@ def render_model_card(card: dict[str, Any]) -> str:
     return _template("model_card.md").substitute(
         normalization=_normalization(card.get("normalization")),
         trainer=trainer,
-        shiftkit_version=card.get("versions", {}).get("shiftkit", "?"),
+        shiftkit_version=shiftkit_version(card.get("versions", {})),
         datasets=datasets,
         env=card.get("env") or "(not evaluated in an environment)",
         args=args,

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.cards.render import shiftkit_version
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, open_lerobot_dataset
@@ -65,7 +66,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     prov = summary["provenance"]
     if prov:
         lines.append(
-            f"provenance: shiftkit {prov['versions'].get('shiftkit')}, lerobot {prov['versions'].get('lerobot')}, seed {prov.get('seed')}"
+            f"provenance: shiftkit {shiftkit_version(prov['versions'])}, lerobot {prov['versions'].get('lerobot')}, seed {prov.get('seed')}"
         )
         for src in prov.get("sources", []):
             facts = {k: v for k, v in src.items() if v not in (None, "") and k not in ("stages", "episodes")}

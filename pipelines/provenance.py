@@ -6,22 +6,43 @@ is recorded, so the same pipeline and seed give the same bytes.
 
 from __future__ import annotations
 
+import functools
+import subprocess
 from dataclasses import asdict
 from importlib import metadata
+from pathlib import Path
 from typing import Any
 
 PROVENANCE_VERSION = 1
 
 
-def versions() -> dict[str, str]:
-    """Installed versions of shiftkit and lerobot ("unknown" when not installed)."""
-    out = {}
-    for dist in ("shiftkit", "lerobot"):
+def versions(packages: tuple[str, ...] = ("shiftkit", "lerobot")) -> dict[str, Any]:
+    """Installed versions of `packages` ("unknown" when not installed) and, when shiftkit runs from a
+    git checkout, the commit it runs (`shiftkit_commit`) and whether the checkout had changes
+    (`shiftkit_dirty`): the package version alone does not say which code made an output."""
+    out: dict[str, Any] = {}
+    for dist in packages:
         try:
             out[dist] = metadata.version(dist)
         except metadata.PackageNotFoundError:
             out[dist] = "unknown"
-    return out
+    return {**out, **source_revision()}
+
+
+@functools.cache
+def source_revision() -> dict[str, Any]:
+    """`{"shiftkit_commit": SHA, "shiftkit_dirty": bool}` of the checkout this code is imported from,
+    or {} for an installed (non-editable) copy or without git."""
+    root = Path(__file__).resolve().parents[1]
+    if not ((root / ".git").exists() and (root / "pyproject.toml").exists()):
+        return {}
+    try:
+        git = lambda *args: subprocess.run(  # noqa: E731
+            ["git", "-C", str(root), *args], capture_output=True, text=True, check=True, timeout=30
+        ).stdout.strip()
+        return {"shiftkit_commit": git("rev-parse", "HEAD"), "shiftkit_dirty": bool(git("status", "--porcelain"))}
+    except (OSError, subprocess.SubprocessError):
+        return {}
 
 
 def make_provenance(

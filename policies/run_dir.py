@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import json
 import os
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from shiftkit.pipelines import provenance
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.lerobot_io import ResolvedDataset
@@ -41,15 +41,9 @@ LAST = "last.txt"
 BEST = "best.pt"
 
 
-def versions() -> dict[str, str]:
-    """Installed versions of the packages a run's results depend on."""
-    out = {}
-    for pkg in ("shiftkit", "lerobot", "torch"):
-        try:
-            out[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            out[pkg] = "unknown"
-    return out
+def versions() -> dict[str, Any]:
+    """Installed versions of the packages a run's results depend on, and shiftkit's commit."""
+    return provenance.versions(("shiftkit", "lerobot", "torch"))
 
 
 def torch_device(name: str) -> torch.device:

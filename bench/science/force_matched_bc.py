@@ -18,7 +18,8 @@ finished trainings (their `card.json`) and evaluations.
 
     python bench/science/force_matched_bc.py --workdir /tmp/fmbc  # --steps 20000 for the thesis' length
 
-Last line: the JSON result, force-matched minus position-replay success in points with the CNN,
+Last line: the JSON result, force-matched minus position-replay success in points with the first of
+`--encoders` (the CNN by default; the others' gaps beside it),
 pooled over tasks and seeds (thesis: +62.5 on average over its four tasks), with the per-seed
 successes and the pooled Wilson intervals per task, dataset and encoder, and pooled over the tasks.
 `--tasks` and `--encoders` run a part of the study (e.g. the CNN on one task over 3 seeds). `--quick`:
