@@ -13,16 +13,20 @@ from shiftkit.policies.evaluation import wilson_interval
 from shiftkit.policies.run_dir import RunDir
 
 
-def summary(run_dir: RunDir, counters: dict, expert_samples: int) -> dict:
-    """The final summary of a run: episodes, outcomes, the expert's answers and samples."""
+def summary(run_dir: RunDir, counters: dict) -> dict:
+    """The final summary of a run: episodes (and how many were the warm-up), outcomes, the expert's
+    answers, takeovers and hand-backs, and samples (expert samples: demonstrations + corrections)."""
     lines = [x for x in run_dir.read_metrics() if x["split"] == "episode"]
     feedback = [f for x in lines for f in x["feedback"]]
     return {
         "episodes": counters["episode"],
+        "warm_up_episodes": sum(not x["d_ready"] for x in lines),
         "successes": sum(x["success"] for x in lines),
         "policy_successes": sum(x["policy_success"] for x in lines),
         "corrections": counters["corrections"],
-        "expert_samples": expert_samples,
+        "interventions": counters["interventions"],
+        "hand_backs": counters["hand_backs"],
+        "expert_samples": counters["demo_frames"] + counters["corrections"],
         "env_steps": counters["env_steps"],
         "true_positives": feedback.count("tp"),
         "false_positives": feedback.count("fp"),
@@ -49,13 +53,16 @@ def read_episode_lines(run_path: str | Path) -> list[dict]:
 
 
 def roc_scores(lines: list[dict]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Per-predictor episode scores (beta, gda, doubt and the quantile OR of gda and doubt) and the
-    labels (the policy's uninterrupted run failed) of the episodes after D started."""
+    """Per-predictor episode scores (beta, gda and, for an ensemble policy, doubt and the quantile OR
+    of gda and doubt) and the labels (the policy's uninterrupted run failed) of the episodes after D
+    started."""
     from shiftkit.policies.failure_predictors import quantile_or
 
     ready = [x for x in lines if x["d_ready"]]
-    scores = {name: np.array([x["scores"][name] for x in ready], dtype=float) for name in ("beta", "gda", "doubt")}
-    scores["gda+doubt"] = quantile_or(scores["gda"], scores["doubt"])
+    names = [n for n in ("beta", "gda", "doubt") if all(n in x["scores"] for x in ready)]
+    scores = {name: np.array([x["scores"][name] for x in ready], dtype=float) for name in names}
+    if "doubt" in scores:
+        scores["gda+doubt"] = quantile_or(scores["gda"], scores["doubt"])
     return scores, np.array([not x["policy_success"] for x in ready])
 
 

@@ -344,6 +344,97 @@ class ExpertPolicy:
         return self.expert.act()
 
 
+# --------------------------------------------------------------------------- the suboptimal expert
+# A person demonstrating by teleoperation is not the scripted expert: their demonstrations vary in pace,
+# wander, hesitate and overshoot (thesis 5.4.3, Fig. 5.3: "due to the suboptimality of human
+# demonstrations, behavioural cloning has high variance", the setting FIRE is meant for). The
+# suboptimal expert is the scripted one (still closed-loop on the true state, so it still finishes)
+# with that variance added, all drawn from its own seeded generator:
+SUBOPTIMAL_SPEED = (0.4, 1.0)
+"""Range of the per-episode speed scale of the arm's motion (each demonstrator keeps a pace)."""
+SUBOPTIMAL_DETOUR = 0.5
+"""Chance that an episode starts with a detour: a waypoint 4-9 cm to a random side, 0-5 cm up."""
+SUBOPTIMAL_TREMOR = (0.3, 0.6)
+"""Motion noise: an Ornstein-Uhlenbeck process with this stationary std and correlation time (s),
+scaled by the size of the commanded motion (a fast hand wanders more; the fine approach stays fine):
+drift and overshoot that the closed loop then corrects."""
+SUBOPTIMAL_PAUSE = (0.1, (0.2, 0.8))
+"""Hesitation: chance per second of pausing, and the pause's range of length (s); the arm holds still
+and the grip is kept."""
+
+
+class SuboptimalExpert:
+    """The scripted expert of `task` with a person's variance (`SUBOPTIMAL_*` above); `seed` draws it."""
+
+    def __init__(self, env: PandaPlayEnv, seed: int, task: str | None = None) -> None:
+        self.base = PandaPlayExpert(env, task)
+        self.rng = np.random.default_rng([seed, 0x5B0])
+        self.reset()
+
+    def reset(self) -> None:
+        """A new demonstration: a new pace, maybe a detour, the noise at rest."""
+        self.base.reset()
+        rng = self.rng
+        self.speed = rng.uniform(*SUBOPTIMAL_SPEED)
+        self.detour: np.ndarray | None = None
+        if rng.random() < SUBOPTIMAL_DETOUR:
+            angle, radius = rng.uniform(0.0, 2 * np.pi), rng.uniform(0.04, 0.09)
+            self.detour = np.array([radius * np.cos(angle), radius * np.sin(angle), rng.uniform(0.0, 0.05)])
+        self.start: np.ndarray | None = None  # where the detour is measured from (the first step's TCP)
+        self.noise = np.zeros(3)
+        self.paused = 0
+        self.grip = 1.0
+
+    def act(self) -> np.ndarray:
+        """The next action: a pause, the detour, or the scripted action slowed and perturbed."""
+        p, rng = self.base.p, self.rng
+        dt = p.control_dt
+        std, tau = SUBOPTIMAL_TREMOR
+        keep = np.exp(-dt / tau)
+        self.noise = keep * self.noise + std * np.sqrt(1.0 - keep**2) * rng.standard_normal(3)
+        chance, (shortest, longest) = SUBOPTIMAL_PAUSE
+        if self.paused == 0 and rng.random() < chance * dt:
+            self.paused = self.base._steps(rng.uniform(shortest, longest))
+        if self.paused > 0:
+            self.paused -= 1
+            return self.base._act(np.zeros(3), self.grip < 0)
+        if self.start is None:
+            self.start = p.desired_tcp.copy()
+        if self.detour is not None:
+            target = self.start + self.detour
+            if self.base._at(target, 0.02):
+                self.detour = None
+            else:
+                return self._perturbed(self.base._toward(target))
+        action = self.base.act()
+        self.grip = float(action[3])
+        return self._perturbed(action[:3])
+
+    def _perturbed(self, move: np.ndarray) -> np.ndarray:
+        move = self.speed * move
+        return self.base._act(move + self.noise * np.max(np.abs(move)), self.grip < 0)
+
+
+class SuboptimalExpertPolicy(ExpertPolicy):
+    """The suboptimal expert in the policy interface (`ExpertPolicy`); `seed` draws its variance."""
+
+    def __init__(self, env: PandaPlayEnv, seed: int = 0) -> None:
+        self.env, self.seed = env, seed
+        self.expert = SuboptimalExpert(env, seed)
+
+    def reset(self) -> None:
+        """A fresh suboptimal expert (the same draws for the same seed)."""
+        self.expert = SuboptimalExpert(self.env, self.seed)
+
+
+def suboptimal_rollout(
+    env: PandaPlayEnv, seed: int, cameras: tuple[str, ...] = (), depth: bool = False, extra_steps: int = 0
+) -> Rollout:
+    """One episode of the suboptimal expert from `reset(seed=seed)` (its variance drawn from `seed`),
+    recorded as `rollout` records the scripted expert (`shiftkit collect --expert suboptimal`)."""
+    return expert_rollout(env, seed, lambda e: SuboptimalExpert(e, seed), cameras, depth, extra_steps)
+
+
 def _free_spot(avoid: np.ndarray) -> np.ndarray:
     """The FREE_SPOTS entry farthest from the `avoid` points (xy rows)."""
     clearance = np.min(np.linalg.norm(FREE_SPOTS[:, None] - avoid[None], axis=2), axis=1)
