@@ -446,6 +446,7 @@ def run(args: FireArgs) -> dict:
             "episode_cpu_s": exec_cpu,
             "look_ahead_steps": oracle.look_ahead_steps,
             "forks": oracle.forks,
+            "deadline_step": oracle.check_step,
         }
         run_dir.log(counters["episode"], "episode", **metrics, **learned)
         if args.eval_every and counters["episode"] % args.eval_every == 0:

@@ -83,6 +83,35 @@ def success_curve(
     return x, np.array(rate), np.array(low), np.array(high)
 
 
+def seed_curve(
+    runs: list[list[dict]], x_key: str, window: int = 10, reps: int = 2000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One method over seeds: each run's `success_curve` as a step function of `x_key`, read on the
+    x values where every run has data; (x, IQM over the runs, 95% low, high), the interval a
+    bootstrap over runs (`curves.stratified_bootstrap_ci`; a single run's band is its line)."""
+    from shiftkit.policies.curves import iqm, stratified_bootstrap_ci
+
+    curves = [success_curve(lines, x_key, window)[:2] for lines in runs]
+    first, last = max(x[0] for x, _ in curves), min(x[-1] for x, _ in curves)
+    grid = np.unique(np.concatenate([x[(x >= first) & (x <= last)] for x, _ in curves]))
+    values = np.array([[y[np.searchsorted(x, g, side="right") - 1] for g in grid] for x, y in curves])
+    low, high = stratified_bootstrap_ci(values, np.zeros(len(runs)), reps)
+    return grid, iqm(values, axis=0), low, high
+
+
+def bc_curve(run_paths: list[str | Path]) -> list[dict]:
+    """BC as a curve over its training data: the runs grouped by the datasets they trained on (e.g.
+    seeds of BC from 10, 20, ... demonstrations), each group pooled as `bc_reference`, in order of
+    expert samples."""
+    from shiftkit.policies.run_dir import trained_datasets
+
+    groups: dict[tuple, list[Path]] = {}
+    for path in map(Path, run_paths):
+        key = tuple(sorted(str(d.get("root", "")) for d in trained_datasets(path)))
+        groups.setdefault(key, []).append(path)
+    return sorted((bc_reference(paths) for paths in groups.values()), key=lambda r: r["expert_samples"])
+
+
 def bc_reference(run_paths: list[str | Path]) -> dict:
     """The point a BC policy stands at on FIRE's figures, pooled over `run_paths` (e.g. one run per
     seed): expert samples = the frames of its training datasets (mean over the runs), execution time =

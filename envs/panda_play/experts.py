@@ -345,13 +345,16 @@ class ExpertPolicy:
 
 
 # --------------------------------------------------------------------------- the suboptimal expert
-# A person demonstrating by teleoperation is not the scripted expert: their demonstrations vary in pace,
-# wander, hesitate and overshoot (thesis 5.4.3, Fig. 5.3: "due to the suboptimality of human
-# demonstrations, behavioural cloning has high variance", the setting FIRE is meant for). The
-# suboptimal expert is the scripted one (still closed-loop on the true state, so it still finishes)
-# with that variance added, all drawn from its own seeded generator:
+# A person demonstrating by teleoperation is not the scripted expert: their demonstrations vary in pace
+# and path, hesitate, overshoot and sometimes misjudge a grasp (thesis 5.4.3, Fig. 5.3: "due to the
+# suboptimality of human demonstrations, behavioural cloning has high variance", the setting FIRE is
+# meant for). The suboptimal expert is the scripted one (still closed-loop on the true state, so it
+# still finishes) with that variance added, all drawn from its own seeded generator. The variance is
+# in the free motion and in whole grasp attempts; the final approach and the closing of the fingers
+# stay as the scripted expert does them (a person slows down there too, and where a grasp was judged
+# right, closes on the block).
 SUBOPTIMAL_SPEED = (0.4, 1.0)
-"""Range of the per-episode speed scale of the arm's motion (each demonstrator keeps a pace)."""
+"""Range of the per-episode speed scale of the free motion (each demonstrator keeps a pace)."""
 SUBOPTIMAL_DETOUR = 0.5
 """Chance that an episode starts with a detour: a waypoint 4-9 cm to a random side, 0-5 cm up."""
 SUBOPTIMAL_TREMOR = (0.3, 0.6)
@@ -359,8 +362,13 @@ SUBOPTIMAL_TREMOR = (0.3, 0.6)
 scaled by the size of the commanded motion (a fast hand wanders more; the fine approach stays fine):
 drift and overshoot that the closed loop then corrects."""
 SUBOPTIMAL_PAUSE = (0.1, (0.2, 0.8))
-"""Hesitation: chance per second of pausing, and the pause's range of length (s); the arm holds still
-and the grip is kept."""
+"""Hesitation in free motion: chance per second of pausing, and the pause's range of length (s); the
+arm holds still and the grip is kept."""
+SUBOPTIMAL_MISJUDGED = (0.3, (0.015, 0.03))
+"""Chance that a grasp attempt closes early, and the range of heights above the grasp point (m)
+where it does: the fingers miss (or catch the block's top edge) and the expert tries again."""
+# phases of the scripted grasp where the person is careful: no pace, pauses or detours there
+_CAREFUL = ("descend", "close")
 
 
 class SuboptimalExpert:
@@ -384,34 +392,51 @@ class SuboptimalExpert:
         self.noise = np.zeros(3)
         self.paused = 0
         self.grip = 1.0
+        self.early: float | None = None  # this grasp attempt closes this high above the grasp point
+        self.attempt_drawn = False
 
     def act(self) -> np.ndarray:
-        """The next action: a pause, the detour, or the scripted action slowed and perturbed."""
-        p, rng = self.base.p, self.rng
+        """The next action: a pause, the detour, or the scripted action perturbed."""
+        p, rng, base = self.base.p, self.rng, self.base
         dt = p.control_dt
         std, tau = SUBOPTIMAL_TREMOR
         keep = np.exp(-dt / tau)
         self.noise = keep * self.noise + std * np.sqrt(1.0 - keep**2) * rng.standard_normal(3)
+        careful = base.phase in _CAREFUL
         chance, (shortest, longest) = SUBOPTIMAL_PAUSE
-        if self.paused == 0 and rng.random() < chance * dt:
-            self.paused = self.base._steps(rng.uniform(shortest, longest))
+        if not careful and self.paused == 0 and rng.random() < chance * dt:
+            self.paused = base._steps(rng.uniform(shortest, longest))
         if self.paused > 0:
             self.paused -= 1
-            return self.base._act(np.zeros(3), self.grip < 0)
+            return base._act(np.zeros(3), self.grip < 0)
         if self.start is None:
             self.start = p.desired_tcp.copy()
         if self.detour is not None:
             target = self.start + self.detour
-            if self.base._at(target, 0.02):
+            if base._at(target, 0.02):
                 self.detour = None
             else:
-                return self._perturbed(self.base._toward(target))
-        action = self.base.act()
+                return self._perturbed(base._toward(target), self.speed)
+        self._misjudge()
+        action = base.act()
         self.grip = float(action[3])
-        return self._perturbed(action[:3])
+        return self._perturbed(action[:3], 1.0 if base.phase in _CAREFUL else self.speed)
 
-    def _perturbed(self, move: np.ndarray) -> np.ndarray:
-        move = self.speed * move
+    def _misjudge(self) -> None:
+        """Once per grasp attempt, maybe close early (`SUBOPTIMAL_MISJUDGED`)."""
+        base = self.base
+        if base.phase != "descend":
+            self.attempt_drawn = False
+            return
+        if not self.attempt_drawn:
+            self.attempt_drawn = True
+            chance, heights = SUBOPTIMAL_MISJUDGED
+            self.early = self.rng.uniform(*heights) if self.rng.random() < chance else None
+        if self.early is not None and base.p.tcp_pos()[2] < base.p.block_pos(0)[2] + self.early:
+            base.phase, base.timer, self.early = "close", 0, None
+
+    def _perturbed(self, move: np.ndarray, speed: float) -> np.ndarray:
+        move = speed * move
         return self.base._act(move + self.noise * np.max(np.abs(move)), self.grip < 0)
 
 
