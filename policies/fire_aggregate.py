@@ -2,19 +2,21 @@
 
 Inputs: the expert demonstrations and any number of lerobot DAgger recordings (`dagger_recording`:
 either layout). Every frame gets a source: demonstration (0), policy (1: `intervention` False) or
-expert correction (2: True). Each stretch of policy frames is one trajectory of the policy; the
-stretches that end in a correction are the failures the predictor should have flagged, the others
-(ending with their episode) are successes.
+expert correction (2: True). Each stretch of policy frames is one trajectory of the policy, a failure
+when a correction follows it (the operator took over), a success when it runs to its episode's end;
+the operator handing control back shows as a correction followed by policy frames.
 
 Then, with the code of the simulated loop (`discriminator`, `failure_predictors`):
 1. D(s, a) trains on expert frames (demonstrations + corrections) against the policy's frames, for
    as many steps as the recordings hold frames (the simulated loop's rule: one step per frame); with
    only corrections recorded, the policy's samples are its own actions at the corrected states;
-2. the beta and GDA rules are fitted by replaying the policy trajectories in recording order: each
-   is scored with the statistics of the earlier ones (as the loop scores an episode before learning
-   from it), then predicts step by step, answered as the recording answers (a request in a stretch
-   that ends in a correction: agreed; otherwise refused; a correction nobody predicted: missed),
-   and then joins the statistics;
+2. the beta and GDA rules are fitted by replaying the stretches in recording order, as the loop
+   learns from its executed segments: each policy stretch is scored with the statistics of the
+   earlier ones (as the loop scores an episode before learning from it), then the rule predicts step
+   by step (the episode's step count, which GDA's statistics are indexed by), answered as the
+   recording answers (a request in a stretch that ends in a correction: agreed; otherwise refused; a
+   correction nobody predicted: missed); then the stretch joins GDA's statistics (corrections as
+   successful data, as in the reference) and GDA re-derives its threshold from their ROC;
 3. the aggregated LeRobot dataset: the demonstrations and every recorded episode, with per-frame
    `intervention` (as lerobot writes it), `source`, `discriminator_score` (final D) and
    `intervention_request` (where the chosen rule, as fitted up to then, asked); beside it, in

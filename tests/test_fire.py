@@ -219,6 +219,88 @@ def test_oracle_stops_a_standstill_as_it_shows_and_a_wandering_failure_at_the_de
     env.close()
 
 
+class _HoldAgent:
+    """A policy that holds still (it never solves the task), with a constant D."""
+
+    keys = ["observation.state"]
+
+    def __init__(self, dim: int) -> None:
+        self.hold = np.zeros(dim, dtype=np.float32)
+
+    def observe(self, env, obs):
+        return {"observation.state": np.asarray(obs, dtype=np.float32)}
+
+    def decide(self, features):
+        return self.hold, 0.0
+
+    def d_score(self, features, action):
+        return 0.1
+
+    def __call__(self, env, obs):
+        return self.hold, {"d": 0.1, "doubt": 0.0}
+
+
+class _AskAt:
+    """A predictor that asks at the given steps (and records what it was told)."""
+
+    def __init__(self, steps):
+        self.steps, self.told, self.resets = set(steps), [], 0
+
+    def reset(self):
+        self.resets += 1
+
+    def predict(self, t, d, doubt=0.0):
+        return t in self.steps
+
+    def feedback(self, kind):
+        self.told.append(kind)
+
+
+def test_an_episode_holds_several_interventions_and_none_before_d_is_ready():
+    """`run_episode`: before D is ready nothing asks, stops or takes over, whatever the predictor
+    says; afterwards every agreed prediction starts a correction that ends where the expert hands
+    back (here a person who hands back after two steps, too early), and the policy drives again."""
+    from shiftkit.policies.fire_episode import run_episode
+
+    env_name, task = EXPERT_ENVS[-1]
+    env = make(env_name, task)
+    agent = _HoldAgent(env.action_space.shape[0])
+
+    class EarlyHandBack(SimulatedOracle):
+        calls = 0
+
+        def can_finish(self, env, obs, t):
+            EarlyHandBack.calls += 1
+            return t - self.taken >= 2
+
+        def take_over(self, env, seed=0):
+            self.taken = self._t
+            return super().take_over(env, seed)
+
+        def will_fail(self, env, obs, t):
+            self._t = t
+            return super().will_fail(env, obs, t)
+
+    oracle = EarlyHandBack(env_name, agent, check_step=10**6, stall_steps=10**6)  # no stops of its own
+    features = {"observation.state": {}}
+    warm = run_episode(env, 3, agent, _AskAt(range(200)), oracle, False, features, fp_cooldown=5)
+    assert not warm.frames["intervention"].any() and not warm.frames["intervention_request"].any()
+    assert warm.feedback == [] and warm.interventions == [] and oracle.forks == 0 and EarlyHandBack.calls == 0
+    assert [(s.start, s.expert, s.failed) for s in warm.segments] == [(0, False, not warm.success)]
+
+    asker = _AskAt([3, 9])
+    ep = run_episode(env, 3, agent, asker, oracle, True, features, fp_cooldown=5)
+    assert asker.told == ["tp", "tp"] and asker.resets == 3  # the episode's start and two hand-backs
+    assert [(x["start"], x["end"], x["kind"]) for x in ep.interventions] == [(3, 5, "tp"), (9, 11, "tp")]
+    flags = ep.frames["intervention"][:, 0]
+    np.testing.assert_array_equal(np.flatnonzero(flags), [3, 4, 9, 10])
+    np.testing.assert_array_equal(ep.frames["source"][:, 0], np.where(flags, 2, 1))
+    parts = [(s.start, s.expert, s.failed) for s in ep.segments]
+    assert parts == [(0, False, True), (3, True, False), (5, False, True), (9, True, False), (11, False, True)]
+    assert ep.policy_failed and ep.frames["intervention_request"][[3, 9], 0].all()
+    env.close()
+
+
 # ------------------------------------------------------------------------------ shiftkit fire
 
 
