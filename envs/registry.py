@@ -70,7 +70,7 @@ class EnvFamily:
     expert_policies: dict[str, Callable[..., Any]] = field(default_factory=dict)
     """The other experts of `experts` that act from any state, as policies by the same name:
     `expert_policies[name](env, seed)` (the seed draws a stochastic expert's variance); FIRE's oracle
-    takes over with the one its run names (`shiftkit fire --expert`)."""
+    takes over with the one its run names (`shiftkit fire --expert-policy`)."""
 
     def gym_id(self, task: str) -> str:
         """The gymnasium id of `task` (`shiftkit/<gym_prefix>-<Task>-v0`)."""

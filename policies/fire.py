@@ -162,7 +162,7 @@ def _open_env(args: FireArgs, fps: int, dataset: Path, name: str) -> Any:
             f"the dataset is at {fps} fps but {args.env} would run at {env.control_hz} Hz ({args.env} offers "
             f"{offered} Hz): FIRE a dataset recorded at a rate the env offers"
         )
-    scripted_expert(args.env, env, args.expert)  # the env must have that expert, acting from any state
+    scripted_expert(args.env, env, args.expert_policy)  # the env must have that expert, acting from any state
     return env
 
 
@@ -228,7 +228,7 @@ def _learner(
         args.env,
         agent,
         check_step=max(0, env.max_episode_steps - margin),
-        expert=args.expert,
+        expert=args.expert_policy,
         stall_steps=max(2, math.ceil(args.stall_seconds * fps)),
         stall_tolerance=args.stall_tolerance,
     )

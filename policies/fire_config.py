@@ -42,9 +42,10 @@ class FireArgs:
     """Seed of BC, D, sampling and the hold-outs."""
     env_seed: int = 10_000
     """Episode i resets the environment with env_seed + i."""
-    expert: str = "scripted"
+    expert_policy: str = "scripted"
     """The env's expert that corrects the policy: `scripted` or another of the family's experts that
-    acts from any state (panda-play: `suboptimal`, a person's variance; `shiftkit collect --expert`)."""
+    acts from any state (panda-play: `suboptimal`, a person's variance), as `shiftkit collect --expert`
+    names them; record the demonstrations with the same one."""
     # --- BC (the policy of thesis 5.4.2: one 2x256 MLP, tanh output; FIRE's own settings, whatever
     # `shiftkit train bc` defaults to)
     bc_regime: str = "early-stop"

@@ -108,7 +108,7 @@ def main() -> None:
                     if not (run / "policy" / "eval" / "lift-held-out.json").exists():
                         shiftkit(
                             "fire", "--dataset", demos(expert, start), "--env", "panda-play", "--task", "lift",
-                            "--expert", expert, "--predictor", predictor, *fire_opts, *NETWORK,
+                            "--expert-policy", expert, "--predictor", predictor, *fire_opts, *NETWORK,
                             "--env-seed", str(10000 + 1000 * seed), "--output", str(run),
                             "--repo-id", f"local/fire-{expert}-{predictor}-s{seed}", "--seed", str(seed),
                             "--threads", "1", "--device", "cpu", "--no-progress",
