@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _study import arguments, evaluate, pool, seeds_of, shiftkit, workspace  # noqa: E402
+from _study import arguments, choices_of, evaluate, pool, seeds_of, shiftkit, workspace  # noqa: E402
 
 from shiftkit.policies.fire_runs import bc_reference, read_episode_lines  # noqa: E402
 
@@ -43,11 +43,13 @@ EXPERTS = ("scripted", "suboptimal")
 def main() -> None:
     parser = arguments(__doc__)
     parser.add_argument("--eval-episodes", type=int, default=30, help="held-out episodes per policy (default: 30)")
-    parser.add_argument("--experts", default=",".join(EXPERTS), help="experts to run (default: both)")
+    parser.add_argument("--experts", help="experts to run, comma-separated (default: both; --quick: suboptimal)")
     parser.add_argument("--figure", help="PNG prefix of `plot fire` (-EXPERT-expert/-time added; default: workdir)")
     args = parser.parse_args()
     seeds = seeds_of(args)
-    experts = [e for e in EXPERTS if e in args.experts.split(",")]
+    experts = choices_of(
+        parser, "--experts", args.experts or ("suboptimal" if args.quick else ",".join(EXPERTS)), EXPERTS
+    )
     quick = args.quick
     sizes = [3, 5] if quick else [10, 20, 30, 40, 50, 60]
     start = 3 if quick else 20
