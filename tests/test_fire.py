@@ -536,27 +536,40 @@ def test_gda_learns_from_executed_segments(fire_run):
         assert s["d"] is not None  # re-scored by the trained D
 
 
-def test_execution_time_and_expert_samples_count_demonstrations_not_success_finals(fire_run, demo):
-    """Execution time = (demonstration frames + every executed step) / fps; expert samples =
-    demonstration frames + corrections; a success's final (s_T, a_T) joins D_E (thesis 5.3.4) but
-    is not an expert sample."""
-    import torch
-
+def _demo_frames(root: Path) -> tuple[int, int]:
     from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 
+    demos = open_lerobot_dataset(root)
+    return sum(len(ep) for ep in demos.iter_episodes()), demos.fps
+
+
+def test_execution_time_counts_the_demonstrations(fire_run, demo):
+    """Execution time = (demonstration frames + every executed step) / fps (thesis 5.5.1: the
+    demonstrations are robot time too)."""
     run, _ = fire_run
-    demos = open_lerobot_dataset(demo[2])
-    frames = sum(len(ep) for ep in demos.iter_episodes())
+    frames, fps = _demo_frames(demo[2])
     last = _episode_lines(run)[-1]
-    assert last["execution_time_s"] == pytest.approx((frames + last["env_steps"]) / demos.fps)
-    assert last["expert_samples"] == frames + last["corrections"]
-    state = torch.load(sorted((run / "checkpoints").glob("step-*.pt"))[-1], weights_only=False)
-    finals = sum(
-        x["success"] and (not x["interventions"] or x["interventions"][-1]["end"] < x["length"])
-        for x in _episode_lines(run)
-    )
+    assert last["execution_time_s"] == pytest.approx((frames + last["env_steps"]) / fps)
+
+
+def test_success_finals_join_the_expert_set_but_are_not_expert_samples(fire_run, demo):
+    """A success's final (s_T, a_T) joins D_E (thesis 5.3.4) but no expert gave it: expert samples
+    = demonstration frames + corrections."""
+    import torch
+
+    from shiftkit.policies.fire_recording import load_npz
+
+    run, _ = fire_run
+    frames, _ = _demo_frames(demo[2])
+    lines = _episode_lines(run)
+    finals = 0  # successes whose last step the policy took
+    for line in lines:
+        flags, _ = load_npz(run / "episodes" / f"episode_{line['episode']:06d}.npz")
+        finals += line["success"] and not flags["intervention"][-1, 0]
     assert finals > 0
-    assert len(state["expert_set"]["action"]) == frames + last["corrections"] + finals
+    assert lines[-1]["expert_samples"] == frames + lines[-1]["corrections"]
+    state = torch.load(sorted((run / "checkpoints").glob("step-*.pt"))[-1], weights_only=False)
+    assert len(state["expert_set"]["action"]) == frames + lines[-1]["corrections"] + finals
 
 
 def test_fire_policy_is_the_thesis_network_by_default(fire_run):
