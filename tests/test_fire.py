@@ -678,7 +678,7 @@ def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):
     x, rate, _, _ = success_curve(lines, "expert_samples", 2)
     last = [rate[np.flatnonzero(x <= g)[-1]] for g in np.unique(x)]
     np.testing.assert_allclose(line.get_ydata(), last)
-    assert drawn[0].axes[0].get_legend().get_texts()[0].get_text() == "a (IQM of 2 runs) (n = 2 runs)"
+    assert drawn[0].axes[0].get_legend().get_texts()[0].get_text() == "a (IQM, 95% bootstrap CI) (n = 2 runs)"
     labels = [not x["policy_success"] for x in lines if x["d_ready"]]
     code = main(["plot", "roc", str(run), "--out", str(tmp_path / "roc.png")])
     if 0 < sum(labels) < len(labels):

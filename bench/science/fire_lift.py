@@ -139,8 +139,7 @@ def main() -> None:
             shiftkit(
                 "plot", "fire", *fire_runs, "--bc", f"BC, {sizes[0]}-{sizes[-1]} demos={','.join(curve)}",
                 "--out", f"{figure}.png", "--title",
-                f"lift at 5 Hz, {expert} expert: FIRE from {start} demos vs BC ({len(seeds)} seed(s), "
-                f"BC on {episodes} held-out episodes each)", env=env,
+                f"lift at 5 Hz, {expert} expert: FIRE (from {start} demos) vs BC, {len(seeds)} seed(s)", env=env,
             )  # fmt: skip
             figures[expert] = str(figure)
 
