@@ -10,8 +10,8 @@ import numpy as np
 
 from shiftkit.cards.render import shiftkit_version
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, open_lerobot_dataset
+from shiftkit.pipelines.loaders import load_provenance, load_stats
 from shiftkit.pipelines.provenance import format_report
 
 
@@ -40,7 +40,7 @@ def summarize(root: str | Path) -> dict[str, Any]:
             if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")
         },
         "cameras": {"cameras": reader.cameras["cameras"], "episodes": reader.cameras["episodes"]},
-        "provenance": read_json_file(prov_path, "provenance") if prov_path.exists() else None,
+        "provenance": load_provenance(prov_path) if prov_path.exists() else None,
     }
 
 
@@ -147,11 +147,8 @@ def validate_dataset(root: str | Path) -> dict[str, Any]:
             f"{root}: {reader.num_episodes} episodes, info.json says {reader.info.get('total_episodes')}"
         )
     check_lerobot_loads(root)
-    if (root / PROVENANCE_PATH).exists():  # `info` shows it: it must parse as a JSON object
-        from shiftkit.pipelines.jsonutil import read_json_file
-
-        if not isinstance(read_json_file(root / PROVENANCE_PATH, "provenance"), dict):
-            raise DatasetError(f"{root / PROVENANCE_PATH}: expected a JSON object")
+    if (root / PROVENANCE_PATH).exists():  # `info` shows it and trainers read it: checked here too
+        load_provenance(root / PROVENANCE_PATH)
     return {"episodes": reader.num_episodes, "frames": frames, "warnings": warnings}
 
 
@@ -243,10 +240,7 @@ def recompute_stats(root: str | Path, rtol: float = 1e-3) -> int:
 
 
 def _read_stats(path: Path) -> dict[str, dict[str, Any]]:
-    stats = read_json_file(path, "dataset statistics")
-    if not isinstance(stats, dict) or not all(isinstance(v, dict) for v in stats.values()):
-        raise DatasetError(f"{path}: expected an object of per-feature statistics")
-    return stats
+    return load_stats(path)
 
 
 def _short(v: np.ndarray) -> str:

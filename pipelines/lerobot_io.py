@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines import camera_meta, depth
+from shiftkit.pipelines import camera_meta, depth, loaders
 from shiftkit.pipelines.encoded_frames import EncodedFrames, source_bytes
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
@@ -57,7 +57,7 @@ from shiftkit.pipelines.features import (
     plain_camera_features,
     user_features,
 )
-from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.jsonutil import dumps
 from shiftkit.pipelines.local_datasets import find_local_dataset, lerobot_home
 from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 from shiftkit.pipelines.stats import RunningStats, image_stats, numeric_stats
@@ -456,7 +456,7 @@ def carry_source_metadata(dest: Path, sources: list[Path]) -> None:
             else:
                 shutil.copy2(entry, target)
         if tools is None and (meta / "info.json").is_file():
-            tools = read_json_file(meta / "info.json", "dataset info").get("tools")
+            tools = loaders.load_info(meta / "info.json").get("tools")
     if tools is not None:
         info = load_info(dest)
         info.tools = tools
@@ -710,28 +710,6 @@ def _decode_depth(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
     return depth.clean_metres(depth.to_metres(arr, (ft.get("info") or {}).get("depth_unit")))
 
 
-def check_info_values(info: dict[str, Any], info_path: Path) -> None:
-    """The types of info.json values the reader relies on (a hand-edited file may be off)."""
-    fps = info["fps"]
-    if isinstance(fps, bool) or not isinstance(fps, int) or fps <= 0:
-        raise DatasetError(f"{info_path}: 'fps' must be a positive integer, got {fps!r}")
-    if not isinstance(info["data_path"], str) or (
-        "video_path" in info and info["video_path"] is not None and not isinstance(info["video_path"], str)
-    ):
-        raise DatasetError(f"{info_path}: 'data_path' / 'video_path' must be strings")
-    features = info["features"]
-    if not isinstance(features, dict) or not features:
-        raise DatasetError(f"{info_path}: 'features' must be a non-empty object")
-    for key, ft in features.items():
-        shape = ft.get("shape") if isinstance(ft, dict) else None
-        if (
-            not isinstance(ft.get("dtype") if isinstance(ft, dict) else None, str)
-            or not isinstance(shape, list | tuple)
-            or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
-        ):
-            raise DatasetError(f"{info_path}: feature {key!r} needs a 'dtype' string and a 'shape' list of sizes")
-
-
 def require_utf8_path(path: Path, what: str, verb: str) -> None:
     """pyarrow (LeRobot's parquet files) opens UTF-8 paths only: a one-line error naming the path
     rather than a parquet error about a file that is fine."""
@@ -754,15 +732,16 @@ def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     info_path = root / "meta" / "info.json"
     if not root.is_dir():
         raise DatasetError(f"dataset not found: {root}")
-    info = read_json_file(info_path, "not a LeRobot dataset")
+    if not info_path.is_file():
+        raise DatasetError(f"{info_path} is missing (not a LeRobot dataset)")
+    info = loaders.load_checked(info_path, loaders.obj(codebase_version=loaders.opt(loaders.ANY)), "info")
     version = str(info.get("codebase_version", ""))
     if version != "v3.0":
         hint = " (convert v2.1 with lerobot's convert_dataset_v21_to_v30)" if version.startswith("v2") else ""
         raise DatasetError(f"{root}: codebase_version {version!r} is not v3.0{hint}")
-    for key in ("fps", "features", "data_path"):
-        if key not in info:
-            raise DatasetError(f"{info_path}: missing key {key!r}")
-    check_info_values(info, info_path)
+    info = loaders.check_value(info, loaders.INFO, str(info_path))
+    if "data_path" not in info:
+        raise DatasetError(f"{info_path}: 'data_path' is missing")
     ep_files = sorted((root / "meta" / "episodes").glob("*/*.parquet"))
     if not ep_files:
         raise DatasetError(f"{root}/meta/episodes: no episode metadata files")

@@ -137,14 +137,9 @@ def recorded_envs(root: Any) -> set[str]:
     raw and simulator sources); empty when it has no provenance or the provenance does not say."""
     from pathlib import Path
 
-    from shiftkit.pipelines.jsonutil import read_json_file
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
 
     path = Path(root) / PROVENANCE_PATH
-    provenance = read_json_file(path, "provenance") if path.is_file() else {}
-    sources = provenance.get("sources") if isinstance(provenance, dict) else None
-    return {
-        s["env"]
-        for s in (sources if isinstance(sources, list) else [])
-        if isinstance(s, dict) and isinstance(s.get("env"), str) and s["env"]
-    }
+    provenance = load_provenance(path) if path.is_file() else {}
+    return {s["env"] for s in provenance.get("sources", []) if s.get("env")}

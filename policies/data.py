@@ -52,20 +52,16 @@ def example_set_origin(root: str | Path) -> str | None:
     """What made the dataset at `root` a success-example set (frames of successful states, not
     demonstrations), as its provenance says: the `success_examples` stage or `import vpace` of
     example files; None for anything else."""
-    from shiftkit.pipelines.jsonutil import read_json_file
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
 
     path = Path(root) / PROVENANCE_PATH
-    try:
-        provenance = read_json_file(path, "provenance") if path.is_file() else {}
-    except DatasetError:
-        return None
-    provenance = provenance if isinstance(provenance, dict) else {}
-    stages = [s.get("name") for s in provenance.get("stages") or [] if isinstance(s, dict)]
-    importer = provenance.get("importer")
+    provenance = load_provenance(path) if path.is_file() else {}
+    stages = [s["name"] for s in provenance.get("stages", [])]
+    importer = provenance.get("importer") or {}
     if "success_examples" in stages:
         return "the success_examples stage"
-    if isinstance(importer, dict) and importer.get("kind") == "examples":
+    if importer.get("kind") == "examples":
         return f"`import {importer.get('name')}` of example files"
     return None
 

@@ -17,6 +17,7 @@ import torch
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 from shiftkit.policies.bc_policy import BCPolicy, Normalization, PolicySpec, load_policy
 from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
+from shiftkit.policies.run_dir import checkpoint_bytes, load_checkpoint
 from shiftkit.policies.trainers.bc.args import BCArgs
 from shiftkit.policies.trainers.bc.training import train, update_members
 
@@ -223,8 +224,8 @@ def test_fixed_regime_learns_and_writes_run(state_ds, tmp_path):
     assert config["trainer"] == "bc" and config["args"]["weight_decay"] == 0.1
     assert config["datasets"][0]["fingerprint"] and config["versions"]["lerobot"]
     assert (out / "README.md").read_text().strip()
-    assert (out / "checkpoints" / "last.txt").read_text() == "step-00000300.pt"
-    assert len(list((out / "checkpoints").glob("step-*.pt"))) == 2  # keep=2
+    assert (out / "checkpoints" / "last.txt").read_text() == "step-00000300.safetensors"
+    assert len(list((out / "checkpoints").glob("step-*.safetensors"))) == 2  # keep=2
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -335,7 +336,7 @@ def test_resume_after_kill_equals_uninterrupted_run(state_ds, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()
-    state = torch.load(killed / "checkpoints" / last.read_text(), weights_only=False)
+    state = load_checkpoint(killed / "checkpoints" / last.read_text())
     assert not state["final"] and state["step"] < 3000  # really killed mid-run
 
     args = small_args(state_ds, killed, steps=3000, checkpoint_every=100)
@@ -386,7 +387,7 @@ def test_correction_outside_few_demonstrations_stays_bounded(tmp_path):
 def test_normalization_round_trips_and_is_on_the_card(state_ds, tmp_path):
     out = tmp_path / "run"
     train(small_args(state_ds, out, steps=20, norm_std_floor=0.05, norm_clip=4.0))
-    state = torch.load(out / "checkpoints" / "step-00000020.pt", weights_only=False)
+    state = load_checkpoint(out / "checkpoints" / "step-00000020.safetensors")
     assert state["policy_spec"]["normalization"] == {"std_floor": 0.05, "std_min": 1e-6, "clip": 4.0}
     policy = load_policy(out)
     assert policy.spec.normalization == Normalization(std_floor=0.05, clip=4.0) and policy.normalizer.clip == 4.0
@@ -403,10 +404,10 @@ def test_checkpoint_without_normalization_loads_with_its_legacy_behaviour(tmp_pa
     ds = make_dataset(tmp_path / "few", episodes=5, length=20, still_std=2e-5)
     out = tmp_path / "run"
     train(small_args(ds, out, steps=20))
-    path = out / "checkpoints" / "step-00000020.pt"
-    state = torch.load(path, weights_only=False)
+    path = out / "checkpoints" / "step-00000020.safetensors"
+    state = load_checkpoint(path)
     del state["policy_spec"]["normalization"]
-    torch.save(state, path)
+    path.write_bytes(checkpoint_bytes(state))
     policy = load_policy(out)
     assert policy.spec.normalization is None and policy.normalizer.clip is None
     correction = {"observation.state": torch.tensor([[0.3, -0.2, 0.5, 0.1]])}

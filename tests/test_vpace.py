@@ -18,6 +18,7 @@ from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
+from shiftkit.policies.run_dir import load_checkpoint
 from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, clip_grad_norm_per_member
 from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.trainers.vpace.args import VPACEArgs
@@ -84,7 +85,7 @@ def run(args, with_actions=False):
 
 def final_state(out_dir):
     last = (out_dir / "checkpoints" / "last.txt").read_text().strip()
-    return torch.load(out_dir / "checkpoints" / last, weights_only=False)
+    return load_checkpoint(out_dir / "checkpoints" / last)
 
 
 def test_vpace_smoke_run_writes_run_dir(tmp_path):
@@ -127,8 +128,8 @@ def test_best_checkpoint_holds_the_intentions_of_the_best_evaluation(tmp_path):
         if x["split"] == "eval"
     ]
     best = max(evals, key=lambda x: (x["success_rate"], x["env_return"], -x["step"]))
-    assert best["step"] < 400  # the last evaluation is not the best one here, so best.pt differs from last
-    saved = torch.load(tmp_path / "long" / "checkpoints" / "best.pt", weights_only=False)
+    assert best["step"] < 400  # the last evaluation is not the best one here, so best differs from last
+    saved = load_checkpoint(tmp_path / "long" / "checkpoints" / "best.safetensors")
     assert saved["step"] == best["step"] and saved["eval"]["success_rate"] == best["success_rate"]
     # The same run stopped at that step ends with exactly these weights.
     run(tiny_args(tmp_path, "short", total_steps=best["step"], eval_every=50, eval_episodes=3, seed=3))
@@ -136,10 +137,10 @@ def test_best_checkpoint_holds_the_intentions_of_the_best_evaluation(tmp_path):
         assert torch.equal(value, saved["agent"]["intentions"][key]), key
     card = json.loads((tmp_path / "long" / "card.json").read_text())
     assert card["best_eval/step"] == best["step"]
-    # `shiftkit eval --policy RUN/checkpoints/best.pt` loads these weights.
+    # `shiftkit eval --policy RUN/checkpoints/best.safetensors` loads these weights.
     gym.register("point-mass", entry_point=PointMass, max_episode_steps=50)
     try:
-        policy = load_policy(tmp_path / "long" / "checkpoints" / "best.pt")
+        policy = load_policy(tmp_path / "long" / "checkpoints" / "best.safetensors")
     finally:
         gym.registry.pop("point-mass")
     for key, value in policy.agent.intentions.state_dict().items():

@@ -104,17 +104,14 @@ def _merged_stats(datasets: list, keys: list[str]) -> dict[str, dict[str, list]]
 def check_root_id(ref: str, root: str | None) -> None:
     """`--dataset ID --root DIR`: the folder must hold that dataset (by the ID its provenance
     records), else the run would record an ID it did not train on."""
-    import json
-
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
 
-    if root is None:
-        return
-    try:
-        recorded = json.loads((Path(root) / PROVENANCE_PATH).read_text())["output"]["repo_id"]
-    except (OSError, ValueError, KeyError, TypeError):
+    path = Path(root) / PROVENANCE_PATH if root is not None else None
+    if path is None or not path.is_file():
         return  # not made by shiftkit: nothing recorded to compare with
-    if recorded != ref:
+    recorded = (load_provenance(path).get("output") or {}).get("repo_id")
+    if recorded is not None and recorded != ref:
         raise ConfigError(f"--dataset {ref} but {root} holds {recorded}: give --dataset {recorded} (or omit --root)")
 
 
