@@ -27,7 +27,7 @@ statistics). A recording's episodes rotated mid-task by time count their last st
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +37,6 @@ import torch
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import numpy_dtype, vector_feature
-from shiftkit.pipelines.hub import validate_repo_id
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, resolve_dataset
 from shiftkit.pipelines.provenance import make_provenance
@@ -45,7 +44,8 @@ from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_polic
 from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule, roc_curve
-from shiftkit.policies.fire_predictor import RULES, FailurePredictor
+from shiftkit.policies.fire_config import AggregateArgs
+from shiftkit.policies.fire_predictor import FailurePredictor
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.run_dir import torch_device
 from shiftkit.policies.trainers.bc.args import BCArgs
@@ -60,61 +60,6 @@ FIRE_FEATURES = {
 }
 PREDICTOR_FILE = "meta/failure_predictor.pt"
 ROC_FILE = "meta/fire_roc.json"
-
-
-@dataclass
-class AggregateArgs:
-    """Arguments of `shiftkit fire aggregate` (D and rule defaults: thesis 5.4.2)."""
-
-    expert: str
-    """Dataset ID or local folder of the expert demonstrations."""
-    rollouts: list[str]
-    """Dataset IDs or local folders of lerobot DAgger recordings (either `record_autonomous` layout)."""
-    out: str
-    """Folder of the aggregated dataset (must not exist)."""
-    repo_id: str
-    """Repo ID of the aggregated dataset."""
-    root: str | None = None
-    """Local folder of the expert dataset (else resolved by ID)."""
-    policy: str | None = None
-    """BC run folder or checkpoint of the policy that ran the rollouts: D reads its inputs with its
-    normalisation (default: every observation feature, the demonstrations' statistics)."""
-    predictor: str = "gda"
-    """Rule whose requests `intervention_request` marks and the predictor file uses: beta or gda."""
-    seed: int = 0
-    """Seed of D's initialisation and batches."""
-    d_steps: int | None = None
-    """D's gradient steps (default: one per recorded frame)."""
-    d_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    """Discriminator tanh MLP widths."""
-    d_lr: float = 1e-3
-    """Discriminator learning rate."""
-    grad_penalty: float = 10.0
-    """Discriminator gradient-penalty weight."""
-    beta: int = 20
-    """Initial beta of the beta rule."""
-    gamma: float = 0.5
-    """Initial posterior threshold of the GDA rule."""
-    fp_cooldown: int = 5
-    """Steps without requests after a refused one."""
-    device: str = "auto"
-    """auto, cpu or cuda."""
-    progress: bool = False
-    """Show a progress bar over D's training."""
-
-    def check(self) -> None:
-        """ConfigError (one line) for a bad value."""
-        if self.predictor not in RULES:
-            raise ConfigError(f"predictor must be one of {', '.join(RULES)}, got {self.predictor!r}")
-        validate_repo_id(self.repo_id)
-        if self.d_steps is not None and self.d_steps <= 0:
-            raise ConfigError(f"d_steps must be positive, got {self.d_steps}")
-        if not self.d_lr > 0 or self.grad_penalty < 0 or self.beta <= 0 or self.fp_cooldown < 0:
-            raise ConfigError("d_lr and beta must be positive, grad_penalty and fp_cooldown >= 0")
-        if not 0.0 < self.gamma < 1.0:
-            raise ConfigError(f"gamma must be in (0, 1), got {self.gamma}")
-        if any(h <= 0 for h in self.d_hidden):
-            raise ConfigError("d_hidden widths must be positive")
 
 
 def _spec(args: AggregateArgs, expert_root: Path, features: dict[str, dict]) -> PolicySpec:
