@@ -799,6 +799,12 @@ def fingerprint(root: str | Path) -> str:
     return h.hexdigest()[:16]
 
 
+def dataset_fingerprint(root: Path) -> str | None:
+    """`fingerprint` of a LeRobot dataset folder, None for any other path (so that two folders that
+    are no datasets never look alike): the content key of `staging.check_inputs_and_outputs`."""
+    return fingerprint(root) if (Path(root) / "meta" / "info.json").is_file() else None
+
+
 def _not_a_dataset(path: Path) -> str:
     """Why `path` is not a LeRobot dataset, in words a user can act on."""
     if (path / "dataset.json").is_file():

@@ -82,12 +82,14 @@ def integer(minimum: int | None = None) -> Check:
     return check
 
 
-def number(low: float | None = None, high: float | None = None) -> Check:
-    """A finite number within [low, high]."""
-    expected = "a finite number" + (f" in [{low}, {high}]" if low is not None and high is not None else "")
+def number(low: float | None = None, high: float | None = None, finite: bool = True) -> Check:
+    """A number within [low, high], finite unless `finite` is False (JSON's NaN and Infinity)."""
+    expected = ("a finite number" if finite else "a number") + (
+        f" in [{low}, {high}]" if low is not None and high is not None else ""
+    )
 
     def check(value: Any, where: str) -> float:
-        if not _is_number(value) or not math.isfinite(value):
+        if not _is_number(value) or (finite and not math.isfinite(value)):
             raise _Invalid(where, expected, value)
         if (low is not None and value < low) or (high is not None and value > high):
             raise _Invalid(where, expected, value)
@@ -350,6 +352,18 @@ def load_metrics(path: str | Path, line: Check | None = None, split: str | None 
         return lines
     kept = [x for x in lines if x["split"] == split]
     return [check_value(x, line, f"{path}: step {x['step']}") for x in kept] if line is not None else kept
+
+
+def h5_item(parent: Any, name: str, where: str, group: bool) -> Any:
+    """`parent[name]` of an open HDF5 file, which must be a group (`group`) or a dataset: one line
+    naming `where` when it is missing or the other kind (h5py's own errors name neither)."""
+    kind = "a group" if group else "a dataset"
+    if name not in parent:
+        raise DatasetError(f"{where} is missing (expected {kind})")
+    item = parent[name]
+    if hasattr(item, "keys") != group or (not group and not hasattr(item, "shape")):
+        raise DatasetError(f"{where} must be {kind}, got {'a group' if hasattr(item, 'keys') else 'a dataset'}")
+    return item
 
 
 def load_array(

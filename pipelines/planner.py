@@ -112,10 +112,23 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     )
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
-    for i, src in enumerate(config.sources):
-        if src.path is not None and plan.destination.resolve().is_relative_to(Path(src.path).resolve()):
-            raise DatasetError(f"destination {plan.destination} lies inside sources[{i}]; choose one outside it")
+    check_sources_and_destination(config, sources, plan.destination)
     return plan
+
+
+def check_sources_and_destination(config: PipelineConfig, sources: list[Any], destination: Path) -> None:
+    """No source twice (by resolved path or, for LeRobot datasets, content; with the same own stages)
+    and the destination outside every source (`staging.check_inputs_and_outputs`)."""
+    from shiftkit.pipelines.lerobot_io import dataset_fingerprint
+    from shiftkit.pipelines.staging import check_inputs_and_outputs
+
+    groups: dict[str, list[tuple[str, Path]]] = {}
+    for i, (spec, src) in enumerate(zip(config.sources, sources, strict=True)):
+        root = getattr(src, "root", None) or spec.path
+        if root is not None:  # a source listed twice with other own stages yields other episodes
+            groups.setdefault(repr(spec.stages), []).append((_source_name(config, i), Path(root)))
+    for inputs in groups.values():
+        check_inputs_and_outputs(inputs, [("destination", destination)], content_key=dataset_fingerprint)
 
 
 def _source_name(config: PipelineConfig, i: int) -> str:

@@ -38,8 +38,9 @@ from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import numpy_dtype, vector_feature
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
-from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, resolve_dataset
+from shiftkit.pipelines.lerobot_io import DatasetWriter, dataset_fingerprint, open_lerobot_dataset, resolve_dataset
 from shiftkit.pipelines.provenance import make_provenance
+from shiftkit.pipelines.staging import check_inputs_and_outputs
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
 from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
@@ -47,7 +48,7 @@ from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule
 from shiftkit.policies.fire_config import AggregateArgs
 from shiftkit.policies.fire_predictor import FailurePredictor
 from shiftkit.policies.frame_buffer import FrameBuffer
-from shiftkit.policies.run_dir import torch_device
+from shiftkit.policies.run_dir import run_folder, torch_device
 from shiftkit.policies.trainers.bc.args import BCArgs
 
 SOURCE_DEMO, SOURCE_POLICY, SOURCE_EXPERT = 0, 1, 2
@@ -168,6 +169,15 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
     device = torch_device(args.device)
     expert_resolved = resolve_dataset(args.expert, root=args.root)
     expert = open_lerobot_dataset(expert_resolved.root)
+    check_inputs_and_outputs(
+        [
+            ("--expert", expert_resolved.root),
+            *(("--rollouts", resolve_dataset(ref).root) for ref in args.rollouts),
+            *([("--policy", run_folder(args.policy))] if args.policy is not None else []),
+        ],
+        [("--out", out)],
+        content_key=dataset_fingerprint,
+    )
     recordings = open_recordings(args.rollouts, expert.fps, expert.features)
     features = {k: v for k, v in recordings[0].reader.features.items() if k != INTERVENTION}
     if "action" not in features:

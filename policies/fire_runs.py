@@ -37,7 +37,7 @@ EPISODE_LINE = loaders.obj(
     policy_success=loaders.boolean,
     expert_samples=loaders.number(0.0),
     execution_time_s=loaders.number(0.0),
-    scores=loaders.obj(beta=loaders.number(), gda=loaders.number(), doubt=loaders.number()),
+    scores=loaders.map_of(loaders.number(finite=False)),  # a rule's score may be infinite
 )
 
 
@@ -60,9 +60,13 @@ def read_episode_lines(run_path: str | Path) -> list[dict]:
 def roc_scores(lines: list[dict]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Per-predictor episode scores (beta, gda, doubt and the quantile OR of gda and doubt) and the
     labels (the policy's uninterrupted run failed) of the episodes after D started."""
+    from shiftkit.pipelines.errors import ShiftkitError
     from shiftkit.policies.failure_predictors import quantile_or
 
     ready = [x for x in lines if x["d_ready"]]
+    missing = {name for x in ready for name in ("beta", "gda", "doubt") if name not in x["scores"]}
+    if missing:
+        raise ShiftkitError(f"a FIRE episode line has no {sorted(missing)[0]!r} score")
     scores = {name: np.array([x["scores"][name] for x in ready], dtype=float) for name in ("beta", "gda", "doubt")}
     scores["gda+doubt"] = quantile_or(scores["gda"], scores["doubt"])
     return scores, np.array([not x["policy_success"] for x in ready])

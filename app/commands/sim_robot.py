@@ -43,9 +43,11 @@ def run(args: argparse.Namespace) -> int:
 
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.pipelines.sources.raw import is_raw_dataset
+    from shiftkit.pipelines.staging import check_inputs_and_outputs
 
     config = OPTIONS.build(args, plan=args.plan)
     plan, out = Path(config.plan), Path(config.out)
+    check_inputs_and_outputs([("plan", plan)], [("--out", out)])
     if out.exists() or not out.parent.is_dir():
         raise ConfigError(f"--out {out}: give a new folder in an existing one")
     if is_raw_dataset(plan):

@@ -18,7 +18,7 @@ from pathlib import Path
 from shiftkit.pipelines import loaders
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.sources import Importer, ImportSummary
-from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
+from shiftkit.pipelines.staging import check_inputs_and_outputs, publish, remove_dead_staging, staging_path
 
 LEGACY_FILES = ("meta/info.json", "meta/episodes.jsonl", "meta/tasks.jsonl", "meta/episodes_stats.jsonl")
 
@@ -83,8 +83,7 @@ def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> Im
     _check_source(source)
     if dest.exists():
         raise DatasetError(f"destination already exists: {dest}")
-    if dest.is_relative_to(source):
-        raise DatasetError(f"destination {dest} lies inside the source dataset; choose a directory outside it")
+    check_inputs_and_outputs([("source", source)], [("--root", dest)])
     source_fingerprint = fingerprint(source)
     tmp = staging_path(dest)
     try:
