@@ -193,11 +193,9 @@ def check_value(value: Any, check: Check, where: str) -> Any:
 # --------------------------------------------------------------------------- files
 
 
-def load_json(path: str | Path, what: str) -> Any:
-    """A JSON file parsed; missing, unreadable or malformed is one line (`what` says what it should be)."""
-    path = Path(path)
+def _text(path: Path, what: str) -> str:
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise DatasetError(f"{path} is missing ({what})") from None
     except UnicodeDecodeError:
@@ -206,6 +204,12 @@ def load_json(path: str | Path, what: str) -> Any:
         raise DatasetError(f"{path} is a folder, not {what}") from None
     except OSError as exc:
         raise DatasetError(f"{path}: unreadable ({exc.strerror})") from None
+
+
+def load_json(path: str | Path, what: str) -> Any:
+    """A JSON file parsed; missing, unreadable or malformed is one line (`what` says what it should be)."""
+    path = Path(path)
+    text = _text(path, what)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
@@ -322,12 +326,7 @@ def load_jsonl(path: str | Path, line: Check, keep: Callable[[dict], bool] | Non
     the lines it keeps are checked and returned (`keep` sees values `line` has not checked yet, so it
     reads them with care)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DatasetError(f"{path} is missing") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path}: not UTF-8 text") from None
+    text = _text(path, "JSON lines")
     lines = []
     for n, row in enumerate(text.splitlines(), start=1):
         if not row.strip():

@@ -40,10 +40,9 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.transforms.force_calibration import WRENCH_AXES
 
     config = _options().build(args)
-    outputs = [(flag, path) for flag, path in (("--out", config.out), ("--plot", config.plot), ("--plan", config.plan))]
-    check_inputs_and_outputs(
-        [("--from", config.recording)] if config.recording else [], [(f, p) for f, p in outputs if p]
-    )
+    outputs = (("--out", config.out), ("--plot", config.plot), ("--plan", config.plan))
+    inputs = [("--from", config.recording)] if config.recording else []
+    check_inputs_and_outputs(inputs, [(flag, path) for flag, path in outputs if path])
     if config.plan:
         sensor = write_plan(config)
         print(

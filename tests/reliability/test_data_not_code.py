@@ -49,6 +49,12 @@ def _tampered(run: Path, tmp: Path, name: str) -> tuple[Path, Path]:
     return copy, marker
 
 
+def _resume(run: Path) -> list[str]:
+    """`train bc --resume` of the tampered copy (DS: the dataset it trained on)."""
+    small = ["--regime", "fixed", "--steps", "2", "--ensemble", "1", "--hidden", "8", "--checkpoint-every", "1"]
+    return ["train", "bc", "--dataset", "DS", "--output", str(run), "--resume", *small, "--no-progress"]
+
+
 # name -> (checkpoint file name, argv builder (tampered run, its checkpoint, tmp) -> argv)
 CASES = {
     "eval a tampered .pt checkpoint": (
@@ -63,20 +69,8 @@ CASES = {
         "step-00000002.safetensors",
         lambda run, ckpt, t: ["eval", "--policy", str(ckpt), "--task", "reach", "--out", str(t / "e.json")],
     ),
-    "train bc --resume on a tampered checkpoint": (
-        "step-00000002.pt",
-        lambda run, ckpt, t: [
-            *["train", "bc", "--dataset", "DS", "--output", str(run), "--resume"],
-            *["--regime", "fixed", "--steps", "2", "--ensemble", "1", "--hidden", "8", "--no-progress", "--checkpoint-every", "1"],
-        ],
-    ),
-    "train bc --resume on a tampered .safetensors": (
-        "step-00000002.safetensors",
-        lambda run, ckpt, t: [
-            *["train", "bc", "--dataset", "DS", "--output", str(run), "--resume"],
-            *["--regime", "fixed", "--steps", "2", "--ensemble", "1", "--hidden", "8", "--no-progress", "--checkpoint-every", "1"],
-        ],
-    ),
+    "train bc --resume on a tampered checkpoint": ("step-00000002.pt", lambda run, ckpt, t: _resume(run)),
+    "train bc --resume on a tampered .safetensors": ("step-00000002.safetensors", lambda run, ckpt, t: _resume(run)),
 }
 
 
