@@ -70,6 +70,14 @@ def _spec(args: AggregateArgs, expert_root: Path, features: dict[str, dict]) -> 
         missing = [k for k in [*spec.features, "action"] if k not in features]
         if missing:
             raise DatasetError(f"the recordings lack the policy input {missing[0]!r}")
+        # a policy trained on another env's data may share the names but not the sizes
+        for key, ft in {**spec.features, "action": spec.action}.items():
+            want, got = (tuple(ft["shape"]), ft["dtype"]), (tuple(features[key]["shape"]), features[key]["dtype"])
+            if want != got:
+                raise DatasetError(
+                    f"--policy {args.policy} reads {key!r} as {want[1]} {list(want[0])}, the recordings hold "
+                    f"{got[1]} {list(got[0])}: it was trained on other data (another env?) than these rollouts"
+                )
         return spec
     keys = [k for k in features if k.startswith("observation.")]
     if not keys:

@@ -1415,3 +1415,20 @@ def test_os_errors_are_one_line(exc, tmp_path, rel_raw, monkeypatch):
 def test_plain_validate_says_statistics_are_not_recomputed(rel_ds):
     outcome = cli(["validate", str(rel_ds)])
     assert outcome.code == 0 and "statistics not recomputed from the data (--deep does)" in outcome.stdout, outcome
+
+
+def test_fire_aggregate_policy_trained_on_other_data(bc_run, rel_ds):
+    """`fire aggregate --policy` of a policy trained in another env: same feature names, other sizes,
+    is one line before any work (it used to fail deep in D's first batch)."""
+    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.policies.bc_policy import load_policy
+    from shiftkit.policies.fire_aggregate import AggregateArgs, _spec
+
+    spec = load_policy(bc_run).spec
+    recorded = {**spec.features, "action": spec.action}
+    recorded["observation.state"] = {**recorded["observation.state"], "shape": [99]}
+    args = AggregateArgs(expert=str(rel_ds), rollouts=[str(rel_ds)], out="o", repo_id="me/a", policy=str(bc_run))
+    with pytest.raises(DatasetError, match="it was trained on other data") as error:
+        _spec(args, rel_ds, recorded)
+    assert "\n" not in str(error.value)
+    assert _spec(args, rel_ds, {**spec.features, "action": spec.action}) == spec  # the data it was trained on

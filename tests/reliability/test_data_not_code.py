@@ -22,15 +22,6 @@ class Payload:
         return (exec, (f"open({str(self.marker)!r}, 'w').write('ran')",))
 
 
-@pytest.fixture(scope="module")
-def bc_run(tmp_path_factory, rel_ds):
-    run = tmp_path_factory.mktemp("bc") / "run"
-    argv = ["train", "bc", "--dataset", str(rel_ds), "--output", str(run), "--regime", "fixed", "--steps", "2"]
-    outcome = cli([*argv, "--ensemble", "1", "--hidden", "8", "--no-progress", "--checkpoint-every", "1"])
-    assert outcome.code == 0, outcome
-    return run
-
-
 def _tampered(run: Path, tmp: Path, name: str) -> tuple[Path, Path]:
     """A copy of `run` whose newest checkpoint is a pickle with a payload, named `name` (last.txt points
     at it); returns (the copy, the file the payload would write)."""
