@@ -181,8 +181,8 @@ def trained_datasets(path: str | Path) -> list[dict]:
 
 
 def _atomic_write(path: Path, write) -> None:
-    """Write through a temporary file renamed into place; a failed write (a full disk: torch.save
-    reports it as a RuntimeError) leaves no temporary file and is one line."""
+    """Write through a temporary file renamed into place; a failed write (a full disk) leaves no
+    temporary file and is one line."""
     import errno
 
     tmp = path.with_name(f".{path.name}.tmp")
@@ -191,12 +191,9 @@ def _atomic_write(path: Path, write) -> None:
             write(f)
             f.flush()
             os.fsync(f.fileno())
-    except (OSError, RuntimeError) as exc:
+    except OSError as exc:
         tmp.unlink(missing_ok=True)
-        full = getattr(exc, "errno", None) == errno.ENOSPC or (
-            isinstance(exc, RuntimeError) and ("write" in str(exc).lower() or "inline_container" in str(exc))
-        )
-        if full:
+        if exc.errno == errno.ENOSPC:
             raise ShiftkitError(f"no space left on device writing {path}") from None
         raise
     os.replace(tmp, path)
