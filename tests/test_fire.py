@@ -585,7 +585,7 @@ def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_p
         record_autonomous=False,
     )
     cases = [
-        ([demo_root], "no per-frame 'intervention' feature"),
+        ([demo_root], "is --expert"),  # the demonstrations as rollouts: one input given twice
         ([other_fps], f"at {2 * rec.fps} fps but the demonstrations at {rec.fps} fps"),
         ([only_corrections], "pass --policy RUN"),
         ([tmp_path / "missing"], "missing"),
