@@ -43,6 +43,8 @@ VARIANTS = {
     "mode_label-visual": ("mode_label", {"source": "visual"}, "kinesthetic_raw"),
     # depth (nearest-neighbour) and intrinsics scale with RGB
     "resize-depth": ("resize", {"width": 40, "height": 30}, "mv_lift_raw"),
+    # the depth map alone: the RGB of the same camera keeps its intrinsics
+    "resize-depth-only": ("resize", {"width": 32, "height": 24, "features": ["observation.depth.base"]}, "mv_lift_raw"),
     # a replay plan for a robot: target poses + STS mode only
     "force_match-plan": ("force_match", {"mode": "position", "execute": "plan"}, "kinesthetic_raw"),
 }
