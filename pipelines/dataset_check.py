@@ -101,11 +101,13 @@ def _camera_lines(cameras: dict[str, Any], num_episodes: int) -> list[str]:
     lines = ["cameras (meta/cameras.json):"]
     for name in names:
         cam, parts = cameras["cameras"].get(name, {}), []
-        if intr := cam.get("intrinsics"):
-            parts.append(
-                f"{intr['width']}x{intr['height']} fx {intr['fx']:.1f} fy {intr['fy']:.1f} "
-                f"cx {intr['cx']:.1f} cy {intr['cy']:.1f}"
-            )
+        own = {key: e["intrinsics"] for key, e in (cam.get("features") or {}).items() if e.get("intrinsics")}
+        for key, intr in [("", cam.get("intrinsics")), *own.items()]:  # a feature's own, where they differ
+            if intr:
+                parts.append(
+                    f"{f'{key} ' if key else ''}{intr['width']}x{intr['height']} fx {intr['fx']:.1f} "
+                    f"fy {intr['fy']:.1f} cx {intr['cx']:.1f} cy {intr['cy']:.1f}"
+                )
         if extr := cam.get("extrinsics"):
             parts.append(f"at [{', '.join(f'{x:.3f}' for x in extr['position'])}] in the {extr['frame']} frame")
         if varying := per_episode.get(name):

@@ -50,6 +50,8 @@ class Recording:
     """lerobot's language columns: a persistent subtask row per task segment, event rows on some frames."""
     camera_meta: bool = True
     """Write `meta/cameras.json` (intrinsics matching `size`, extrinsics)."""
+    final_success: float = 0.8
+    """Chance that an episode's last frame is flagged `next.success` (other frames: 0.15 each)."""
     seed: int = 0
 
     def segments(self, n: int) -> list[tuple[str, int, int]]:
@@ -109,7 +111,7 @@ def episode_frames(rec: Recording, e: int) -> Frames:
     state[:, 3] = np.arange(n) % 2  # gripper toggles: a held value differs from an interpolated one
     goal = np.repeat(rng.uniform(-0.1, 0.1, (1, 3)).astype(np.float32), n, axis=0)
     success = rng.random(n) < 0.15
-    success[-1] = rng.random() < 0.8
+    success[-1] = rng.random() < rec.final_success
     intervention = np.zeros(n, bool)
     if n > 3:
         a = int(rng.integers(0, n - 2))

@@ -146,11 +146,13 @@ def _pipeline(sources, dest, stages=(), **destination) -> PipelineConfig:
 
 @pytest.mark.parametrize("fps", [20, 10])
 def test_resample_on_lerobot_timestamps(tmp_path, fps):
-    """A lerobot-written 20 fps dataset with episodes of 77, 78 and 93 frames, every frame flagged
-    done on the last and success on the last: to 20 fps it is the same dataset (float32 timestamps
-    like 3.7999999 s once lost the last frame); to 10 fps it keeps 39, 39 and 47 frames, the last
-    one flagged."""
-    rec = Recording(fps=20, lengths=(77, 78, 93), cameras=("front",), depth=(), language=False, camera_meta=False)
+    """A lerobot-written 20 fps dataset with episodes of 77, 78 and 93 frames, each ending in success
+    and done: to 20 fps it is the same dataset (float32 timestamps like 3.7999999 s once lost the
+    last frame and moved its success to the frame before); to 10 fps it keeps 39, 39 and 47 frames,
+    success and done on the last."""
+    rec = Recording(
+        fps=20, lengths=(77, 78, 93), cameras=("front",), depth=(), language=False, camera_meta=False, final_success=1.0
+    )
     src = recording(rec)
     out = run_pipeline(_pipeline([src], tmp_path / "out", [("resample", {"fps": fps})]), progress=False)
     episodes = list(open_lerobot_dataset(out).iter_episodes())
@@ -158,7 +160,7 @@ def test_resample_on_lerobot_timestamps(tmp_path, fps):
     source = list(open_lerobot_dataset(src).iter_episodes())
     for ep, s in zip(episodes, source, strict=True):
         assert ep.frames["next.done"][-1].all() and not ep.frames["next.done"][:-1].any()
-        assert ep.frames["next.success"][-1].all() == s.frames["next.success"][-1].all()
+        assert ep.frames["next.success"][-1].all() and s.frames["next.success"][-1].all()
         kept = np.arange(len(ep)) * (20 // fps)
         np.testing.assert_array_equal(ep.frames["observation.state"], s.frames["observation.state"][kept])
         np.testing.assert_array_equal(ep.frames["observation.images.front"], s.frames["observation.images.front"][kept])
