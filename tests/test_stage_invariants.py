@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from datetime import timedelta
 
 import numpy as np
 import pytest
@@ -111,7 +112,7 @@ def _as_stored(column) -> list:
 
 @settings(
     max_examples=EXAMPLES,
-    deadline=None,  # a drawn recording is written by lerobot first: seconds on 2 shared cores
+    deadline=timedelta(seconds=90),  # a drawn recording is written by lerobot first: seconds on 2 shared cores
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 @given(rec=recordings(), data=st.data())
@@ -231,6 +232,20 @@ def test_depth_image_unit_converts_native_depth(tmp_path):
     np.testing.assert_array_equal(
         stored[..., None] if stored.ndim == 2 else stored.reshape(theirs[0].shape), np.rint(theirs[0] * 1000)
     )
+
+
+def test_other_declared_units_must_match(tmp_path):
+    """A unit a feature declares (an `info` key `unit` or `*_unit`) is part of the schema: sources
+    that differ in it do not plan, with one line naming it (no stage converts it)."""
+    src = recording(Recording(language=False, camera_meta=False))
+    other = shutil.copytree(src, tmp_path / "other")
+    info = json.loads((other / "meta" / "info.json").read_text())
+    info["features"]["action"]["info"] = {"unit": "mm/s"}
+    (other / "meta" / "info.json").write_text(json.dumps(info))
+    from shiftkit.pipelines.planner import plan_pipeline
+
+    with pytest.raises(DatasetError, match=r"feature 'action' has units \{'unit': 'mm/s'\}, sources\[0\] has \{\}"):
+        plan_pipeline(_pipeline([src, other], tmp_path / "out"))
 
 
 @pytest.mark.parametrize("unit", ["m", "mm"])
