@@ -115,6 +115,7 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     stages, features, fps = build_chain(config.stages, first_features, first_fps, "stages")
     if config.destination.video is not None:
         features = plain_camera_features(features, "video" if config.destination.video else "image")
+    features = {k: _video_at(ft, fps) for k, ft in features.items()}
     plan = Plan(
         config,
         sources,
@@ -132,6 +133,14 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
         if src.path is not None and plan.destination.resolve().is_relative_to(Path(src.path).resolve()):
             raise DatasetError(f"destination {plan.destination} lies inside sources[{i}]; choose one outside it")
     return plan
+
+
+def _video_at(feature: dict[str, Any], fps: int) -> dict[str, Any]:
+    """A video feature's recorded frame rate is the output's (lerobot's writer records it anew)."""
+    info = feature.get("info") or {}
+    if "video.fps" not in info or info["video.fps"] == fps:
+        return feature
+    return {**feature, "info": {**info, "video.fps": fps}}
 
 
 def in_units_of(ref: Features, features: Features) -> Features:

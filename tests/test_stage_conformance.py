@@ -135,6 +135,48 @@ def assert_conforms(name, params, raw, tmp_path):
     assert tree_hashes(raw) == before, "the input must not be modified"
 
 
+# A recording as users' data is, written by lerobot's own writer: RGB and depth video (depth in
+# uint16 millimetres), two cameras, task segments, language columns, camera metadata.
+LEROBOT_RECORDING = dict(
+    fps=10,
+    lengths=(9, 6),
+    cameras=("front", "wrist"),
+    depth=("front",),
+    depth_unit="mm",
+    video=True,
+    size=(16, 32),
+    tasks=("reach", "grasp"),
+)
+
+
+def _lerobot_recording_cases() -> list:
+    # PyAV's libx265 now and then hands out a packet with an unset decode timestamp on streams of
+    # one or two frames, and muxing it fails ("Not yet implemented in FFmpeg"; lerobot's own writer
+    # fails the same way on such episodes): success_examples writes one-frame episodes.
+    flaky = pytest.mark.xfail(reason="libx265 via PyAV on 1-frame depth videos", strict=False)
+    return [
+        pytest.param(n, id=n, marks=[flaky] if n == "success_examples" else [])
+        for n, cls in sorted(shipped_stages().items())
+        if cls.example_input == "synthetic"
+    ]
+
+
+@pytest.mark.parametrize("name", _lerobot_recording_cases())
+def test_stage_is_true_on_a_lerobot_recording(name, tmp_path):
+    """Each stage that runs on the synthetic recordings, on a lerobot-written video recording: the
+    output true to its source, the written dataset true to the output (video within its coding
+    error, millimetre depth within 0.5 mm), `info` as predicted (the video's recorded size and
+    frame rate those written)."""
+    from tests.lerobot_recordings import Recording, recording
+
+    src = recording(Recording(**LEROBOT_RECORDING))
+    config = config_for(src, tmp_path / "out", name, registered_stages()[name].example_params, seed=7)
+    plan = plan_pipeline(config)
+    expected = transformed_and_checked(plan)
+    run_pipeline(config, progress=False)
+    check_written(tmp_path / "out", plan.features, plan.fps, expected)
+
+
 def transformed_and_checked(plan) -> list:
     """The plan's outputs computed in memory as the runner computes them (frame maps followed, the
     dataset-level `select` applied), each checked against its source episode."""
