@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from shiftkit.pipelines import camera_meta, depth, loaders
-from shiftkit.pipelines.encoded_frames import EncodedFrames, source_bytes
+from shiftkit.pipelines.encoded_frames import PNG, EncodedFrames, source_bytes
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import (
@@ -87,13 +87,21 @@ def _tiff_bytes(stored: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def image_form(ft: dict[str, Any]) -> str:
+    """What the encoded bytes of an `image` feature store (`encoded_frames`): PNG RGB, or depth in
+    its unit."""
+    return f"depth-{depth.depth_unit(ft)}" if depth.is_depth(ft) else PNG
+
+
 def _frame_bytes(frames: np.ndarray, ft: dict[str, Any]) -> list[bytes]:
     """The encoded bytes of every frame of an `image` feature, a frame's source bytes where it is
-    unchanged (`encoded_frames`): PNG for RGB, TIFF in the stored unit for depth."""
+    unchanged and stored in the same form (`encoded_frames`): PNG for RGB, TIFF in the stored unit
+    for depth."""
+    form = image_form(ft)
     if depth.is_depth(ft):
         unit = depth.depth_unit(ft)
-        return [source_bytes(f, frames) or _tiff_bytes(depth.to_stored(f, unit)) for f in frames]
-    return [source_bytes(f, frames) or _png_bytes(f) for f in frames]
+        return [source_bytes(f, frames, form) or _tiff_bytes(depth.to_stored(f, unit)) for f in frames]
+    return [source_bytes(f, frames, form) or _png_bytes(f) for f in frames]
 
 
 # Statistics that depend on where an episode lands in the dataset; all others are a function of
@@ -142,7 +150,12 @@ def encode_images(episode: Episode, features: Features) -> Episode:
     parallel rather than in the one writer."""
     keys = [k for k, ft in features.items() if ft["dtype"] == "image"]
     return episode.with_frames(
-        **{k: EncodedFrames.wrap(episode.frames[k], _frame_bytes(episode.frames[k], features[k])) for k in keys}
+        **{
+            k: EncodedFrames.wrap(
+                episode.frames[k], _frame_bytes(episode.frames[k], features[k]), image_form(features[k])
+            )
+            for k in keys
+        }
     )
 
 
@@ -632,7 +645,9 @@ class LeRobotDatasetReader:
             col = part.column(key)
             if ft["dtype"] == "image":
                 encoded = [v["bytes"] for v in col.to_pylist()]  # kept: unchanged frames are not re-encoded
-                frames[key] = EncodedFrames.wrap(np.stack([decode_image(b, where, ft) for b in encoded]), encoded)
+                frames[key] = EncodedFrames.wrap(
+                    np.stack([decode_image(b, where, ft) for b in encoded]), encoded, image_form(ft)
+                )
             elif ft["dtype"] == "language":
                 frames[key] = object_column(col.to_pylist())  # a list of messages per frame
             elif ft["dtype"] == "string":

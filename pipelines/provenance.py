@@ -78,16 +78,19 @@ def build_provenance(
     """A pipeline run's provenance. `report` (`assembly.RunReport`): the run's totals of the events
     each stage counted (`Stage.report`), stored as the stage entry's "report" when it counted any,
     and the output episodes per source. Each source entry records its fps, its own stages and
-    the range of output episodes it became (`episodes`: [first, end))."""
+    the range of output episodes it became (`episodes`: [first, end)) and, where its depth is stored
+    in another unit, which (`depth_units`: feature -> [source unit, output unit])."""
     sources, start = [], 0
     for s, source in enumerate(plan.sources):
         count = report.source_episodes[s]
+        converted = plan.depth_units(s)  # depth stored in another unit than the source's
         sources.append(
             {
                 **source.describe(),
                 "fps": source.fps,
                 "stages": _stage_entries(plan.source_stages[s], report.source_stages[s]),
                 "episodes": [start, start + count],
+                **({"depth_units": converted} if converted else {}),
             }
         )
         start += count

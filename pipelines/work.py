@@ -165,7 +165,8 @@ def transform_episode(plan: Plan, source: int, episode: Episode) -> tuple[list[E
     # Stage j of the chain draws from the same stream as stage j of that chain run alone.
     for j, stage in enumerate(plan.chain(source)):
         rng = episode_rng(plan.config.seed, source, index, j)
-        current = [out for ep in current for out in stage.process(ep, rng)]
+        # each output knows the source frame each of its frames stands for (Episode.follow)
+        current = [out.follow(ep, stage.name) for ep in current for out in stage.process(ep, rng)]
         report.append(stage.take_report())
     where = f"source {source} episode {index}"
     for out in current:
