@@ -17,7 +17,8 @@ REGIMES = ("early-stop", "fixed")
 
 @dataclass
 class BCArgs:
-    """Arguments of `shiftkit train bc` (defaults follow the thesis, 3.6.3 and 4.4.2)."""
+    """Arguments of `shiftkit train bc` (defaults follow the thesis, 3.6.3 and 4.4.2, but for one
+    network instead of its 5-member ensembles: `ensemble_size`)."""
 
     datasets: list[str]
     """Dataset IDs or local dataset folders; several are trained on as one (same features)."""
@@ -42,8 +43,9 @@ class BCArgs:
     """Decoupled (AdamW) weight decay (default 0 early-stop, 0.1 fixed)."""
     val_fraction: float | None = None
     """Share of episodes held out for validation (default 0.2 early-stop, 0 fixed)."""
-    ensemble_size: int = 5
-    """Members (different shuffles and init; the policy outputs their mean)."""
+    ensemble_size: int = 1
+    """Networks trained side by side (different shuffles and init; the policy outputs their mean):
+    1 is plain BC; the thesis' ensembles have 5 (training time grows with the count)."""
     inputs: list[str] | None = None
     """Observation features to use (default: every `observation.*` feature of the dataset)."""
     encoder: str = "cnn"
