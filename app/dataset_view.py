@@ -290,11 +290,11 @@ def _blueprint(rr: Any, features: dict[str, dict[str, Any]], views: list[str], m
     lanes = rrb.StateTimelineView(
         origin="/", contents=["episode", "flags/**", "segments/**"], name="flags and segments"
     )
-    left = [*camera_rows, rrb.Spatial3DView(origin="world", name="camera poses")]
-    return rrb.Blueprint(
-        rrb.Horizontal(rrb.Vertical(*left), rrb.Vertical(*series, lanes)),
-        collapse_panels=True,
-    )
+    if not camera_rows:  # numbers only: the series beside the lanes
+        return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*series), lanes, column_shares=[3, 2]), collapse_panels=True)
+    left = rrb.Vertical(*camera_rows, rrb.Spatial3DView(origin="world", name="camera poses"))
+    right = rrb.Vertical(*series, lanes, row_shares=[1] * len(series) + [max(2, len(series) // 2)])
+    return rrb.Blueprint(rrb.Horizontal(left, right), collapse_panels=True)
 
 
 def view_dataset(
