@@ -148,3 +148,18 @@ def recorded_envs(root: Any) -> set[str]:
         for s in (sources if isinstance(sources, list) else [])
         if isinstance(s, dict) and isinstance(s.get("env"), str) and s["env"]
     }
+
+
+def recorded_verdict_lines(root: Any) -> list[str]:
+    """The quality verdict a dataset's provenance records (the writer's, on what it wrote;
+    `pipelines.quality`), as the lines `run`, `merge` and `import` print after writing; none when
+    there is no provenance."""
+    from pathlib import Path
+
+    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.quality import verdict_lines
+
+    path = Path(root) / PROVENANCE_PATH
+    verdict = read_json_file(path, "provenance").get("quality") if path.is_file() else None
+    return verdict_lines(verdict) if verdict else []

@@ -26,7 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the chosen importer and print what it wrote; return the exit code."""
+    """Run the chosen importer and print what it wrote and the quality verdict on it; return the exit code."""
+    from shiftkit.pipelines.provenance import recorded_verdict_lines
+
     importer = args._importer
     summary = importer.run(args)
     for line in importer.report(summary):
@@ -34,4 +36,6 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"wrote {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps ({summary.kind}) to {summary.root}"
     )
+    for line in recorded_verdict_lines(summary.root):
+        print(line)
     return 0
