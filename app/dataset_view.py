@@ -33,6 +33,7 @@ import numpy as np
 from shiftkit.pipelines.depth import is_depth
 from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.features import CAMERA_DTYPES, NUMERIC_DTYPES
+from shiftkit.pipelines.quality import dimension_names
 
 TIMELINE = "frame"
 RECORDED = "recorded"
@@ -87,15 +88,6 @@ def episode_views(episode_metas: list[dict[str, Any]]) -> list[list[tuple[int, s
             groups.append([(i, label)])
             source_of_group = source
     return groups
-
-
-def _names(feature: dict[str, Any], dims: int) -> list[str]:
-    names = feature.get("names")
-    if isinstance(names, dict):  # lerobot's {"motors": [...]} form
-        names = next(iter(names.values()), None)
-    if isinstance(names, list) and len(names) == dims:
-        return [str(n) for n in names]
-    return [str(d) for d in range(dims)]
 
 
 def _camera_name(key: str) -> str:
@@ -160,7 +152,7 @@ class _Sender:
             elif dtype in NUMERIC_DTYPES:
                 arr = np.asarray(values, dtype=np.float64).reshape(n, -1)
                 path = self._path("series", view, key)
-                names = _names(ft, arr.shape[1])
+                names = dimension_names(ft, arr.shape[1])
                 self._static(path, rr.SeriesLines(names=names))
                 self._columns(path, frames, rr.Scalars.columns(scalars=arr))
                 if key == "action" and STS_MODE_DIM in names:

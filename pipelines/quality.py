@@ -156,7 +156,7 @@ class _Checks:
             self.state_ranges.append(np.ptp(state, axis=0) if n else np.zeros(state.shape[1]))
         if "action" in columns:
             action = columns["action"].astype(np.float64)
-            names = _names(self.features.get("action", {}), action.shape[1])
+            names = dimension_names(self.features.get("action", {}), action.shape[1])
             if "sts_mode" in names:
                 self._segments(index, "action.sts_mode", action[:, names.index("sts_mode")])
             second = np.diff(action, n=2, axis=0) if n >= 3 else None
@@ -269,12 +269,14 @@ class _Checks:
         return out
 
 
-def _names(feature: dict[str, Any], dims: int) -> list[str]:
+def dimension_names(feature: dict[str, Any], dims: int) -> list[str]:
+    """A vector feature's dimension names (lerobot's list, or its `{"motors": [...]}` form), else
+    the dimension indices as text."""
     names = feature.get("names")
-    if isinstance(names, dict):  # lerobot's {"motors": [...]} form
+    if isinstance(names, dict):
         names = next(iter(names.values()), None)
-    if isinstance(names, list) and len(names) == dims and all(isinstance(n, str) for n in names):
-        return names
+    if isinstance(names, list) and len(names) == dims:
+        return [str(n) for n in names]
     return [str(d) for d in range(dims)]
 
 
@@ -286,7 +288,7 @@ def _eps(indices: list[int]) -> str:
 def _dimension_findings(key: str, feature: dict[str, Any], m: _Moments) -> list[Finding]:
     if m.mean is None:
         return []
-    names = _names(feature, len(m.mean))
+    names = dimension_names(feature, len(m.mean))
     std, scale = m.std, np.maximum(np.abs(m.mean), 1.0)
     constant = np.flatnonzero(m.hi == m.lo)
     near = np.flatnonzero((m.hi != m.lo) & (std <= NEAR_CONSTANT * scale))
