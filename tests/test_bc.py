@@ -440,7 +440,8 @@ def test_user_errors_are_one_line(state_ds, tmp_path):
 
 
 def test_default_is_one_network_and_ensemble_is_an_option(state_ds, tmp_path):
-    assert BCArgs(datasets=["x"], output_dir="y").ensemble_size == 1
+    defaults = BCArgs(datasets=["x"], output_dir="y")
+    assert defaults.ensemble_size == 1 and defaults.threads == 1  # one network, one CPU thread
     train(small_args(state_ds, tmp_path / "one", steps=5, ensemble_size=BCArgs.ensemble_size))
     assert len(load_policy(tmp_path / "one").members) == 1
     train(small_args(state_ds, tmp_path / "five", steps=5, ensemble_size=5))

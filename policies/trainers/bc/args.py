@@ -69,9 +69,11 @@ class BCArgs:
     """Normalised inputs are clipped to +-this many (floored) stds; None: no clipping."""
     device: str = "auto"
     """`auto` (CUDA when present), `cpu` or `cuda[:N]`."""
-    threads: int | None = None
-    """CPU threads for torch (default: torch's choice); 1 is often fastest for small models on a busy
-    machine, where idle OpenMP threads spinning for work slow every step down."""
+    threads: int | None = 1
+    """CPU threads for torch (None: torch's choice, one per core). One by default: a BC network's
+    small matrix products gain little from more, and on a busy machine threads waiting for a core
+    slow every step down (a state MLP on the shared 2-core machine: 65 steps/s on one thread, 3 on
+    two, 2026-12-03); more can pay for camera encoders on an idle machine."""
     resume: bool = False
     """Continue the run in output_dir from its last checkpoint."""
 
