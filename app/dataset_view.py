@@ -254,6 +254,29 @@ class _Sender:
         return path
 
 
+def _spawn_viewer(rr: Any, rec: Any) -> None:
+    """Starts the Rerun viewer the SDK ships (its `rerun_cli` binary: the `rerun` on PATH is only there
+    with the environment's `bin/` on PATH) and connects `rec` to it; a one-line error when it cannot."""
+    import importlib.util
+    import sys
+
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ShiftkitError(
+            "no display for the Rerun viewer (DISPLAY and WAYLAND_DISPLAY are unset): write a recording with "
+            "--save FILE.rrd and open it where there is one (or serve it to a browser: `rerun --serve-web FILE.rrd`)"
+        )
+    spec = importlib.util.find_spec("rerun_cli")
+    bundled = Path(spec.origin).parent / "rerun" if spec is not None and spec.origin else None
+    try:
+        rr.spawn(executable_path=str(bundled) if bundled and bundled.is_file() else None, recording=rec)
+    except RuntimeError as exc:
+        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        raise ShiftkitError(
+            f"cannot start the Rerun viewer ({first}): write a recording with --save FILE.rrd and open it "
+            "with `rerun FILE.rrd`"
+        ) from None
+
+
 def _blueprint(rr: Any, features: dict[str, dict[str, Any]], views: list[str], multiview: bool, cameras: dict) -> Any:
     import rerun.blueprint as rrb
 
@@ -324,7 +347,7 @@ def view_dataset(
         tmp = save.with_name(f".{save.name}.tmp-{os.getpid()}")
         rec.save(tmp)
     else:
-        rec.spawn()
+        _spawn_viewer(rr, rec)
     try:
         rec.send_blueprint(_blueprint(rr, features, views, multiview, reader.cameras.get("cameras", {})))
         sender = _Sender(rr, rec, features, multiview)
@@ -342,6 +365,12 @@ def view_dataset(
                     bar.update(1)
                 start += length
         rec.flush()
+    except RuntimeError as exc:  # the SDK's: a viewer that went away, a file that cannot be written
+        rec.disconnect()
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
+        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        raise ShiftkitError(f"Rerun could not take the recording: {first}") from None
     except BaseException:
         if tmp is not None:
             rec.disconnect()

@@ -161,6 +161,11 @@ def test_view_errors_are_one_line(multiview, tmp_path, capsys, monkeypatch):
     assert main(["view", str(multiview), "--save", str(tmp_path)]) == 2
     assert "is a directory" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())  # nothing half-written
+    if sys.platform.startswith("linux"):  # without --save it spawns a viewer, which needs a display
+        monkeypatch.delenv("DISPLAY", raising=False)
+        monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+        assert main(["view", str(multiview), "--episode", "0"]) == 2
+        assert "no display for the Rerun viewer" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "rerun", None)  # the viz extra not installed
     assert main(["view", str(multiview), "--save", str(tmp_path / "x.rrd")]) == 2
     err = capsys.readouterr().err
