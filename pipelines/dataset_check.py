@@ -14,6 +14,7 @@ from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, open_lerobot_dataset
 from shiftkit.pipelines.loaders import load_provenance, load_stats
 from shiftkit.pipelines.provenance import format_report
+from shiftkit.pipelines.quality import verdict_lines
 
 
 def summarize(root: str | Path) -> dict[str, Any]:
@@ -84,6 +85,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             lines.append(f"  stage: {stage['name']} v{stage['version']} {json.dumps(stage['params'], sort_keys=True)}")
             if stage.get("report"):
                 lines.append(f"    report: {format_report(stage['report'])}")
+        if prov.get("quality"):  # the writer's verdict on what it wrote (`validate --quality` anew)
+            lines += verdict_lines(prov["quality"])
     else:
         lines.append("provenance: none (not made by shiftkit)")
     return "\n".join(lines)

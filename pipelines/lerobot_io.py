@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from shiftkit.pipelines import camera_meta, depth, loaders
+from shiftkit.pipelines.arrow_columns import column_to_numpy
 from shiftkit.pipelines.encoded_frames import PNG, EncodedFrames, source_bytes
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
@@ -495,9 +496,12 @@ def _numeric_arrow_array(values: Any, arrow_type: Any) -> Any:
 
 
 def write_provenance(root: Path, provenance: dict[str, Any]) -> None:
-    """The machine-readable provenance and the dataset card rendered from it (after info/stats)."""
+    """The machine-readable provenance, with the quality verdict on what was written
+    (`pipelines.quality`), and the dataset card rendered from it (after info/stats)."""
     from shiftkit.cards import render_dataset_card
+    from shiftkit.pipelines.quality import quality_verdict
 
+    provenance = {**provenance, "quality": quality_verdict(root)}
     (root / PROVENANCE_PATH).write_text(dumps(provenance, indent=2))
     # errors=: a source path that is not UTF-8 is shown escaped rather than failing the write.
     (root / "README.md").write_text(render_dataset_card(root, provenance), errors="backslashreplace")
@@ -653,7 +657,7 @@ class LeRobotDatasetReader:
             elif ft["dtype"] == "string":
                 frames[key] = np.array(col.to_pylist(), dtype=str).reshape(n, 1)
             else:
-                arr = _column_to_numpy(col, tuple(ft["shape"]), np.dtype(ft["dtype"]))
+                arr = column_to_numpy(col, np.dtype(ft["dtype"]))
                 frames[key] = arr.reshape((n, *ft["shape"]))
         task_idx = part.column("task_index").to_numpy()
         frames["task"] = np.array([self.tasks[t] for t in task_idx], dtype=str)
@@ -669,19 +673,6 @@ class LeRobotDatasetReader:
         offset = float(row[f"videos/{key}/from_timestamp"])
         where = f"{self.root} episode {int(row['episode_index'])} {key}"
         return decode_video(path, offset, timestamps, where, self._features[key])
-
-
-def _column_to_numpy(col: Any, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
-    import pyarrow as pa
-
-    col = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
-    while pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type) or pa.types.is_large_list(col.type):
-        col = col.flatten()
-    if hasattr(col, "storage"):  # datasets' ArrayND extension types
-        col = col.storage
-        while hasattr(col, "flatten") and not pa.types.is_primitive(col.type) and not pa.types.is_boolean(col.type):
-            col = col.flatten()
-    return np.asarray(col.to_numpy(zero_copy_only=False), dtype=dtype)
 
 
 def decode_image(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:

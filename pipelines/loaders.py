@@ -272,6 +272,17 @@ PROVENANCE = obj(
     output=opt(obj(repo_id=opt(nullable(string)))),
     importer=opt(obj(name=opt(nullable(string)), kind=opt(nullable(string)))),
     seed=opt(nullable(integer())),
+    versions=opt(map_of(ANY), default={}, fill=True),
+    quality=opt(
+        nullable(
+            obj(
+                verdict=string,
+                chunk_size=integer(1),
+                episodes=integer(0),
+                findings=list_of(obj(check=string, severity=string, message=string, by=string)),
+            )
+        )
+    ),
 )
 
 

@@ -29,6 +29,11 @@ def versions(packages: tuple[str, ...] = ("shiftkit", "lerobot")) -> dict[str, A
     return {**out, **source_revision()}
 
 
+# What makes a checkout's code differ from its commit: Python files, the packaging and the package data
+# (not the datasets, runs and configs a user keeps in a clone).
+CODE_PATHS = ("*.py", "pyproject.toml", "cards/templates/*", "envs/*/assets/*")
+
+
 @functools.cache
 def source_revision() -> dict[str, Any]:
     """`{"shiftkit_commit": SHA, "shiftkit_dirty": bool}` of the checkout this code is imported from,
@@ -40,7 +45,10 @@ def source_revision() -> dict[str, Any]:
         git = lambda *args: subprocess.run(  # noqa: E731
             ["git", "-C", str(root), *args], capture_output=True, text=True, check=True, timeout=30
         ).stdout.strip()
-        return {"shiftkit_commit": git("rev-parse", "HEAD"), "shiftkit_dirty": bool(git("status", "--porcelain"))}
+        return {
+            "shiftkit_commit": git("rev-parse", "HEAD"),
+            "shiftkit_dirty": bool(git("status", "--porcelain", "--", *CODE_PATHS)),
+        }
     except (OSError, subprocess.SubprocessError):
         return {}
 
@@ -146,3 +154,18 @@ def recorded_envs(root: Any) -> set[str]:
     path = Path(root) / PROVENANCE_PATH
     provenance = load_provenance(path) if path.is_file() else {}
     return {s["env"] for s in provenance.get("sources", []) if s.get("env")}
+
+
+def recorded_verdict_lines(root: Any) -> list[str]:
+    """The quality verdict a dataset's provenance records (the writer's, on what it wrote;
+    `pipelines.quality`), as the lines `run`, `merge` and `import` print after writing; none when
+    there is no provenance."""
+    from pathlib import Path
+
+    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
+    from shiftkit.pipelines.quality import verdict_lines
+
+    path = Path(root) / PROVENANCE_PATH
+    verdict = load_provenance(path).get("quality") if path.is_file() else None
+    return verdict_lines(verdict) if verdict else []

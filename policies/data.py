@@ -28,6 +28,7 @@ import torch
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import numpy_dtype
 from shiftkit.pipelines.lerobot_io import ResolvedDataset, decode_image, decode_video, resolve_dataset
+from shiftkit.pipelines.video import decoder_backend
 
 
 def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[ResolvedDataset, object]]:
@@ -40,8 +41,11 @@ def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Resolv
     for ref in refs:
         resolved = resolve_dataset(ref, root=root)
         try:
-            # Depth (features and statistics) in metres, as shiftkit's trainers take it.
-            ds = LeRobotDataset(resolved.repo_id, root=resolved.root, depth_output_unit="m")
+            # Depth (features and statistics) in metres, as shiftkit's trainers take it; the video
+            # backend chosen here, not by lerobot (which logs a long traceback where torchcodec fails).
+            ds = LeRobotDataset(
+                resolved.repo_id, root=resolved.root, depth_output_unit="m", video_backend=decoder_backend()
+            )
         except Exception as exc:  # lerobot raises many types for a bad folder
             raise DatasetError(f"cannot open LeRobot dataset {ref!r} at {resolved.root}: {exc}") from exc
         opened.append((resolved, ds))

@@ -438,3 +438,44 @@ def test_user_errors_are_one_line(state_ds, tmp_path):
     from shiftkit.app.cli import main
 
     assert main(["train", "bc", "--dataset", str(tmp_path / "nowhere"), "--output", str(tmp_path / "r4")]) == 2
+
+
+def test_default_is_one_network_and_ensemble_is_an_option(state_ds, tmp_path):
+    defaults = BCArgs(datasets=["x"], output_dir="y")
+    assert defaults.ensemble_size == 1 and defaults.threads == 1  # one network, one CPU thread
+    train(small_args(state_ds, tmp_path / "one", steps=5, ensemble_size=BCArgs.ensemble_size))
+    assert len(load_policy(tmp_path / "one").members) == 1
+    train(small_args(state_ds, tmp_path / "five", steps=5, ensemble_size=5))
+    assert len(load_policy(tmp_path / "five").members) == 5
+
+
+def test_train_prints_no_video_backend_traceback(state_ds, tmp_path):
+    """lerobot's reader, left to choose its video backend, tries torchcodec and logs its loader's
+    traceback (~40 lines) where torchcodec cannot load FFmpeg: `train` chooses up front."""
+    cli = [sys.executable, "-m", "shiftkit.app.cli", "train", "bc", "--dataset", str(state_ds)]
+    cli += ["--output", str(tmp_path / "run"), "--regime", "fixed", "--steps", "2", "--hidden", "8"]
+    proc = subprocess.run([*cli, "--no-progress", "--device", "cpu"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "torchcodec" not in proc.stderr, proc.stderr[-3000:]
+
+
+def test_video_backend_is_chosen_without_a_traceback(monkeypatch, caplog):
+    import ctypes.util
+    import importlib.util
+
+    from shiftkit.pipelines import video
+
+    video.decoder_backend.cache_clear()
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: object() if name == "torchcodec" else find_spec(name, *a)
+    )
+    monkeypatch.setitem(sys.modules, "torchcodec", None)  # installed, but its import raises ImportError
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)  # no FFmpeg on the library path
+    assert video.decoder_backend() == "pyav" and caplog.records == []
+    video.decoder_backend.cache_clear()
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: f"lib{name}.so.59")  # FFmpeg, broken torchcodec
+    assert video.decoder_backend() == "pyav"
+    (record,) = caplog.records
+    assert record.getMessage().startswith("torchcodec cannot load FFmpeg here (") and "\n" not in record.getMessage()
+    video.decoder_backend.cache_clear()

@@ -59,8 +59,9 @@ def test_run_info_validate(tmp_path, synthetic_raw, capsys):
     config = write_config(tmp_path, synthetic_raw, tmp_path / "out")
     assert main(["run", str(config), "--no-progress"]) == 0
     assert main(["validate", str(tmp_path / "out")]) == 0
+    assert "quality: " in capsys.readouterr().out  # the verdict on what `run` wrote
     assert main(["info", str(tmp_path / "out"), "--json"]) == 0
-    info = json.loads(capsys.readouterr().out.split("\n", 2)[-1])
+    info = json.loads(capsys.readouterr().out)
     assert info["episodes"] == 5 and info["provenance"]["stages"][0]["name"] == "trim"
     assert info["provenance"]["pipeline"]["destination"]["repo_id"] == "test/pipe"
     card = (tmp_path / "out" / "README.md").read_text()

@@ -27,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the chosen importer and print what it wrote; return the exit code."""
+    """Run the chosen importer and print what it wrote and the quality verdict on it; return the exit code."""
+    from shiftkit.pipelines.provenance import recorded_verdict_lines
     from shiftkit.pipelines.staging import check_inputs_and_outputs
 
     importer = args._importer
@@ -39,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"wrote {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps ({summary.kind}) to {summary.root}"
     )
+    for line in recorded_verdict_lines(summary.root):
+        print(line)
     return 0
 
 

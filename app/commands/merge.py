@@ -128,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.config import pipeline_toml
     from shiftkit.pipelines.hub import validate_repo_id
     from shiftkit.pipelines.planner import plan_pipeline
+    from shiftkit.pipelines.provenance import recorded_verdict_lines
     from shiftkit.pipelines.runner import run_pipeline
 
     config = OPTIONS.build(args, sources=args.sources)
@@ -139,4 +140,6 @@ def run(args: argparse.Namespace) -> int:
         return 0
     path = run_pipeline(pipeline, workers=config.workers, progress=config.progress)
     print(f"wrote {path}")
+    for line in recorded_verdict_lines(path):
+        print(line)
     return 0

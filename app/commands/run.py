@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.pipelines.config import load_pipeline_config
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
     from shiftkit.pipelines.loaders import load_provenance
-    from shiftkit.pipelines.provenance import report_lines
+    from shiftkit.pipelines.provenance import recorded_verdict_lines, report_lines
     from shiftkit.pipelines.runner import run_pipeline
 
     options = OPTIONS.build(args, config=args.config)
@@ -106,5 +106,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {path}")
     # The summary's counts are the provenance's, read back from what was written.
     for line in report_lines(load_provenance(path / PROVENANCE_PATH)):
+        print(line)
+    for line in recorded_verdict_lines(path):
         print(line)
     return 0

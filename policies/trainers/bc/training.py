@@ -1,10 +1,10 @@
-"""Behavioural cloning (thesis 3.6.3 and 4.4.2): MSE action regression by an ensemble (the policy
-and its networks: `bc_policy`).
+"""Behavioural cloning (thesis 3.6.3 and 4.4.2): MSE action regression by one network or by an
+ensemble (`--ensemble N`; the policy and its networks: `bc_policy`).
 
 Observations are the dataset's `observation.*` features: numeric ones are normalised with the
 dataset's stats and concatenated; each camera goes through a CNN (or ResNet-18 trunk) ending in a
 spatial soft-argmax, whose keypoints join the numeric state before the fully connected layers.
-Each of the ensemble's members sees its own shuffle of the data and its own orthogonal init; the
+With several members, each sees its own shuffle of the data and its own orthogonal init; the
 policy outputs the members' mean, and their spread is the ensemble doubt of FIRE (thesis 5.4).
 
 Two regimes:
@@ -116,7 +116,7 @@ def check_root_id(ref: str, root: str | None) -> None:
 
 
 def train(args: BCArgs, progress: bool = False) -> dict:
-    """Train (or resume) a BC ensemble; returns the final metrics written to the model card.
+    """Train (or resume) a BC policy (one network or an ensemble); returns the final metrics written to the model card.
     `progress` shows a bar with the training loss (its total is the step budget: early stopping
     may end sooner)."""
     args = args.resolved()
