@@ -78,7 +78,7 @@ class BatchedLinear(nn.Module):
         out, start = None, 0
         for x in parts:
             rows = self.weight[:, start : start + x.shape[-1]]
-            out = torch.baddbmm(self.bias, x, rows) if out is None else out.baddbmm_(x, rows)
+            out = torch.baddbmm(self.bias if out is None else out, x, rows)
             start += x.shape[-1]
         return out
 

@@ -509,6 +509,27 @@ def test_expert_rows_for_the_discriminator_and_the_batch():
     assert np.array_equal(n, nxt[index]) and a.shape == (50, 1)
 
 
+def test_lift_and_stack_studies_use_the_reference_task_sets_and_budgets():
+    # utiasSTARS/vpace env_default_configs.py at 5 Hz: lift `expert_filenames = 0_stack-open,1_close,
+    # 3_lift,4_reach`, max_steps 200000; stack `0_stack-open,1_close,2_stack,3_lift,4_reach,5_move`,
+    # 500000 (the thesis' 2M at 20 Hz in robot time).
+    import importlib
+    import tomllib
+
+    repo = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(repo / "bench" / "science"))
+    try:
+        study = importlib.import_module("vpace_lfgp")
+    finally:
+        sys.path.remove(str(repo / "bench" / "science"))
+    assert sorted(study.EXAMPLE_TASKS) == ["close", "lift", "open", "reach"] and study.EXAMPLE_TASKS[0] == "lift"
+    assert sorted(study.LFGP_TASKS["stack"]) == ["close", "lift", "move-object", "open", "reach", "stack"]
+    assert (study.LIFT_STEPS, study.STACK_STEPS) == (200_000, 500_000)
+    pipeline = tomllib.loads((repo / "docs" / "pipelines" / "vpace_lift_examples.toml").read_text())
+    sources = sorted(Path(s["path"]).name.removeprefix("example-src-") for s in pipeline["sources"])
+    assert sources == sorted(study.EXAMPLE_TASKS)
+
+
 def test_replay_n_step_stops_at_episode_end():
     buf = ReplayBuffer(capacity=10, obs_dim=1, act_dim=1)
     for t in range(6):

@@ -74,6 +74,7 @@ LFGP_TASKS = {
     "lift": EXAMPLE_TASKS,
 }
 HANDCRAFTED = {"stack": ["--handcrafted", "panda-lfgp"], "lift": []}  # the reference's lift: WRS alone
+LIFT_STEPS, STACK_STEPS = 200_000, 500_000  # the reference at 5 Hz; stack: the thesis' 2M at 20 Hz in robot time
 METHODS = ("vpace", "sqil", "lfgp", "dac")
 EXAMPLE_SEED, DEMO_SEED, FINAL_SEED = 100_000, 300_000, 600_000  # + 10000 per task; training uses seed * 1e6 + ep
 DEMO_ORDER = ("stack", "reach", "lift", "move-object", "open", "close")  # demo seeds by position, stable
@@ -118,8 +119,8 @@ def main() -> None:
     parser.add_argument(
         "--lfgp-task", choices=tuple(LFGP_TASKS), default="stack", help="LfGP vs DAC main task (default: stack)"
     )
-    parser.add_argument("--lift-steps", type=int, default=200_000, help="interactions per lift run (default: 200000)")
-    parser.add_argument("--stack-steps", type=int, default=500_000, help="interactions per stack run (500000)")
+    parser.add_argument("--lift-steps", type=int, default=LIFT_STEPS, help="interactions per lift run (200000)")
+    parser.add_argument("--stack-steps", type=int, default=STACK_STEPS, help="interactions per stack run (500000)")
     parser.add_argument("--eval-every", type=int, default=10_000, help="interactions between curve points (10000)")
     parser.add_argument("--eval-episodes", type=int, default=50, help="episodes per curve point (default: 50)")
     parser.add_argument("--final-episodes", type=int, default=50, help="held-out episodes per run (default: 50)")
