@@ -305,8 +305,8 @@ def test_gradients_are_clipped_to_one_norm_over_all_tasks(variant):
     buffer = ExampleBuffer(examples, args.tasks, 0.0)
     seen = {name: record_grads_at_step(getattr(agent, f"{name}_opt")) for name in ("critic", "actor", "alpha")}
     rows = None if full else buffer.sample(rng, 48)
-    expert = buffer.sample_discriminator(rng, 16) if full else None
-    agent.update(replay.sample(rng, 16), rows, expert)
+    discriminator = (replay.sample(rng, 16), buffer.sample_discriminator(rng, 16)) if full else None
+    agent.update(replay.sample(rng, 16), rows, discriminator)
     for name, [grads] in seen.items():
         total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
         assert total == pytest.approx(1e-3, rel=1e-3), name

@@ -91,19 +91,23 @@ def expert_transitions(args: VPACEArgs, step: int) -> int:
 
 def sample_update(
     args: VPACEArgs, step: int, replay: ReplayBuffer, examples: ExampleBuffer, rng: np.random.Generator
-) -> tuple[ReplaySample, ExampleRows | None, ExampleRows | None]:
+) -> tuple[ReplaySample, ExampleRows | None, tuple[ReplaySample, ExampleRows] | None]:
     """The data of the update at interaction `step`, `Agent.update`'s arguments: the replay batch (with
-    LfGP's expert transitions in it), each task's example rows for its critic (success examples) and
-    each task's expert rows for the discriminator (learned rewards)."""
+    LfGP's expert transitions in it), each task's example rows for its critic (success examples) and,
+    for a learned reward, the discriminator's own replay rows and each task's expert rows (the
+    reference samples the discriminator's batch apart from the critic's)."""
     n_expert = expert_transitions(args, step)
     batch = replay.sample(rng, args.batch_size - n_expert, args.n_step)
     if n_expert:
         batch = batch.extended(*examples.sample_transitions(rng, n_expert))
     example_rows = None if args.full_trajectories else examples.sample(rng, args.example_batch_size)
-    expert_rows = None
+    discriminator = None
     if args.reward_model == "dac":
-        expert_rows = examples.sample_discriminator(rng, args.batch_size, args.final_pair_bias)
-    return batch, example_rows, expert_rows
+        discriminator = (
+            replay.sample(rng, args.batch_size),
+            examples.sample_discriminator(rng, args.batch_size, args.final_pair_bias),
+        )
+    return batch, example_rows, discriminator
 
 
 def evaluate(agent: Agent, env: gym.Env, episodes: int, horizon: int, seed: int) -> dict[str, float]:
@@ -178,10 +182,16 @@ class Agent:
 
     # -- learning -----------------------------------------------------------------------------------
 
-    def update(self, batch: ReplaySample, examples: ExampleRows | None, expert: ExampleRows | None) -> dict:
+    def update(
+        self,
+        batch: ReplaySample,
+        examples: ExampleRows | None,
+        discriminator: tuple[ReplaySample, ExampleRows] | None = None,
+    ) -> dict:
         """One gradient step of every intention (and the discriminator) on one replay batch shared by all
         tasks, each task's own example rows for its critic (`examples`: success examples; None with full
-        trajectories) and each task's expert rows for the discriminator (`expert`: learned rewards)."""
+        trajectories) and, for a learned reward, the discriminator's replay rows and each task's expert
+        rows (`discriminator`)."""
         a, T, dev = self.args, self.num_tasks, self.device
         tensor = lambda x: torch.as_tensor(x, device=dev)  # noqa: E731
         obs, act, next_obs = tensor(batch.obs), tensor(batch.act), tensor(batch.next_obs)  # (B, ·), every task's
@@ -189,11 +199,12 @@ class Agent:
 
         # Reward model: train the discriminator (the reference clips no gradient here), then score the
         # batch (SQIL: fixed labels).
-        if self.reward.learned and expert is not None:
-            buffer_x = torch.cat([obs, act], -1) if a.full_trajectories else obs
-            expert_x = (
-                tensor(expert.obs) if expert.act is None else torch.cat([tensor(expert.obs), tensor(expert.act)], -1)
-            )
+        if self.reward.learned and discriminator is not None:
+            replay_rows, expert = discriminator
+            buffer_x, expert_x = tensor(replay_rows.obs), tensor(expert.obs)
+            if a.full_trajectories:
+                buffer_x = torch.cat([buffer_x, tensor(replay_rows.act)], -1)
+                expert_x = torch.cat([expert_x, tensor(expert.act)], -1)
             d_loss, stats["discriminator_loss"] = self.reward.loss(buffer_x, expert_x)
             self.reward_opt.zero_grad(set_to_none=True)
             d_loss.backward()
