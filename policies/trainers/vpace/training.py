@@ -243,7 +243,7 @@ class Agent:
                 target, weight = rce_targets(torch.sigmoid(next_q), a.gamma)
             else:
                 target = buffer_reward + bootstrap_discount * (next_q - alpha * next_logp)
-            ex_reward = self.reward.example_reward(ex_obs) if rows[1] else ex_next_q
+            ex_reward = self.reward.example_reward(ex_obs) if rows[1] else ex_next_q.new_zeros(T, 0)
             ex_target = a.reward_scale * ex_reward + a.gamma * ex_next_q
 
         q, q_ex = self.intentions.q(h, torch.cat([act.expand(T, *act.shape), ex_act], 1)).split(rows, -1)
@@ -302,7 +302,6 @@ class Agent:
         self.alpha_opt.step()
 
         polyak_update(self.intentions.target_pairs(), a.polyak)
-        ex_mean = lambda x: (ex_weight * x).sum(-1) / ex_weight.sum(-1).clamp(min=1)  # noqa: E731
         stats |= {
             "critic_loss": critic_loss.detach().mean(0),
             "actor_loss": actor_loss.detach(),
@@ -310,7 +309,7 @@ class Agent:
             "q_buffer": q.detach().min(0).values.mean(-1),
         }
         if rows[1]:
-            stats["q_examples"] = ex_mean(q_ex.detach().min(0).values)
+            stats["q_examples"] = (ex_weight * q_ex.detach().min(0).values).sum(-1) / ex_weight.sum(-1)
         return stats
 
     # -- checkpoints --------------------------------------------------------------------------------
