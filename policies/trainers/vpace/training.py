@@ -16,7 +16,7 @@ The loop below reads top to bottom: set-up, then per episode a scheduler plan, p
 update, with periodic evaluation, metrics and resumable checkpoints (written at episode ends, where the
 state to restore is only models, optimizers, buffer and random generators: each episode's environment
 reset is seeded by the run seed and the episode number). The intentions at the best periodic evaluation
-are also kept (checkpoints/best.pt): a policy that solved the task can lose it with further training
+are also kept (checkpoints/best.safetensors): a policy that solved the task can lose it with further training
 (docs/vpace.md), and the best evaluation picks the snapshot to deploy, the way early stopping does.
 """
 
@@ -524,7 +524,7 @@ class MainIntentionPolicy:
 
 def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
     """The main intention of a VPACE/LfGP run folder (its newest checkpoint) or of a checkpoint file,
-    e.g. `RUN/checkpoints/best.pt` for the best evaluated one."""
+    e.g. `RUN/checkpoints/best.safetensors` for the best evaluated one."""
     from shiftkit.pipelines.dataclass_config import from_dict
     from shiftkit.pipelines.errors import DatasetError
     from shiftkit.policies.run_dir import RunDir, load_checkpoint, run_folder, torch_device
