@@ -38,6 +38,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "calibrate",
     "merge": "merge",
     "sim-robot": "sim_robot",
+    "view": "view",
 }
 
 

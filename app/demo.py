@@ -6,13 +6,14 @@ with `shiftkit collect`, runs a pipeline config (written next to the outputs so 
 and re-run) that keeps successful episodes, trims them, re-renders each from two new sampled base
 poses with the `multiview` stage (keeping the recorded view too) and drops the simulator state,
 validates the LeRobot dataset it made, and writes `views.png`: the first frame of one episode as
-recorded and as re-rendered from the new base poses.
+recorded and as re-rendered from the new base poses, RGB over depth (with a colour bar in metres).
 """
 
 from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 from shiftkit.pipelines.errors import ShiftkitError
 
@@ -94,9 +95,13 @@ def record(raw_dir: Path, episodes: int, seed: int) -> None:
     )
 
 
-def write_views_figure(dataset: Path, path: Path, views: int) -> Path:
+DEPTH_SHOWN_M = (0.3, 1.5)  # the depth range the figure's colours span (the table and the arm)
+
+
+def views_figure(dataset: Path, views: int) -> Any:
     """The first frame (RGB over depth) of the dataset's first source episode as recorded and as
-    re-rendered from each new base pose (the multiview stage writes them in that order)."""
+    re-rendered from each new base pose (the multiview stage writes them in that order); depth in
+    metres with a colour bar (nearer and farther values show as the bar's end colours)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -106,17 +111,29 @@ def write_views_figure(dataset: Path, path: Path, views: int) -> Path:
 
     reader = open_lerobot_dataset(dataset)
     episodes = list(reader.iter_episodes(list(range(min(views + 1, reader.num_episodes)))))
-    fig, axes = plt.subplots(2, len(episodes), figsize=(2.6 * len(episodes), 4.0), squeeze=False)
+    fig, axes = plt.subplots(
+        2, len(episodes), figsize=(2.6 * len(episodes) + 0.9, 4.0), squeeze=False, layout="constrained"
+    )
     for k, episode in enumerate(episodes):
         pose = episode.meta["cameras"][CAMERA]["base_pose"]
         title = "recorded" if k == 0 else f"re-rendered {k}"
         axes[0, k].imshow(episode.frames[f"observation.images.{CAMERA}"][0], interpolation="nearest")
         axes[0, k].set_title(f"{title}\nbase yaw {pose['yaw']:+.2f} rad", fontsize=8)
-        depth = episode.frames[f"observation.depth.{CAMERA}"][0, ..., 0]  # metres, shown up to 1.5 m
-        axes[1, k].imshow(depth, cmap="viridis_r", vmin=0.3, vmax=1.5)
+        depth = episode.frames[f"observation.depth.{CAMERA}"][0, ..., 0]  # metres
+        shown = axes[1, k].imshow(depth, cmap="viridis_r", vmin=DEPTH_SHOWN_M[0], vmax=DEPTH_SHOWN_M[1])
         for ax in axes[:, k]:
             ax.set_axis_off()
-    fig.tight_layout()
+    bar = fig.colorbar(shown, ax=list(axes[1, :]), extend="both", shrink=0.9, pad=0.02)
+    bar.set_label("depth (m)", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    return fig
+
+
+def write_views_figure(dataset: Path, path: Path, views: int) -> Path:
+    """`views_figure` as a PNG at `path`."""
+    import matplotlib.pyplot as plt
+
+    fig = views_figure(dataset, views)
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

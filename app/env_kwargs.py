@@ -11,10 +11,15 @@ from shiftkit.envs import env_family
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.option_values import meets, rule_error
 
+# No env quantity (a rate, a size, a duration in seconds) comes near this; a larger value is a typo,
+# and the env's arithmetic on it (seconds x rate -> steps) would overflow into a traceback.
+LARGEST = 1e9
+
 
 def check_env_kwargs(env_name: str, kwargs: dict[str, Any]) -> None:
-    """Every numeric env constructor argument (rates, sizes, durations) is positive, and an integer
-    where the constructor's default is one; ConfigError with the rule's message otherwise. Unknown
+    """Every numeric env constructor argument (rates, sizes, durations) is positive, at most
+    `LARGEST`, and an integer where the constructor's default is one; ConfigError with the rule's
+    message otherwise. Unknown
     envs and arguments are left to the env (its own one-line error)."""
     try:
         module, _, cls = env_family(env_name).entry_point.partition(":")
@@ -31,3 +36,5 @@ def check_env_kwargs(env_name: str, kwargs: dict[str, Any]) -> None:
         rule = "positive_int" if isinstance(default, int) else "positive_float"
         if not meets(rule, value):
             raise ConfigError(rule_error(f"--env-kwarg {key}", rule, value))
+        if value > LARGEST:
+            raise ConfigError(f"--env-kwarg {key} must be at most {LARGEST:g}, got {value!r}")

@@ -4,11 +4,11 @@
 Steps, all through shiftkit's own entry points:
 1. `shiftkit collect --env panda-play --task lift --episodes 50 --seed 0 --lerobot ...` (seeds 0-49);
 2. `shiftkit train bc` on `observation.state` + `observation.environment_state` (default regime:
-   early stopping on a 20% episode hold-out, 5-member ensemble);
+   early stopping on a 20% episode hold-out; one network, `--ensemble 5` for the thesis' ensemble);
 3. evaluation on seeds 1000-1049, which no training episode used; the baseline, in the same run, is
    the scripted expert on the same seeds.
 
-    python bench/bc_lift.py [--quick] [--regime early-stop|fixed] [--workdir DIR]
+    python bench/bc_lift.py [--quick] [--regime early-stop|fixed] [--ensemble N] [--workdir DIR]
 
 Last line: {"bench": "bc_lift", "metric": "success_rate", "value": ..., "goal": 0.8, ...}
 """
@@ -32,6 +32,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: 10 episodes, short training, 5 eval seeds")
     parser.add_argument("--regime", choices=("early-stop", "fixed"), default="early-stop")
+    parser.add_argument("--ensemble", type=int, default=1, help="BC ensemble members (default 1, the trainer's)")
     parser.add_argument("--episodes", type=int, help="training episodes (default 50, quick 10)")
     parser.add_argument("--eval-episodes", type=int, help="held-out evaluation seeds (default 50, quick 5)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
@@ -61,7 +62,7 @@ def main() -> None:
     collect_s = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    quick = dict(steps=600, ensemble_size=2) if args.quick else {}
+    quick = dict(steps=600) if args.quick else {}
     train(
         BCArgs(
             datasets=[str(dataset)],
@@ -69,6 +70,7 @@ def main() -> None:
             regime=args.regime,
             threads=args.threads,
             inputs=["observation.state", "observation.environment_state"],
+            ensemble_size=args.ensemble,
             resume=run.exists(),
             **quick,
         )
@@ -108,6 +110,7 @@ def main() -> None:
                 "eval_episodes": eval_episodes,
                 "eval_seeds": [1000, 1000 + eval_episodes - 1],
                 "regime": args.regime,
+                "ensemble": args.ensemble,
                 "train_steps": train_steps,
                 "collect_s": round(collect_s, 1),
                 "train_s": round(train_s, 1),

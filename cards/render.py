@@ -83,6 +83,25 @@ def _source_lines(sources: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _quality(verdict: dict[str, Any] | None) -> str:
+    """The card's quality section from the provenance's verdict (`shiftkit validate --quality`)."""
+    if not verdict:
+        return "No quality verdict recorded (`shiftkit validate DATASET --quality` gives one)."
+    findings = verdict.get("findings", [])
+    lines = [
+        f"Verdict: **{verdict.get('verdict')}** ({len(findings)} finding(s) in {verdict.get('episodes')} episodes; "
+        f"action chunk {verdict.get('chunk_size')} frames), from shiftkit's content checks and lerobot-doctor "
+        f"{verdict.get('lerobot_doctor', {}).get('version', '?')}'s {', '.join(verdict.get('lerobot_doctor', {}).get('checks', []))} checks."
+    ]
+    lines += [f"- {f['severity']} `{f['check']}` ({f['by']}): {f['message']}" for f in findings]
+    if verdict.get("notes"):
+        lines.append(
+            f"\nlerobot-doctor's {len(verdict['notes'])} heuristic warning(s) that do not count are listed in "
+            "`meta/shiftkit_provenance.json` (`quality.notes`)."
+        )
+    return "\n".join(lines)
+
+
 def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: str = "apache-2.0") -> str:
     """Card for the dataset at `root` (meta/info.json, meta/stats.json) made as `provenance` says."""
     root = Path(root)
@@ -122,6 +141,7 @@ def render_dataset_card(root: str | Path, provenance: dict[str, Any], license: s
         sources=sources,
         stages=stages,
         seed=provenance.get("seed"),
+        quality=_quality(provenance.get("quality")),
         features=features,
         stats=stat_rows,
         task_list=task_list,

@@ -11,6 +11,13 @@ fixed camera is written once::
 An entry (`intrinsics`, `extrinsics`, `base_pose`, ...) of a camera is constant when every episode
 has it with the same value. Reading puts the two parts back together per episode. The format is
 documented in docs/camera_metadata.md.
+
+A camera's entries describe every feature of that camera (`observation.images.CAM` and
+`observation.depth.CAM`). Where its features differ (the depth map resized, the RGB not), the
+camera's `features` entry holds, per feature, the entries that describe only that feature:
+`{"front": {"extrinsics": {...}, "features": {"observation.images.front": {"intrinsics": {...}},
+"observation.depth.front": {"intrinsics": {...}}}}}`. `feature_entries` reads a feature's
+entries, `cameras_for_features` writes them back (stages that rescale or rename camera features).
 """
 
 from __future__ import annotations
@@ -23,6 +30,8 @@ from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
 
 CAMERAS_PATH = "meta/cameras.json"
+CAMERA_PREFIXES = ("observation.images.", "observation.depth.")
+FEATURES = "features"  # a camera's per-feature entries
 FORMAT = "shiftkit-cameras"
 VERSION = 1
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
@@ -39,6 +48,11 @@ def check_cameras(cameras: Any, where: str) -> Cameras:
     for name, cam in cameras.items():
         if not isinstance(cam, Mapping):
             raise DatasetError(f"{where}: cameras[{name!r}] must be an object")
+        per_feature = cam.get(FEATURES, {})
+        if not isinstance(per_feature, Mapping) or not all(isinstance(v, Mapping) for v in per_feature.values()):
+            raise DatasetError(f"{where}: cameras[{name!r}].{FEATURES} must map feature names to objects")
+        for key, entries in per_feature.items():
+            check_cameras({f"{name}/{key}": entries}, where)
         intr = cam.get("intrinsics")
         if intr is not None:
             missing = [k for k in INTRINSIC_KEYS if not isinstance(intr.get(k), int | float)]
@@ -57,6 +71,53 @@ def check_cameras(cameras: Any, where: str) -> Cameras:
                     "and a 3x3 rotation"
                 )
     return dict(cameras)
+
+
+def camera_of(key: str) -> str:
+    """The camera a feature belongs to: `observation.images.front` and `observation.depth.front` are
+    the camera `front`; another camera feature is a camera of its own name."""
+    for prefix in CAMERA_PREFIXES:
+        if key.startswith(prefix):
+            return key.removeprefix(prefix)
+    return key
+
+
+def feature_entries(cameras: Mapping[str, Any] | None, key: str) -> dict[str, Any]:
+    """The entries describing camera feature `key`: its camera's, overlaid with its own."""
+    cam = dict((cameras or {}).get(camera_of(key)) or {})
+    own = (cam.pop(FEATURES, None) or {}).get(key) or {}
+    return {**cam, **own}
+
+
+def cameras_for_features(
+    cameras: Mapping[str, Any] | None, before: list[str], after: Mapping[str, dict[str, Any]]
+) -> Cameras:
+    """`cameras` with the camera features `before` (the input's) replaced by `after` (output feature
+    -> the entries describing it): per camera, an entry every one of its features has with the same
+    value is the camera's, the others go under its `features`. Cameras of no feature in `before`
+    (e.g. a mobile base's pose only) are kept as they are."""
+    out: Cameras = {name: dict(cam) for name, cam in (cameras or {}).items()}
+    for name in {camera_of(k) for k in before}:
+        out.pop(name, None)
+    groups: dict[str, dict[str, dict[str, Any]]] = {}
+    for key, entries in after.items():
+        if entries:
+            groups.setdefault(camera_of(key), {})[key] = entries
+    for name, per_feature in groups.items():
+        names = list(dict.fromkeys(e for entries in per_feature.values() for e in entries))
+        shared = {
+            e: next(iter(per_feature.values()))[e]
+            for e in names
+            if all(e in entries for entries in per_feature.values())
+            and len({dumps(entries[e]) for entries in per_feature.values()}) == 1
+        }
+        own = {
+            key: {e: v for e, v in entries.items() if e not in shared}
+            for key, entries in per_feature.items()
+            if any(e not in shared for e in entries)
+        }
+        out[name] = {**shared, **({FEATURES: own} if own else {})}
+    return out
 
 
 def _is_vector(value: Any, n: int) -> bool:

@@ -18,6 +18,7 @@ seed = 0                     # top-level keys must come before the first table i
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -104,6 +105,74 @@ class PipelineConfig:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         # A plain SourceConfig (built in code) is a source without stages of its own.
         self.sources = [s if isinstance(s, PipelineSource) else PipelineSource(**asdict(s)) for s in self.sources]
+
+
+def toml_string(text: str) -> str:
+    """`text` as a TOML basic string: quotes, backslashes and control characters escaped, every other
+    character as it is (TOML files are UTF-8, so a path with an emoji stays one; JSON's escapes
+    would write it as a surrogate pair, which TOML refuses)."""
+    out = []
+    for ch in text:
+        code = ord(ch)
+        if 0xD800 <= code <= 0xDFFF:
+            raise ConfigError(f"{text!r} is not UTF-8 text; a pipeline file cannot hold it")
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif code < 0x20 or code == 0x7F:
+            out.append({"\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}.get(ch, f"\\u{code:04x}"))
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+def toml_value(value: Any) -> str:
+    """A value as written inline in a pipeline TOML file."""
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{toml_string(str(k))} = {toml_value(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, str):
+        return toml_string(value)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return (
+            repr(value) if math.isfinite(value) else ("nan" if math.isnan(value) else ("inf" if value > 0 else "-inf"))
+        )
+    raise ConfigError(f"a pipeline file cannot hold {type(value).__name__} value {value!r}")
+
+
+def pipeline_toml(config: PipelineConfig) -> str:
+    """`config` as a pipeline TOML file (what `shiftkit merge` prints; `parse_pipeline_config` reads
+    it back to the same config). Unset options are left out."""
+    lines = [f"seed = {config.seed}", ""] if config.seed else []
+    for src in config.sources:
+        lines.append("[[sources]]")
+        for key in ("path", "repo_id", "revision"):
+            if getattr(src, key) is not None:
+                lines.append(f"{key} = {toml_string(getattr(src, key))}")
+        if src.stages:
+            lines.append("stages = [")
+            lines += [f"  {_stage_toml(stage)}," for stage in src.stages]
+            lines.append("]")
+        lines.append("")
+    for stage in config.stages:
+        lines += ["[[stages]]", f"name = {toml_string(stage.name)}", f"params = {toml_value(stage.params)}"]
+        lines += [f"version = {stage.version}"] if stage.version is not None else []
+        lines.append("")
+    lines.append("[destination]")
+    for key, value in asdict(config.destination).items():
+        default = DestinationConfig.__dataclass_fields__[key].default
+        if value is not None and value != default or key == "root":
+            lines.append(f"{key} = {toml_value(value)}")
+    return "\n".join(lines) + "\n"
+
+
+def _stage_toml(stage: StageSpec) -> str:
+    version = f", version = {stage.version}" if stage.version is not None else ""
+    return f"{{name = {toml_string(stage.name)}, params = {toml_value(stage.params)}{version}}}"
 
 
 def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConfig:

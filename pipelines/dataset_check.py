@@ -9,10 +9,12 @@ from typing import Any
 import numpy as np
 
 from shiftkit.cards.render import shiftkit_version
+from shiftkit.pipelines.depth import depth_unit, is_depth
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH, open_lerobot_dataset
+from shiftkit.pipelines.loaders import load_provenance, load_stats
 from shiftkit.pipelines.provenance import format_report
+from shiftkit.pipelines.quality import verdict_lines
 
 
 def summarize(root: str | Path) -> dict[str, Any]:
@@ -40,7 +42,7 @@ def summarize(root: str | Path) -> dict[str, Any]:
             if k in reader.features and reader.features[k]["dtype"] not in ("image", "video")
         },
         "cameras": {"cameras": reader.cameras["cameras"], "episodes": reader.cameras["episodes"]},
-        "provenance": read_json_file(prov_path, "provenance") if prov_path.exists() else None,
+        "provenance": load_provenance(prov_path) if prov_path.exists() else None,
     }
 
 
@@ -83,6 +85,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             lines.append(f"  stage: {stage['name']} v{stage['version']} {json.dumps(stage['params'], sort_keys=True)}")
             if stage.get("report"):
                 lines.append(f"    report: {format_report(stage['report'])}")
+        if prov.get("quality"):  # the writer's verdict on what it wrote (`validate --quality` anew)
+            lines += verdict_lines(prov["quality"])
     else:
         lines.append("provenance: none (not made by shiftkit)")
     return "\n".join(lines)
@@ -100,11 +104,13 @@ def _camera_lines(cameras: dict[str, Any], num_episodes: int) -> list[str]:
     lines = ["cameras (meta/cameras.json):"]
     for name in names:
         cam, parts = cameras["cameras"].get(name, {}), []
-        if intr := cam.get("intrinsics"):
-            parts.append(
-                f"{intr['width']}x{intr['height']} fx {intr['fx']:.1f} fy {intr['fy']:.1f} "
-                f"cx {intr['cx']:.1f} cy {intr['cy']:.1f}"
-            )
+        own = {key: e["intrinsics"] for key, e in (cam.get("features") or {}).items() if e.get("intrinsics")}
+        for key, intr in [("", cam.get("intrinsics")), *own.items()]:  # a feature's own, where they differ
+            if intr:
+                parts.append(
+                    f"{f'{key} ' if key else ''}{intr['width']}x{intr['height']} fx {intr['fx']:.1f} "
+                    f"fy {intr['fy']:.1f} cx {intr['cx']:.1f} cy {intr['cy']:.1f}"
+                )
         if extr := cam.get("extrinsics"):
             parts.append(f"at [{', '.join(f'{x:.3f}' for x in extr['position'])}] in the {extr['frame']} frame")
         if varying := per_episode.get(name):
@@ -147,11 +153,8 @@ def validate_dataset(root: str | Path) -> dict[str, Any]:
             f"{root}: {reader.num_episodes} episodes, info.json says {reader.info.get('total_episodes')}"
         )
     check_lerobot_loads(root)
-    if (root / PROVENANCE_PATH).exists():  # `info` shows it: it must parse as a JSON object
-        from shiftkit.pipelines.jsonutil import read_json_file
-
-        if not isinstance(read_json_file(root / PROVENANCE_PATH, "provenance"), dict):
-            raise DatasetError(f"{root / PROVENANCE_PATH}: expected a JSON object")
+    if (root / PROVENANCE_PATH).exists():  # `info` shows it and trainers read it: checked here too
+        load_provenance(root / PROVENANCE_PATH)
     return {"episodes": reader.num_episodes, "frames": frames, "warnings": warnings}
 
 
@@ -206,8 +209,9 @@ def check_lerobot_loads(root: Path) -> None:
 
 def recompute_stats(root: str | Path, rtol: float = 1e-3) -> int:
     """Recompute mean/std/min/max of every numeric feature from the data files (streamed per
-    episode) and compare with meta/stats.json; raise DatasetError naming the first mismatch.
-    Returns how many features were checked."""
+    episode) and compare with meta/stats.json, and check that depth images hold values possible in
+    their declared unit (`check_depth_values`); raise DatasetError naming the first problem.
+    Returns how many features' statistics were checked."""
     root = Path(root)
     reader = open_lerobot_dataset(root)
     stats = _read_stats(root / "meta" / "stats.json")
@@ -215,6 +219,8 @@ def recompute_stats(root: str | Path, rtol: float = 1e-3) -> int:
     for ep in reader.iter_episodes():
         for key, arr in ep.frames.items():
             ft = reader.features.get(key)
+            if ft is not None and ft["dtype"] == "image" and is_depth(ft):
+                check_depth_values(arr, depth_unit(ft), f"{root} episode {ep.meta['source_episode_index']} {key!r}")
             if ft is None or ft["dtype"] in ("image", "video", "string") or key not in stats:
                 continue
             x = np.asarray(arr, dtype=np.float64).reshape(len(arr), -1)
@@ -242,11 +248,35 @@ def recompute_stats(root: str | Path, rtol: float = 1e-3) -> int:
     return len(acc)
 
 
+# Farther than any robot depth camera measures (lerobot's depth video range ends at 10 m): a depth
+# image in metres beyond it holds another unit's numbers (millimetres stored as metres read 1000x).
+MAX_DEPTH_M = 100.0
+
+
+def check_depth_values(metres: np.ndarray, unit: str, where: str) -> None:
+    """A depth image feature's frames (float32 metres, as read) hold values its declared unit can
+    hold: none negative; in metres, none beyond `MAX_DEPTH_M`; in millimetres, whole millimetres
+    (float metres stored under "mm" read back as fractions of a millimetre)."""
+    d = np.asarray(metres, dtype=np.float64)
+    if (d < 0).any():
+        raise DatasetError(f"{where}: negative depth {d.min():.4g} m")
+    if unit == "m" and d.max(initial=0.0) > MAX_DEPTH_M:
+        raise DatasetError(
+            f"{where}: depth up to {d.max():.6g} m is impossible in metres (more than {MAX_DEPTH_M:g} m); "
+            "millimetres stored under depth_unit 'm'?"
+        )
+    if unit == "mm":
+        mm = d * 1000.0
+        off = np.abs(mm - np.rint(mm)).max(initial=0.0)
+        if off > 0.05:  # float32 metres of whole millimetres are within 0.01 mm of them
+            raise DatasetError(
+                f"{where}: depth of {off:.3g} mm off whole millimetres is impossible in uint16 millimetres; "
+                "metres stored under depth_unit 'mm'?"
+            )
+
+
 def _read_stats(path: Path) -> dict[str, dict[str, Any]]:
-    stats = read_json_file(path, "dataset statistics")
-    if not isinstance(stats, dict) or not all(isinstance(v, dict) for v in stats.values()):
-        raise DatasetError(f"{path}: expected an object of per-feature statistics")
-    return stats
+    return load_stats(path)
 
 
 def _short(v: np.ndarray) -> str:

@@ -116,7 +116,7 @@ class _PartsProgress:
             self._update()
 
     def _update(self) -> None:
-        done = sum(1 for p in self.parts.dir.glob("*.pkl")) if self.parts.dir.is_dir() else 0
+        done = sum(1 for p in self.parts.dir.glob("*.npz")) if self.parts.dir.is_dir() else 0
         if done > self.bar.n:
             self.bar.update(done - self.bar.n)
 

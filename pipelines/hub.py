@@ -24,7 +24,7 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from shiftkit.pipelines.errors import DatasetError, ShiftkitError
@@ -199,16 +199,23 @@ def pull_dataset(
 
 
 def pull_checkpoint(
-    repo_id: str, revision: str | None = None, root: str | Path | None = None, *, force: bool = False
+    repo_id: str,
+    revision: str | None = None,
+    root: str | Path | None = None,
+    *,
+    force: bool = False,
+    check: Callable[[Path], None] | None = None,
 ) -> Path:
     """Download the model repository `repo_id` at `revision` (default main) into `root`
-    (default `$HF_LEROBOT_HOME/checkpoints/<repo_id>`); returns that folder."""
+    (default `$HF_LEROBOT_HOME/checkpoints/<repo_id>`); returns that folder. `check(folder)` sees the
+    download before it is put in place (the policies' reader checks that every checkpoint in it is
+    data: a refused download leaves nothing behind)."""
     validate_repo_id(repo_id)
     dest = Path(root).expanduser() if root is not None else lerobot_home() / "checkpoints" / repo_id
     _refuse_existing(dest, force)
     revision = revision or DEFAULT_BRANCH
     with _hub_errors(repo_id, revision):
-        return _pull(repo_id, "model", revision, dest, check=None)
+        return _pull(repo_id, "model", revision, dest, check=None if check is None else lambda _, folder: check(folder))
 
 
 # -- pushing ----------------------------------------------------------------------------------

@@ -26,16 +26,8 @@ def dumps(obj: Any, indent: int | None = None) -> str:
 
 
 def read_json_file(path: Path, missing: str) -> Any:
-    """Parse a metadata file; a missing or malformed file is a one-line DatasetError."""
-    from shiftkit.pipelines.errors import DatasetError
+    """Parse a metadata file; a missing or malformed file is a one-line DatasetError. The value is
+    unchecked: a file with a known layout is read through its loader in `pipelines/loaders.py`."""
+    from shiftkit.pipelines.loaders import load_json
 
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DatasetError(f"{path} is missing ({missing})") from None
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path}: not UTF-8 text") from None
-    except OSError as exc:
-        raise DatasetError(f"{path}: unreadable ({exc.strerror})") from None
+    return load_json(path, missing)

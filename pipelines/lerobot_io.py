@@ -43,8 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines import camera_meta, depth
-from shiftkit.pipelines.encoded_frames import EncodedFrames, source_bytes
+from shiftkit.pipelines import camera_meta, depth, loaders
+from shiftkit.pipelines.arrow_columns import column_to_numpy
+from shiftkit.pipelines.encoded_frames import PNG, EncodedFrames, source_bytes
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import (
@@ -57,7 +58,7 @@ from shiftkit.pipelines.features import (
     plain_camera_features,
     user_features,
 )
-from shiftkit.pipelines.jsonutil import dumps, read_json_file
+from shiftkit.pipelines.jsonutil import dumps
 from shiftkit.pipelines.local_datasets import find_local_dataset, lerobot_home
 from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
 from shiftkit.pipelines.stats import RunningStats, image_stats, numeric_stats
@@ -87,13 +88,21 @@ def _tiff_bytes(stored: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def image_form(ft: dict[str, Any]) -> str:
+    """What the encoded bytes of an `image` feature store (`encoded_frames`): PNG RGB, or depth in
+    its unit."""
+    return f"depth-{depth.depth_unit(ft)}" if depth.is_depth(ft) else PNG
+
+
 def _frame_bytes(frames: np.ndarray, ft: dict[str, Any]) -> list[bytes]:
     """The encoded bytes of every frame of an `image` feature, a frame's source bytes where it is
-    unchanged (`encoded_frames`): PNG for RGB, TIFF in the stored unit for depth."""
+    unchanged and stored in the same form (`encoded_frames`): PNG for RGB, TIFF in the stored unit
+    for depth."""
+    form = image_form(ft)
     if depth.is_depth(ft):
         unit = depth.depth_unit(ft)
-        return [source_bytes(f, frames) or _tiff_bytes(depth.to_stored(f, unit)) for f in frames]
-    return [source_bytes(f, frames) or _png_bytes(f) for f in frames]
+        return [source_bytes(f, frames, form) or _tiff_bytes(depth.to_stored(f, unit)) for f in frames]
+    return [source_bytes(f, frames, form) or _png_bytes(f) for f in frames]
 
 
 # Statistics that depend on where an episode lands in the dataset; all others are a function of
@@ -142,7 +151,12 @@ def encode_images(episode: Episode, features: Features) -> Episode:
     parallel rather than in the one writer."""
     keys = [k for k, ft in features.items() if ft["dtype"] == "image"]
     return episode.with_frames(
-        **{k: EncodedFrames.wrap(episode.frames[k], _frame_bytes(episode.frames[k], features[k])) for k in keys}
+        **{
+            k: EncodedFrames.wrap(
+                episode.frames[k], _frame_bytes(episode.frames[k], features[k]), image_form(features[k])
+            )
+            for k in keys
+        }
     )
 
 
@@ -456,7 +470,7 @@ def carry_source_metadata(dest: Path, sources: list[Path]) -> None:
             else:
                 shutil.copy2(entry, target)
         if tools is None and (meta / "info.json").is_file():
-            tools = read_json_file(meta / "info.json", "dataset info").get("tools")
+            tools = loaders.load_info(meta / "info.json").get("tools")
     if tools is not None:
         info = load_info(dest)
         info.tools = tools
@@ -482,9 +496,12 @@ def _numeric_arrow_array(values: Any, arrow_type: Any) -> Any:
 
 
 def write_provenance(root: Path, provenance: dict[str, Any]) -> None:
-    """The machine-readable provenance and the dataset card rendered from it (after info/stats)."""
+    """The machine-readable provenance, with the quality verdict on what was written
+    (`pipelines.quality`), and the dataset card rendered from it (after info/stats)."""
     from shiftkit.cards import render_dataset_card
+    from shiftkit.pipelines.quality import quality_verdict
 
+    provenance = {**provenance, "quality": quality_verdict(root)}
     (root / PROVENANCE_PATH).write_text(dumps(provenance, indent=2))
     # errors=: a source path that is not UTF-8 is shown escaped rather than failing the write.
     (root / "README.md").write_text(render_dataset_card(root, provenance), errors="backslashreplace")
@@ -632,13 +649,15 @@ class LeRobotDatasetReader:
             col = part.column(key)
             if ft["dtype"] == "image":
                 encoded = [v["bytes"] for v in col.to_pylist()]  # kept: unchanged frames are not re-encoded
-                frames[key] = EncodedFrames.wrap(np.stack([decode_image(b, where, ft) for b in encoded]), encoded)
+                frames[key] = EncodedFrames.wrap(
+                    np.stack([decode_image(b, where, ft) for b in encoded]), encoded, image_form(ft)
+                )
             elif ft["dtype"] == "language":
                 frames[key] = object_column(col.to_pylist())  # a list of messages per frame
             elif ft["dtype"] == "string":
                 frames[key] = np.array(col.to_pylist(), dtype=str).reshape(n, 1)
             else:
-                arr = _column_to_numpy(col, tuple(ft["shape"]), np.dtype(ft["dtype"]))
+                arr = column_to_numpy(col, np.dtype(ft["dtype"]))
                 frames[key] = arr.reshape((n, *ft["shape"]))
         task_idx = part.column("task_index").to_numpy()
         frames["task"] = np.array([self.tasks[t] for t in task_idx], dtype=str)
@@ -654,19 +673,6 @@ class LeRobotDatasetReader:
         offset = float(row[f"videos/{key}/from_timestamp"])
         where = f"{self.root} episode {int(row['episode_index'])} {key}"
         return decode_video(path, offset, timestamps, where, self._features[key])
-
-
-def _column_to_numpy(col: Any, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
-    import pyarrow as pa
-
-    col = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
-    while pa.types.is_list(col.type) or pa.types.is_fixed_size_list(col.type) or pa.types.is_large_list(col.type):
-        col = col.flatten()
-    if hasattr(col, "storage"):  # datasets' ArrayND extension types
-        col = col.storage
-        while hasattr(col, "flatten") and not pa.types.is_primitive(col.type) and not pa.types.is_boolean(col.type):
-            col = col.flatten()
-    return np.asarray(col.to_numpy(zero_copy_only=False), dtype=dtype)
 
 
 def decode_image(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
@@ -710,28 +716,6 @@ def _decode_depth(data: bytes, where: str, ft: dict[str, Any]) -> np.ndarray:
     return depth.clean_metres(depth.to_metres(arr, (ft.get("info") or {}).get("depth_unit")))
 
 
-def check_info_values(info: dict[str, Any], info_path: Path) -> None:
-    """The types of info.json values the reader relies on (a hand-edited file may be off)."""
-    fps = info["fps"]
-    if isinstance(fps, bool) or not isinstance(fps, int) or fps <= 0:
-        raise DatasetError(f"{info_path}: 'fps' must be a positive integer, got {fps!r}")
-    if not isinstance(info["data_path"], str) or (
-        "video_path" in info and info["video_path"] is not None and not isinstance(info["video_path"], str)
-    ):
-        raise DatasetError(f"{info_path}: 'data_path' / 'video_path' must be strings")
-    features = info["features"]
-    if not isinstance(features, dict) or not features:
-        raise DatasetError(f"{info_path}: 'features' must be a non-empty object")
-    for key, ft in features.items():
-        shape = ft.get("shape") if isinstance(ft, dict) else None
-        if (
-            not isinstance(ft.get("dtype") if isinstance(ft, dict) else None, str)
-            or not isinstance(shape, list | tuple)
-            or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
-        ):
-            raise DatasetError(f"{info_path}: feature {key!r} needs a 'dtype' string and a 'shape' list of sizes")
-
-
 def require_utf8_path(path: Path, what: str, verb: str) -> None:
     """pyarrow (LeRobot's parquet files) opens UTF-8 paths only: a one-line error naming the path
     rather than a parquet error about a file that is fine."""
@@ -754,15 +738,16 @@ def open_lerobot_dataset(root: str | Path) -> LeRobotDatasetReader:
     info_path = root / "meta" / "info.json"
     if not root.is_dir():
         raise DatasetError(f"dataset not found: {root}")
-    info = read_json_file(info_path, "not a LeRobot dataset")
+    if not info_path.is_file():
+        raise DatasetError(f"{info_path} is missing (not a LeRobot dataset)")
+    info = loaders.load_checked(info_path, loaders.obj(codebase_version=loaders.opt(loaders.ANY)), "info")
     version = str(info.get("codebase_version", ""))
     if version != "v3.0":
         hint = " (convert v2.1 with lerobot's convert_dataset_v21_to_v30)" if version.startswith("v2") else ""
         raise DatasetError(f"{root}: codebase_version {version!r} is not v3.0{hint}")
-    for key in ("fps", "features", "data_path"):
-        if key not in info:
-            raise DatasetError(f"{info_path}: missing key {key!r}")
-    check_info_values(info, info_path)
+    info = loaders.check_value(info, loaders.INFO, str(info_path))
+    if "data_path" not in info:
+        raise DatasetError(f"{info_path}: 'data_path' is missing")
     ep_files = sorted((root / "meta" / "episodes").glob("*/*.parquet"))
     if not ep_files:
         raise DatasetError(f"{root}/meta/episodes: no episode metadata files")
@@ -818,6 +803,12 @@ def fingerprint(root: str | Path) -> str:
             h.update(path.relative_to(root).as_posix().encode())
             h.update(path.read_bytes())
     return h.hexdigest()[:16]
+
+
+def dataset_fingerprint(root: Path) -> str | None:
+    """`fingerprint` of a LeRobot dataset folder, None for any other path (so that two folders that
+    are no datasets never look alike): the content key of `staging.check_inputs_and_outputs`."""
+    return fingerprint(root) if (Path(root) / "meta" / "info.json").is_file() else None
 
 
 def _not_a_dataset(path: Path) -> str:

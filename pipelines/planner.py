@@ -1,20 +1,25 @@
 """Validate a pipeline without running it: open sources, build stages, predict the output schema.
 
 Each source first runs its own stages (`[[sources]] stages`), which must bring every source to one
-schema (features, dtypes, shapes, dimension names, fps); the pipeline's common stages then run on
-that schema. Where the sources still differ, the plan fails with one line naming the source, the
-feature, the difference and the stage that would remove it (docs/merging.md).
+schema (features, dtypes, shapes, dimension names, units, fps); the pipeline's common stages then
+run on that schema. Where the sources still differ, the plan fails with one line naming the source,
+the feature, the difference and the stage that would remove it (docs/merging.md).
+
+Units are part of the schema. Depth in different units (float32 metres, uint16 millimetres) is
+not a difference to fix by hand: shiftkit holds depth in metres, so every source's depth is stored
+in the first source's unit (or the unit a `depth_image` stage chooses) and the provenance records
+each source's conversion (`depth_units`). Any other declared unit (a feature `info` key named
+`unit` or `*_unit`) must match.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from shiftkit.pipelines.config import PipelineConfig, StageSpec
-from shiftkit.pipelines.depth import is_depth
+from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
+from shiftkit.pipelines.depth import depth_unit, is_depth
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import (
     CAMERA_DTYPES,
@@ -45,6 +50,16 @@ class Plan:
     def __post_init__(self) -> None:
         if self.source_stages is None:
             self.source_stages = [[] for _ in self.sources]
+
+    def depth_units(self, source: int) -> dict[str, list[str]]:
+        """The depth features of `source` that the output stores in another unit: feature ->
+        [the source's unit, the output's] (the provenance records it)."""
+        own = self.sources[source].features
+        return {
+            key: [depth_unit(own[key]), depth_unit(ft)]
+            for key, ft in self.features.items()
+            if key in own and is_depth(ft) and is_depth(own[key]) and depth_unit(own[key]) != depth_unit(ft)
+        }
 
     @property
     def destination(self) -> Path:
@@ -93,12 +108,14 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
         chains.append((own, features, fps))
     _, first_features, first_fps = chains[0]
     for i, (_, features, fps) in enumerate(chains[1:], start=1):
+        features = in_units_of(first_features, features)
         mismatch = schema_mismatch(first_features, first_fps, features, fps, config.destination.video is not None)
         if mismatch:
             raise DatasetError(f"{_source_name(config, i)} {mismatch}")
     stages, features, fps = build_chain(config.stages, first_features, first_fps, "stages")
     if config.destination.video is not None:
         features = plain_camera_features(features, "video" if config.destination.video else "image")
+    features = {k: _video_at(ft, fps) for k, ft in features.items()}
     plan = Plan(
         config,
         sources,
@@ -112,10 +129,47 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     )
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
-    for i, src in enumerate(config.sources):
-        if src.path is not None and plan.destination.resolve().is_relative_to(Path(src.path).resolve()):
-            raise DatasetError(f"destination {plan.destination} lies inside sources[{i}]; choose one outside it")
+    check_sources_and_destination(config, sources, plan.destination)
     return plan
+
+
+def check_sources_and_destination(config: PipelineConfig, sources: list[Any], destination: Path) -> None:
+    """No source twice (by resolved path or, for LeRobot datasets, content; with the same own stages)
+    and the destination outside every source (`staging.check_inputs_and_outputs`)."""
+    from shiftkit.pipelines.lerobot_io import dataset_fingerprint
+    from shiftkit.pipelines.staging import check_inputs_and_outputs
+
+    groups: dict[str, list[tuple[str, Path]]] = {}
+    for i, (spec, src) in enumerate(zip(config.sources, sources, strict=True)):
+        root = getattr(src, "root", None) or spec.path
+        if root is not None:  # a source listed twice with other own stages yields other episodes
+            groups.setdefault(repr(spec.stages), []).append((_source_name(config, i), Path(root)))
+    for inputs in groups.values():
+        check_inputs_and_outputs(inputs, [("destination", destination)], content_key=dataset_fingerprint)
+
+
+def _video_at(feature: dict[str, Any], fps: int) -> dict[str, Any]:
+    """A video feature's recorded frame rate is the output's (lerobot's writer records it anew)."""
+    info = feature.get("info") or {}
+    if "video.fps" not in info or info["video.fps"] == fps:
+        return feature
+    return {**feature, "info": {**info, "video.fps": fps}}
+
+
+def in_units_of(ref: Features, features: Features) -> Features:
+    """`features` with each depth feature in the unit of `ref`'s feature of that name: depth is
+    float32 metres inside shiftkit, the unit only says how the writer stores it."""
+    out = dict(features)
+    for key, ft in features.items():
+        if key in ref and is_depth(ft) and is_depth(ref[key]) and depth_unit(ft) != depth_unit(ref[key]):
+            out[key] = {**ft, "info": {**(ft.get("info") or {}), "depth_unit": depth_unit(ref[key])}}
+    return out
+
+
+def declared_units(feature: dict[str, Any]) -> dict[str, Any]:
+    """A feature's declared units other than depth's: its `info` keys `unit` and `*_unit`."""
+    info = feature.get("info") or {}
+    return {k: v for k, v in info.items() if (k == "unit" or k.endswith("_unit")) and k != "depth_unit"}
 
 
 def _source_name(config: PipelineConfig, i: int) -> str:
@@ -123,18 +177,9 @@ def _source_name(config: PipelineConfig, i: int) -> str:
     return f"sources[{i}] ({Path(src.path).name if src.path is not None else src.repo_id})"
 
 
-def toml_value(value: Any) -> str:
-    """A parameter value as written in a pipeline TOML file (inline)."""
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{json.dumps(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(toml_value(v) for v in value) + "]"
-    return json.dumps(value)
-
-
 def _fix(where: str, name: str, params: dict[str, Any]) -> str:
     shown = ", ".join(f"{k} = {toml_value(v)}" for k, v in params.items())
-    return f"add {{name = {json.dumps(name)}, params = {{{shown}}}}} to {where}"
+    return f"add {{name = {toml_string(name)}, params = {{{shown}}}}} to {where}"
 
 
 def schema_mismatch(ref: Features, ref_fps: int, features: Features, fps: int, any_camera_storage: bool) -> str | None:
@@ -187,6 +232,11 @@ def _feature_mismatch(key: str, ref: dict[str, Any], ft: dict[str, Any], any_cam
         if cameras:
             return f"is stored as {dtype}, sources[0] as {ref_dtype}; set [destination] video = true or false"
         return f"has dtype {dtype}, sources[0] has {ref_dtype}; no stage converts one to the other, drop it"
+    if declared_units(ft) != declared_units(ref):
+        return (
+            f"has units {declared_units(ft)}, sources[0] has {declared_units(ref)}; no stage converts them, "
+            "convert the data or drop it"
+        )
     if cameras:
         if is_depth(ft) != is_depth(ref):
             return "is a depth map in one source and RGB in the other; drop or rename it"

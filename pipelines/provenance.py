@@ -29,6 +29,11 @@ def versions(packages: tuple[str, ...] = ("shiftkit", "lerobot")) -> dict[str, A
     return {**out, **source_revision()}
 
 
+# What makes a checkout's code differ from its commit: Python files, the packaging and the package data
+# (not the datasets, runs and configs a user keeps in a clone).
+CODE_PATHS = ("*.py", "pyproject.toml", "cards/templates/*", "envs/*/assets/*")
+
+
 @functools.cache
 def source_revision() -> dict[str, Any]:
     """`{"shiftkit_commit": SHA, "shiftkit_dirty": bool}` of the checkout this code is imported from,
@@ -40,7 +45,10 @@ def source_revision() -> dict[str, Any]:
         git = lambda *args: subprocess.run(  # noqa: E731
             ["git", "-C", str(root), *args], capture_output=True, text=True, check=True, timeout=30
         ).stdout.strip()
-        return {"shiftkit_commit": git("rev-parse", "HEAD"), "shiftkit_dirty": bool(git("status", "--porcelain"))}
+        return {
+            "shiftkit_commit": git("rev-parse", "HEAD"),
+            "shiftkit_dirty": bool(git("status", "--porcelain", "--", *CODE_PATHS)),
+        }
     except (OSError, subprocess.SubprocessError):
         return {}
 
@@ -78,16 +86,19 @@ def build_provenance(
     """A pipeline run's provenance. `report` (`assembly.RunReport`): the run's totals of the events
     each stage counted (`Stage.report`), stored as the stage entry's "report" when it counted any,
     and the output episodes per source. Each source entry records its fps, its own stages and
-    the range of output episodes it became (`episodes`: [first, end))."""
+    the range of output episodes it became (`episodes`: [first, end)) and, where its depth is stored
+    in another unit, which (`depth_units`: feature -> [source unit, output unit])."""
     sources, start = [], 0
     for s, source in enumerate(plan.sources):
         count = report.source_episodes[s]
+        converted = plan.depth_units(s)  # depth stored in another unit than the source's
         sources.append(
             {
                 **source.describe(),
                 "fps": source.fps,
                 "stages": _stage_entries(plan.source_stages[s], report.source_stages[s]),
                 "episodes": [start, start + count],
+                **({"depth_units": converted} if converted else {}),
             }
         )
         start += count
@@ -137,14 +148,24 @@ def recorded_envs(root: Any) -> set[str]:
     raw and simulator sources); empty when it has no provenance or the provenance does not say."""
     from pathlib import Path
 
-    from shiftkit.pipelines.jsonutil import read_json_file
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
 
     path = Path(root) / PROVENANCE_PATH
-    provenance = read_json_file(path, "provenance") if path.is_file() else {}
-    sources = provenance.get("sources") if isinstance(provenance, dict) else None
-    return {
-        s["env"]
-        for s in (sources if isinstance(sources, list) else [])
-        if isinstance(s, dict) and isinstance(s.get("env"), str) and s["env"]
-    }
+    provenance = load_provenance(path) if path.is_file() else {}
+    return {s["env"] for s in provenance.get("sources", []) if s.get("env")}
+
+
+def recorded_verdict_lines(root: Any) -> list[str]:
+    """The quality verdict a dataset's provenance records (the writer's, on what it wrote;
+    `pipelines.quality`), as the lines `run`, `merge` and `import` print after writing; none when
+    there is no provenance."""
+    from pathlib import Path
+
+    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
+    from shiftkit.pipelines.quality import verdict_lines
+
+    path = Path(root) / PROVENANCE_PATH
+    verdict = load_provenance(path).get("quality") if path.is_file() else None
+    return verdict_lines(verdict) if verdict else []

@@ -105,12 +105,36 @@ class Stage(ABC):
         counts, self._report = self._report, {}
         return counts
 
+    @classmethod
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        """Parameters with which the stage gives back its input, a dataset with `features` at `fps`,
+        unchanged (tests/test_stage_invariants.py checks: the same frames, values and bytes), or
+        None when no parameters do (e.g. `multiview` always re-renders)."""
+        return None
+
+    def carried_features(self, features: Features) -> dict[str, str]:
+        """Output feature -> the input feature it carries through the frame map
+        (`Episode.source_frames`): every output frame holds the value of the frame it stands for,
+        and events (`frame_map.EVENT_KEYS`, lerobot's language columns) land where
+        `frame_map.reindexed` puts them; `task` included. `features` is the input schema. Default:
+        every feature the stage outputs under the input's name, dtype, shape and names; a stage
+        that computes new values for such a feature leaves it out. The invariant tests
+        (tests/test_stage_invariants.py) hold every stage to it."""
+        out = self.transform_features(features)
+        same = {k: k for k, ft in out.items() if k in features and _schema(ft) == _schema(features[k])}
+        return {**same, "task": "task"}
+
     def describe(self) -> dict[str, Any]:
         """The stage as the provenance records it (the dataset card cites `citation`)."""
         entry = {"name": self.name, "version": self.version, "params": to_dict(self.config)}
         if self.citation:
             entry["citation"] = self.citation
         return entry
+
+
+def _schema(feature: dict[str, Any]) -> tuple:
+    """What makes two features' values comparable frame for frame: dtype, shape and names."""
+    return feature["dtype"], tuple(feature["shape"]), feature.get("names")
 
 
 _REGISTRY: dict[str, type[Stage]] = {}

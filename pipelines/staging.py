@@ -17,6 +17,7 @@ import hashlib
 import os
 import shutil
 import uuid
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,37 @@ def require_writable(folder: str | Path, flag: str) -> None:
             pass
     except OSError as exc:
         raise ConfigError(f"{flag}: cannot write into {existing} ({exc.strerror})") from None
+
+
+def check_inputs_and_outputs(
+    inputs: Sequence[tuple[str, str | Path]],
+    outputs: Sequence[tuple[str, str | Path]] = (),
+    content_key: Callable[[Path], str | None] | None = None,
+) -> None:
+    """The one rule of every command that writes: an output is never an input, inside one or around
+    one (a run into its own source, a recording over its plan), and no input is given twice, by
+    resolved path (`ds` and `./ds/`, a symlink) or by `content_key` (e.g. a dataset's fingerprint: a
+    copy of the same dataset). `inputs` and `outputs` are (what the user called it, path) pairs; a
+    ConfigError names both in one line."""
+    resolved = [(f"{label} {path}", Path(path).expanduser().resolve()) for label, path in inputs]
+    for label, path in outputs:
+        out = Path(path).expanduser().resolve()
+        for shown, source in resolved:
+            if out == source or out.is_relative_to(source):
+                raise ConfigError(f"{label} {path} lies inside the input {shown}; choose an output outside it")
+            if source.is_relative_to(out):
+                raise ConfigError(f"{label} {path} holds the input {shown}; choose an output that does not")
+    seen: dict[Path, str] = {}
+    keys: dict[str, str] = {}
+    for shown, source in resolved:
+        if source in seen:
+            raise ConfigError(f"{shown} is {seen[source]} again ({source}): give each input once")
+        seen[source] = shown
+        key = content_key(source) if content_key is not None and source.exists() else None
+        if key is not None and key in keys:
+            raise ConfigError(f"{shown} holds the same data as {keys[key]} (a copy): give each input once")
+        if key is not None:
+            keys[key] = shown
 
 
 def staging_path(target: str | Path, kind: str = "partial") -> Path:

@@ -17,6 +17,7 @@ file and fills the feature's `info` from the first episode (`lerobot_io.DatasetW
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,29 @@ from shiftkit.pipelines.depth import VIDEO_DEFAULTS
 from shiftkit.pipelines.errors import DatasetError
 
 TOLERANCE_S = 1e-4  # lerobot's default tolerance between a frame's timestamp and the query
+
+
+@functools.cache
+def decoder_backend() -> str:
+    """The video backend to give lerobot's `LeRobotDataset`: `torchcodec` where it loads FFmpeg
+    here, else `pyav` (whose wheels bundle their own FFmpeg). Chosen up front because lerobot,
+    left to choose, tries torchcodec and logs its loader's traceback (~40 lines, one per FFmpeg
+    version) before falling back to PyAV itself. No FFmpeg shared library on the library path: PyAV,
+    silently (nothing to fix); FFmpeg present but torchcodec still failing (a torch / torchcodec
+    mismatch): PyAV, and one line that says why."""
+    import ctypes.util
+    import importlib.util
+    import logging
+
+    if importlib.util.find_spec("torchcodec") is None or ctypes.util.find_library("avutil") is None:
+        return "pyav"
+    try:
+        import torchcodec  # noqa: F401 - loads its FFmpeg libraries on import
+    except (ImportError, OSError, RuntimeError) as exc:
+        first = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        logging.getLogger(__name__).warning("torchcodec cannot load FFmpeg here (%s); decoding videos with PyAV", first)
+        return "pyav"
+    return "torchcodec"
 
 
 def decode_episode(

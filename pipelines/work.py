@@ -14,7 +14,6 @@ import hashlib
 import json
 import multiprocessing
 import os
-import pickle
 import threading
 import time
 from collections.abc import Iterator
@@ -24,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.pipelines import data_tree
 from shiftkit.pipelines.config import PipelineConfig
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.features import check_episode
@@ -41,10 +41,10 @@ class WorkUnit:
     episodes: tuple[int, ...]
 
 
-def _atomic_pickle(path: Path, obj: Any) -> None:
+def _atomic_save(path: Path, obj: Any) -> None:
     tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
     with open(tmp, "wb") as f:
-        pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
+        data_tree.save_npz(f, obj)
     os.rename(tmp, path)
 
 
@@ -53,20 +53,20 @@ class PartStore:
 
     One file per source episode holds its output episodes, with their images' PNG bytes, and their
     position-independent statistics, computed by the worker so the writer does not have to. Parts
-    are private to one run of one pipeline (the work directory is keyed by `run_key`), so they are
-    plain pickles.
+    are data, not code: arrays in an `.npz` read with `allow_pickle=False` plus a JSON document
+    (`pipelines/data_tree.py`), so a work folder someone copied or sent cannot run code on resume.
     A second, small file per source episode in `metas/` holds just the output metas and the
     stages' event counts for that episode (`Stage.report`; kept even when it has no outputs).
     """
 
-    FORMAT = 2  # of the files; part of `run_key`, so a work dir in another format is not resumed
+    FORMAT = 3  # of the files; part of `run_key`, so a work dir in another format is not resumed
 
     def __init__(self, work_dir: Path) -> None:
         self.dir = work_dir / "parts"
 
     def path(self, source: int, episode: int) -> Path:
         """The part file of one source episode."""
-        return self.dir / f"s{source:03d}_e{episode:07d}.pkl"
+        return self.dir / f"s{source:03d}_e{episode:07d}.npz"
 
     def done(self, source: int, episode: int) -> bool:
         """Whether that source episode is finished (its part file exists)."""
@@ -84,16 +84,15 @@ class PartStore:
             folder.mkdir(parents=True, exist_ok=True)
         # The metas alone first: a dataset-level `select` reads them without loading frames, and the
         # part file (whose presence marks the episode done) only appears once both are complete.
-        _atomic_pickle(self.meta_path(source, episode), {"metas": [ep.meta for ep in outputs], "report": report})
-        _atomic_pickle(self.path(source, episode), records)
+        _atomic_save(self.meta_path(source, episode), {"metas": [ep.meta for ep in outputs], "report": report})
+        _atomic_save(self.path(source, episode), records)
 
     def meta_path(self, source: int, episode: int) -> Path:
         """The small file with that source episode's metas and event counts."""
         return self.dir.parent / "metas" / self.path(source, episode).name
 
     def _small(self, source: int, episode: int) -> dict[str, Any]:
-        with open(self.meta_path(source, episode), "rb") as f:
-            return pickle.load(f)
+        return data_tree.load_npz(self.meta_path(source, episode))
 
     def metas(self, source: int, episode: int) -> list[dict[str, Any]]:
         """The metas of one source episode's outputs, without their frames."""
@@ -105,9 +104,7 @@ class PartStore:
 
     def read(self, source: int, episode: int) -> Iterator[tuple[Episode, dict]]:
         """That source episode's output episodes, each with its statistics."""
-        with open(self.path(source, episode), "rb") as f:
-            records = pickle.load(f)
-        for frames, meta, stats in records:
+        for frames, meta, stats in data_tree.load_npz(self.path(source, episode)):
             yield Episode(frames, meta), stats
 
 
@@ -168,7 +165,8 @@ def transform_episode(plan: Plan, source: int, episode: Episode) -> tuple[list[E
     # Stage j of the chain draws from the same stream as stage j of that chain run alone.
     for j, stage in enumerate(plan.chain(source)):
         rng = episode_rng(plan.config.seed, source, index, j)
-        current = [out for ep in current for out in stage.process(ep, rng)]
+        # each output knows the source frame each of its frames stands for (Episode.follow)
+        current = [out.follow(ep, stage.name) for ep in current for out in stage.process(ep, rng)]
         report.append(stage.take_report())
     where = f"source {source} episode {index}"
     for out in current:

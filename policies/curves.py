@@ -9,7 +9,6 @@ interval comes from bootstrap resamples that draw runs with replacement separate
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,15 +53,20 @@ class Curve:
 
 def read_success(run_dir: Path, metric: str = "success_rate") -> tuple[str, dict[int, float]]:
     """(task, {step: success}) from a run directory's config.json and metrics.jsonl."""
-    try:
-        config = json.loads((run_dir / "config.json").read_text())
-        lines = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if x.strip()]
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ShiftkitError(f"cannot read run {run_dir}: {exc}") from exc
-    points = {int(x["step"]): float(x[metric]) for x in lines if x.get("split") == "eval" and metric in x}
+    from shiftkit.pipelines import loaders
+
+    config = loaders.load_run_config(run_dir / "config.json")
+    lines = loaders.load_metrics(run_dir / "metrics.jsonl", split="eval")
+    evals = [x for x in lines if metric in x]
+    points = {
+        x["step"]: loaders.check_value(
+            x, loaders.obj(**{metric: loaders.number()}), f"{run_dir}/metrics.jsonl step {x['step']}"
+        )[metric]
+        for x in evals
+    }
     if not points:
         raise ShiftkitError(f"run {run_dir} has no evaluation lines with {metric!r}")
-    return str(config.get("args", {}).get("main_task", "")), points
+    return str(config["args"].get("main_task", "")), points
 
 
 def aggregate(label: str, run_dirs: list[Path], reps: int = 2000, seed: int = 0) -> Curve:

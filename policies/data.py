@@ -28,6 +28,7 @@ import torch
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import numpy_dtype
 from shiftkit.pipelines.lerobot_io import ResolvedDataset, decode_image, decode_video, resolve_dataset
+from shiftkit.pipelines.video import decoder_backend
 
 
 def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[ResolvedDataset, object]]:
@@ -40,8 +41,11 @@ def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Resolv
     for ref in refs:
         resolved = resolve_dataset(ref, root=root)
         try:
-            # Depth (features and statistics) in metres, as shiftkit's trainers take it.
-            ds = LeRobotDataset(resolved.repo_id, root=resolved.root, depth_output_unit="m")
+            # Depth (features and statistics) in metres, as shiftkit's trainers take it; the video
+            # backend chosen here, not by lerobot (which logs a long traceback where torchcodec fails).
+            ds = LeRobotDataset(
+                resolved.repo_id, root=resolved.root, depth_output_unit="m", video_backend=decoder_backend()
+            )
         except Exception as exc:  # lerobot raises many types for a bad folder
             raise DatasetError(f"cannot open LeRobot dataset {ref!r} at {resolved.root}: {exc}") from exc
         opened.append((resolved, ds))
@@ -52,20 +56,16 @@ def example_set_origin(root: str | Path) -> str | None:
     """What made the dataset at `root` a success-example set (frames of successful states, not
     demonstrations), as its provenance says: the `success_examples` stage or `import vpace` of
     example files; None for anything else."""
-    from shiftkit.pipelines.jsonutil import read_json_file
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
 
     path = Path(root) / PROVENANCE_PATH
-    try:
-        provenance = read_json_file(path, "provenance") if path.is_file() else {}
-    except DatasetError:
-        return None
-    provenance = provenance if isinstance(provenance, dict) else {}
-    stages = [s.get("name") for s in provenance.get("stages") or [] if isinstance(s, dict)]
-    importer = provenance.get("importer")
+    provenance = load_provenance(path) if path.is_file() else {}
+    stages = [s["name"] for s in provenance.get("stages", [])]
+    importer = provenance.get("importer") or {}
     if "success_examples" in stages:
         return "the success_examples stage"
-    if isinstance(importer, dict) and importer.get("kind") == "examples":
+    if importer.get("kind") == "examples":
         return f"`import {importer.get('name')}` of example files"
     return None
 

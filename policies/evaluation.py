@@ -201,20 +201,21 @@ def policy_rate(path: str | Path) -> int | None:
     """The control rate (Hz) a trained policy acts at: its datasets' fps (BC, FIRE), or for RL
     trainers the rate of the env it trained in; None when the run does not say."""
     from shiftkit.envs import env_family
-    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.pipelines.loaders import load_info
     from shiftkit.policies.run_dir import RunDir, run_folder
 
-    config = RunDir(run_folder(path), resume=True).read_config() or {}
+    config = RunDir(run_folder(path), resume=True).read_config() or {"datasets": [], "args": {}}
     rates = set()
-    for record in config.get("datasets") or []:
-        fps = record.get("fps") if isinstance(record, dict) else None
-        info = Path(str(record.get("root", ""))) / "meta" / "info.json" if isinstance(record, dict) else None
-        if fps is None and info is not None and info.is_file():  # a run recorded before fps was
-            fps = read_json_file(info, "the dataset's info").get("fps")
-        if isinstance(fps, (int, float)) and fps > 0:
-            rates.add(round(fps))
+    for record in config["datasets"]:
+        fps = record.get("fps")
+        info = Path(record.get("root") or "") / "meta" / "info.json"
+        if fps is None and record.get("root") and info.is_file():  # a run recorded before fps was
+            fps = load_info(info)["fps"]
+        if fps is not None:
+            rates.add(fps)
     if config.get("trainer") in ("vpace", "lfgp"):
-        kwargs = (config.get("args") or {}).get("env_kwargs") or {}
+        kwargs = config["args"].get("env_kwargs")
+        kwargs = kwargs if isinstance(kwargs, dict) else {}
         try:
             rates = {int(kwargs.get("control_hz") or env_family(str(config.get("env"))).control_rates[0])}
         except (ValueError, TypeError):  # trained in an env shiftkit does not register
@@ -402,16 +403,16 @@ def training_yaw(policy_path: str | Path) -> dict[str, Any] | None:
     (`meta/cameras.json` base poses): {"episodes", "low", "high"} (low == high: a fixed-view policy),
     or None when the run records no dataset with base poses."""
     from shiftkit.pipelines.camera_meta import episode_cameras, read_cameras_file
-    from shiftkit.pipelines.jsonutil import read_json_file
+    from shiftkit.pipelines.loaders import load_info
     from shiftkit.policies.run_dir import trained_datasets
 
     yaws = []
     for record in trained_datasets(policy_path):
-        root = Path(str(record.get("root", "")))
-        if not (root / "meta" / "info.json").is_file():
+        root = Path(record.get("root") or "")
+        if not record.get("root") or not (root / "meta" / "info.json").is_file():
             continue
         doc = read_cameras_file(root)
-        for i in range(int(read_json_file(root / "meta" / "info.json", "the dataset's info")["total_episodes"])):
+        for i in range(load_info(root / "meta" / "info.json").get("total_episodes", 0)):
             poses = [cam["base_pose"] for cam in episode_cameras(doc, i).values() if "base_pose" in cam]
             yaws += [float(pose["yaw"]) for pose in poses[:1]]
     if not yaws:
@@ -482,7 +483,7 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
 
 def record_evaluation(report: EvalReport, policy_path: str | Path, out: str | Path | None = None) -> Path:
     """Write the per-episode results JSON (default: `<run>/eval/<env>-<task>-seed<S>.json`, with
-    `-<checkpoint name>` added for a checkpoint file such as best.pt) and, when it lands in the policy's
+    `-<checkpoint name>` added for a checkpoint file such as best.safetensors) and, when it lands in the policy's
     run folder, add the result to the run's model card."""
     from shiftkit.policies.run_dir import EVAL, RunDir, checkpoint_name, run_folder
 

@@ -29,7 +29,7 @@ statistics). A recording's episodes rotated mid-task by time count their last st
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,17 +39,18 @@ import torch
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import numpy_dtype, vector_feature
-from shiftkit.pipelines.hub import validate_repo_id
 from shiftkit.pipelines.jsonutil import dumps, read_json_file
-from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset, resolve_dataset
+from shiftkit.pipelines.lerobot_io import DatasetWriter, dataset_fingerprint, open_lerobot_dataset, resolve_dataset
 from shiftkit.pipelines.provenance import make_provenance
+from shiftkit.pipelines.staging import check_inputs_and_outputs
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
 from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule, Segment, roc_curve
-from shiftkit.policies.fire_predictor import RULES, FailurePredictor
+from shiftkit.policies.fire_config import AggregateArgs
+from shiftkit.policies.fire_predictor import FailurePredictor
 from shiftkit.policies.frame_buffer import FrameBuffer
-from shiftkit.policies.run_dir import torch_device
+from shiftkit.policies.run_dir import run_folder, torch_device
 from shiftkit.policies.trainers.bc.args import BCArgs
 
 SOURCE_DEMO, SOURCE_POLICY, SOURCE_EXPERT = 0, 1, 2
@@ -64,61 +65,6 @@ PREDICTOR_FILE = "meta/failure_predictor.pt"
 ROC_FILE = "meta/fire_roc.json"
 
 
-@dataclass
-class AggregateArgs:
-    """Arguments of `shiftkit fire aggregate` (D and rule defaults: thesis 5.4.2)."""
-
-    expert: str
-    """Dataset ID or local folder of the expert demonstrations."""
-    rollouts: list[str]
-    """Dataset IDs or local folders of lerobot DAgger recordings (either `record_autonomous` layout)."""
-    out: str
-    """Folder of the aggregated dataset (must not exist)."""
-    repo_id: str
-    """Repo ID of the aggregated dataset."""
-    root: str | None = None
-    """Local folder of the expert dataset (else resolved by ID)."""
-    policy: str | None = None
-    """BC run folder or checkpoint of the policy that ran the rollouts: D reads its inputs with its
-    normalisation (default: every observation feature, the demonstrations' statistics)."""
-    predictor: str = "gda"
-    """Rule whose requests `intervention_request` marks and the predictor file uses: beta or gda."""
-    seed: int = 0
-    """Seed of D's initialisation and batches."""
-    d_steps: int | None = None
-    """D's gradient steps (default: one per recorded frame)."""
-    d_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    """Discriminator tanh MLP widths."""
-    d_lr: float = 1e-3
-    """Discriminator learning rate."""
-    grad_penalty: float = 10.0
-    """Discriminator gradient-penalty weight."""
-    beta: int = 20
-    """Initial beta of the beta rule."""
-    gamma: float = 0.5
-    """Initial posterior threshold of the GDA rule."""
-    fp_cooldown: int = 5
-    """Steps without requests after a refused one."""
-    device: str = "auto"
-    """auto, cpu or cuda."""
-    progress: bool = False
-    """Show a progress bar over D's training."""
-
-    def check(self) -> None:
-        """ConfigError (one line) for a bad value."""
-        if self.predictor not in RULES:
-            raise ConfigError(f"predictor must be one of {', '.join(RULES)}, got {self.predictor!r}")
-        validate_repo_id(self.repo_id)
-        if self.d_steps is not None and self.d_steps <= 0:
-            raise ConfigError(f"d_steps must be positive, got {self.d_steps}")
-        if not self.d_lr > 0 or self.grad_penalty < 0 or self.beta <= 0 or self.fp_cooldown < 0:
-            raise ConfigError("d_lr and beta must be positive, grad_penalty and fp_cooldown >= 0")
-        if not 0.0 < self.gamma < 1.0:
-            raise ConfigError(f"gamma must be in (0, 1), got {self.gamma}")
-        if any(h <= 0 for h in self.d_hidden):
-            raise ConfigError("d_hidden widths must be positive")
-
-
 def _spec(args: AggregateArgs, expert_root: Path, features: dict[str, dict]) -> PolicySpec:
     """D's inputs and normalisation: the rollout policy's, else the demonstrations' observations."""
     if args.policy is not None:
@@ -126,6 +72,14 @@ def _spec(args: AggregateArgs, expert_root: Path, features: dict[str, dict]) -> 
         missing = [k for k in [*spec.features, "action"] if k not in features]
         if missing:
             raise DatasetError(f"the recordings lack the policy input {missing[0]!r}")
+        # a policy trained on another env's data may share the names but not the sizes
+        for key, ft in {**spec.features, "action": spec.action}.items():
+            want, got = (tuple(ft["shape"]), ft["dtype"]), (tuple(features[key]["shape"]), features[key]["dtype"])
+            if want != got:
+                raise DatasetError(
+                    f"--policy {args.policy} reads {key!r} as {want[1]} {list(want[0])}, the recordings hold "
+                    f"{got[1]} {list(got[0])}: it was trained on other data (another env?) than these rollouts"
+                )
         return spec
     keys = [k for k in features if k.startswith("observation.")]
     if not keys:
@@ -235,6 +189,15 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
     device = torch_device(args.device)
     expert_resolved = resolve_dataset(args.expert, root=args.root)
     expert = open_lerobot_dataset(expert_resolved.root)
+    check_inputs_and_outputs(
+        [
+            ("--expert", expert_resolved.root),
+            *(("--rollouts", resolve_dataset(ref).root) for ref in args.rollouts),
+            *([("--policy", run_folder(args.policy))] if args.policy is not None else []),
+        ],
+        [("--out", out)],
+        content_key=dataset_fingerprint,
+    )
     recordings = open_recordings(args.rollouts, expert.fps, expert.features)
     features = {k: v for k, v in recordings[0].reader.features.items() if k != INTERVENTION}
     if "action" not in features:

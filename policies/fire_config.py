@@ -162,3 +162,65 @@ class FireArgs:
         return dataclasses.replace(
             self, repo_id=repo_id, ensemble_size=members, hidden=list(self.hidden), d_hidden=list(self.d_hidden)
         )
+
+
+# The rules a failure predictor file holds (`policies/fire_predictor.py`); here so that `fire aggregate
+# --help` imports no torch.
+RULES = ("beta", "gda")
+
+
+@dataclass
+class AggregateArgs:
+    """Arguments of `shiftkit fire aggregate` (D and rule defaults: thesis 5.4.2)."""
+
+    expert: str
+    """Dataset ID or local folder of the expert demonstrations."""
+    rollouts: list[str]
+    """Dataset IDs or local folders of lerobot DAgger recordings (either `record_autonomous` layout)."""
+    out: str
+    """Folder of the aggregated dataset (must not exist)."""
+    repo_id: str
+    """Repo ID of the aggregated dataset."""
+    root: str | None = None
+    """Local folder of the expert dataset (else resolved by ID)."""
+    policy: str | None = None
+    """BC run folder or checkpoint of the policy that ran the rollouts: D reads its inputs with its
+    normalisation (default: every observation feature, the demonstrations' statistics)."""
+    predictor: str = "gda"
+    """Rule whose requests `intervention_request` marks and the predictor file uses: beta or gda."""
+    seed: int = 0
+    """Seed of D's initialisation and batches."""
+    d_steps: int | None = None
+    """D's gradient steps (default: one per recorded frame)."""
+    d_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    """Discriminator tanh MLP widths."""
+    d_lr: float = 1e-3
+    """Discriminator learning rate."""
+    grad_penalty: float = 10.0
+    """Discriminator gradient-penalty weight."""
+    beta: int = 20
+    """Initial beta of the beta rule."""
+    gamma: float = 0.5
+    """Initial posterior threshold of the GDA rule."""
+    fp_cooldown: int = 5
+    """Steps without requests after a refused one."""
+    device: str = "auto"
+    """auto, cpu or cuda."""
+    progress: bool = False
+    """Show a progress bar over D's training."""
+
+    def check(self) -> None:
+        """ConfigError (one line) for a bad value."""
+        if self.predictor not in RULES:
+            raise ConfigError(f"predictor must be one of {', '.join(RULES)}, got {self.predictor!r}")
+        from shiftkit.pipelines.hub import validate_repo_id
+
+        validate_repo_id(self.repo_id)
+        if self.d_steps is not None and self.d_steps <= 0:
+            raise ConfigError(f"d_steps must be positive, got {self.d_steps}")
+        if not self.d_lr > 0 or self.grad_penalty < 0 or self.beta <= 0 or self.fp_cooldown < 0:
+            raise ConfigError("d_lr and beta must be positive, grad_penalty and fp_cooldown >= 0")
+        if not 0.0 < self.gamma < 1.0:
+            raise ConfigError(f"gamma must be in (0, 1), got {self.gamma}")
+        if any(h <= 0 for h in self.d_hidden):
+            raise ConfigError("d_hidden widths must be positive")

@@ -35,10 +35,10 @@ from shiftkit.pipelines.errors import DatasetError
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.failure_predictors import BetaRule, GDARule
+from shiftkit.policies.fire_config import RULES
 
 FORMAT = "shiftkit-failure-predictor"
 VERSION = 2  # 2: GDA keeps executed segments (smoothing, ROC-derived threshold)
-RULES = ("beta", "gda")
 
 
 def _plain(state: Any) -> Any:

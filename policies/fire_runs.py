@@ -4,11 +4,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from shiftkit.pipelines import loaders
 from shiftkit.policies.evaluation import wilson_interval
 from shiftkit.policies.run_dir import RunDir
 
@@ -35,18 +35,27 @@ def summary(run_dir: RunDir, counters: dict) -> dict:
     }
 
 
+# What the figures read from each per-episode line of a FIRE run's metrics.jsonl.
+EPISODE_LINE = loaders.obj(
+    d_ready=loaders.boolean,
+    policy_success=loaders.boolean,
+    expert_samples=loaders.number(0.0),
+    execution_time_s=loaders.number(0.0),
+    scores=loaders.map_of(loaders.number(finite=False)),  # a rule's score may be infinite
+)
+
+
 def read_episode_lines(run_path: str | Path) -> list[dict]:
-    """The per-episode metric lines of a FIRE run; ShiftkitError (one line) for anything else."""
+    """The per-episode metric lines of a FIRE run, each with the numbers the figures read;
+    ShiftkitError (one line) for anything else."""
     from shiftkit.pipelines.errors import ShiftkitError
 
     run_dir = RunDir(Path(run_path), resume=True)
     config = run_dir.read_config() if (Path(run_path) / "config.json").is_file() else None
-    if config is None or config.get("trainer") != "fire":
+    if config is None or config["trainer"] != "fire":
         raise ShiftkitError(f"{run_path} is not a FIRE run folder (no config.json of trainer 'fire')")
-    try:
-        lines = [x for x in run_dir.read_metrics() if x.get("split") == "episode"]
-    except (json.JSONDecodeError, KeyError) as exc:
-        raise ShiftkitError(f"{run_path}: unreadable metrics.jsonl ({exc})") from None
+    metrics = Path(run_path) / "metrics.jsonl"
+    lines = loaders.load_metrics(metrics, EPISODE_LINE, split="episode") if metrics.is_file() else []
     if not lines:
         raise ShiftkitError(f"FIRE run {run_path} has no finished episode yet")
     return lines
@@ -56,9 +65,13 @@ def roc_scores(lines: list[dict]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Per-predictor episode scores (beta, gda and, for an ensemble policy, doubt and the quantile OR
     of gda and doubt) and the labels (the policy's uninterrupted run failed) of the episodes after D
     started."""
+    from shiftkit.pipelines.errors import ShiftkitError
     from shiftkit.policies.failure_predictors import quantile_or
 
     ready = [x for x in lines if x["d_ready"]]
+    missing = {name for x in ready for name in ("beta", "gda") if name not in x["scores"]}
+    if missing:
+        raise ShiftkitError(f"a FIRE episode line has no {sorted(missing)[0]!r} score")
     names = [n for n in ("beta", "gda", "doubt") if all(n in x["scores"] for x in ready)]
     scores = {name: np.array([x["scores"][name] for x in ready], dtype=float) for name in names}
     if "doubt" in scores:
@@ -118,7 +131,6 @@ def bc_reference(run_paths: list[str | Path]) -> dict:
     those frames / fps, success = its evaluations' episodes (the one eval/*.json of each run) with the
     Wilson 95% interval."""
     from shiftkit.pipelines.errors import ShiftkitError
-    from shiftkit.pipelines.jsonutil import read_json_file
     from shiftkit.policies.run_dir import EVAL, trained_datasets
 
     samples, seconds, successes, episodes = [], [], 0, 0
@@ -128,18 +140,19 @@ def bc_reference(run_paths: list[str | Path]) -> dict:
             raise ShiftkitError(f"{path} is not a run folder that names its training datasets (config.json)")
         frames = time_s = 0.0
         for record in datasets:
-            info = read_json_file(Path(str(record.get("root", ""))) / "meta" / "info.json", "the dataset's info")
-            frames += info["total_frames"]
-            time_s += info["total_frames"] / (record.get("fps") or info["fps"])
+            info = loaders.load_info(Path(record.get("root") or "") / "meta" / "info.json")
+            total = info.get("total_frames", 0)
+            frames += total
+            time_s += total / (record.get("fps") or info["fps"])
         evals = sorted((path / EVAL).glob("*.json"))
         if len(evals) != 1:
             found = ", ".join(e.name for e in evals) or "none"
             raise ShiftkitError(f"{path}: needs exactly one evaluation in {path / EVAL} (found {found})")
-        result = read_json_file(evals[0], "the run's evaluation")
+        result = loaders.load_evaluation(evals[0])
         samples.append(frames)
         seconds.append(time_s)
-        successes += int(result["successes"])
-        episodes += int(result["episodes"])
+        successes += result.get("successes", round(result["success_rate"] * result["episodes"]))
+        episodes += result["episodes"]
     low, high = wilson_interval(successes, episodes)
     return {
         "runs": len(samples),

@@ -4,16 +4,22 @@
       config.json        {"trainer": "bc"|"vpace"|..., "args": {...full dataclass...},
                           "datasets": [{"id":..., "root":..., "revision":..., "fingerprint":..., "fps":...}], "seed": ...,
                           "versions": {"shiftkit":..., "lerobot":..., "torch":...}, ...}
-      checkpoints/step-00001000.pt   torch.save dict (models, optimizers, rng states, "step", ...)
+      checkpoints/step-00001000.safetensors   the trainer's state (models, optimizers, rng states, "step",
+                                     ...): every tensor and array in safetensors, the rest as the JSON
+                                     document in its header's metadata ("shiftkit.state")
       checkpoints/last.txt           name of the newest complete checkpoint
-      checkpoints/best.pt            (RL trainers) the policy at its best periodic evaluation
+      checkpoints/best.safetensors   (RL trainers) the policy at its best periodic evaluation
       metrics.jsonl      one JSON object per line, always with "step" and "split" ("train"/"eval"/...)
       README.md          model card rendered by shiftkit.cards
       card.json          the training metrics the card shows (so evaluations can re-render it)
       eval/*.json        evaluation results (`shiftkit eval`), summarised in the card
 
 Checkpoints and last.txt are written to a temporary file and renamed into place, so a run killed at
-any moment leaves the previous checkpoint loadable. Resuming drops the metric lines a killed run
+any moment leaves the previous checkpoint loadable. A checkpoint is data, not code: it is read without
+unpickling anything (`pipelines/data_tree.py` rebuilds the state from the JSON document and the
+tensors), so one pulled from a hub cannot run code when `shiftkit eval` or `--resume` loads it.
+Checkpoints of older shiftkit versions (`step-*.pt`, `best.pt`: torch pickles) are still read, through
+torch's weights-only loader only, which refuses any file holding more than tensors and plain values. Resuming drops the metric lines a killed run
 wrote after its last checkpoint, so the metrics file reads as if the run had never stopped.
 """
 
@@ -21,14 +27,15 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
-from shiftkit.pipelines import provenance
+from shiftkit.pipelines import data_tree, loaders, provenance
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
-from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.lerobot_io import ResolvedDataset
 
 CONFIG = "config.json"
@@ -38,7 +45,10 @@ CARD_METRICS = "card.json"
 EVAL = "eval"
 CHECKPOINTS = "checkpoints"
 LAST = "last.txt"
-BEST = "best.pt"
+SUFFIX = ".safetensors"
+LEGACY_SUFFIX = ".pt"  # torch pickles of older shiftkit versions, read weights-only
+BEST = "best" + SUFFIX
+STATE_KEY = "shiftkit.state"
 
 
 def versions() -> dict[str, Any]:
@@ -61,29 +71,94 @@ def torch_device(name: str) -> torch.device:
 
 
 def run_folder(path: str | Path) -> Path:
-    """The run folder of a run folder or of one of its checkpoint files (`RUN/checkpoints/step-*.pt`)."""
+    """The run folder of a run folder or of one of its checkpoint files (`RUN/checkpoints/step-*.safetensors`)."""
     path = Path(path)
     return path if path.is_dir() else path.parent.parent
 
 
 def checkpoint_name(policy_path: str | Path) -> str | None:
-    """The checkpoint file a policy path names (e.g. `best.pt`), or None for a run folder. Read from the
-    path alone, so a model card can still say it after the file has been pruned."""
+    """The checkpoint file a policy path names (e.g. `best.safetensors`), or None for a run folder. Read
+    from the path alone, so a model card can still say it after the file has been pruned."""
     path = Path(policy_path)
-    return path.name if path.suffix == ".pt" else None
+    return path.name if path.suffix in (SUFFIX, LEGACY_SUFFIX) else None
+
+
+def checkpoint_bytes(state: dict) -> bytes:
+    """`state` as a safetensors file: its tensors and arrays as tensors, the rest as the JSON document
+    in the header's metadata (`data_tree`)."""
+    from safetensors.torch import save
+
+    doc, arrays = data_tree.split(state, (torch.Tensor,))
+    tensors, storages = {}, set()
+    for name, value in arrays.items():
+        tensor = value if isinstance(value, torch.Tensor) else torch.from_numpy(np.array(value))
+        tensor = tensor.detach().cpu().contiguous()
+        storage = tensor.untyped_storage().data_ptr()
+        if storage in storages:  # safetensors stores each storage once: a view of another tensor is copied
+            tensor = tensor.clone()
+        storages.add(tensor.untyped_storage().data_ptr())
+        tensors[name] = tensor
+    return save(tensors, metadata={"format": "pt", STATE_KEY: data_tree.dumps(doc)})
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
-    """A checkpoint's state dict; a truncated or foreign file is a one-line DatasetError."""
-    try:
-        state = torch.load(path, map_location=device, weights_only=False)
-    except FileNotFoundError:
-        raise DatasetError(f"checkpoint not found: {path}") from None
-    except Exception as exc:  # torch/pickle raise many types for a file that is not a checkpoint
-        raise DatasetError(f"{path} is not a readable checkpoint ({type(exc).__name__}: {exc})") from None
+    """A checkpoint's state dict, read as data (no unpickling: a checkpoint someone sent cannot run code);
+    a truncated, foreign or tampered file is a one-line DatasetError."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"checkpoint not found: {path}")
+    if path.suffix == LEGACY_SUFFIX:
+        state = _load_legacy(path, device)
+    else:
+        state = _load_safetensors(path, device)
     if not isinstance(state, dict):
         raise DatasetError(f"{path} is not a shiftkit checkpoint")
     return state
+
+
+def _load_safetensors(path: Path, device: str | torch.device) -> Any:
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt", device=str(device)) as f:
+            metadata = f.metadata() or {}
+            tensors = {name: f.get_tensor(name) for name in f.keys()}  # noqa: SIM118 - safe_open has no iterator
+    except Exception as exc:  # safetensors raises its own error types for a file that is not one
+        raise DatasetError(
+            f"{path} is not a readable checkpoint (not a safetensors file: {type(exc).__name__})"
+        ) from None
+    if STATE_KEY not in metadata:
+        raise DatasetError(f"{path} is not a shiftkit checkpoint (its metadata has no {STATE_KEY!r})")
+    return data_tree.join(data_tree.loads(metadata[STATE_KEY], str(path)), tensors, str(path))
+
+
+def _load_legacy(path: Path, device: str | torch.device) -> Any:
+    """A `.pt` checkpoint of an older shiftkit, through torch's weights-only unpickler only."""
+    import pickle
+    import zipfile
+
+    if not zipfile.is_zipfile(path):  # torch.save writes a zip archive; anything else is no checkpoint
+        raise DatasetError(f"{path} is not a readable checkpoint (not a torch checkpoint archive)")
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        refused = " ".join(str(exc).split("\n")[0].split())[:160]
+        raise DatasetError(
+            f"{path}: refused: this .pt file holds more than tensors and plain values, and shiftkit never "
+            f"unpickles code from a checkpoint ({refused})"
+        ) from None
+    except Exception as exc:  # torch raises many types for a file that is not a checkpoint
+        raise DatasetError(f"{path} is not a readable checkpoint ({type(exc).__name__})") from None
+
+
+def check_checkpoint_files(folder: Path) -> None:
+    """Every checkpoint file of a run folder (a pulled one) reads as data: one line naming the first
+    that does not. Its config.json, when there is one, is a run config."""
+    if (folder / CONFIG).is_file():
+        loaders.load_run_config(folder / CONFIG)
+    for path in sorted(folder.rglob("*")):
+        if path.suffix in (SUFFIX, LEGACY_SUFFIX) and path.is_file():
+            load_checkpoint(path)
 
 
 def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | int | None]]:
@@ -95,7 +170,7 @@ def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | int
             "root": str(r.root),
             "revision": r.revision,
             "fingerprint": r.fingerprint,
-            "fps": read_json_file(Path(r.root) / "meta" / "info.json", "the dataset's info").get("fps"),
+            "fps": loaders.load_info(Path(r.root) / "meta" / "info.json")["fps"],
         }
         for r in resolved
     ]
@@ -105,12 +180,12 @@ def trained_datasets(path: str | Path) -> list[dict]:
     """The `datasets` records of config.json of the run at `path` (a run folder or one of its
     checkpoints): what it trained on; [] for a run that names none or a folder that is no run."""
     config = RunDir(run_folder(path), resume=True).read_config() or {}
-    return [record for record in config.get("datasets") or [] if isinstance(record, dict)]
+    return list(config.get("datasets", []))
 
 
 def _atomic_write(path: Path, write) -> None:
-    """Write through a temporary file renamed into place; a failed write (a full disk: torch.save
-    reports it as a RuntimeError) leaves no temporary file and is one line."""
+    """Write through a temporary file renamed into place; a failed write (a full disk) leaves no
+    temporary file and is one line."""
     import errno
 
     tmp = path.with_name(f".{path.name}.tmp")
@@ -119,12 +194,9 @@ def _atomic_write(path: Path, write) -> None:
             write(f)
             f.flush()
             os.fsync(f.fileno())
-    except (OSError, RuntimeError) as exc:
+    except OSError as exc:
         tmp.unlink(missing_ok=True)
-        full = getattr(exc, "errno", None) == errno.ENOSPC or (
-            isinstance(exc, RuntimeError) and ("write" in str(exc).lower() or "inline_container" in str(exc))
-        )
-        if full:
+        if exc.errno == errno.ENOSPC:
             raise ShiftkitError(f"no space left on device writing {path}") from None
         raise
     os.replace(tmp, path)
@@ -164,7 +236,7 @@ class RunDir:
     def read_config(self) -> dict | None:
         """The stored config.json, or None before `write_config`."""
         path = self.path / CONFIG
-        return read_json_file(path, "the run's config") if path.exists() else None
+        return loaders.load_run_config(path) if path.exists() else None
 
     def write_config(self, config: dict, ignore_on_resume: tuple[str, ...] = ("resume",)) -> None:
         """Store the run's config; on resume it must match the stored one's `args` (apart from the
@@ -188,21 +260,25 @@ class RunDir:
         _atomic_write(self.path / CONFIG, lambda f: f.write(text.encode()))
 
     def save_checkpoint(self, step: int, state: dict, keep: int = 2) -> Path:
-        """Write `state` (with `step` added) as checkpoints/step-XXXXXXXX.pt, point last.txt at it and
-        delete all but the newest `keep` checkpoints."""
-        name = f"step-{step:08d}.pt"
+        """Write `state` (with `step` added) as checkpoints/step-XXXXXXXX.safetensors, point last.txt at
+        it and delete all but the newest `keep` checkpoints (older `.pt` ones among them)."""
+        name = f"step-{step:08d}{SUFFIX}"
         path = self.checkpoint_dir / name
-        _atomic_write(path, lambda f: torch.save({**state, "step": step}, f))
+        data = checkpoint_bytes({**state, "step": step})
+        _atomic_write(path, lambda f: f.write(data))
         _atomic_write(self.checkpoint_dir / LAST, lambda f: f.write(name.encode()))
-        for old in sorted(self.checkpoint_dir.glob("step-*.pt"))[:-keep] if keep > 0 else []:
+        steps = [*self.checkpoint_dir.glob(f"step-*{SUFFIX}"), *self.checkpoint_dir.glob(f"step-*{LEGACY_SUFFIX}")]
+        for old in sorted(steps, key=lambda p: p.name)[:-keep] if keep > 0 else []:
             if old.name != name:
                 old.unlink()
         return path
 
     def save_best(self, step: int, state: dict) -> Path:
-        """Write `state` (with `step` added) as checkpoints/best.pt, replacing the previous best."""
+        """Write `state` (with `step` added) as checkpoints/best.safetensors, replacing the previous best."""
         path = self.checkpoint_dir / BEST
-        _atomic_write(path, lambda f: torch.save({**state, "step": step}, f))
+        data = checkpoint_bytes({**state, "step": step})
+        _atomic_write(path, lambda f: f.write(data))
+        (self.checkpoint_dir / ("best" + LEGACY_SUFFIX)).unlink(missing_ok=True)  # a resumed older run's
         return path
 
     def latest_checkpoint(self) -> Path | None:
@@ -210,7 +286,10 @@ class RunDir:
         last = self.checkpoint_dir / LAST
         if not last.exists():
             return None
-        path = self.checkpoint_dir / last.read_text().strip()
+        name = last.read_text(errors="replace").strip()
+        if not re.fullmatch(rf"step-\d{{8}}({re.escape(SUFFIX)}|{re.escape(LEGACY_SUFFIX)})", name):
+            raise DatasetError(f"{last} does not name a checkpoint of this folder ({name[:60]!r})")
+        path = self.checkpoint_dir / name
         if not path.is_file():
             raise ShiftkitError(f"{last} names a missing checkpoint {path.name}")
         return path
@@ -221,7 +300,10 @@ class RunDir:
         if path is None:
             return None
         state = load_checkpoint(path)
-        self._truncate_metrics(int(state["step"]))
+        step = state.get("step")
+        if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+            raise DatasetError(f"{path}: its 'step' must be a non-negative integer, got {step!r}")
+        self._truncate_metrics(step)
         return state
 
     def _truncate_metrics(self, after_step: int) -> None:
@@ -229,7 +311,8 @@ class RunDir:
         if not path.exists():
             return
         lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
-        kept = [ln for ln in lines if json.loads(ln)["step"] <= after_step]
+        steps = [line["step"] for line in loaders.load_metrics(path)]
+        kept = [ln for ln, step in zip(lines, steps, strict=True) if step <= after_step]
         if len(kept) != len(lines):
             text = "".join(ln + "\n" for ln in kept)
             _atomic_write(path, lambda f: f.write(text.encode()))
@@ -243,9 +326,7 @@ class RunDir:
     def read_metrics(self) -> list[dict]:
         """All metric lines, in order."""
         path = self.path / METRICS
-        if not path.exists():
-            return []
-        return [json.loads(ln) for ln in path.read_text().splitlines() if ln.strip()]
+        return loaders.load_metrics(path) if path.exists() else []
 
     def write_model_card(self, metrics: dict) -> None:
         """Render README.md from config.json, the final training `metrics` and the evaluations in eval/."""
@@ -262,10 +343,10 @@ class RunDir:
         if config is None:
             raise ShiftkitError(f"{self.path} has no {CONFIG} to describe in a model card")
         stored = self.path / CARD_METRICS
-        metrics = json.loads(stored.read_text()) if stored.exists() else {}
+        metrics = loaders.load_json_object(stored, "the run's card metrics") if stored.exists() else {}
         envs = []
         for path in sorted((self.path / EVAL).glob("*.json")):
-            ev = json.loads(path.read_text())
+            ev = loaders.load_evaluation(path)
             checkpoint = checkpoint_name(ev.get("policy", ""))
             name = (
                 f"{ev['env']}/{ev['task']} ({f'{checkpoint}, ' if checkpoint else ''}{ev['episodes']} episodes "

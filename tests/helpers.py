@@ -145,7 +145,7 @@ def finished_parts(destination: Path) -> int:
     from shiftkit.pipelines.work import work_dir_for
 
     parts = work_dir_for(Path(destination)) / "parts"
-    return len(list(parts.glob("*.pkl"))) if parts.is_dir() else 0
+    return len(list(parts.glob("*.npz"))) if parts.is_dir() else 0
 
 
 def dataset_bytes(root: Path) -> dict[str, str]:

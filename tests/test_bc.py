@@ -17,6 +17,7 @@ import torch
 from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
 from shiftkit.policies.bc_policy import BCPolicy, Normalization, PolicySpec, load_policy
 from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
+from shiftkit.policies.run_dir import checkpoint_bytes, load_checkpoint
 from shiftkit.policies.trainers.bc.args import BCArgs
 from shiftkit.policies.trainers.bc.training import train, update_members
 
@@ -223,8 +224,8 @@ def test_fixed_regime_learns_and_writes_run(state_ds, tmp_path):
     assert config["trainer"] == "bc" and config["args"]["weight_decay"] == 0.1
     assert config["datasets"][0]["fingerprint"] and config["versions"]["lerobot"]
     assert (out / "README.md").read_text().strip()
-    assert (out / "checkpoints" / "last.txt").read_text() == "step-00000300.pt"
-    assert len(list((out / "checkpoints").glob("step-*.pt"))) == 2  # keep=2
+    assert (out / "checkpoints" / "last.txt").read_text() == "step-00000300.safetensors"
+    assert len(list((out / "checkpoints").glob("step-*.safetensors"))) == 2  # keep=2
 
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -335,7 +336,7 @@ def test_resume_after_kill_equals_uninterrupted_run(state_ds, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()
-    state = torch.load(killed / "checkpoints" / last.read_text(), weights_only=False)
+    state = load_checkpoint(killed / "checkpoints" / last.read_text())
     assert not state["final"] and state["step"] < 3000  # really killed mid-run
 
     args = small_args(state_ds, killed, steps=3000, checkpoint_every=100)
@@ -386,7 +387,7 @@ def test_correction_outside_few_demonstrations_stays_bounded(tmp_path):
 def test_normalization_round_trips_and_is_on_the_card(state_ds, tmp_path):
     out = tmp_path / "run"
     train(small_args(state_ds, out, steps=20, norm_std_floor=0.05, norm_clip=4.0))
-    state = torch.load(out / "checkpoints" / "step-00000020.pt", weights_only=False)
+    state = load_checkpoint(out / "checkpoints" / "step-00000020.safetensors")
     assert state["policy_spec"]["normalization"] == {"std_floor": 0.05, "std_min": 1e-6, "clip": 4.0}
     policy = load_policy(out)
     assert policy.spec.normalization == Normalization(std_floor=0.05, clip=4.0) and policy.normalizer.clip == 4.0
@@ -403,10 +404,10 @@ def test_checkpoint_without_normalization_loads_with_its_legacy_behaviour(tmp_pa
     ds = make_dataset(tmp_path / "few", episodes=5, length=20, still_std=2e-5)
     out = tmp_path / "run"
     train(small_args(ds, out, steps=20))
-    path = out / "checkpoints" / "step-00000020.pt"
-    state = torch.load(path, weights_only=False)
+    path = out / "checkpoints" / "step-00000020.safetensors"
+    state = load_checkpoint(path)
     del state["policy_spec"]["normalization"]
-    torch.save(state, path)
+    path.write_bytes(checkpoint_bytes(state))
     policy = load_policy(out)
     assert policy.spec.normalization is None and policy.normalizer.clip is None
     correction = {"observation.state": torch.tensor([[0.3, -0.2, 0.5, 0.1]])}
@@ -437,3 +438,44 @@ def test_user_errors_are_one_line(state_ds, tmp_path):
     from shiftkit.app.cli import main
 
     assert main(["train", "bc", "--dataset", str(tmp_path / "nowhere"), "--output", str(tmp_path / "r4")]) == 2
+
+
+def test_default_is_one_network_and_ensemble_is_an_option(state_ds, tmp_path):
+    defaults = BCArgs(datasets=["x"], output_dir="y")
+    assert defaults.ensemble_size == 1 and defaults.threads == 1  # one network, one CPU thread
+    train(small_args(state_ds, tmp_path / "one", steps=5, ensemble_size=BCArgs.ensemble_size))
+    assert len(load_policy(tmp_path / "one").members) == 1
+    train(small_args(state_ds, tmp_path / "five", steps=5, ensemble_size=5))
+    assert len(load_policy(tmp_path / "five").members) == 5
+
+
+def test_train_prints_no_video_backend_traceback(state_ds, tmp_path):
+    """lerobot's reader, left to choose its video backend, tries torchcodec and logs its loader's
+    traceback (~40 lines) where torchcodec cannot load FFmpeg: `train` chooses up front."""
+    cli = [sys.executable, "-m", "shiftkit.app.cli", "train", "bc", "--dataset", str(state_ds)]
+    cli += ["--output", str(tmp_path / "run"), "--regime", "fixed", "--steps", "2", "--hidden", "8"]
+    proc = subprocess.run([*cli, "--no-progress", "--device", "cpu"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "torchcodec" not in proc.stderr, proc.stderr[-3000:]
+
+
+def test_video_backend_is_chosen_without_a_traceback(monkeypatch, caplog):
+    import ctypes.util
+    import importlib.util
+
+    from shiftkit.pipelines import video
+
+    video.decoder_backend.cache_clear()
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: object() if name == "torchcodec" else find_spec(name, *a)
+    )
+    monkeypatch.setitem(sys.modules, "torchcodec", None)  # installed, but its import raises ImportError
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)  # no FFmpeg on the library path
+    assert video.decoder_backend() == "pyav" and caplog.records == []
+    video.decoder_backend.cache_clear()
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: f"lib{name}.so.59")  # FFmpeg, broken torchcodec
+    assert video.decoder_backend() == "pyav"
+    (record,) = caplog.records
+    assert record.getMessage().startswith("torchcodec cannot load FFmpeg here (") and "\n" not in record.getMessage()
+    video.decoder_backend.cache_clear()

@@ -139,23 +139,53 @@ def test_fire_options_mirror_every_field_of_its_args(tmp_path):
     assert {f.name for f in dataclasses.fields(FireArgs)} <= flags
 
 
-@pytest.mark.parametrize(
-    "argv",
-    [
-        ["--help"],
-        ["train", "--help"],
-        ["train", "bc", "--help"],
-        ["train", "vpace", "--help"],
-        ["plan", "--help"],
-        ["eval", "--help"],
-        ["collect", "--help"],
-        ["calibrate", "--help"],
-        ["run", "--help"],
-        ["plan", "--stages"],
-        ["plan", "PIPELINE"],
-    ],
-)
-def test_help_imports_no_torch_or_mujoco(argv, synthetic_raw, tmp_path):
+def command_paths(parser: argparse.ArgumentParser | None = None, prefix: tuple[str, ...] = ()) -> list[list[str]]:
+    """Every command and subcommand of `shiftkit` (walked from the full parser), e.g. ["fire",
+    "aggregate"], with [] for `shiftkit` itself."""
+    parser = parser or build_parser()
+    paths = [list(prefix)]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                paths += command_paths(sub, (*prefix, name))
+    return paths
+
+
+def test_the_help_walk_finds_every_command_and_subcommand():
+    paths = command_paths()
+    from shiftkit.app.cli import COMMANDS
+    from shiftkit.policies.trainers import trainers
+
+    assert {p[0] for p in paths if p} == set(COMMANDS)
+    assert ["fire", "aggregate"] in paths and ["plot", "roc"] in paths and ["import", "robomimic"] in paths
+    assert all(["train", name] in paths for name in trainers())
+
+
+def test_every_help_imports_no_torch_or_mujoco():
+    """`--help` of every command and subcommand loads neither torch nor MuJoCo (nor lerobot): each in a
+    fresh interpreter, all of them at once (a process each, run side by side)."""
+    code = (
+        "import sys\nfrom shiftkit.app.cli import main\n"
+        "assert main(sys.argv[1:]) == 0\n"
+        "print(sorted(m for m in ('torch', 'mujoco', 'lerobot') if m in sys.modules))"
+    )
+    procs = {
+        " ".join(path): subprocess.Popen(
+            [sys.executable, "-c", code, *path, "--help"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for path in command_paths()
+    }
+    heavy = {}
+    for name, proc in procs.items():
+        out, err = proc.communicate(timeout=300)
+        last = out.strip().splitlines()[-1] if out.strip() else err[-300:]
+        if proc.returncode != 0 or last != "[]":
+            heavy[name or "shiftkit"] = last
+    assert not heavy, heavy
+
+
+@pytest.mark.parametrize("argv", [["plan", "--stages"], ["plan", "PIPELINE"]])
+def test_planning_imports_no_torch_or_mujoco(argv, synthetic_raw, tmp_path):
     """`--help` of the commands, listing the stages and planning a pipeline whose stages need no env
     load neither torch nor MuJoCo (nor lerobot): env families load when a stage asks for one."""
     from tests.test_executors import write_config

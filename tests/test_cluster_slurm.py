@@ -228,12 +228,12 @@ def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, tmp_path):
     _run_slurm(slurm, config, dest)
     job = _job_id(dest)
     parts = work_dir_for(dest) / "parts"
-    _wait("a first part", lambda: parts.is_dir() and any(parts.glob("*.pkl")), 240, slurm.logs, period=0.05)
+    _wait("a first part", lambda: parts.is_dir() and any(parts.glob("*.npz")), 240, slurm.logs, period=0.05)
     # Stopped (SIGSTOP) as soon as the first episode is done, so the job is caught mid-run, then killed.
     assert slurm.cmd("scontrol", "suspend", job).returncode == 0
     assert slurm.cmd("scancel", job).returncode == 0
     _until_job_ends(slurm, job)
-    done = len(list(parts.glob("*.pkl")))
+    done = len(list(parts.glob("*.npz")))
     assert 1 <= done < episodes
     resumed = _run_slurm(slurm, config, dest)
     assert "submitted again" in resumed.stderr, resumed.stderr

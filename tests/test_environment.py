@@ -82,6 +82,10 @@ def test_two_clones_at_different_commits_each_run_their_own_code(tmp_path):
     # a change to a tracked file shows as a dirty checkout
     (a / "pipelines" / "__init__.py").write_text((a / "pipelines" / "__init__.py").read_text() + "\n")
     assert probe(venv_a)["shiftkit_dirty"] is True
+    # data and configs a user keeps in the clone do not
+    (b / "data").mkdir()
+    (b / "data" / "lift.toml").write_text("seed = 0\n")
+    assert probe(venv_b)["shiftkit_dirty"] is False
 
     # setting up a again does not move b, and deleting b leaves a working
     ensure_env(a)

@@ -522,10 +522,10 @@ def test_missed_failures_are_stopped_where_they_show_and_logged(fire_run, demo):
 def test_gda_learns_from_executed_segments(fire_run):
     """GDA's statistics hold executed stretches: a policy stretch that ended in an intervention is a
     failure, expert corrections are success-class data (the reference's `append_traj`)."""
-    import torch
+    from shiftkit.policies.run_dir import load_checkpoint
 
     run, _ = fire_run
-    state = torch.load(sorted((run / "checkpoints").glob("step-*.pt"))[-1], weights_only=False)
+    state = load_checkpoint(sorted((run / "checkpoints").glob("step-*.safetensors"))[-1])
     lines = _episode_lines(run)
     ends = {i["start"] for x in lines for i in x["interventions"]} | {x["length"] for x in lines if not x["success"]}
     segments = state["gda"]["segments"]
@@ -555,9 +555,8 @@ def test_execution_time_counts_the_demonstrations(fire_run, demo):
 def test_success_finals_join_the_expert_set_but_are_not_expert_samples(fire_run, demo):
     """A success's final (s_T, a_T) joins D_E (thesis 5.3.4) but no expert gave it: expert samples
     = demonstration frames + corrections."""
-    import torch
-
     from shiftkit.policies.fire_recording import load_npz
+    from shiftkit.policies.run_dir import load_checkpoint
 
     run, _ = fire_run
     frames, _ = _demo_frames(demo[2])
@@ -568,7 +567,7 @@ def test_success_finals_join_the_expert_set_but_are_not_expert_samples(fire_run,
         finals += line["success"] and not flags["intervention"][-1, 0]
     assert finals > 0
     assert lines[-1]["expert_samples"] == frames + lines[-1]["corrections"]
-    state = torch.load(sorted((run / "checkpoints").glob("step-*.pt"))[-1], weights_only=False)
+    state = load_checkpoint(sorted((run / "checkpoints").glob("step-*.safetensors"))[-1])
     assert len(state["expert_set"]["action"]) == frames + lines[-1]["corrections"] + finals
 
 
@@ -945,7 +944,7 @@ def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_p
         record_autonomous=False,
     )
     cases = [
-        ([demo_root], "no per-frame 'intervention' feature"),
+        ([demo_root], "is --expert"),  # the demonstrations as rollouts: one input given twice
         ([other_fps], f"at {2 * rec.fps} fps but the demonstrations at {rec.fps} fps"),
         ([only_corrections], "pass --policy RUN"),
         ([tmp_path / "missing"], "missing"),

@@ -228,8 +228,8 @@ def test_bad_sources_are_one_line_errors(tmp_path, capsys, damage, message):
 
 def test_destination_inside_source_is_refused(tmp_path):
     src = _write_v21(tmp_path / "src")
-    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.pipelines.errors import ShiftkitError
 
-    with pytest.raises(DatasetError, match="inside the source"):
+    with pytest.raises(ShiftkitError, match="lies inside the input source"):
         import_lerobot_v21(src, "a/b", src / "converted")
     assert not (src / "converted").exists()

@@ -1,6 +1,6 @@
 """What lerobot 0.6.1 writes beyond frames survives a pipeline: its language columns
-(`language_persistent`, `language_events`: per frame, a list of message rows) through every stage
-that keeps frames, the other files of a source's `meta/` and its info.json `tools`, under the local
+(`language_persistent`, `language_events`: per frame, a list of message rows; a persistent row's
+time moves with the time line) through every stage that keeps frames, the other files of a source's `meta/` and its info.json `tools`, under the local
 and the datatrove executors."""
 
 from __future__ import annotations
@@ -79,7 +79,9 @@ def test_language_columns_survive_stages_and_load_in_lerobot(annotated, tmp_path
     assert [len(ep) for ep in episodes] == [6, 6]
     kept = list(range(1, LENGTH, 2))
     for ep, e in zip(episodes, (0, 2), strict=True):
-        assert list(ep.frames["language_persistent"]) == [_rows(e, t)[0] for t in kept]
+        # the persistent row became active 0.1 s before the first kept frame, which is now at 0 s
+        moved = [{**row, "timestamp": float(np.float32(-0.1))} for row in _rows(e, 0)[0]]
+        assert list(ep.frames["language_persistent"]) == [moved] * len(kept)
         # Each kept frame fires the events of the frames it stands for (frame 6's moves to 5).
         assert list(ep.frames["language_events"]) == [_rows(e, t)[1] + _rows(e, t + 1)[1] for t in kept]
     ds = LeRobotDataset("test/language", root=out)

@@ -150,7 +150,7 @@ def test_merged_dataset_equals_each_chain_alone(two_sources, tmp_path):
     assert _episodes(merged) == alone
 
     info = _cli("info", str(merged))
-    assert "output episodes 2..3 (2)" in info.stdout and "own stage: resize v1" in info.stdout
+    assert "output episodes 2..3 (2)" in info.stdout and "own stage: resize v2" in info.stdout
     lerobot_train_two_steps("test/merged", merged, tmp_path / "train")
 
 
@@ -205,3 +205,52 @@ def test_merge_chooses_the_per_source_stages(two_sources, tmp_path):
     assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
         "shiftkit merge: error: --size: expected WIDTHxHEIGHT, e.g. 64x48, got '64'"
     ]
+
+
+def test_merge_takes_paths_outside_the_basic_multilingual_plane(tmp_path):
+    """A source folder named with an emoji: `merge` builds its pipeline as config objects, so the
+    path is not squeezed through JSON escapes (a surrogate pair TOML refused, a traceback); the
+    printed pipeline is a valid file that `shiftkit run` reads back to the same pipeline."""
+    import shutil
+    import tomllib
+
+    from shiftkit.pipelines.config import parse_pipeline_config
+    from tests.lerobot_recordings import Recording, recording
+
+    robot = shutil.copytree(recording(Recording(fps=10, language=False)), tmp_path / "🤖 demos")
+    other = shutil.copytree(recording(Recording(fps=20, depth_unit="mm", language=False)), tmp_path / 'teleop "\\ 2')
+    out = tmp_path / "merged 🦾"
+    merged = _cli(
+        "merge", str(robot), str(other), "--fps", "10", "--out", str(out), "--repo-id", "test/m", "--no-progress"
+    )
+    assert merged.returncode == 0, merged.stderr[-2000:]
+    text = merged.stdout.rsplit("wrote ", 1)[0]
+    pipeline = parse_pipeline_config(tomllib.loads(text), tmp_path, "printed")
+    assert [s.path for s in pipeline.sources] == [str(robot), str(other)]
+    assert pipeline.sources[1].stages[0].name == "resample" and pipeline.destination.root == str(out)
+    assert json.loads((out / "meta" / "info.json").read_text())["total_episodes"] == 4
+
+
+def test_pipeline_toml_reads_back_to_the_same_config():
+    import tomllib
+
+    from shiftkit.pipelines.config import (
+        DestinationConfig,
+        PipelineConfig,
+        PipelineSource,
+        StageSpec,
+        parse_pipeline_config,
+        pipeline_toml,
+    )
+
+    odd = 'a "quoted" \\ back\tslash\n😀 \x01 end'
+    config = PipelineConfig(
+        sources=[
+            PipelineSource(path=f"/data/{odd}", stages=[StageSpec("map_tasks", {"mapping": {odd: "t"}}, version=1)]),
+            PipelineSource(repo_id="lab/x", revision="v1"),
+        ],
+        destination=DestinationConfig(root="/out/🦾", repo_id="lab/y", video=False),
+        stages=[StageSpec("filter", {"keep_fraction": 0.5, "tasks": [odd], "min_length": 2})],
+        seed=3,
+    )
+    assert parse_pipeline_config(tomllib.loads(pipeline_toml(config)), Path("/"), "toml") == config

@@ -121,7 +121,7 @@ def test_resumed_run_counts_finished_episodes_once(tmp_path, raw, expected, monk
     monkeypatch.setattr(Multiview, "process", stop_at_episode_3)
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(config, progress=False)
-    parts = sorted(p.name for p in (work_dir_for(tmp_path / "resumed") / "parts").glob("*.pkl"))
+    parts = sorted(p.name for p in (work_dir_for(tmp_path / "resumed") / "parts").glob("*.npz"))
     assert len(parts) == 3  # episodes 0-2 finished (2 without any view), their counts kept with them
     monkeypatch.setattr(Multiview, "process", process)
     dest = run_pipeline(config, progress=False)

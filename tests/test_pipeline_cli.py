@@ -51,7 +51,7 @@ def test_plan_prints_schema_and_writes_nothing(tmp_path, synthetic_raw, capsys):
     config = write_config(tmp_path, synthetic_raw, tmp_path / "out")
     assert main(["plan", str(config)]) == 0
     out = capsys.readouterr().out
-    assert "observation.state" in out and "trim v1" in out
+    assert "observation.state" in out and "trim v2" in out
     assert not (tmp_path / "out").exists()
 
 
@@ -59,12 +59,13 @@ def test_run_info_validate(tmp_path, synthetic_raw, capsys):
     config = write_config(tmp_path, synthetic_raw, tmp_path / "out")
     assert main(["run", str(config), "--no-progress"]) == 0
     assert main(["validate", str(tmp_path / "out")]) == 0
+    assert "quality: " in capsys.readouterr().out  # the verdict on what `run` wrote
     assert main(["info", str(tmp_path / "out"), "--json"]) == 0
-    info = json.loads(capsys.readouterr().out.split("\n", 2)[-1])
+    info = json.loads(capsys.readouterr().out)
     assert info["episodes"] == 5 and info["provenance"]["stages"][0]["name"] == "trim"
     assert info["provenance"]["pipeline"]["destination"]["repo_id"] == "test/pipe"
     card = (tmp_path / "out" / "README.md").read_text()
-    assert f"{info['episodes']} episodes, {info['frames']} frames at 10 fps" in card and "`trim` v1" in card
+    assert f"{info['episodes']} episodes, {info['frames']} frames at 10 fps" in card and "`trim` v2" in card
 
 
 def test_two_workers_give_the_same_bytes(tmp_path, synthetic_raw):

@@ -1,11 +1,14 @@
-"""Every registered stage: predicted schema == written schema, same seed -> same bytes, input
-untouched, bad config -> one-line ConfigError. The stages and their examples come from the registry
-(`Stage.example_params`, `Stage.example_input`): a new stage module needs no edit here."""
+"""Every registered stage: predicted schema == written schema (`info` included), the output true to
+its source (`tests/stage_truth.py`: every kept frame holds its source frame's values, events,
+segments and camera metadata follow the frame map) and the written dataset true to the output, same
+seed -> same bytes, input untouched, bad config -> one-line ConfigError. The stages and their
+examples come from the registry (`Stage.example_params`, `Stage.example_input`): a new stage module
+needs no edit here. tests/test_stage_invariants.py runs the same truth checks over lerobot-written
+recordings drawn by hypothesis."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import shutil
 
 import pytest
@@ -17,6 +20,7 @@ from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.sources import SourceConfig
 from shiftkit.pipelines.stage import registered_stages
 from tests.helpers import tree_hashes
+from tests.stage_truth import check_against_source, check_written
 
 # The recordings a stage's `example_input` names: example input -> fixture.
 EXAMPLE_INPUTS = {
@@ -39,6 +43,8 @@ VARIANTS = {
     "mode_label-visual": ("mode_label", {"source": "visual"}, "kinesthetic_raw"),
     # depth (nearest-neighbour) and intrinsics scale with RGB
     "resize-depth": ("resize", {"width": 40, "height": 30}, "mv_lift_raw"),
+    # the depth map alone: the RGB of the same camera keeps its intrinsics
+    "resize-depth-only": ("resize", {"width": 32, "height": 24, "features": ["observation.depth.base"]}, "mv_lift_raw"),
     # a replay plan for a robot: target poses + STS mode only
     "force_match-plan": ("force_match", {"mode": "position", "execute": "plan"}, "kinesthetic_raw"),
 }
@@ -118,25 +124,74 @@ def assert_conforms(name, params, raw, tmp_path):
     dest = tmp_path / "out"
     config = config_for(raw, dest, name, params, seed=7)
     plan = plan_pipeline(config)
+    expected = transformed_and_checked(plan)
     run_pipeline(config, progress=False)
-
-    info = json.loads((dest / "meta" / "info.json").read_text())
-    written = {
-        k: {"dtype": v["dtype"], "shape": tuple(v["shape"]), "names": v["names"]}
-        for k, v in info["features"].items()
-        if k not in ("timestamp", "frame_index", "episode_index", "index", "task_index")
-    }
-    predicted = {
-        k: {"dtype": v["dtype"], "shape": tuple(v["shape"]), "names": v.get("names")} for k, v in plan.features.items()
-    }
-    assert written == predicted
-    assert info["fps"] == plan.fps
+    check_written(dest, plan.features, plan.fps, expected)
 
     first = tree_hashes(dest)
     shutil.rmtree(dest)
     run_pipeline(dataclasses.replace(config), progress=False)
     assert tree_hashes(dest) == first, "same seed must give the same dataset bytes"
     assert tree_hashes(raw) == before, "the input must not be modified"
+
+
+# A recording as users' data is, written by lerobot's own writer: RGB and depth video (depth in
+# uint16 millimetres), two cameras, task segments, language columns, camera metadata.
+LEROBOT_RECORDING = dict(
+    fps=10,
+    lengths=(9, 6),
+    cameras=("front", "wrist"),
+    depth=("front",),
+    depth_unit="mm",
+    video=True,
+    size=(16, 32),
+    tasks=("reach", "grasp"),
+)
+
+
+def _lerobot_recording_cases() -> list:
+    # PyAV's libx265 now and then hands out a packet with an unset decode timestamp on streams of
+    # one or two frames, and muxing it fails ("Not yet implemented in FFmpeg"; lerobot's own writer
+    # fails the same way on such episodes): success_examples writes one-frame episodes.
+    flaky = pytest.mark.xfail(reason="libx265 via PyAV on 1-frame depth videos", strict=False)
+    return [
+        pytest.param(n, id=n, marks=[flaky] if n == "success_examples" else [])
+        for n, cls in sorted(shipped_stages().items())
+        if cls.example_input == "synthetic"
+    ]
+
+
+@pytest.mark.parametrize("name", _lerobot_recording_cases())
+def test_stage_is_true_on_a_lerobot_recording(name, tmp_path):
+    """Each stage that runs on the synthetic recordings, on a lerobot-written video recording: the
+    output true to its source, the written dataset true to the output (video within its coding
+    error, millimetre depth within 0.5 mm), `info` as predicted (the video's recorded size and
+    frame rate those written)."""
+    from tests.lerobot_recordings import Recording, recording
+
+    src = recording(Recording(**LEROBOT_RECORDING))
+    config = config_for(src, tmp_path / "out", name, registered_stages()[name].example_params, seed=7)
+    plan = plan_pipeline(config)
+    expected = transformed_and_checked(plan)
+    run_pipeline(config, progress=False)
+    check_written(tmp_path / "out", plan.features, plan.fps, expected)
+
+
+def transformed_and_checked(plan) -> list:
+    """The plan's outputs computed in memory as the runner computes them (frame maps followed, the
+    dataset-level `select` applied), each checked against its source episode."""
+    from shiftkit.pipelines.stage import select_outputs
+    from shiftkit.pipelines.work import set_up_worker, transform_episode
+
+    set_up_worker(plan)
+    outputs = []
+    for s, src in enumerate(plan.sources):
+        for episode in src.iter_episodes(list(range(src.num_episodes))):
+            outs, _ = transform_episode(plan, s, episode)
+            check_against_source(plan.stages[0], src.features, episode, outs)
+            outputs += outs
+    keep = select_outputs(plan.stages, lambda: [o.meta for o in outputs])
+    return [o for k, o in enumerate(outputs) if keep is None or keep[k]]
 
 
 @pytest.mark.parametrize("name", STAGES)
@@ -178,6 +233,10 @@ class ScaleAction(Stage):
     def transform_features(self, features):
         return features
 
+    def carried_features(self, features):
+        # the action is computed anew; every other feature is the input's (the truth checks hold it to that)
+        return {k: v for k, v in super().carried_features(features).items() if k != "action"}
+
     def process(self, episode, rng):
         yield episode.with_frames(action=episode.frames["action"] * self.config.factor)
 '''
@@ -185,7 +244,7 @@ class ScaleAction(Stage):
 
 def test_a_new_stage_module_is_discovered_and_checked(synthetic_raw_images, tmp_path, monkeypatch):
     """Adding a stage is one new module in the stages package: discovery registers it, `plan --stages`
-    lists it, and the conformance checks above run on it from its registration alone."""
+    lists it, and the conformance and truth checks above run on it from its registration alone."""
     import sys
 
     import shiftkit.transforms
@@ -206,4 +265,8 @@ def test_a_new_stage_module_is_discovered_and_checked(synthetic_raw_images, tmp_
     assert fixture == "synthetic_raw_images"
     assert_conforms(name, params, synthetic_raw_images, tmp_path / "conforms")
     assert_rejects_bad_config(name, synthetic_raw_images, tmp_path / "bad")
+    # the same stage not saying that it computes the action anew: the truth checks catch it
+    monkeypatch.setattr(registered_stages()[name], "carried_features", stage_module.Stage.carried_features)
+    with pytest.raises(AssertionError, match="'action': frame 0 does not hold source frame 0's values"):
+        assert_conforms(name, params, synthetic_raw_images, tmp_path / "silent")
     sys.modules.pop("shiftkit.transforms.scale_action")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Literal, override
+from typing import Any, Literal, override
 
 import numpy as np
 
@@ -54,3 +54,8 @@ class Cast(Stage):
                 raise DatasetError(f"cast: feature {key!r} has NaN/inf values that cannot become {dtype}")
             frames[key] = arr.astype(dtype)
         yield Episode(frames, dict(episode.meta))
+
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        return {"dtypes": {}}

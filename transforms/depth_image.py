@@ -1,15 +1,18 @@
-"""`depth_image`: migrate the depth features older shiftkit versions wrote to lerobot 0.6's native
-depth (`pipelines/depth.py`): 8-bit grey RGB images (decoded to metres through the range recorded
-in the camera metadata, `meta/cameras.json`) and (H, W, 1) float arrays both become (H, W, 1)
-depth features with `is_depth_map` and `depth_unit`, stored as lossless images (or video, with
-`[destination] video = true`). Native depth features pass unchanged, so the stage can run on any
-dataset."""
+"""`depth_image`: depth features as lerobot 0.6's native depth (`pipelines/depth.py`) in one unit.
+
+The depth features older shiftkit versions wrote, 8-bit grey RGB images (decoded to metres through
+the range recorded in the camera metadata, `meta/cameras.json`) and (H, W, 1) float arrays, become
+(H, W, 1) depth features with `is_depth_map` and `depth_unit`, stored as lossless images (or
+video, with `[destination] video = true`). With `unit` set, native depth features are converted to
+it too (float32 metres <-> uint16 millimetres); unset, they keep their own unit, so the stage can
+run on any dataset."""
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Literal, override
+from typing import Any, Literal, override
 
 import numpy as np
 
@@ -18,6 +21,7 @@ from shiftkit.pipelines.depth import (
     DEPTH_PREFIX,
     as_metres,
     depth_feature,
+    is_depth,
     is_legacy_depth,
 )
 from shiftkit.pipelines.episode import Episode
@@ -29,27 +33,33 @@ from shiftkit.pipelines.stage import Stage, register_stage
 class DepthImageConfig:
     """Parameters of `depth_image`."""
 
-    unit: Literal["m", "mm"] = DEFAULT_UNIT
-    """Unit the migrated depth is stored in: "m" (float32 metres, exact) or "mm" (uint16
-    millimetres, half the size, 0.5 mm steps)."""
+    unit: Literal["m", "mm"] | None = None
+    """Unit every depth feature is stored in: "m" (float32 metres, exact) or "mm" (uint16
+    millimetres, half the size, 0.5 mm steps). Unset: migrated depth in metres, native depth in its
+    own unit."""
 
 
 @register_stage
 class DepthImage(Stage):
-    """Rewrites legacy depth features (grey RGB images, float arrays) as native (H, W, 1) depth in `unit`."""
+    """Rewrites legacy depth features (grey RGB images, float arrays) as native (H, W, 1) depth, and every depth feature in `unit` when set."""
 
     name = "depth_image"
-    version = 2
+    version = 3  # v3: `unit` converts native depth too; unset keeps each native feature's unit
     example_params = {"unit": "mm"}
     Config = DepthImageConfig
 
     @override
     def transform_features(self, features: Features) -> Features:
-        out = dict(features)  # idempotent: a dataset with native depth passes unchanged
-        for key in [k for k, ft in features.items() if is_legacy_depth(k, ft)]:
-            h, w = features[key]["shape"][:2]
-            dtype = "video" if features[key]["dtype"] == "video" else "image"
-            out[key] = depth_feature(h, w, dtype, self.config.unit)
+        out = dict(features)
+        for key, ft in features.items():
+            if is_legacy_depth(key, ft):
+                h, w = ft["shape"][:2]
+                dtype = "video" if ft["dtype"] == "video" else "image"
+                out[key] = depth_feature(h, w, dtype, self.config.unit or DEFAULT_UNIT)
+            elif is_depth(ft) and self.config.unit is not None:
+                # depth is float32 metres inside shiftkit: the unit is how the writer stores it
+                out[key] = copy.deepcopy(ft)
+                out[key]["info"] = {**(ft.get("info") or {}), "depth_unit": self.config.unit}
         return out
 
     @override
@@ -62,3 +72,8 @@ class DepthImage(Stage):
                 cameras[cam] = {k: v for k, v in cameras[cam].items() if k != "depth"}
         meta = {**episode.meta, "cameras": cameras} if cameras else dict(episode.meta)
         yield Episode(frames, meta)
+
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        return None if any(is_legacy_depth(k, ft) for k, ft in features.items()) else {}

@@ -28,6 +28,15 @@ def _names(stage: str, features: Features, key: str) -> list[str]:
     return [str(n) for n in names]
 
 
+def _first_vector(features: Features) -> tuple[str, list[str]] | None:
+    """The first vector feature with dimension names, and its names (for identity parameters)."""
+    for key, ft in features.items():
+        names = ft.get("names")
+        if ft["dtype"] in NUMERIC_DTYPES and len(tuple(ft["shape"])) == 1 and isinstance(names, list) and names:
+            return key, [str(n) for n in names]
+    return None
+
+
 def _with_names(features: Features, key: str, names: list[str]) -> Features:
     out = copy.deepcopy(features)
     out[key]["shape"] = (len(names),)
@@ -85,6 +94,12 @@ class Select(Stage):
         arr = episode.frames[self.config.feature]
         yield episode.with_frames(**{self.config.feature: np.ascontiguousarray(arr[:, self._index])})
 
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        vector = _first_vector(features)
+        return {"feature": vector[0], "names": vector[1]} if vector else None
+
 
 @dataclass
 class PadConfig:
@@ -134,6 +149,12 @@ class Pad(Stage):
         have = self._index >= 0
         out[:, have] = arr[:, self._index[have]]
         yield episode.with_frames(**{self.config.feature: out})
+
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        vector = _first_vector(features)
+        return {"feature": vector[0], "names": vector[1]} if vector else None
 
     @override
     def describe(self) -> dict[str, Any]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import override
+from typing import Any, override
 
 import numpy as np
 
@@ -45,3 +45,8 @@ class Drop(Stage):
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         drop = set(self.config.features)
         yield Episode({k: v for k, v in episode.frames.items() if k not in drop}, dict(episode.meta))
+
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        return {"features": []}

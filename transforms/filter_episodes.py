@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import override
+from typing import Any, override
 
 import numpy as np
 
@@ -66,3 +66,8 @@ class FilterEpisodes(Stage):
         self.report("episodes_dropped", int(not keep))
         if keep:
             yield episode
+
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        return {}

@@ -618,6 +618,7 @@ def execute_calibration_plan(plan: str | Path, out: str | Path, env_name: str, t
     plan's arrays plus `ee_pose` (measured, start frame), `wrench_raw` and the simulator state."""
     from shiftkit.envs.door_tactile.lab import PUSH_KINDS, execute_pushes
     from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.pipelines.loaders import load_array
     from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
 
     raw = open_raw_dataset(plan)
@@ -630,7 +631,7 @@ def execute_calibration_plan(plan: str | Path, out: str | Path, env_name: str, t
         with RawDatasetWriter(out, fps=raw.fps, robot=family.robot, env=env_name, names=names, info=info) as writer:
             for i in range(raw.num_episodes):
                 ep_dir = raw.episode_dir(i)
-                arrays = {p.stem: np.load(p) for p in sorted((ep_dir / "arrays").glob("*.npy"))}
+                arrays = {p.stem: load_array(p, "plan array") for p in sorted((ep_dir / "arrays").glob("*.npy"))}
                 meta = raw.read_episode(i).meta
                 # the sensor noise of the simulated push with this seed
                 rng = np.random.default_rng([int(meta.get("seed", i)), PUSH_KINDS.index(meta.get("push_kind"))])

@@ -293,9 +293,13 @@ class ForceMatch(Stage):
         }
         if meta.get("mode_switch_step") is not None:
             out_meta["mode_switch_step"] = int(meta["mode_switch_step"]) * k
+        # replay frame t re-enacts recorded frame t // k: the frame it stands for
+        stands_for = lambda n: episode.origin()[np.minimum(np.arange(n) // k, len(episode) - 1)]  # noqa: E731
         tasks = lambda n: np.asarray(episode.frames["task"])[np.minimum(np.arange(n) // k, len(episode) - 1)]  # noqa: E731
         if self.config.execute == "plan":
-            yield self._plan(targets, modes, warmup, tasks, out_meta)
+            plan = self._plan(targets, modes, warmup, tasks, out_meta)
+            plan.source_frames = stands_for(len(plan))
+            yield plan
             return
         replay = replay_targets(
             self._env(task, self._image_shape),
@@ -324,7 +328,11 @@ class ForceMatch(Stage):
             replay_success=replay.success,
             first_contact_step=replay.first_contact_step,  # the replay's own first contact
         )
-        yield Episode(frames, out_meta)
+        yield Episode(frames, out_meta, stands_for(n))
+
+    @override
+    def carried_features(self, features: Features) -> dict[str, str]:
+        return {"task": "task"}  # a replay records every feature anew
 
     def _plan(self, targets: np.ndarray, modes: np.ndarray, warmup: int, tasks: Any, meta: dict) -> Episode:
         """The replay plan of one demonstration: action t = (target t + 1, mode t) for the T steps

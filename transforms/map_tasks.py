@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import override
+from typing import Any, override
 
 import numpy as np
 
@@ -65,3 +65,12 @@ class MapTasks(Stage):
         if "task" in out.meta:
             out.meta["task"] = self._map(str(out.meta["task"]), where)
         yield out
+
+    @override
+    def carried_features(self, features: Features) -> dict[str, str]:
+        return {k: v for k, v in super().carried_features(features).items() if k != "task"}
+
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        return {"mapping": {}}

@@ -172,6 +172,12 @@ class ModeLabel(Stage):
         return out
 
     @override
+    def carried_features(self, features: Features) -> dict[str, str]:
+        c = self.config
+        labelled = {"action", c.state, c.image, c.visual_image, c.tactile_image}
+        return {k: v for k, v in super().carried_features(features).items() if k not in labelled}
+
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         c = self.config
         n = len(episode)

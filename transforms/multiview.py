@@ -173,6 +173,12 @@ class Multiview(Stage):
             out[DEPTH_KEY] = depth_feature(h, w)
         return out
 
+    @override
+    def carried_features(self, features: Features) -> dict[str, str]:
+        # a view re-renders the cameras and re-expresses the state, action and objects in its base frame
+        rewritten = {*REQUIRED, IMAGE_KEY, DEPTH_KEY, "observation.environment_state"}
+        return {k: v for k, v in super().carried_features(features).items() if k not in rewritten}
+
     @staticmethod
     def _depth_frames(metres: list[np.ndarray]) -> np.ndarray:
         """Rendered depth as shiftkit holds depth: (T, H, W, 1) float32 metres."""

@@ -3,9 +3,10 @@
 RGB is resized as lerobot 0.6.1 resizes camera images (`ImageCropResizeProcessorStep`:
 torchvision's `resize`, bilinear with antialiasing, on float images in [0, 1]), then rounded back
 to uint8. Depth maps take the nearest pixel (pixel centres mapped like OpenCV's `INTER_NEAREST_EXACT`):
-averaging depth across an object's edge would invent surfaces that are not there. The camera's
-intrinsics in the episode metadata (`meta/cameras.json`) are scaled with its image; a frame of the
-requested size passes through untouched.
+averaging depth across an object's edge would invent surfaces that are not there. The intrinsics
+in the episode metadata (`meta/cameras.json`) are scaled with the feature they describe: where a
+camera's RGB and depth share them and only one is resized, the resized one gets intrinsics of its
+own (`camera_meta.cameras_for_features`). A frame of the requested size passes through untouched.
 """
 
 from __future__ import annotations
@@ -17,13 +18,12 @@ from typing import Any, override
 
 import numpy as np
 
+from shiftkit.pipelines.camera_meta import cameras_for_features, feature_entries
 from shiftkit.pipelines.depth import is_depth
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.features import CAMERA_DTYPES, Features
 from shiftkit.pipelines.stage import Stage, register_stage
-
-CAMERA_PREFIXES = ("observation.images.", "observation.depth.")
 
 
 @dataclass
@@ -47,7 +47,7 @@ class Resize(Stage):
     """Resizes camera features (all, or the named ones) to `width` x `height` pixels."""
 
     name = "resize"
-    version = 1
+    version = 2  # v2: intrinsics scaled per feature (a camera's RGB and depth apart)
     example_params = {"width": 32, "height": 24}
     Config = ResizeConfig
 
@@ -58,6 +58,7 @@ class Resize(Stage):
             if key not in cameras:
                 raise ConfigError(f"resize: no camera feature {key!r} (cameras: {', '.join(cameras) or 'none'})")
         self._keys = list(self.config.features) or cameras
+        self._cameras = cameras
         self._depth = {k for k in self._keys if is_depth(features[k])}
         out = copy.deepcopy(features)
         for key in self._keys:
@@ -78,20 +79,28 @@ class Resize(Stage):
             if frames.shape[1:3] == size:
                 continue
             updates[key] = nearest(frames, size) if key in self._depth else bilinear(frames, size)
-            scaled[camera_name(key)] = frames.shape[1:3]
+            scaled[key] = frames.shape[1:3]
         out = episode.with_frames(**updates)
         if scaled and out.meta.get("cameras"):
-            out.meta["cameras"] = scale_intrinsics(out.meta["cameras"], scaled, size)
+            cameras = [k for k in self._cameras if k in episode.frames]
+            entries = {k: feature_entries(out.meta["cameras"], k) for k in cameras}
+            for key, old in scaled.items():
+                if entries[key].get("intrinsics"):
+                    entries[key] = {
+                        **entries[key],
+                        "intrinsics": scale_intrinsics(entries[key]["intrinsics"], old, size),
+                    }
+            out.meta["cameras"] = cameras_for_features(out.meta["cameras"], cameras, entries)
         yield out
 
-
-def camera_name(key: str) -> str:
-    """The camera a feature belongs to (`observation.images.front` and `observation.depth.front`
-    are the camera `front` of `meta/cameras.json`)."""
-    for prefix in CAMERA_PREFIXES:
-        if key.startswith(prefix):
-            return key.removeprefix(prefix)
-    return key
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        sizes = {tuple(ft["shape"])[:2] for ft in features.values() if ft["dtype"] in CAMERA_DTYPES}
+        if len(sizes) != 1:
+            return None  # no one size leaves every camera as it is
+        ((h, w),) = sizes
+        return {"width": w, "height": h}
 
 
 def bilinear(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -113,25 +122,20 @@ def nearest(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.ascontiguousarray(frames[:, rows][:, :, cols])
 
 
-def scale_intrinsics(
-    cameras: dict[str, Any], scaled: dict[str, tuple[int, int]], size: tuple[int, int]
-) -> dict[str, Any]:
-    """The cameras with the intrinsics of each resized camera scaled from its old (h, w) to `size`
-    (pixel centres at integer coordinates, so cx = (width - 1) / 2 stays the centre). Intrinsics
-    that describe another size (e.g. of a depth map left as it is) are kept."""
-    out = copy.deepcopy(cameras)
+def scale_intrinsics(intrinsics: dict[str, Any], old: tuple[int, int], size: tuple[int, int]) -> dict[str, Any]:
+    """Intrinsics of an image of (h, w) `old` scaled to `size` (pixel centres at integer coordinates,
+    so cx = (width - 1) / 2 stays the centre). Intrinsics that describe another size than `old`
+    are returned as they are: they do not describe this image."""
+    if (intrinsics.get("width"), intrinsics.get("height")) != (old[1], old[0]):
+        return intrinsics
     h, w = size
-    for name, (old_h, old_w) in scaled.items():
-        intr = (out.get(name) or {}).get("intrinsics")
-        if not intr or (intr.get("width"), intr.get("height")) != (old_w, old_h):
-            continue
-        sx, sy = w / old_w, h / old_h
-        intr.update(
-            fx=intr["fx"] * sx,
-            fy=intr["fy"] * sy,
-            cx=(intr["cx"] + 0.5) * sx - 0.5,
-            cy=(intr["cy"] + 0.5) * sy - 0.5,
-            width=w,
-            height=h,
-        )
-    return out
+    sx, sy = w / old[1], h / old[0]
+    return {
+        **intrinsics,
+        "fx": intrinsics["fx"] * sx,
+        "fy": intrinsics["fy"] * sy,
+        "cx": (intrinsics["cx"] + 0.5) * sx - 0.5,
+        "cy": (intrinsics["cy"] + 0.5) * sy - 0.5,
+        "width": w,
+        "height": h,
+    }

@@ -1,21 +1,22 @@
 """`subsample`: keep every k-th frame; the dataset's fps becomes fps / k.
 
-A kept frame stands for the frames up to the next kept one: `next.success` / `next.done` are OR-ed
-over that window, so an episode that ends in success still does."""
+A kept frame stands for the frames up to the next kept one (`pipelines/frame_map.py`): events
+(`next.success` / `next.done`, language events) of that window land on it, so an episode that ends
+in success still does; the frames before the first kept one belong to it."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import override
+from typing import Any, override
 
 import numpy as np
 
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.frame_map import reindexed
 from shiftkit.pipelines.stage import Stage, register_stage
-from shiftkit.transforms.episode_events import or_events
 
 
 @dataclass
@@ -37,7 +38,7 @@ class Subsample(Stage):
     """Keeps every `every`-th frame from `offset`; the output fps is the input fps / `every`."""
 
     name = "subsample"
-    version = 2  # v2: episode events OR-ed over the dropped frames
+    version = 3  # v3: events moved by the frame map (a repeated frame fires none), language rows' times follow
     example_params = {"every": 2, "offset": 1}
     resampling_params = {"every": [2, 3, 4, 5], "offset": [0, 1, 2]}
     Config = SubsampleConfig
@@ -54,18 +55,11 @@ class Subsample(Stage):
 
     @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
-        if len(episode) <= self.config.offset:
-            return
-        out = episode.select(slice(self.config.offset, None, self.config.every))
-        starts = np.arange(self.config.offset, len(episode), self.config.every)
-        starts[0] = 0  # events before the first kept frame belong to it
-        or_events(episode.frames, out.frames, starts)
-        out.frames["timestamp"] = np.arange(len(out), dtype=np.float64) / self.transform_fps(self.context.fps)
-        if "segments" in out.meta:
-            k, o = self.config.every, self.config.offset
-            out.meta["segments"] = [
-                {**s, "start": -(-(s["start"] - o) // k), "end": -(-(s["end"] - o) // k)}
-                for s in out.meta["segments"]
-                if -(-(s["end"] - o) // k) > -(-(s["start"] - o) // k)
-            ]
-        yield out
+        index = np.arange(self.config.offset, len(episode), self.config.every)
+        if len(index):
+            yield reindexed(episode, index, np.arange(len(index)) / self.transform_fps(self.context.fps))
+
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        return {"every": 1, "offset": 0}

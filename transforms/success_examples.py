@@ -24,6 +24,7 @@ import numpy as np
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.frame_map import reindexed
 from shiftkit.pipelines.stage import Stage, register_stage
 from shiftkit.transforms import papers
 
@@ -56,7 +57,7 @@ class SuccessExamples(Stage):
     """Turns each success state into a one-frame candidate episode; `select` keeps a seeded `n_per_task` of them per task."""
 
     name = "success_examples"
-    version = 1
+    version = 2  # v2: an example keeps its camera metadata; language rows' times follow it
     citation = papers.VPACE
     example_params = {"n_per_task": 3, "states": "success"}
     Config = SuccessExamplesConfig
@@ -84,14 +85,26 @@ class SuccessExamples(Stage):
             tasks += [task] * len(picked)
         keys = rng.random(len(frames))  # drawn for every candidate: keys never depend on `tasks`
         # Where each example comes from; nested because a reader reusing this dataset as a source
-        # renumbers the top-level `source_episode_index`.
-        source = {k: v for k, v in episode.meta.items() if k != "segments"}
+        # renumbers the top-level `source_episode_index`. The cameras stay where the writer keeps
+        # them (meta/cameras.json): they describe the example's images.
+        source = {k: v for k, v in episode.meta.items() if k not in ("segments", "cameras")}
+        cameras = {"cameras": episode.meta["cameras"]} if episode.meta.get("cameras") else {}
         for frame, task, key in zip(frames, tasks, keys, strict=True):
-            out = episode.select([frame])
-            out.frames["timestamp"] = np.zeros(1, dtype=np.float64)
+            # one frame standing for itself (language rows' times move with it to 0)
+            out = reindexed(episode, np.array([frame]), np.zeros(1), cover=(frame, frame + 1))
             out.frames["task"] = np.array([task])
-            out.meta = {"task": task, "selection_key": float(key), "source": {**source, "frame_index": int(frame)}}
+            out.meta = {
+                "task": task,
+                "selection_key": float(key),
+                "source": {**source, "frame_index": int(frame)},
+                **cameras,
+            }
             yield out
+
+    @override
+    def carried_features(self, features: Features) -> dict[str, str]:
+        # an example's task is its segment's, which the frame after the segment may not have
+        return {k: v for k, v in super().carried_features(features).items() if k != "task"}
 
     @override
     def select(self, metas: list[dict[str, Any]]) -> list[bool] | None:

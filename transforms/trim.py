@@ -1,15 +1,20 @@
-"""`trim`: drop frames at the start and end of each episode (timestamps restart at 0)."""
+"""`trim`: drop frames at the start and end of each episode (timestamps restart at 0).
+
+A kept frame stands for itself only (`frame_map.reindexed` with the kept frames as its cover):
+events of the dropped frames are dropped with them, task segments are clipped, and lerobot's
+persistent language rows move with the time line."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import override
+from typing import Any, override
 
 import numpy as np
 
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.features import Features
+from shiftkit.pipelines.frame_map import rebased_times, reindexed
 from shiftkit.pipelines.stage import Stage, register_stage
 
 
@@ -32,7 +37,7 @@ class Trim(Stage):
     """Drops `head` frames at the start and `tail` at the end of each episode; an episode of at most `head + tail` frames is dropped."""
 
     name = "trim"
-    version = 1
+    version = 2  # v2: language rows' timestamps follow the time line
     example_params = {"head": 1, "tail": 2}
     Config = TrimConfig
 
@@ -46,17 +51,11 @@ class Trim(Stage):
         start, stop = self.config.head, n - self.config.tail
         if stop <= start:
             return  # nothing left of this episode
-        out = episode.select(slice(start, stop))
-        out.frames["timestamp"] = out.frames["timestamp"] - out.frames["timestamp"][0]
-        if "segments" in out.meta:
-            out.meta["segments"] = _shift_segments(out.meta["segments"], start, stop)
-        yield out
+        index = np.arange(start, stop)
+        times = rebased_times(episode.frames["timestamp"], index, self.context.fps)
+        yield reindexed(episode, index, times, cover=(start, stop))
 
-
-def _shift_segments(segments: list[dict], start: int, stop: int) -> list[dict]:
-    kept = []
-    for seg in segments:
-        s, e = max(seg["start"], start), min(seg["end"], stop)
-        if s < e:
-            kept.append({**seg, "start": s - start, "end": e - start})
-    return kept
+    @classmethod
+    @override
+    def identity_params(cls, features: Features, fps: int) -> dict[str, Any] | None:
+        return {"head": 0, "tail": 0}

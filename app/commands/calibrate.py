@@ -36,9 +36,13 @@ def run(args: argparse.Namespace) -> int:
     """Fit and write the calibration (or write the push plan with `--plan`); return the exit code."""
     from shiftkit.app.calibrate import calibrate, write_plan
     from shiftkit.envs.door_tactile.lab import PUSH_KINDS
+    from shiftkit.pipelines.staging import check_inputs_and_outputs
     from shiftkit.transforms.force_calibration import WRENCH_AXES
 
     config = _options().build(args)
+    outputs = (("--out", config.out), ("--plot", config.plot), ("--plan", config.plan))
+    inputs = [("--from", config.recording)] if config.recording else []
+    check_inputs_and_outputs(inputs, [(flag, path) for flag, path in outputs if path])
     if config.plan:
         sensor = write_plan(config)
         print(

@@ -72,8 +72,7 @@ def _fire_options() -> DataclassOptions:
 
 
 def _aggregate_options() -> DataclassOptions:
-    from shiftkit.policies.fire_aggregate import AggregateArgs
-    from shiftkit.policies.fire_predictor import RULES
+    from shiftkit.policies.fire_config import RULES, AggregateArgs
 
     return DataclassOptions(
         AggregateArgs, rules=_RULES, choices={"predictor": tuple(RULES)}, cli_defaults={"progress": True}

@@ -22,16 +22,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         importer.add_arguments(p)
         p.add_argument("--repo-id", required=True, help="dataset ID of the new dataset, e.g. me/vpace_lift")
         p.add_argument("--root", required=True, help="directory of the new dataset (must not exist)")
-        p.set_defaults(_importer=importer)
+        # the format's positional arguments are its inputs (files or folders it reads)
+        p.set_defaults(_importer=importer, _inputs=[a.dest for a in p._actions if not a.option_strings])
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the chosen importer and print what it wrote; return the exit code."""
+    """Run the chosen importer and print what it wrote and the quality verdict on it; return the exit code."""
+    from shiftkit.pipelines.provenance import recorded_verdict_lines
+    from shiftkit.pipelines.staging import check_inputs_and_outputs
+
     importer = args._importer
+    inputs = [(dest, value) for dest in args._inputs for value in _values(getattr(args, dest))]
+    check_inputs_and_outputs(inputs, [("--root", args.root)])
     summary = importer.run(args)
     for line in importer.report(summary):
         print(line)
     print(
         f"wrote {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps ({summary.kind}) to {summary.root}"
     )
+    for line in recorded_verdict_lines(summary.root):
+        print(line)
     return 0
+
+
+def _values(value: object) -> list[str]:
+    return [str(v) for v in value] if isinstance(value, list | tuple) else [] if value is None else [str(value)]

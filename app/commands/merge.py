@@ -1,22 +1,26 @@
-"""`shiftkit merge A B ... --fps N --out DIR --repo-id ID`: write, print and run the pipeline that
-merges datasets that differ (docs/merging.md).
+"""`shiftkit merge A B ... --fps N --out DIR --repo-id ID`: build, print and run the pipeline that
+merges datasets that differ (docs/merging.md). The pipeline is built as config objects and printed
+as a pipeline file for `shiftkit run`.
 
 Per source it chooses `resample` (to `--fps`), `drop` (features not every source has), `cast`
 (numeric dtypes to the first source's), `select` (the vector dimensions every source has, in the
-first source's order) and `resize` (cameras to `--size`, default the first source's). A choice
-it cannot make (no dimension in common) is one error; write that pipeline by hand then.
+first source's order) and `resize` (cameras to `--size`, default the first source's); the planner
+stores depth recorded in another unit in the first source's. A choice it cannot make (no
+dimension in common) is one error; write that pipeline by hand then.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from shiftkit.pipelines.dataclass_config import field_docs
 from shiftkit.pipelines.option_values import DataclassOptions
+
+if TYPE_CHECKING:
+    from shiftkit.pipelines.config import PipelineConfig
 
 HELP = "merge datasets that differ (fps, features, cameras): write, print and run the merging pipeline"
 
@@ -65,27 +69,29 @@ def _size(text: str | None) -> tuple[int, int] | None:
     return int(w), int(h)
 
 
-def merge_pipeline(refs: list[str], fps: int, out: str, repo_id: str, size: tuple[int, int] | None) -> str:
-    """The pipeline TOML that brings the datasets `refs` to one schema and writes them to `out`."""
+def merge_pipeline(refs: list[str], fps: int, out: str, repo_id: str, size: tuple[int, int] | None) -> PipelineConfig:
+    """The pipeline that brings the datasets `refs` to one schema and writes them to `out`, as config
+    objects (printed with `config.pipeline_toml`; never parsed back from text)."""
+    from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, PipelineSource, StageSpec
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.pipelines.features import CAMERA_DTYPES, NUMERIC_DTYPES
-    from shiftkit.pipelines.planner import toml_value
-    from shiftkit.pipelines.sources import SourceConfig, open_source
+    from shiftkit.pipelines.sources import open_source
 
     if fps < 1:
         raise ConfigError(f"--fps must be >= 1, got {fps}")
-    specs = [SourceConfig(path=str(Path(r).resolve())) if Path(r).exists() else SourceConfig(repo_id=r) for r in refs]
+    specs = [
+        PipelineSource(path=str(Path(r).resolve())) if Path(r).exists() else PipelineSource(repo_id=r) for r in refs
+    ]
     sources = [open_source(s) for s in specs]
     ref = sources[0].features
     common = [k for k in ref if all(k in s.features for s in sources)]
-    lines = []
     for spec, src in zip(specs, sources, strict=True):
-        stages: list[tuple[str, dict[str, Any]]] = []
+        stages = spec.stages
         if src.fps != fps:
-            stages.append(("resample", {"fps": fps}))
+            stages.append(StageSpec("resample", {"fps": fps}))
         extra = [k for k in src.features if k not in common]
         if extra:
-            stages.append(("drop", {"features": extra}))
+            stages.append(StageSpec("drop", {"features": extra}))
         casts = {
             k: ref[k]["dtype"]
             for k in common
@@ -93,7 +99,7 @@ def merge_pipeline(refs: list[str], fps: int, out: str, repo_id: str, size: tupl
             and {src.features[k]["dtype"], ref[k]["dtype"]} <= NUMERIC_DTYPES
         }
         if casts:
-            stages.append(("cast", {"dtypes": casts}))
+            stages.append(StageSpec("cast", {"dtypes": casts}))
         for key in common:
             ft, names = src.features[key], ref[key].get("names")
             if ft["dtype"] in CAMERA_DTYPES or len(tuple(ft["shape"])) != 1 or not isinstance(names, list):
@@ -105,43 +111,35 @@ def merge_pipeline(refs: list[str], fps: int, out: str, repo_id: str, size: tupl
                     "in a pipeline of your own (docs/merging.md)"
                 )
             if ft.get("names") != keep:
-                stages.append(("select", {"feature": key, "names": keep}))
-        target = size
+                stages.append(StageSpec("select", {"feature": key, "names": keep}))
         for key in common:
             ft = src.features[key]
             if ft["dtype"] in CAMERA_DTYPES:
                 h, w = tuple(ref[key]["shape"])[:2]
-                want = target or (w, h)
+                want = size or (w, h)
                 if tuple(ft["shape"])[:2] != (want[1], want[0]):
-                    stages.append(("resize", {"width": want[0], "height": want[1], "features": [key]}))
-        where = f"path = {json.dumps(spec.path)}" if spec.path else f"repo_id = {json.dumps(spec.repo_id)}"
-        lines.append(f"[[sources]]\n{where}")
-        if stages:
-            body = ",\n".join(f"  {{name = {json.dumps(n)}, params = {toml_value(p)}}}" for n, p in stages)
-            lines.append(f"stages = [\n{body},\n]")
-        lines.append("")
-    dest = json.dumps(str(Path(out).resolve()))
-    lines.append(f"[destination]\nroot = {dest}\nrepo_id = {json.dumps(repo_id)}\n")
-    return "\n".join(lines)
+                    stages.append(StageSpec("resize", {"width": want[0], "height": want[1], "features": [key]}))
+    # depth in other units needs no stage: the planner stores every source's in the first one's
+    return PipelineConfig(specs, DestinationConfig(root=str(Path(out).resolve()), repo_id=repo_id))
 
 
 def run(args: argparse.Namespace) -> int:
     """Write and print the merging pipeline, then run it unless `--dry-run`; return the exit code."""
-    import tomllib
-
-    from shiftkit.pipelines.config import parse_pipeline_config
+    from shiftkit.pipelines.config import pipeline_toml
     from shiftkit.pipelines.hub import validate_repo_id
     from shiftkit.pipelines.planner import plan_pipeline
+    from shiftkit.pipelines.provenance import recorded_verdict_lines
     from shiftkit.pipelines.runner import run_pipeline
 
     config = OPTIONS.build(args, sources=args.sources)
     validate_repo_id(config.repo_id)
-    text = merge_pipeline(config.sources, config.fps, config.out, config.repo_id, _size(config.size))
-    pipeline = parse_pipeline_config(tomllib.loads(text), Path.cwd(), "merge pipeline")
+    pipeline = merge_pipeline(config.sources, config.fps, config.out, config.repo_id, _size(config.size))
     plan_pipeline(pipeline)  # a difference the choices above do not cover fails here, before printing
-    print(text)
+    print(pipeline_toml(pipeline))
     if config.dry_run:
         return 0
     path = run_pipeline(pipeline, workers=config.workers, progress=config.progress)
     print(f"wrote {path}")
+    for line in recorded_verdict_lines(path):
+        print(line)
     return 0

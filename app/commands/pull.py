@@ -31,7 +31,13 @@ def run(args: argparse.Namespace) -> int:
     """Pull the dataset (or checkpoint with `--checkpoint`) and print where it went; return the exit code."""
     from shiftkit.pipelines import hub
 
-    pull = hub.pull_checkpoint if args.checkpoint else hub.pull_dataset
-    root = pull(args.repo_id, args.revision, args.root, force=args.force)
+    if args.checkpoint:
+        from shiftkit.policies.run_dir import check_checkpoint_files
+
+        root = hub.pull_checkpoint(
+            args.repo_id, args.revision, args.root, force=args.force, check=check_checkpoint_files
+        )
+    else:
+        root = hub.pull_dataset(args.repo_id, args.revision, args.root, force=args.force)
     print(f"pulled {args.repo_id} into {root}")
     return 0

@@ -73,9 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run (or resume, or submit) the pipeline and print its provenance report; return the exit code."""
     from shiftkit.pipelines.config import load_pipeline_config
-    from shiftkit.pipelines.jsonutil import read_json_file
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
-    from shiftkit.pipelines.provenance import report_lines
+    from shiftkit.pipelines.loaders import load_provenance
+    from shiftkit.pipelines.provenance import recorded_verdict_lines, report_lines
     from shiftkit.pipelines.runner import run_pipeline
 
     options = OPTIONS.build(args, config=args.config)
@@ -105,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"wrote {path}")
     # The summary's counts are the provenance's, read back from what was written.
-    for line in report_lines(read_json_file(path / PROVENANCE_PATH, "provenance")):
+    for line in report_lines(load_provenance(path / PROVENANCE_PATH)):
+        print(line)
+    for line in recorded_verdict_lines(path):
         print(line)
     return 0

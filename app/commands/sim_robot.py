@@ -43,17 +43,22 @@ def run(args: argparse.Namespace) -> int:
 
     from shiftkit.pipelines.errors import ConfigError
     from shiftkit.pipelines.sources.raw import is_raw_dataset
+    from shiftkit.pipelines.staging import check_inputs_and_outputs
 
     config = OPTIONS.build(args, plan=args.plan)
     plan, out = Path(config.plan), Path(config.out)
+    is_calibration, is_replay = is_raw_dataset(plan), (plan / "meta" / "info.json").is_file()
+    if not (is_calibration or is_replay):
+        raise ConfigError(f"{plan}: not a plan (neither a raw-format calibration plan nor a LeRobot replay plan)")
+    check_inputs_and_outputs([("plan", plan)], [("--out", out)])
     if out.exists() or not out.parent.is_dir():
         raise ConfigError(f"--out {out}: give a new folder in an existing one")
-    if is_raw_dataset(plan):
+    if is_calibration:
         from shiftkit.transforms.force_calibration import execute_calibration_plan
 
         execute_calibration_plan(plan, out, config.env, config.task)
         print(f"executed calibration plan {plan} on the simulated {config.env} robot; recorded {out}")
-    elif (plan / "meta" / "info.json").is_file():
+    else:
         from shiftkit.transforms.replay_join import execute_replay_plan
 
         counts = execute_replay_plan(plan, out)
@@ -61,6 +66,4 @@ def run(args: argparse.Namespace) -> int:
             f"executed replay plan {plan} on the simulated robot: {counts['episodes']} episodes "
             f"({counts['successes']} successful); recorded {out}"
         )
-    else:
-        raise ConfigError(f"{plan}: not a plan (neither a raw-format calibration plan nor a LeRobot replay plan)")
     return 0

@@ -45,8 +45,11 @@ def run(args: argparse.Namespace) -> int:
     none); return the exit code."""
     from pathlib import Path
 
+    from shiftkit.app.env_kwargs import check_env_kwargs
     from shiftkit.pipelines.staging import DestinationLock
 
+    if isinstance(getattr(args, "env", None), str) and isinstance(getattr(args, "env_kwargs", None), dict):
+        check_env_kwargs(args.env, args.env_kwargs)  # a trainer that runs an env (VPACE, LfGP)
     if getattr(args, "output_dir", None) is None:  # `train plot` writes no run folder
         return args._train_run(args)
     with DestinationLock(Path(args.output_dir)):  # a second run on the same --output is told who holds it

@@ -15,10 +15,10 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from shiftkit.pipelines import loaders
 from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.jsonutil import read_json_file
 from shiftkit.pipelines.sources import Importer, ImportSummary
-from shiftkit.pipelines.staging import publish, remove_dead_staging, staging_path
+from shiftkit.pipelines.staging import check_inputs_and_outputs, publish, remove_dead_staging, staging_path
 
 LEGACY_FILES = ("meta/info.json", "meta/episodes.jsonl", "meta/tasks.jsonl", "meta/episodes_stats.jsonl")
 
@@ -26,7 +26,9 @@ LEGACY_FILES = ("meta/info.json", "meta/episodes.jsonl", "meta/tasks.jsonl", "me
 def _check_source(source: Path) -> dict:
     if not (source / "meta" / "info.json").is_file():
         raise DatasetError(f"{source}: not a LeRobot dataset (meta/info.json missing)")
-    info = read_json_file(source / "meta" / "info.json", "not a LeRobot dataset")
+    info = loaders.load_checked(
+        source / "meta" / "info.json", loaders.obj(codebase_version=loaders.opt(loaders.ANY)), "not a LeRobot dataset"
+    )
     version = info.get("codebase_version")
     if version != "v2.1":
         hint = " (already v3.0: use it as a source directly)" if version == "v3.0" else ""
@@ -36,79 +38,36 @@ def _check_source(source: Path) -> dict:
         raise DatasetError(f"{source}: missing {missing} (a v2.1 dataset has them)")
     if not any((source / "data").glob("*/*.parquet")):
         raise DatasetError(f"{source}: no data/chunk-*/episode_*.parquet files")
-    _check_info(source / "meta" / "info.json", info)
-    for name, fields in _LINE_FIELDS.items():
-        _check_lines(source / "meta" / name, fields)
+    info = loaders.check_value(info, _INFO, str(source / "meta" / "info.json"))
+    for name, line in _LINES.items():
+        loaders.load_jsonl(source / "meta" / name, line)
     return info
 
 
-def _is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+def _whole_fps(value: object, where: str) -> object:
+    # v2.1 writers stored fps as 30 or 30.0; the converter takes either
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0 or value != int(value):
+        return loaders.integer(1)(value, where)  # its message
+    return value
 
 
-def _is_shape(value: object) -> bool:
-    return isinstance(value, list) and all(_is_int(v) and v >= 0 for v in value)
-
-
-# What lerobot's converter reads from each line of the v2.1 metadata files, and the check it must pass.
-_LINE_FIELDS = {
-    "episodes.jsonl": {
-        "episode_index": (lambda v: _is_int(v) and v >= 0, "a non-negative integer"),
-        "tasks": (lambda v: isinstance(v, list) and all(isinstance(t, str) for t in v), "a list of strings"),
-        "length": (lambda v: _is_int(v) and v > 0, "a positive integer"),
-    },
-    "tasks.jsonl": {
-        "task_index": (lambda v: _is_int(v) and v >= 0, "a non-negative integer"),
-        "task": (lambda v: isinstance(v, str), "a string"),
-    },
-    "episodes_stats.jsonl": {
-        "episode_index": (lambda v: _is_int(v) and v >= 0, "a non-negative integer"),
-        "stats": (
-            lambda v: isinstance(v, dict) and all(isinstance(s, dict) for s in v.values()),
-            "an object of objects",
-        ),
-    },
+# What lerobot's converter reads from info.json and from each line of the v2.1 metadata files.
+_INFO = loaders.obj(
+    fps=_whole_fps,
+    total_chunks=loaders.integer(0),
+    total_videos=loaders.integer(0),
+    video_path=loaders.nullable(loaders.string),
+    features=loaders.map_of(loaders.FEATURE, non_empty=True),
+)
+_LINES = {
+    "episodes.jsonl": loaders.obj(
+        episode_index=loaders.integer(0), tasks=loaders.list_of(loaders.string), length=loaders.integer(1)
+    ),
+    "tasks.jsonl": loaders.obj(task_index=loaders.integer(0), task=loaders.string),
+    "episodes_stats.jsonl": loaders.obj(
+        episode_index=loaders.integer(0), stats=loaders.map_of(loaders.map_of(loaders.ANY))
+    ),
 }
-
-
-def _check_info(path: Path, info: dict) -> None:
-    """The info.json fields the converter reads, each of the type it needs."""
-    fps = info.get("fps")
-    if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not fps > 0 or fps != int(fps):
-        raise DatasetError(f"{path}: 'fps' must be a positive integer, got {fps!r}")
-    for key in ("total_chunks", "total_videos"):
-        if not _is_int(info.get(key)) or info[key] < 0:
-            raise DatasetError(f"{path}: {key!r} must be a non-negative integer, got {info.get(key)!r}")
-    if not isinstance(info.get("video_path", ""), (str, type(None))) or "video_path" not in info:
-        raise DatasetError(f"{path}: 'video_path' must be a string or null, got {info.get('video_path')!r}")
-    features = info.get("features")
-    if not isinstance(features, dict) or not features:
-        raise DatasetError(f"{path}: 'features' must be a non-empty object")
-    for key, ft in features.items():
-        if not isinstance(ft, dict) or not isinstance(ft.get("dtype"), str) or not _is_shape(ft.get("shape")):
-            raise DatasetError(f"{path}: features[{key!r}] needs a string 'dtype' and a list of integers 'shape'")
-
-
-def _check_lines(path: Path, fields: dict) -> None:
-    """Every line of a v2.1 `.jsonl` metadata file: a JSON object holding `fields`, each as its check requires."""
-    import json
-
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path}: not UTF-8 text") from None
-    for n, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
-        try:
-            item = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise DatasetError(f"{path}: line {n}: invalid JSON ({exc.msg})") from None
-        if not isinstance(item, dict):
-            raise DatasetError(f"{path}: line {n}: expected a JSON object, got {type(item).__name__}")
-        for key, (ok, what) in fields.items():
-            if not ok(item.get(key)):
-                raise DatasetError(f"{path}: line {n}: {key!r} must be {what}, got {item.get(key)!r:.60}")
 
 
 def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> ImportSummary:
@@ -124,8 +83,7 @@ def import_lerobot_v21(source: str | Path, repo_id: str, root: str | Path) -> Im
     _check_source(source)
     if dest.exists():
         raise DatasetError(f"destination already exists: {dest}")
-    if dest.is_relative_to(source):
-        raise DatasetError(f"destination {dest} lies inside the source dataset; choose a directory outside it")
+    check_inputs_and_outputs([("source", source)], [("--root", dest)])
     source_fingerprint = fingerprint(source)
     tmp = staging_path(dest)
     try:

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.pipelines import loaders
 from shiftkit.pipelines.episode import Episode
 from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.features import Features, flag_array, image_feature, vector_feature
@@ -116,11 +117,14 @@ def _demo_names(path: Path, f, filter_key: str | None) -> list[str]:
         raise DatasetError(f"{path}: the data group holds no demo_N groups")
     if filter_key is None:
         return names
-    masks = f.get("mask")
+    masks = loaders.h5_item(f, "mask", f"{path}: mask", group=True) if "mask" in f else None
     if masks is None or filter_key not in masks:
         known = sorted(masks) if masks is not None else []
         raise DatasetError(f"{path}: no filter key {filter_key!r} under mask/ (known: {known or 'none'})")
-    chosen = [n.decode() if isinstance(n, bytes) else str(n) for n in masks[filter_key][()]]
+    listed = loaders.h5_item(masks, filter_key, f"{path}: mask/{filter_key}", group=False)[()]
+    if np.ndim(listed) != 1:
+        raise DatasetError(f"{path}: mask/{filter_key} must be a list of demo names")
+    chosen = [n.decode(errors="replace") if isinstance(n, bytes) else str(n) for n in listed]
     missing = sorted(set(chosen) - set(names))
     if missing:
         raise DatasetError(f"{path}: mask/{filter_key} names demos that do not exist: {missing[:5]}")
@@ -141,7 +145,7 @@ def _schema(path: Path, demo, demo_name: str, obs_keys: list[str] | None) -> tup
     if "actions" not in demo:
         raise DatasetError(f"{path}: data/{demo_name} has no 'actions'")
     # robosuite's converted demo.hdf5 has states and actions only (observations are extracted later)
-    obs = demo.get("obs", {})
+    obs = loaders.h5_item(demo, "obs", f"{path}: data/{demo_name}/obs", group=True) if "obs" in demo else {}
     keys = sorted(obs) if obs_keys is None else obs_keys
     unknown = [k for k in keys if k not in obs]
     if unknown:
@@ -150,7 +154,7 @@ def _schema(path: Path, demo, demo_name: str, obs_keys: list[str] | None) -> tup
     features: Features = {}
     names: dict[str, list[str]] = {"observation.state": [], "observation.environment_state": []}
     for key in keys:
-        ds = obs[key]
+        ds = loaders.h5_item(obs, key, f"{path}: data/{demo_name}/obs/{key}", group=False)
         if _is_image(ds):
             camera = key.removesuffix(IMAGE_SUFFIX)
             features[f"observation.images.{camera}"] = image_feature(tuple(int(n) for n in ds.shape[1:]))
@@ -169,6 +173,9 @@ def _schema(path: Path, demo, demo_name: str, obs_keys: list[str] | None) -> tup
             features[target] = vector_feature("float32", names[target])
         else:
             del groups[target]
+    for key in ("rewards", "dones", "states"):
+        if key in demo:
+            loaders.h5_item(demo, key, f"{path}: data/{demo_name}/{key}", group=False)
     features["action"] = vector_feature("float32", [f"action_{i}" for i in range(_width(demo["actions"]))])
     if "rewards" in demo:
         features["next.reward"] = vector_feature("float32", ["reward"])
@@ -190,7 +197,11 @@ def _read_demo(
     default_task: str | None,
 ) -> Episode:
     # --task, else the demo's language instruction (robocasa-style ep_meta "lang"), else env_name
-    task = task or _json_attr(path, demo, f"data/{name}", "ep_meta").get("lang") or default_task
+    ep_meta = _json_attr(path, demo, f"data/{name}", "ep_meta")
+    ep_meta = loaders.check_value(
+        ep_meta, loaders.obj(lang=loaders.opt(loaders.nullable(loaders.string))), f"{path}: data/{name} ep_meta"
+    )
+    task = task or ep_meta.get("lang") or default_task
     if not task:
         raise DatasetError(f"{path}: data/{name}: no env_args env_name or ep_meta lang names the task; give --task")
     n = int(demo["actions"].shape[0])
@@ -201,7 +212,9 @@ def _read_demo(
     def read(rel: str) -> np.ndarray:
         if rel not in demo:
             raise DatasetError(f"{path}: data/{name} has no {rel!r} (the first demo has it)")
-        arr = demo[rel][()]
+        arr = loaders.h5_item(demo, rel, f"{path}: data/{name}/{rel}", group=False)[()]
+        if np.ndim(arr) == 0 or arr.dtype.kind not in "fiub":
+            raise DatasetError(f"{path}: data/{name}/{rel} must be a numeric array with a frame axis")
         if arr.shape[0] != n:
             raise DatasetError(f"{path}: data/{name}/{rel} has {arr.shape[0]} samples, actions have {n}")
         if arr.dtype.kind == "f" and not np.isfinite(arr).all():
@@ -261,11 +274,18 @@ def import_robomimic(
         if "data" not in f or not hasattr(f["data"], "keys"):
             raise DatasetError(f"{path}: no 'data' group (not a robomimic dataset)")
         data = f["data"]
-        env_args = _json_attr(path, data, "data", "env_args")
+        env_args = loaders.check_value(
+            _json_attr(path, data, "data", "env_args"),
+            loaders.obj(
+                env_name=loaders.opt(loaders.nullable(loaders.string)),
+                env_kwargs=loaders.opt(loaders.nullable(loaders.map_of(loaders.ANY))),
+            ),
+            f"{path}: data attribute env_args",
+        )
         env_kwargs = env_args.get("env_kwargs") or {}
         all_demos = _demo_names(path, f, None)
         for d in all_demos:  # named here, before the counts that depend on them
-            actions = data[d].get("actions")
+            actions = loaders.h5_item(data, d, f"{path}: data/{d}", group=True).get("actions")
             if not hasattr(actions, "shape") or len(actions.shape) not in (1, 2) or actions.dtype.kind not in "fiu":
                 found = "missing" if actions is None else f"shape {getattr(actions, 'shape', None)}"
                 raise DatasetError(f"{path}: data/{d}/actions must be a numeric (frames[, dims]) array ({found})")

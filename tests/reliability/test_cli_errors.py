@@ -935,6 +935,435 @@ def _ascii_repo(t: Path, r: Path) -> str:
     )
 
 
+# --- the file boundary: files of the right syntax but the wrong types, shapes or ranges (loaders)
+def _set_json(rel: str, value) -> object:
+    def edit(root: Path) -> None:
+        (root / rel).write_text(json.dumps(value))
+
+    return edit
+
+
+def _edit_provenance(**values):
+    return _json_edit("meta/shiftkit_provenance.json", **values)
+
+
+def _fire_run(t: Path, **line) -> Path:
+    """A FIRE run folder with two per-episode metric lines (the second edited by `line`, a None value
+    removing its key), as `shiftkit fire` writes them."""
+    run = _mkdir(t / "fire-run")
+    (run / "config.json").write_text(json.dumps({"trainer": "fire", "args": {}}))
+    rows = []
+    for i, failed in enumerate((True, False)):
+        row = {
+            "step": i + 1,
+            "split": "episode",
+            "d_ready": True,
+            "policy_success": not failed,
+            "expert_samples": 10 + i,
+            "execution_time_s": 1.5 * i,
+            "scores": {"beta": 0.5 + i, "gda": 0.25 * i, "doubt": 0.1},
+            "feedback": [],
+        }
+        if i == 1:
+            row.update(line)
+            row = {k: v for k, v in row.items() if v is not None}
+        rows.append(json.dumps(row))
+    (run / "metrics.jsonl").write_text("\n".join(rows) + "\n")
+    return run
+
+
+def _robomimic_edit(t: Path, edit) -> Path:
+    import h5py
+
+    from tests.test_import_robomimic import _write
+
+    path = _write(t / "rm.hdf5")
+    with h5py.File(path, "a") as f:
+        edit(f)
+    return path
+
+
+def _replace(f, name: str, data) -> None:
+    del f[name]
+    f.create_dataset(name, data=data)
+
+
+def _demo_as_dataset(f) -> None:
+    import numpy as np
+
+    del f["data/demo_1"]
+    f.create_dataset("data/demo_1", data=np.zeros(3))
+
+
+def _calibration_plan(t: Path, edit) -> Path:
+    """A calibration plan (`calibrate --plan`) with one of its arrays edited."""
+    from shiftkit.app.cli import main
+
+    plan = t / "plan"
+    assert main(["calibrate", "--plan", str(plan), "--pushes", "1", "--held-out", "0"]) == 0
+    edit(plan)
+    return plan
+
+
+def _merge(t: Path, *sources) -> list[str]:
+    return [
+        "merge",
+        *map(str, sources),
+        "--fps",
+        "10",
+        "--out",
+        str(t / "merged"),
+        "--repo-id",
+        "me/m",
+        "--no-progress",
+    ]
+
+
+def _two_sources(t: Path, first: str, second: str) -> str:
+    path = t / "two.toml"
+    path.write_text(f'[[sources]]\npath = "{first}"\n[[sources]]\npath = "{second}"\n[destination]\nroot = "o"\n')
+    return str(path)
+
+
+CASES.update(
+    {
+        "info info.json is a list": (
+            lambda t, r, d: ["info", str(raw_with(t, d, _set_json("meta/info.json", [1])))],
+            2,
+        ),
+        "validate info.json is a list": (
+            lambda t, r, d: ["validate", str(raw_with(t, d, _set_json("meta/info.json", [1])))],
+            2,
+        ),
+        "run lerobot info.json is a list": (
+            lambda t, r, d: ["run", pipeline(t, raw_with(t, d, _set_json("meta/info.json", [1])))],
+            2,
+        ),
+        "import lerobot-v2.1 info.json is a list": (
+            lambda t, r, d: ["import", "lerobot-v2.1", str(_set_v21_info(t, [1])), *_to(t)],
+            2,
+        ),
+        "import lerobot-v2.1 feature is a list": (
+            lambda t, r, d: ["import", "lerobot-v2.1", str(_v21_features(t, {"action": [1]})), *_to(t)],
+            2,
+        ),
+        "info feature shape is text": (
+            lambda t, r, d: [
+                "info",
+                str(raw_with(t, d, _json_edit("meta/info.json", features={"action": {"dtype": "f", "shape": "4"}}))),
+            ],
+            2,
+        ),
+        "info total_frames is text": (
+            lambda t, r, d: ["info", str(raw_with(t, d, _json_edit("meta/info.json", total_frames="x")))],
+            2,
+        ),
+        "info stats entry is a list": (
+            lambda t, r, d: ["info", str(raw_with(t, d, _json_edit("meta/stats.json", action=[1, 2])))],
+            2,
+        ),
+        "info stats values are text": (
+            lambda t, r, d: ["info", str(raw_with(t, d, _json_edit("meta/stats.json", action={"mean": "x"})))],
+            2,
+        ),
+        "info provenance is a list": (
+            lambda t, r, d: ["info", str(raw_with(t, d, _set_json("meta/shiftkit_provenance.json", [1])))],
+            2,
+        ),
+        "info provenance stages is an object": (
+            lambda t, r, d: ["info", str(raw_with(t, d, _edit_provenance(stages={"a": 1})))],
+            2,
+        ),
+        "validate provenance sources hold a number": (
+            lambda t, r, d: ["validate", str(raw_with(t, d, _edit_provenance(sources=[5])))],
+            2,
+        ),
+        "train bc provenance output is text": (
+            lambda t, r, d: [
+                "train",
+                "bc",
+                "--dataset",
+                "me/lift",
+                "--root",
+                str(raw_with(t, d, _edit_provenance(output="me/lift"))),
+                *_run(t),
+            ],
+            2,
+        ),
+        "fire provenance sources is an object": (
+            lambda t, r, d: [
+                "fire",
+                "--dataset",
+                str(raw_with(t, d, _edit_provenance(sources={"env": 1}))),
+                *_fire_to(t),
+            ],
+            2,
+        ),
+        "import robomimic actions of three dimensions": (
+            lambda t, r, d: [
+                "import",
+                "robomimic",
+                str(
+                    _robomimic_edit(
+                        t, lambda f: _replace(f, "data/demo_0/actions", __import__("numpy").zeros((4, 2, 2)))
+                    )
+                ),
+                *_to(t),
+            ],
+            2,
+        ),
+        "import robomimic demo is a dataset": (
+            lambda t, r, d: ["import", "robomimic", str(_robomimic_edit(t, _demo_as_dataset)), *_to(t)],
+            2,
+        ),
+        "import robomimic data is a dataset": (
+            lambda t, r, d: [
+                "import",
+                "robomimic",
+                str(_robomimic_edit(t, lambda f: (f.__delitem__("data"), f.create_dataset("data", data=[1])))),
+                *_to(t),
+            ],
+            2,
+        ),
+        "import robomimic obs is a dataset": (
+            lambda t, r, d: [
+                "import",
+                "robomimic",
+                str(_robomimic_edit(t, lambda f: _replace(f, "data/demo_0/obs", __import__("numpy").zeros(3)))),
+                *_to(t),
+            ],
+            2,
+        ),
+        "import robomimic env_args is a list": (
+            lambda t, r, d: [
+                "import",
+                "robomimic",
+                str(_robomimic_edit(t, lambda f: f["data"].attrs.__setitem__("env_args", "[1]"))),
+                *_to(t),
+            ],
+            2,
+        ),
+        "plot roc metrics line without scores": (
+            lambda t, r, d: ["plot", "roc", str(_fire_run(t, scores=None)), "--out", str(t / "r.png")],
+            2,
+        ),
+        "plot roc score is text": (
+            lambda t, r, d: [
+                "plot",
+                "roc",
+                str(_fire_run(t, scores={"beta": "x", "gda": 0, "doubt": 0})),
+                "--out",
+                str(t / "r.png"),
+            ],
+            2,
+        ),
+        "plot fire expert samples missing": (
+            lambda t, r, d: ["plot", "fire", str(_fire_run(t, expert_samples=None)), "--out", str(t / "f.png")],
+            2,
+        ),
+        "plot fire execution time is text": (
+            lambda t, r, d: ["plot", "fire", str(_fire_run(t, execution_time_s="1s")), "--out", str(t / "f.png")],
+            2,
+        ),
+        "plot fire metrics line is a list": (
+            lambda t, r, d: ["plot", "fire", str(_fire_run_with_line(t, "[1, 2]")), "--out", str(t / "f.png")],
+            2,
+        ),
+        "plot fire config is a list": (
+            lambda t, r, d: ["plot", "fire", str(_fire_run_config(t, [1])), "--out", str(t / "f.png")],
+            2,
+        ),
+        "plot fire a good run": (lambda t, r, d: ["plot", "fire", str(_fire_run(t)), "--out", str(t / "f.png")], 0),
+        "collect env kwarg 1e308": (
+            lambda t, r, d: [
+                "collect",
+                "--env",
+                "door-tactile",
+                "--task",
+                "flat-handle-open",
+                "--env-kwarg",
+                "max_episode_seconds=1e308",
+                "--out",
+                str(t / "o"),
+            ],
+            2,
+        ),
+        "eval env kwarg 1e308": (
+            lambda t, r, d: [
+                "eval",
+                "--policy",
+                str(t),
+                "--env",
+                "mv-lift",
+                "--task",
+                "lift",
+                "--env-kwarg",
+                "max_episode_seconds=1e308",
+            ],
+            2,
+        ),
+        "sim-robot truncated plan array": (
+            lambda t, r, d: [
+                "sim-robot",
+                str(_calibration_plan(t, lambda p: _truncate(next(p.glob("episode_*/arrays/action.npy"))))),
+                "--out",
+                str(t / "rec"),
+            ],
+            2,
+        ),
+        "sim-robot plan array of text": (
+            lambda t, r, d: [
+                "sim-robot",
+                str(
+                    _calibration_plan(
+                        t,
+                        lambda p: __import__("numpy").save(
+                            next(p.glob("episode_*/arrays/action.npy")), __import__("numpy").array(["a"])
+                        ),
+                    )
+                ),
+                "--out",
+                str(t / "rec"),
+            ],
+            2,
+        ),
+        "sim-robot plan dataset.json info is a list": (
+            lambda t, r, d: [
+                "sim-robot",
+                str(_calibration_plan(t, _json_edit("dataset.json", info=[1]))),
+                "--out",
+                str(t / "rec"),
+            ],
+            2,
+        ),
+        # --- outputs never inside inputs, inputs never twice
+        "run the same source twice": (lambda t, r, d: ["run", _two_sources(t, str(d), str(d))], 2),
+        "run one source spelled two ways": (lambda t, r, d: ["run", _two_sources(t, str(d), f"{d}/./")], 2),
+        "run a copy of a source": (lambda t, r, d: ["run", _two_sources(t, str(d), str(_copy(d, t / "copy")))], 2),
+        "merge the same source twice": (lambda t, r, d: _merge(t, d, f"{d}/"), 2),
+        "merge a copy of a source": (lambda t, r, d: _merge(t, d, _copy(d, t / "copy")), 2),
+        "merge into its source": (
+            lambda t, r, d: ["merge", str(d), "--fps", "10", "--out", str(d / "merged"), "--repo-id", "me/m"],
+            2,
+        ),
+        "sim-robot out inside its plan": (lambda t, r, d: ["sim-robot", str(r), "--out", str(r / "rec")], 2),
+        "calibrate out inside its recording": (
+            lambda t, r, d: ["calibrate", "--from", str(r), "--out", str(r / "cal.json")],
+            2,
+        ),
+        "calibrate plot inside its recording": (
+            lambda t, r, d: ["calibrate", "--from", str(r), "--out", str(t / "c.json"), "--plot", str(r / "c.png")],
+            2,
+        ),
+        "import vpace the same file twice": (
+            lambda t, r, d: ["import", "vpace", str(_buffer(t, 0)), str(t / "." / "3_lift.gz"), *_to(t)],
+            2,
+        ),
+        "import lerobot-v2.1 root inside its source": (
+            lambda t, r, d: [
+                "import",
+                "lerobot-v2.1",
+                str(_v21(t)),
+                "--repo-id",
+                "me/x",
+                "--root",
+                str(t / "v21" / "x"),
+            ],
+            2,
+        ),
+        "fire aggregate out inside the expert": (
+            lambda t, r, d: [
+                "fire",
+                "aggregate",
+                "--expert",
+                str(d),
+                "--rollouts",
+                str(d),
+                "--out",
+                str(d / "agg"),
+                "--repo-id",
+                "me/a",
+            ],
+            2,
+        ),
+        "fire aggregate the same rollouts twice": (
+            lambda t, r, d: [
+                "fire",
+                "aggregate",
+                "--expert",
+                str(_copy(d, t / "expert")),
+                "--rollouts",
+                str(d),
+                f"{d}/",
+                "--out",
+                str(t / "agg"),
+                "--repo-id",
+                "me/a",
+            ],
+            2,
+        ),
+    }
+)
+MESSAGES.update(
+    {
+        "info info.json is a list": "info.json: the file must be an object, got a list",
+        "import lerobot-v2.1 info.json is a list": "info.json: the file must be an object, got a list",
+        "import lerobot-v2.1 feature is a list": "'features.action' must be an object",
+        "info feature shape is text": "'features.action.shape' must be a list",
+        "info stats entry is a list": "stats.json: 'action' must be an object, got a list",
+        "info provenance stages is an object": "'stages' must be a list",
+        "train bc provenance output is text": "'output' must be an object",
+        "import robomimic actions of three dimensions": "data/demo_0/actions",
+        "import robomimic demo is a dataset": "data/demo_1",
+        "plot roc metrics line without scores": "'scores' is missing",
+        "plot roc score is text": "'scores.beta' must be a number",
+        "plot fire expert samples missing": "'expert_samples' is missing",
+        "plot fire execution time is text": "'execution_time_s' must be a finite number",
+        "collect env kwarg 1e308": "--env-kwarg max_episode_seconds must be at most 1e+09",
+        "eval env kwarg 1e308": "--env-kwarg max_episode_seconds must be at most 1e+09",
+        "sim-robot truncated plan array": "action.npy",
+        "run the same source twice": "again",
+        "run one source spelled two ways": "again",
+        "run a copy of a source": "holds the same data as",
+        "merge the same source twice": "again",
+        "merge a copy of a source": "holds the same data as",
+        "merge into its source": "lies inside the input",
+        "sim-robot out inside its plan": "lies inside the input plan",
+        "calibrate out inside its recording": "lies inside the input --from",
+        "calibrate plot inside its recording": "--plot",
+        "import vpace the same file twice": "again",
+        "import lerobot-v2.1 root inside its source": "lies inside the input",
+        "fire aggregate out inside the expert": "lies inside the input --expert",
+        "fire aggregate the same rollouts twice": "give each input once",
+    }
+)
+
+
+def _set_v21_info(t: Path, value) -> Path:
+    src = _v21(t)
+    (src / "meta/info.json").write_text(json.dumps(value))
+    return src
+
+
+def _v21_features(t: Path, features) -> Path:
+    src = _v21(t)
+    _json_edit("meta/info.json", features=features)(src)
+    return src
+
+
+def _fire_run_with_line(t: Path, line: str) -> Path:
+    run = _fire_run(t)
+    with open(run / "metrics.jsonl", "a") as f:
+        f.write(line + "\n")
+    return run
+
+
+def _fire_run_config(t: Path, config) -> Path:
+    run = _fire_run(t)
+    (run / "config.json").write_text(json.dumps(config))
+    return run
+
+
 _ENV: dict[str, str] = {}
 
 
@@ -986,3 +1415,20 @@ def test_os_errors_are_one_line(exc, tmp_path, rel_raw, monkeypatch):
 def test_plain_validate_says_statistics_are_not_recomputed(rel_ds):
     outcome = cli(["validate", str(rel_ds)])
     assert outcome.code == 0 and "statistics not recomputed from the data (--deep does)" in outcome.stdout, outcome
+
+
+def test_fire_aggregate_policy_trained_on_other_data(bc_run, rel_ds):
+    """`fire aggregate --policy` of a policy trained in another env: same feature names, other sizes,
+    is one line before any work (it used to fail deep in D's first batch)."""
+    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.policies.bc_policy import load_policy
+    from shiftkit.policies.fire_aggregate import AggregateArgs, _spec
+
+    spec = load_policy(bc_run).spec
+    recorded = {**spec.features, "action": spec.action}
+    recorded["observation.state"] = {**recorded["observation.state"], "shape": [99]}
+    args = AggregateArgs(expert=str(rel_ds), rollouts=[str(rel_ds)], out="o", repo_id="me/a", policy=str(bc_run))
+    with pytest.raises(DatasetError, match="it was trained on other data") as error:
+        _spec(args, rel_ds, recorded)
+    assert "\n" not in str(error.value)
+    assert _spec(args, rel_ds, {**spec.features, "action": spec.action}) == spec  # the data it was trained on

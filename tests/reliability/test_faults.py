@@ -91,7 +91,7 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
             started |= {c.pid for c in psutil.Process(proc.pid).children(recursive=True)}
         except psutil.NoSuchProcess:
             break
-        if parts_dir.is_dir() and len(list(parts_dir.glob("*.pkl"))) >= 2:
+        if parts_dir.is_dir() and len(list(parts_dir.glob("*.npz"))) >= 2:
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the run ended before its workers wrote two parts: nothing to kill"
@@ -153,7 +153,7 @@ def test_disk_full_is_one_line_and_restart_discards_work(tmp_path, rel_raw, monk
     def write(self, *args, **kwargs):
         calls["n"] += 1
         if calls["n"] > 2:
-            raise OSError(errno.ENOSPC, "No space left on device", str(self.dir / "x.pkl"))
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.dir / "x.npz"))
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(work.PartStore, "write", write)
@@ -286,7 +286,7 @@ def test_eval_warns_when_the_run_did_not_finish(tmp_path, rel_ds, caplog):
         ["eval", "--policy", str(run), "--task", "reach", "--episodes", "1", "--out", str(tmp_path / "e.json")]
     )
     assert outcome.clean, outcome  # (this synthetic policy's inputs do not fit panda-play: a one-line error)
-    assert "has not finished training" in caplog.text and "step-00000002.pt" in caplog.text
+    assert "has not finished training" in caplog.text and "step-00000002.safetensors" in caplog.text
 
 
 def test_watchdog_ends_a_worker_whose_parent_was_killed():

@@ -337,3 +337,121 @@ def test_info_and_validate_on_mutated_datasets(rel_ds, index, mutation, command)
         mutate(root, index, mutation)
         outcome = cli([command, str(root)])
         assert outcome.clean, outcome
+
+
+LOADER_EXAMPLES = 40
+
+
+def _loaders():
+    from shiftkit.pipelines import loaders
+    from shiftkit.policies.fire_runs import EPISODE_LINE
+
+    return {
+        "info": loaders.load_info,
+        "stats": loaders.load_stats,
+        "provenance": loaders.load_provenance,
+        "run config": loaders.load_run_config,
+        "evaluation": loaders.load_evaluation,
+        "card": lambda p: loaders.load_json_object(p, "card metrics"),
+        "metrics": loaders.load_metrics,
+        "fire metrics": lambda p: loaders.load_metrics(p, EPISODE_LINE, split="episode"),
+    }
+
+
+# A valid file of each loader's kind, that the fuzz mutates one value of (or replaces whole).
+_VALID = {
+    "info": {"fps": 10, "features": {"action": {"dtype": "float32", "shape": [4], "names": None}}, "total_frames": 3},
+    "stats": {"action": {"mean": [0.0, 1.0], "std": [1.0, 1.0]}},
+    "provenance": {"sources": [{"kind": "raw", "env": "panda-play"}], "stages": [{"name": "trim", "report": {"a": 1}}]},
+    "run config": {"trainer": "bc", "args": {"steps": 2}, "datasets": [{"id": "me/x", "root": "/d", "fps": 10}]},
+    "evaluation": {"env": "e", "task": "t", "seed": 0, "episodes": 2, "success_rate": 0.5, "ci95": [0.1, 0.9]},
+    "card": {"val_loss": 0.1},
+    "metrics": {"step": 1, "split": "train", "loss": 0.5},
+    "fire metrics": {
+        **{"step": 1, "split": "episode", "d_ready": True, "policy_success": False},
+        **{"expert_samples": 3, "execution_time_s": 1.0, "scores": {"beta": 1.0, "gda": 0.5, "doubt": 0.0}},
+    },
+}
+
+
+def _set_path(doc, path: list[str], value):
+    """`doc` with the value at `path` (keys of nested objects, the last one set or added) replaced."""
+    if not path or not isinstance(doc, dict):
+        return value
+    key, rest = path[0], path[1:]
+    return {**doc, key: _set_path(doc.get(key), rest, value) if rest else value}
+
+
+@settings(max_examples=LOADER_EXAMPLES, **FUZZ)
+@given(
+    kind=st.sampled_from(sorted(_VALID)),
+    where=st.lists(
+        st.sampled_from(
+            [
+                "fps",
+                "features",
+                "action",
+                "shape",
+                "mean",
+                "sources",
+                "stages",
+                "report",
+                "args",
+                "datasets",
+                "ci95",
+                "step",
+                "split",
+                "scores",
+                "beta",
+                "env",
+                "x",
+            ]
+        ),
+        min_size=0,
+        max_size=3,
+    ),  # fmt: skip
+    value=json_values | st.sampled_from([float("nan"), float("inf"), 1e308, -1, True, "", [], {}]),
+    garbage=st.none() | st.binary(max_size=24),
+)
+def test_every_loader_on_random_values(tmp_path_factory, kind, where, value, garbage):
+    """Each typed loader on its valid file with a random value at a random place (or the whole file
+    random bytes): the value it returns has the types its schema promises, or one line."""
+    path = tmp_path_factory.mktemp("loader") / ("metrics.jsonl" if "metrics" in kind else "file.json")
+    doc = _set_path(_VALID[kind], where, value)
+    if garbage is not None:
+        path.write_bytes(garbage)
+    else:
+        path.write_text(json.dumps(doc))
+    clean_or_error(lambda: _loaders()[kind](path))
+
+
+@settings(max_examples=LOADER_EXAMPLES // 2, **FUZZ)
+@given(array=npy_arrays, cut=st.none() | st.floats(0, 0.99))
+def test_array_loader_on_random_arrays(tmp_path_factory, array, cut):
+    """`load_array` on arrays of any dtype and shape, NaN/inf, truncated: an array or one line."""
+    from shiftkit.pipelines.loaders import load_array
+
+    path = tmp_path_factory.mktemp("npy") / "a.npy"
+    np.save(path, _array(array), allow_pickle=False)
+    if cut is not None:
+        data = path.read_bytes()
+        path.write_bytes(data[: int(len(data) * cut)])
+    clean_or_error(lambda: load_array(path, "an array", ndim=(1, 2)))
+
+
+@settings(max_examples=LOADER_EXAMPLES // 2, **FUZZ)
+@given(value=json_values, as_tuple=st.booleans(), key=st.integers(-3, 3) | st.text(max_size=4))
+def test_data_tree_round_trips_and_refuses_garbage(tmp_path_factory, value, as_tuple, key):
+    """The pickle-free store of checkpoints and parts gives the same tree back (tuples, integer keys,
+    arrays), and a random document in its place is one line."""
+    from shiftkit.pipelines import data_tree
+
+    tree = {"v": (value, np.arange(3, dtype=np.int16)) if as_tuple else value, "k": {key: np.float32(1.5)}}
+    path = tmp_path_factory.mktemp("tree") / "t.npz"
+    with open(path, "wb") as f:
+        data_tree.save_npz(f, tree)
+    back = data_tree.load_npz(path)
+    assert repr(back) == repr(tree)
+    with open(path, "wb") as f:
+        np.savez(f, __doc__=np.frombuffer(json.dumps(value).encode(), np.uint8))
+    clean_or_error(lambda: data_tree.load_npz(path))

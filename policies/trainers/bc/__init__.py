@@ -1,4 +1,4 @@
-"""Trainer `bc`: behavioural cloning by an ensemble (`training.py`), and its `shiftkit train bc` glue."""
+"""Trainer `bc`: behavioural cloning, one network or an ensemble (`training.py`), and its `shiftkit train bc` glue."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from shiftkit.policies.trainers import Trainer, register
 TRAINER = register(
     Trainer(
         name="bc",
-        help="behavioural cloning (MSE, ensembles, CNN + spatial soft-argmax)",
+        help="behavioural cloning (MSE; one network by default, --ensemble N; CNN + spatial soft-argmax for cameras)",
         args=f"{__name__}.args:BCArgs",
         cli=__name__,
         load_policy="shiftkit.policies.bc_policy:load_policy",
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Trains a BC ensemble from the parsed options; returns the exit code."""
+    """Trains a BC policy from the parsed options; returns the exit code."""
     from shiftkit.policies.trainers.bc.training import train
 
     config = options().build(args)

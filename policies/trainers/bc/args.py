@@ -18,7 +18,8 @@ OUTPUT_ACTIVATIONS = ("linear", "tanh")
 
 @dataclass
 class BCArgs:
-    """Arguments of `shiftkit train bc` (defaults follow the thesis, 3.6.3 and 4.4.2)."""
+    """Arguments of `shiftkit train bc` (defaults follow the thesis, 3.6.3 and 4.4.2, but for one
+    network instead of its 5-member ensembles: `ensemble_size`)."""
 
     datasets: list[str]
     """Dataset IDs or local dataset folders; several are trained on as one (same features)."""
@@ -43,8 +44,9 @@ class BCArgs:
     """Decoupled (AdamW) weight decay (default 0 early-stop, 0.1 fixed)."""
     val_fraction: float | None = None
     """Share of episodes held out for validation (default 0.2 early-stop, 0 fixed)."""
-    ensemble_size: int = 5
-    """Members (different shuffles and init; the policy outputs their mean)."""
+    ensemble_size: int = 1
+    """Networks trained side by side (different shuffles and init; the policy outputs their mean):
+    1 is plain BC; the thesis' ensembles have 5 (training time grows with the count)."""
     inputs: list[str] | None = None
     """Observation features to use (default: every `observation.*` feature of the dataset)."""
     encoder: str = "cnn"
@@ -70,9 +72,11 @@ class BCArgs:
     """Normalised inputs are clipped to +-this many (floored) stds; None: no clipping."""
     device: str = "auto"
     """`auto` (CUDA when present), `cpu` or `cuda[:N]`."""
-    threads: int | None = None
-    """CPU threads for torch (default: torch's choice); 1 is often fastest for small models on a busy
-    machine, where idle OpenMP threads spinning for work slow every step down."""
+    threads: int | None = 1
+    """CPU threads for torch (None: torch's choice, one per core). One by default: a BC network's
+    small matrix products gain little from more, and on a busy machine threads waiting for a core
+    slow every step down (a state MLP on the shared 2-core machine: 65 steps/s on one thread, 3 on
+    two, 2026-12-03); more can pay for camera encoders on an idle machine."""
     resume: bool = False
     """Continue the run in output_dir from its last checkpoint."""
 

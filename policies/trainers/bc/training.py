@@ -1,10 +1,10 @@
-"""Behavioural cloning (thesis 3.6.3 and 4.4.2): MSE action regression by an ensemble (the policy
-and its networks: `bc_policy`).
+"""Behavioural cloning (thesis 3.6.3 and 4.4.2): MSE action regression by one network or by an
+ensemble (`--ensemble N`; the policy and its networks: `bc_policy`).
 
 Observations are the dataset's `observation.*` features: numeric ones are normalised with the
 dataset's stats and concatenated; each camera goes through a CNN (or ResNet-18 trunk) ending in a
 spatial soft-argmax, whose keypoints join the numeric state before the fully connected layers.
-Each of the ensemble's members sees its own shuffle of the data and its own orthogonal init; the
+With several members, each sees its own shuffle of the data and its own orthogonal init; the
 policy outputs the members' mean, and their spread is the ensemble doubt of FIRE (thesis 5.4).
 
 Two regimes:
@@ -104,22 +104,19 @@ def _merged_stats(datasets: list, keys: list[str]) -> dict[str, dict[str, list]]
 def check_root_id(ref: str, root: str | None) -> None:
     """`--dataset ID --root DIR`: the folder must hold that dataset (by the ID its provenance
     records), else the run would record an ID it did not train on."""
-    import json
-
     from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
+    from shiftkit.pipelines.loaders import load_provenance
 
-    if root is None:
-        return
-    try:
-        recorded = json.loads((Path(root) / PROVENANCE_PATH).read_text())["output"]["repo_id"]
-    except (OSError, ValueError, KeyError, TypeError):
+    path = Path(root) / PROVENANCE_PATH if root is not None else None
+    if path is None or not path.is_file():
         return  # not made by shiftkit: nothing recorded to compare with
-    if recorded != ref:
+    recorded = (load_provenance(path).get("output") or {}).get("repo_id")
+    if recorded is not None and recorded != ref:
         raise ConfigError(f"--dataset {ref} but {root} holds {recorded}: give --dataset {recorded} (or omit --root)")
 
 
 def train(args: BCArgs, progress: bool = False) -> dict:
-    """Train (or resume) a BC ensemble; returns the final metrics written to the model card.
+    """Train (or resume) a BC policy (one network or an ensemble); returns the final metrics written to the model card.
     `progress` shows a bar with the training loss (its total is the step budget: early stopping
     may end sooner)."""
     args = args.resolved()
