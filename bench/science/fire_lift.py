@@ -96,14 +96,14 @@ def main() -> None:
                  "expert_samples": int(ref["expert_samples"]), "execution_s": round(ref["execution_time_s"], 1)}
             )  # fmt: skip
 
-        figures = {}
-        for expert in experts:
-            curve: list[str] = []
-            fire_runs: list[str] = []
-            for seed in seeds:
+        # seed by seed, both experts each (one finished seed shows the whole study's cost per seed)
+        curves: dict[str, list[str]] = {expert: [] for expert in experts}
+        fire_runs: dict[str, list[str]] = {expert: [] for expert in experts}
+        for seed in seeds:
+            for expert in experts:
                 for n in sizes:
                     run = bc(expert, n, seed)
-                    curve.append(str(run))
+                    curves[expert].append(str(run))
                     bc_row(f"{expert}: BC, {n} demos", run, seed)
                 for predictor in ("gda", "beta"):
                     run = work / f"fire-{expert}-{predictor}-s{seed}"
@@ -117,14 +117,16 @@ def main() -> None:
                             *(["--resume"] if (run / "config.json").exists() else []), env=env,
                         )  # fmt: skip
                     result = held_out(run / "policy")
-                    last = read_episode_lines(run)[-1]
-                    fire_runs.append(f"FIRE {predictor}={run}")
+                    lines = read_episode_lines(run)
+                    fire_runs[expert].append(f"FIRE {predictor}={run}")
                     rows.setdefault(f"{expert}: FIRE {predictor}, from {start} demos", []).append(
                         {"seed": seed, "successes": result["successes"], "episodes": result["episodes"],
-                         "expert_samples": last["expert_samples"], "execution_s": round(last["execution_time_s"], 1),
-                         "fire_episodes": last["episode"] + 1, "warm_up_episodes": sum(
-                             not x["d_ready"] for x in read_episode_lines(run))}
+                         "expert_samples": lines[-1]["expert_samples"],
+                         "execution_s": round(lines[-1]["execution_time_s"], 1), "fire_episodes": len(lines),
+                         "warm_up_episodes": sum(not x["d_ready"] for x in lines)}
                     )  # fmt: skip
+        figures = {}
+        for expert in experts:
             # BC at FIRE gda's expert samples and execution time: the demonstrations that reach them
             fire = rows[f"{expert}: FIRE gda, from {start} demos"]
             per_demo = bc_reference([bc(expert, sizes[-1], seeds[0])])["expert_samples"] / sizes[-1]
@@ -137,12 +139,14 @@ def main() -> None:
                     bc_row(f"{expert}: BC at FIRE's {what} ({n} demos)", bc(expert, n, seed), seed)
             figure = Path(f"{args.figure}-{expert}") if args.figure else work / f"fire-lift-{expert}"
             shiftkit(
-                "plot", "fire", *fire_runs, "--bc", f"BC, {sizes[0]}-{sizes[-1]} demos={','.join(curve)}",
+                "plot", "fire", *fire_runs[expert],
+                "--bc", f"BC, {sizes[0]}-{sizes[-1]} demos={','.join(curves[expert])}",
                 "--out", f"{figure}.png", "--title",
                 f"lift at 5 Hz, {expert} expert: FIRE (from {start} demos) vs BC, {len(seeds)} seed(s)", env=env,
             )  # fmt: skip
             figures[expert] = str(figure)
 
+    rows = {name: rows[name] for expert in experts for name in rows if name.startswith(f"{expert}:")}
     policies = {name: pool(runs) for name, runs in rows.items()}
     print(
         "\n| policy | seeds | expert samples (mean) | execution time s (mean) | success per seed | pooled (Wilson 95%) |"
