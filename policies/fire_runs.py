@@ -35,6 +35,36 @@ def summary(run_dir: RunDir, counters: dict) -> dict:
     }
 
 
+def protocol_check(run_path: str | Path) -> dict:
+    """Algorithm 2's warm-up and hand-backs as a finished run shows them, read twice: from its episode
+    lines (metrics.jsonl) and from its DAgger-layout recording (rollouts/, `intervention` per frame).
+    A hand-back is a correction after which the policy drives again in the same episode."""
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    lines = [x for x in RunDir(Path(run_path), resume=True).read_metrics() if x["split"] == "episode"]
+    warm = sum(not x["d_ready"] for x in lines)
+    flags = [
+        ep.frames["intervention"][:, 0] for ep in open_lerobot_dataset(Path(run_path) / "rollouts").iter_episodes()
+    ]
+    handed = [int((np.diff(f.astype(int)) == -1).sum()) for f in flags]
+    return {
+        "metrics": {
+            "episodes": len(lines),
+            "warm_up_episodes": warm,
+            "interventions_before_d": sum(len(x["interventions"]) for x in lines[:warm]),
+            "interventions": sum(len(x["interventions"]) for x in lines),
+            "hand_backs": sum(i["end"] < x["length"] for x in lines for i in x["interventions"]),
+        },
+        "recording": {
+            "episodes": len(flags),
+            "intervention_frames_before_d": int(sum(f.sum() for f in flags[:warm])),
+            "first_episode_with_intervention": next((i for i, f in enumerate(flags) if f.any()), None),
+            "hand_backs": sum(handed),
+            "episodes_with_hand_back": sum(h > 0 for h in handed),
+        },
+    }
+
+
 # What the figures read from each per-episode line of a FIRE run's metrics.jsonl.
 EPISODE_LINE = loaders.obj(
     d_ready=loaders.boolean,

@@ -483,6 +483,23 @@ def test_the_expert_hands_control_back_once_the_policy_can_finish(fire_run):
     assert lines[-1]["corrections"] < sum(x["length"] - x["intervened_at"] for x in lines if x["intervened_at"])
 
 
+def test_protocol_check_reads_warm_up_and_hand_backs_from_metrics_and_recording(fire_run):
+    """`fire_runs.protocol_check` (the study's acceptance numbers): no intervention before D is ready
+    and the hand-backs, counted alike from the episode lines and the DAgger recording."""
+    from shiftkit.policies.fire_runs import protocol_check
+
+    run, _ = fire_run
+    check = protocol_check(run)
+    metrics, recording = check["metrics"], check["recording"]
+    lines = _episode_lines(run)
+    assert metrics["episodes"] == recording["episodes"] == len(lines)
+    assert metrics["warm_up_episodes"] == sum(not x["d_ready"] for x in lines) > 0
+    assert metrics["interventions_before_d"] == recording["intervention_frames_before_d"] == 0
+    assert recording["first_episode_with_intervention"] >= metrics["warm_up_episodes"]
+    assert metrics["hand_backs"] == recording["hand_backs"] >= 1
+    assert metrics["interventions"] == sum(len(x["interventions"]) for x in lines)
+
+
 def test_missed_failures_are_stopped_where_they_show_and_logged(fire_run, demo):
     """An unpredicted failure is stopped once the policy has stood still for 2 s (every simulator
     position within 2 cm or rad, checked here on the recorded sim.qpos), at the latest at the

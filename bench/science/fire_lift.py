@@ -18,6 +18,9 @@ neither follows `train bc`'s defaults. Every policy is evaluated on the same hel
 100000 onwards, used by no demonstration or FIRE episode). Each step is a `shiftkit` command, printed
 before it runs; a rerun with the same `--workdir` reuses every finished step (resumable).
 
+Each FIRE run's entry in the JSON result holds `protocol`: its warm-up and hand-backs as its metrics
+and its DAgger-layout recording show them (`fire_runs.protocol_check`).
+
 Prints a table and, last, the JSON result: FIRE gda's success pooled over seeds minus BC's at matched
 expert samples, with the suboptimal expert (the thesis' claim: FIRE beats BC at equal expert data,
 with human demonstrations). `--quick` is a smoke test of every command (one seed, tiny sizes; its
@@ -34,7 +37,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _study import arguments, choices_of, evaluate, pool, seeds_of, shiftkit, workspace  # noqa: E402
 
-from shiftkit.policies.fire_runs import bc_reference, read_episode_lines  # noqa: E402
+from shiftkit.policies.fire_runs import bc_reference, protocol_check, read_episode_lines  # noqa: E402
 
 NETWORK = ["--ensemble", "1", "--hidden", "256,256", "--output-activation", "tanh"]
 EXPERTS = ("scripted", "suboptimal")
@@ -123,7 +126,7 @@ def main() -> None:
                         {"seed": seed, "successes": result["successes"], "episodes": result["episodes"],
                          "expert_samples": lines[-1]["expert_samples"],
                          "execution_s": round(lines[-1]["execution_time_s"], 1), "fire_episodes": len(lines),
-                         "warm_up_episodes": sum(not x["d_ready"] for x in lines)}
+                         "warm_up_episodes": sum(not x["d_ready"] for x in lines), "protocol": protocol_check(run)}
                     )  # fmt: skip
         figures = {}
         for expert in experts:
