@@ -182,7 +182,7 @@ def _run_fire(args: FireFigure) -> int:
             else:
                 xs, ys = np.array([r[key] for r in refs]), np.array([r["success"] for r in refs])
                 lows, highs = (np.array([r["ci95"][i] for r in refs]) for i in (0, 1))
-                curves.append(Curve(f"{label} (runs pooled per size, Wilson 95%)", xs, ys, lows, highs, runs))
+                curves.append(Curve(f"{label} (seeds pooled per size, Wilson 95%)", xs, ys, lows, highs, runs))
         path = out.with_name(f"{out.stem}-{suffix}{out.suffix or '.png'}")
         ylabel = f"policy success ({args.window}-episode window for FIRE)"
         try:

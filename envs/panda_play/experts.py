@@ -353,10 +353,9 @@ class ExpertPolicy:
 # with that variance, drawn per episode from its own seeded generator. Its demonstrations are slower
 # than the scripted expert's and varied, and BC needs more of them (docs/fire.md).
 #
-# Why only these two: hesitations (zero-motion frames), motion noise, detours or misjudged grasps, even
-# in one episode in ten, left BC from 40 demonstrations at 0 of 30 held-out successes (seed 0, docs/
-# fire.md): a pause or a drift recorded as the action teaches "slow arm: stay still" through the
-# observed velocity, and BC stalls.
+# Why only these two: motion noise or misjudged grasps added to the pace, or hesitations and detours
+# with them, left BC from 40 demonstrations at 0-2 of 30 held-out successes (seed 0, docs/fire.md): its
+# policies reach over the block and stop 1-2 cm above it without ever closing the fingers.
 SUBOPTIMAL_SPEED = (0.4, 1.0)
 """Range of the per-episode speed scale of the free motion (each demonstrator keeps a pace); the final
 descent and the closing of the fingers stay as the scripted expert does them."""
