@@ -52,7 +52,7 @@ class CollectConfig:
     """Extra keyword arguments for the env constructor (e.g. `view="multiview"`)."""
     expert: str = "scripted"
     """How episodes are recorded: "scripted" (the task's expert) or a family's other recorder
-    (e.g. "kinesthetic")."""
+    (e.g. "kinesthetic"; panda-play "suboptimal": the scripted expert with a person's variance)."""
     cameras: tuple[str, ...] = ()
     """Cameras rendered every frame (e.g. "front"); empty = state only."""
     depth: bool = False

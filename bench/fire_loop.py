@@ -12,10 +12,11 @@ The headline ratio counts the episodes' execution time (what the loop adds to ru
 the learning between episodes (D, BC updates, retraining), which any online learner pays, is
 reported separately as `with_learning_ratio`. `cpu_time_ratio` is the headline ratio in the
 process's CPU time, which other processes on a shared machine stretch less than wall time. The
-simulated oracle's look-ahead runs the policy to the end of the episode (or its success) from the
-first question, so an early-failing policy with early predictions costs up to a whole extra episode
-per executed one; `simulated_steps_ratio` counts the look-ahead steps too, i.e. the per-step
-overhead of D, doubt, prediction, forks and recording.
+simulated oracle's look-ahead runs the policy to the end of the episode (its success, or a
+standstill) from the first question, and during a correction at every step to decide whether the
+policy can finish (the hand-back), so an early-failing policy costs several extra episodes per
+executed one; `simulated_steps_ratio` counts the look-ahead steps too, i.e. the per-step overhead of
+D, doubt, prediction, forks and recording.
 
     python bench/fire_loop.py [--quick] [--workdir DIR]
 

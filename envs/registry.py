@@ -67,6 +67,10 @@ class EnvFamily:
     expert_policy: Callable[[Any], Any] | None = None
     """`expert_policy(env)`: the scripted expert as a policy that acts from the env's current state
     (`reset()`, `act(obs)`), if the family has one: FIRE's simulated oracle takes over with it."""
+    expert_policies: dict[str, Callable[..., Any]] = field(default_factory=dict)
+    """The other experts of `experts` that act from any state, as policies by the same name:
+    `expert_policies[name](env, seed)` (the seed draws a stochastic expert's variance); FIRE's oracle
+    takes over with the one its run names (`shiftkit fire --expert-policy`)."""
 
     def gym_id(self, task: str) -> str:
         """The gymnasium id of `task` (`shiftkit/<gym_prefix>-<Task>-v0`)."""

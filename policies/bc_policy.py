@@ -19,6 +19,7 @@ from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.features import numpy_dtype
 from shiftkit.policies.networks import image_encoder, mlp, orthogonal_init_
 from shiftkit.policies.run_dir import RunDir, load_checkpoint
+from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS
 
 
 @dataclass(frozen=True)
@@ -81,10 +82,16 @@ class PolicySpec:
     ensemble_size: int
     normalization: Normalization | None = field(default_factory=Normalization)
     """Std floor and input clipping; None for checkpoints that predate it (`legacy_std`, no clip)."""
+    output_activation: str = "linear"
+    """`linear`, or `tanh`: actions bounded to [-1, 1] in the dataset's units (thesis 5.4.2's policy)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.normalization, dict):  # as stored in a checkpoint by dataclasses.asdict
             self.normalization = Normalization(**self.normalization)
+        if self.output_activation not in OUTPUT_ACTIVATIONS:
+            raise ConfigError(
+                f"output activation must be one of {', '.join(OUTPUT_ACTIVATIONS)}, got {self.output_activation!r}"
+            )
 
     def image_keys(self) -> list[str]:
         """Camera features: RGB (`image`/`video`, uint8) and float maps named (height, width, channels),
@@ -187,12 +194,19 @@ class BCNet(nn.Module):
         in_dim = sum(int(np.prod(spec.features[k]["shape"])) for k in self.numeric_keys)
         in_dim += sum(enc.out_dim for enc in self.encoders)
         self.head = mlp(in_dim, int(np.prod(spec.action["shape"])), tuple(spec.hidden))
+        self.tanh = spec.output_activation == "tanh"
+        if self.tanh:  # tanh bounds the action in dataset units; the loss stays in normalised units
+            mean, std = (torch.as_tensor(spec.stats["action"][k], dtype=torch.float32) for k in ("mean", "std"))
+            norm = spec.normalization
+            self.register_buffer("action_mean", mean)
+            self.register_buffer("action_std", norm.floored(mean, std) if norm is not None else legacy_std(std))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """The (B, A) normalised action of normalised observations `obs`."""
         parts = [obs[k].flatten(1) for k in self.numeric_keys]
         parts += [enc(obs[k]) for enc, k in zip(self.encoders, self.image_keys, strict=True)]
-        return self.head(torch.cat(parts, dim=-1))
+        out = self.head(torch.cat(parts, dim=-1))
+        return (torch.tanh(out) - self.action_mean) / self.action_std if self.tanh else out
 
 
 def ensemble_doubt(outs: torch.Tensor) -> torch.Tensor:

@@ -121,11 +121,9 @@ def draw_curves(
     ax.set_ylabel(ylabel)
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
-    if len(curves) + len(points) > 3:  # beside the axes, where it hides no curve or point
-        fig.set_size_inches(9.5, 4)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    else:
-        ax.legend(loc="best")
+    # beside the axes, where it hides no curve or band (curves spanning the whole axes leave no "best" spot)
+    fig.set_size_inches(9.5, 4)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     names = [c.label for c in curves] + [p.label for p in points]
     tasks = sorted({t for c in curves for t in c.tasks})
     on = f" on {', '.join(tasks)}" if tasks else ""

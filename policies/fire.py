@@ -1,15 +1,21 @@
 """FIRE: failure identification to reduce expert burden (thesis ch. 5, Algorithm 2; docs/fire.md).
 
-A BC policy, initialised from a dataset, runs episodes in a registered environment. At every step a
-failure predictor (beta rule, GDA, ensemble doubt or GDA-or-doubt) looks at the discriminator score
-D(s, a) and the ensemble's doubt; a predicted failure stops the run and asks the expert "will it
-fail?". The simulated expert (`oracle.SimulatedOracle`) answers by forking the simulator: yes (true
-positive) and it takes over until the episode ends, its corrections joining the expert set; no (false
-positive) and the run goes on. It also stops failures nobody predicted (false negative). After each
-episode: a successful episode's final (s_T, a_T) joins the expert set, D trains for as many steps as
-the episode had, BC takes as many gradient steps on the expert set (lr 1e-4), the predictors update
-their statistics, and every `retrain_every` (d = 500) new expert samples BC is retrained on the whole
-expert set, warm-started, with early stopping on a hold-out.
+A BC policy (thesis 5.4.2: one 2x256 MLP with a tanh output), initialised from a dataset, runs
+episodes in a registered environment. Warm-up: until `d_start` policy samples exist (10k, 5.4.2) the
+policy runs on its own (no prediction, stop, takeover or BC update); then D trains and Algorithm 2
+proper begins. At every step a failure predictor (beta rule, GDA, ensemble doubt or GDA-or-doubt)
+looks at the discriminator score D(s, a) and the ensemble's doubt; a predicted failure stops the run
+and asks the expert "will it fail?". The simulated expert (`oracle.SimulatedOracle`) answers by
+forking the simulator: yes (true positive) and it takes over, correcting until the policy can finish
+from the current state, then hands control back (several times per episode if needed), its
+corrections joining the expert set; no (false positive) and the run goes on. It also stops failures
+nobody predicted once they show (false negative). After each episode: a successful episode's final
+(s_T, a_T) joins the expert set (not counted as an expert sample), GDA learns from the executed
+segments (a policy segment ending in an intervention failed), D trains for as many steps as the
+episode had, BC takes as many gradient steps on the expert set (lr 1e-4), and every
+`retrain_every` (d = 500) new expert-set frames BC is retrained on it, warm-started, with early
+stopping on held-out demonstrations and corrections that the per-episode steps never sample.
+Execution time counts the demonstrations, the warm-up and every later step.
 
 Run folder (`run_dir.RunDir` layout, trainer "fire"):
     config.json, metrics.jsonl (one "episode" line per episode, "eval" lines), checkpoints/ (the full
@@ -28,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,9 +79,10 @@ def thresholds(predictor: Any) -> dict[str, float]:
 
 @dataclass
 class Learner:
-    """Everything the loop learns and counts: the policy and its optimisers, D, the predictors, the
-    expert and policy sets, the trajectories behind the GDA statistics, the RNGs and counters. A
-    checkpoint holds its `state_dict`, so a resumed run continues where the killed one stopped."""
+    """Everything the loop learns and counts: the policy and its optimisers, D, the predictor, the GDA
+    statistics, the expert and policy sets (and which expert frames the retraining holds out), the
+    RNGs and counters. A checkpoint holds its `state_dict`, so a resumed run continues where the
+    killed one stopped."""
 
     policy: BCPolicy
     optimizers: list
@@ -84,21 +90,15 @@ class Learner:
     agent: Agent
     """The policy and D acting (they share the weights above)."""
     predictor: Any
-    roc_gda: GDARule
-    """GDA statistics for the ROC scores, whichever predictor runs."""
+    gda: GDARule
+    """The GDA rule learning from executed segments: the predictor's own, or one for the ROC scores."""
     expert_set: FrameBuffer
+    held_out: np.ndarray
+    """Per expert-set frame: kept for the full retraining's validation, never sampled by the updates."""
     policy_set: FrameBuffer
-    history: dict[bool, deque]
-    """The policy trajectories behind the GDA statistics (window per outcome), re-scored whenever D
-    changes."""
     rng: np.random.Generator
     oracle: SimulatedOracle
     counters: dict
-
-    def gda_rules(self) -> list[GDARule]:
-        """The GDA rules whose statistics follow D: the ROC one and the predictor's own."""
-        own = (self.predictor, getattr(self.predictor, "a", None))
-        return [self.roc_gda, *(r for r in own if isinstance(r, GDARule))]
 
     def state_dict(self) -> dict[str, Any]:
         """Everything a checkpoint holds to resume the loop exactly."""
@@ -107,10 +107,10 @@ class Learner:
             "optimizers": [o.state_dict() for o in self.optimizers],
             "disc": self.disc.state_dict(),
             "predictor": self.predictor.state_dict(),
-            "roc_gda": self.roc_gda.state_dict(),
+            "gda": self.gda.state_dict(payloads=True),
             "expert_set": self.expert_set.state_dict(),
+            "held_out": self.held_out,
             "policy_set": self.policy_set.state_dict(),
-            "history": {failed: list(h) for failed, h in self.history.items()},
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "counters": self.counters,
@@ -124,11 +124,10 @@ class Learner:
             opt.load_state_dict(s)
         self.disc.load_state_dict(state["disc"])
         self.predictor.load_state_dict(state["predictor"])
-        self.roc_gda.load_state_dict(state["roc_gda"])
+        self.gda.load_state_dict(state["gda"])  # after the predictor's: the stored segments win
         self.expert_set.load_state_dict(state["expert_set"])
+        self.held_out = np.asarray(state["held_out"], dtype=bool)
         self.policy_set.load_state_dict(state["policy_set"])
-        for failed, trajectories in state["history"].items():
-            self.history[failed].extend(trajectories)
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         self.counters = state["counters"]
@@ -163,12 +162,13 @@ def _open_env(args: FireArgs, fps: int, dataset: Path, name: str) -> Any:
             f"the dataset is at {fps} fps but {args.env} would run at {env.control_hz} Hz ({args.env} offers "
             f"{offered} Hz): FIRE a dataset recorded at a rate the env offers"
         )
-    scripted_expert(args.env, env)  # the env must have an expert that acts from any state
+    scripted_expert(args.env, env, args.expert_policy)  # the env must have that expert, acting from any state
     return env
 
 
 def _initial_bc(args: FireArgs, bc_dir: Path, device: torch.device) -> BCPolicy:
-    """BC initialised from the demonstrations (its own run folder, resumable too)."""
+    """BC initialised from the demonstrations (its own run folder, resumable too), with FIRE's own
+    network settings (`FireArgs`), not `shiftkit train bc`'s defaults."""
     train_bc(
         BCArgs(
             datasets=[args.dataset],
@@ -176,8 +176,10 @@ def _initial_bc(args: FireArgs, bc_dir: Path, device: torch.device) -> BCPolicy:
             output_dir=str(bc_dir),
             regime=args.bc_regime,
             steps=args.bc_steps,
+            val_fraction=args.val_fraction if args.bc_regime == "early-stop" else None,
             ensemble_size=args.ensemble_size,
             hidden=args.hidden,
+            output_activation=args.output_activation,
             batch_size=args.batch_size,
             seed=args.seed,
             device=args.device,
@@ -192,11 +194,14 @@ def _initial_bc(args: FireArgs, bc_dir: Path, device: torch.device) -> BCPolicy:
 def _learner(
     args: FireArgs, policy: BCPolicy, ds: Any, env: Any, obs_map: ObservationMap, device: torch.device
 ) -> Learner:
-    """The loop's state before the first episode: the expert set holds the demonstrations."""
+    """The loop's state before the first episode: the expert set holds the demonstrations, the
+    episodes the initial BC held out (the same seeded split) kept apart for the retraining."""
     keys = [*policy.features, "action"]
     demo_frames = FrameTable([ds], keys)
     expert_set, policy_set = FrameBuffer(keys), FrameBuffer(keys)
     expert_set.add(demo_frames.gather(np.arange(demo_frames.num_frames)))
+    held_out = np.zeros(demo_frames.num_frames, dtype=bool)
+    held_out[demo_frames.split_episodes(args.val_fraction, args.seed)[1]] = True
     demo_lengths = [end - start for start, end in demo_frames.episodes]
     optimizers = [torch.optim.Adam(net.parameters(), lr=args.online_lr) for net in policy.members]
     disc = Discriminator(
@@ -208,63 +213,101 @@ def _learner(
         seed=args.seed,
     )
     agent = Agent(policy, disc, obs_map, device)
-    if args.doubt_threshold is None:
+    if args.doubt_threshold is None and len(policy.members) > 1:
         with torch.no_grad():
             outs = policy.member_outputs(expert_set.gather(np.arange(len(expert_set)), device))
         doubt_threshold = float(ensemble_doubt(outs).max()) or 1e-6
     else:
-        doubt_threshold = args.doubt_threshold
+        doubt_threshold = args.doubt_threshold or 1e-6
     predictor = make_predictor(args.predictor, doubt_threshold, beta=args.beta, gamma=args.gamma)
-    roc_gda = GDARule(args.gamma)
-    history: dict[bool, deque] = {True: deque(maxlen=roc_gda.window), False: deque(maxlen=roc_gda.window)}
-    margin = args.expert_margin if args.expert_margin is not None else math.ceil(1.5 * max(demo_lengths))
-    oracle = SimulatedOracle(args.env, agent, check_step=max(0, env.max_episode_steps - margin))
+    own = [r for r in (predictor, getattr(predictor, "a", None)) if isinstance(r, GDARule)]
+    gda = own[0] if own else GDARule(args.gamma)
+    margin = args.expert_margin if args.expert_margin is not None else int(np.median(demo_lengths))
+    fps = getattr(env, "control_hz", None) or ds.meta.fps
+    oracle = SimulatedOracle(
+        args.env,
+        agent,
+        check_step=max(0, env.max_episode_steps - margin),
+        expert=args.expert_policy,
+        stall_steps=max(2, math.ceil(args.stall_seconds * fps)),
+        stall_tolerance=args.stall_tolerance,
+    )
     rng = np.random.default_rng([args.seed, 0xF12E])
-    counters = {"episode": 0, "corrections": 0, "env_steps": 0, "since_retrain": 0, "wall_time": 0.0, "retrains": 0}
+    counters = {
+        "episode": 0,
+        "corrections": 0,
+        "interventions": 0,
+        "hand_backs": 0,
+        "demo_frames": demo_frames.num_frames,
+        "env_steps": 0,
+        "since_retrain": 0,
+        "wall_time": 0.0,
+        "retrains": 0,
+        "d_ready_episode": None,
+    }
     return Learner(
-        policy, optimizers, disc, agent, predictor, roc_gda, expert_set, policy_set, history, rng, oracle, counters
+        policy, optimizers, disc, agent, predictor, gda, expert_set, held_out, policy_set, rng, oracle, counters
     )
 
 
-def _learn(learner: Learner, ep: EpisodeResult, args: FireArgs, device: torch.device) -> dict:
-    """Algorithm 2, lines 35-40, after one episode; returns the episode's learning metrics."""
+def _learn(learner: Learner, ep: EpisodeResult, args: FireArgs, active: bool, device: torch.device) -> dict:
+    """Algorithm 2, lines 25-40, after one episode; returns the episode's learning metrics. Until D is
+    ready (`active` False) the policy's frames only gather (D_pi, the GDA segments) and BC stays as
+    the demonstrations made it."""
     n = len(ep.frames["action"])
     by_expert = ep.frames["source"][:, 0] == SOURCE_EXPERT
     keep = {k: ep.frames[k] for k in learner.expert_set.keys}
+    # each correction joins D_E, a seeded share of the corrections held out for the retraining
+    held = [learner.rng.random() < args.val_fraction for s in ep.segments if s.expert]
+    stretch_held = np.zeros(n, dtype=bool)
+    for segment, h in zip((s for s in ep.segments if s.expert), held, strict=True):
+        stretch_held[slice(*segment.payload)] = h
     learner.expert_set.add({k: v[by_expert] for k, v in keep.items()})
+    learner.held_out = np.r_[learner.held_out, stretch_held[by_expert]]
     learner.policy_set.add({k: v[~by_expert] for k, v in keep.items()})
     added = int(by_expert.sum())
-    if ep.success and not by_expert[-1]:  # the final (s_T, a_T) of a success is expert data
-        learner.expert_set.add({k: v[-1:] for k, v in keep.items()})
+    if ep.success and not by_expert[-1]:  # the final (s_T, a_T) of a success is expert data (5.3.4),
+        learner.expert_set.add({k: v[-1:] for k, v in keep.items()})  # not an expert sample
+        learner.held_out = np.r_[learner.held_out, False]
         added += 1
     counters = learner.counters
     counters["corrections"] += int(by_expert.sum())
+    counters["interventions"] += len(ep.interventions)
+    counters["hand_backs"] += sum(x["end"] < n for x in ep.interventions)
     counters["since_retrain"] += added
     counters["env_steps"] += n
 
-    # scores for ROC curves, from statistics of earlier episodes only
-    scores = {
-        "beta": BetaRule().score(ep.trace),
-        "gda": learner.roc_gda.score(ep.trace),
-        "doubt": float(np.max(ep.trace.doubt)) if len(ep.trace.doubt) else 0.0,
-    }
-    learner.predictor.update(ep.trace, ep.policy_failed)
-    learner.roc_gda.update(ep.trace, ep.policy_failed)
-    learner.history[ep.policy_failed].append(ep.trajectory)
-    disc = learner.disc
+    # scores for ROC curves, from statistics of earlier episodes only (doubt: with an ensemble)
+    scores = {"beta": BetaRule().score(ep.trace), "gda": learner.gda.score(ep.trace)}
+    if len(learner.policy.members) > 1:
+        scores["doubt"] = float(np.max(ep.trace.doubt)) if len(ep.trace.doubt) else 0.0
+    # GDA learns from the executed segments, D from both sets once enough policy samples exist
+    disc, gda = learner.disc, learner.gda
+    for segment in ep.segments:
+        segment.payload = {k: v[slice(*segment.payload)] for k, v in keep.items()}
+        if disc.updates:
+            segment.d = disc.score(segment.payload)
+        gda.add_segment(segment)
+    gda.add_outcome(ep.policy_failed)
     d_metrics = {}
     if disc.ready(len(learner.policy_set)):
         d_metrics = disc.update(learner.expert_set, learner.policy_set, n, learner.rng)
-        rescored = {failed: [disc.score(x) for x in h] for failed, h in learner.history.items()}
-        for rule in learner.gda_rules():
-            rule.refit(rescored[True], rescored[False])
-    bc_loss = online_update(learner.policy, learner.optimizers, learner.expert_set, n, args, learner.rng, device)
-    retrained = {}
-    if counters["since_retrain"] >= args.retrain_every:
-        seed = args.seed + counters["retrains"]
-        retrained = retrain(learner.policy, learner.optimizers, learner.expert_set, args, seed, device)
-        counters["since_retrain"] -= args.retrain_every
-        counters["retrains"] += 1
+        gda.rescore(disc.score)
+        if counters["d_ready_episode"] is None:
+            counters["d_ready_episode"] = counters["episode"]
+    bc_loss, retrained = None, {}
+    if active:
+        train_rows = np.flatnonzero(~learner.held_out)
+        bc_loss = online_update(
+            learner.policy, learner.optimizers, learner.expert_set, train_rows, n, args, learner.rng, device
+        )
+        if counters["since_retrain"] >= args.retrain_every:
+            seed = args.seed + counters["retrains"]
+            retrained = retrain(
+                learner.policy, learner.optimizers, learner.expert_set, learner.held_out, args, seed, device
+            )
+            counters["since_retrain"] -= args.retrain_every
+            counters["retrains"] += 1
     return {
         "episode_expert_samples": int(by_expert.sum()),
         "scores": scores,
@@ -284,9 +327,9 @@ def _evaluate(learner: Learner, env: Any, args: FireArgs, fps: int) -> dict:
         "success_rate": wins / len(results),
         "ci95": list(wilson_interval(wins, len(results))),
         "episodes": len(results),
-        "expert_samples": len(learner.expert_set),
+        "expert_samples": counters["demo_frames"] + counters["corrections"],
         "corrections": counters["corrections"],
-        "execution_time_s": counters["env_steps"] / fps,
+        "execution_time_s": (counters["demo_frames"] + counters["env_steps"]) / fps,
         "wall_time_s": counters["wall_time"],
     }
 
@@ -357,15 +400,16 @@ def run(args: FireArgs) -> dict:
     bar = tqdm(total=budget, initial=min(counters["corrections"], budget), unit="correction", disable=not args.progress)
     while counters["corrections"] < budget and (args.max_episodes is None or counters["episode"] < args.max_episodes):
         i, started, started_cpu = counters["episode"], time.perf_counter(), time.process_time()
-        d_ready = learner.disc.ready(len(learner.policy_set))
-        ep = run_episode(env, args.env_seed + i, agent, learner.predictor, oracle, d_ready, observed, args.fp_cooldown)
+        active = learner.disc.updates > 0  # D trained: Algorithm 2 proper (before: the warm-up)
+        ep = run_episode(env, args.env_seed + i, agent, learner.predictor, oracle, active, observed, args.fp_cooldown)
         exec_time = time.perf_counter() - started
         exec_cpu = time.process_time() - started_cpu  # unlike wall time, not stretched by other processes
-        learned = _learn(learner, ep, args, device)
+        learned = _learn(learner, ep, args, active, device)
         bar.update(min(learned["episode_expert_samples"], budget - bar.n))
         counters["wall_time"] += time.perf_counter() - started
         counters["episode"] += 1
 
+        first = ep.interventions[0]["start"] if ep.interventions else None
         meta = {
             "outcome": "success" if ep.success else "failure",
             "seed": args.env_seed + i,
@@ -373,7 +417,8 @@ def run(args: FireArgs) -> dict:
                 "episode": i,
                 "policy_outcome": "failure" if ep.policy_failed else "success",
                 "feedback": ep.feedback,
-                "intervened_at": ep.intervened_at,
+                "intervened_at": first,
+                "interventions": ep.interventions,
                 "predictor": args.predictor,
             },
         }
@@ -383,21 +428,25 @@ def run(args: FireArgs) -> dict:
             "seed": args.env_seed + i,
             "success": ep.success,
             "policy_success": not ep.policy_failed,
+            "d_ready": active,
             "predictions": ep.predictions,
             "feedback": ep.feedback,
-            "intervened_at": ep.intervened_at,
+            "intervened_at": first,
+            "interventions": ep.interventions,
+            "stops": ep.stops,
             "length": len(ep.frames["action"]),
             "episode_expert_samples": learned.pop("episode_expert_samples"),
             "corrections": counters["corrections"],
-            "expert_samples": len(learner.expert_set),
+            "expert_samples": counters["demo_frames"] + counters["corrections"],
+            "policy_samples": len(learner.policy_set),
             "env_steps": counters["env_steps"],
-            "execution_time_s": counters["env_steps"] / fps,
+            "execution_time_s": (counters["demo_frames"] + counters["env_steps"]) / fps,
             "wall_time_s": counters["wall_time"],
             "episode_exec_s": exec_time,
             "episode_cpu_s": exec_cpu,
             "look_ahead_steps": oracle.look_ahead_steps,
             "forks": oracle.forks,
-            "d_ready": d_ready,
+            "deadline_step": oracle.check_step,
         }
         run_dir.log(counters["episode"], "episode", **metrics, **learned)
         if args.eval_every and counters["episode"] % args.eval_every == 0:
@@ -407,7 +456,7 @@ def run(args: FireArgs) -> dict:
     bar.close()
     # --- the rollouts as lerobot's DAgger strategy records them, then offline FIRE over them: the
     # aggregated dataset, predictor file and ROC come from the same code a lab runs on its recordings
-    summary = run_summary(run_dir, counters, len(learner.expert_set))
+    summary = run_summary(run_dir, counters)
     rollouts = run_dir.path / "rollouts"
     if not dataset_root.exists():
         task = next(iter(open_lerobot_dataset(resolved.root).tasks), args.task)

@@ -2,19 +2,21 @@
 
 Inputs: the expert demonstrations and any number of lerobot DAgger recordings (`dagger_recording`:
 either layout). Every frame gets a source: demonstration (0), policy (1: `intervention` False) or
-expert correction (2: True). Each stretch of policy frames is one trajectory of the policy; the
-stretches that end in a correction are the failures the predictor should have flagged, the others
-(ending with their episode) are successes.
+expert correction (2: True). Each stretch of policy frames is one trajectory of the policy, a failure
+when a correction follows it (the operator took over), a success when it runs to its episode's end;
+the operator handing control back shows as a correction followed by policy frames.
 
 Then, with the code of the simulated loop (`discriminator`, `failure_predictors`):
 1. D(s, a) trains on expert frames (demonstrations + corrections) against the policy's frames, for
    as many steps as the recordings hold frames (the simulated loop's rule: one step per frame); with
    only corrections recorded, the policy's samples are its own actions at the corrected states;
-2. the beta and GDA rules are fitted by replaying the policy trajectories in recording order: each
-   is scored with the statistics of the earlier ones (as the loop scores an episode before learning
-   from it), then predicts step by step, answered as the recording answers (a request in a stretch
-   that ends in a correction: agreed; otherwise refused; a correction nobody predicted: missed),
-   and then joins the statistics;
+2. the beta and GDA rules are fitted by replaying the stretches in recording order, as the loop
+   learns from its executed segments: each policy stretch is scored with the statistics of the
+   earlier ones (as the loop scores an episode before learning from it), then the rule predicts step
+   by step (the episode's step count, which GDA's statistics are indexed by), answered as the
+   recording answers (a request in a stretch that ends in a correction: agreed; otherwise refused; a
+   correction nobody predicted: missed); then the stretch joins GDA's statistics (corrections as
+   successful data, as in the reference) and GDA re-derives its threshold from their ROC;
 3. the aggregated LeRobot dataset: the demonstrations and every recorded episode, with per-frame
    `intervention` (as lerobot writes it), `source`, `discriminator_score` (final D) and
    `intervention_request` (where the chosen rule, as fitted up to then, asked); beside it, in
@@ -44,7 +46,7 @@ from shiftkit.pipelines.staging import check_inputs_and_outputs
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
 from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
-from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule, roc_curve
+from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule, Segment, roc_curve
 from shiftkit.policies.fire_config import AggregateArgs
 from shiftkit.policies.fire_predictor import FailurePredictor
 from shiftkit.policies.frame_buffer import FrameBuffer
@@ -110,34 +112,38 @@ def _d_inputs(frames: dict[str, np.ndarray], keys: list[str], spec: PolicySpec) 
 
 @dataclass
 class Stretch:
-    """One stretch of policy frames inside a recorded episode."""
+    """One stretch of policy frames or of a correction inside a recorded episode."""
 
     episode: int
     """Index among all recorded episodes (recordings in order)."""
     start: int
     end: int
     failed: bool
-    """Ends in a correction."""
+    """A policy stretch that ends in a correction."""
+    expert: bool = False
+    """A correction (the operator drove)."""
 
 
 def stretches(intervention: np.ndarray, episode: int) -> list[Stretch]:
-    """The policy stretches of one episode (`intervention` per frame)."""
+    """The stretches of one episode in order (`intervention` per frame)."""
     parts = runs(intervention)
-    return [Stretch(episode, s, e, failed=k + 1 < len(parts)) for k, (s, e, on) in enumerate(parts) if not on]
+    return [Stretch(episode, s, e, not on and k + 1 < len(parts), on) for k, (s, e, on) in enumerate(parts)]
 
 
-def replay(rule: Any, d: np.ndarray, failed: bool, cooldown: int) -> np.ndarray:
-    """Run `rule` along one policy stretch, answered by the recording; the steps where it asked."""
+def replay(rule: Any, d: np.ndarray, start: int, failed: bool, cooldown: int) -> np.ndarray:
+    """Run `rule` along one policy stretch starting at episode step `start`, answered by the
+    recording; the steps where it asked."""
     asked = np.zeros(len(d), dtype=bool)
     rule.reset()
     wait = 0
-    for t, d_t in enumerate(d):
+    for i, d_t in enumerate(d):
+        t = start + i
         if wait > 0:
             wait -= 1
-            rule.predict(t, None)
+            rule.predict(t, float(d_t))  # the watch goes on, its requests are not heard (5.3.2)
             continue
         if rule.predict(t, float(d_t)):
-            asked[t] = True
+            asked[i] = True
             rule.feedback("tp" if failed else "fp")
             if failed:  # the operator takes over here
                 break
@@ -148,21 +154,27 @@ def replay(rule: Any, d: np.ndarray, failed: bool, cooldown: int) -> np.ndarray:
 
 
 def fit_rules(
-    traces: list[np.ndarray], failed: list[bool], args: AggregateArgs
+    traces: list[np.ndarray], parts: list[Stretch], args: AggregateArgs
 ) -> tuple[dict[str, Any], dict[str, list[float]], list[np.ndarray]]:
-    """Fit the beta and GDA rules by replaying the policy stretches in order; returns the rules,
-    each rule's per-stretch ROC score (from earlier stretches only) and the chosen rule's requests."""
+    """Fit the beta and GDA rules by replaying the stretches (`parts`, with their D values `traces`)
+    in order, as the simulated loop learns from its executed segments; returns the rules, each rule's
+    per-policy-stretch ROC score (from earlier stretches only) and the chosen rule's requests there.
+    A policy stretch counts towards GDA's failure prior unless it is a success that follows a
+    correction (the reference counts the policy's own attempts)."""
     rules = {"beta": BetaRule(args.beta), "gda": GDARule(args.gamma)}
+    gda = rules["gda"]
     scores: dict[str, list[float]] = {"beta": [], "gda": []}
     requests = []
-    for d, fail in zip(traces, failed, strict=True):
-        trace = EpisodeTrace(d=d, doubt=np.zeros(len(d)))
-        scores["beta"].append(BetaRule().score(trace))
-        scores["gda"].append(rules["gda"].score(trace))
-        asked = {name: replay(rule, d, fail, args.fp_cooldown) for name, rule in rules.items()}
-        requests.append(asked[args.predictor])
-        for rule in rules.values():
-            rule.update(trace, fail)
+    for d, part in zip(traces, parts, strict=True):
+        if not part.expert:
+            trace = EpisodeTrace(d=d, doubt=np.zeros(len(d)))
+            scores["beta"].append(BetaRule().score(trace))
+            scores["gda"].append(gda.score(trace, part.start))
+            asked = {name: replay(rule, d, part.start, part.failed, args.fp_cooldown) for name, rule in rules.items()}
+            requests.append(asked[args.predictor])
+            if part.failed or part.start == 0:
+                gda.add_outcome(part.failed)
+        gda.add_segment(Segment(part.start, part.failed, part.expert, d=np.asarray(d, dtype=np.float64)))
     return rules, scores, requests
 
 
@@ -250,9 +262,10 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
         for ep in rec.reader.iter_episodes():
             scores_by_episode.append(disc.score(_d_inputs(ep.frames, keys, spec)))
     traces = [scores_by_episode[p.episode][p.start : p.end] for p in parts]
-    rules, roc, requests = fit_rules(traces, [p.failed for p in parts], args)
+    rules, roc, requests = fit_rules(traces, parts, args)
+    policy_parts = [p for p in parts if not p.expert]
     asked = [np.zeros(len(s), dtype=bool) for s in scores_by_episode]
-    for p, r in zip(parts, requests, strict=True):
+    for p, r in zip(policy_parts, requests, strict=True):
         asked[p.episode][p.start : p.end] = r
 
     # --- the aggregated dataset, streamed episode by episode
@@ -297,7 +310,7 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
                 index += 1
         predictor = FailurePredictor(disc, spec, rules, args.predictor, expert.fps)
         predictor.save(writer.tmp / PREDICTOR_FILE)
-        labels = [p.failed for p in parts]
+        labels = [p.failed for p in policy_parts]
         aucs = {}
         for name, values in roc.items():
             try:
@@ -305,7 +318,7 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
             except ValueError:
                 aucs[name] = None
         (writer.tmp / ROC_FILE).write_text(
-            dumps({"failed": labels, "scores": roc, "auc": aucs, "stretches": len(parts)}) + "\n"
+            dumps({"failed": labels, "scores": roc, "auc": aucs, "stretches": len(policy_parts)}) + "\n"
         )
         writer.close(
             provenance=make_provenance(
@@ -339,7 +352,7 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
     return {
         "dataset": str(out),
         "episodes": expert.num_episodes + index,
-        "stretches": len(parts),
+        "stretches": len(policy_parts),
         "failed_stretches": int(sum(labels)),
         "corrections": corrections,
         "auc": aucs,

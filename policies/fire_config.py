@@ -9,6 +9,7 @@ from typing import Any
 
 from shiftkit.pipelines.errors import ConfigError, require_positive
 from shiftkit.policies.failure_predictors import PREDICTORS
+from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS
 
 
 @dataclass
@@ -28,7 +29,7 @@ class FireArgs:
     predictor: str = "gda"
     """Failure predictor: beta, gda, doubt or gda+doubt."""
     budget_expert_samples: int = 2000
-    """Stop once the expert's corrections hold this many samples."""
+    """Stop once the expert's corrections hold this many samples (the demonstrations not counted)."""
     max_episodes: int | None = None
     """Stop after this many episodes at the latest."""
     repo_id: str | None = None
@@ -41,15 +42,27 @@ class FireArgs:
     """Seed of BC, D, sampling and the hold-outs."""
     env_seed: int = 10_000
     """Episode i resets the environment with env_seed + i."""
-    # --- BC
+    expert_policy: str = "scripted"
+    """The env's expert that corrects the policy: `scripted` or another of the family's experts that
+    acts from any state (panda-play: `suboptimal`, a person's variance), as `shiftkit collect --expert`
+    names them; record the demonstrations with the same one."""
+    # --- BC (the policy of thesis 5.4.2: one 2x256 MLP, tanh output; FIRE's own settings, whatever
+    # `shiftkit train bc` defaults to)
     bc_regime: str = "early-stop"
     """Initial BC regime (`shiftkit train bc --regime`)."""
     bc_steps: int | None = None
     """Initial BC steps (fixed regime; a bound for early-stop)."""
-    ensemble_size: int = 5
-    """BC ensemble members (their spread is the doubt)."""
+    ensemble_size: int | None = None
+    """BC members (their mean acts, their spread is the doubt); default 1 (thesis 5.4.2), 5 for the
+    doubt and gda+doubt predictors (ensemble doubt needs an ensemble)."""
     hidden: list[int] = field(default_factory=lambda: [256, 256])
     """BC hidden widths."""
+    output_activation: str = "tanh"
+    """BC output: `tanh` (actions bounded to [-1, 1], thesis 5.4.2) or `linear`."""
+    val_fraction: float = 0.2
+    """Share of the demonstrations' episodes (those the initial early-stop BC held out) and of the
+    correction stretches kept for the full retraining's validation: the per-episode updates never
+    sample them."""
     batch_size: int = 64
     """BC batch per member (initial training, updates, retraining)."""
     online_lr: float = 1e-4
@@ -64,7 +77,8 @@ class FireArgs:
     """Epochs without hold-out improvement before a retraining member stops."""
     # --- discriminator and predictors
     d_start: int = 10_000
-    """Policy samples before D trains and D-based predictions begin."""
+    """Policy samples before D trains (thesis 5.4.2): until then the policy runs on its own, with no
+    prediction, stop, takeover or BC update."""
     d_lr: float = 1e-3
     """Discriminator learning rate."""
     d_hidden: list[int] = field(default_factory=lambda: [256, 256])
@@ -80,8 +94,13 @@ class FireArgs:
     fp_cooldown: int = 5
     """Steps without predictions after a false positive."""
     expert_margin: int | None = None
-    """Steps the expert needs to finish from anywhere: the oracle stops unpredicted failures this many
-    steps before the episode's end (default: 1.5x the longest demonstration)."""
+    """Steps the expert needs to finish: the oracle stops an unpredicted failure this many steps
+    before the episode's end at the latest (default: the median demonstration's length)."""
+    stall_seconds: float = 2.0
+    """The oracle stops an unpredicted failure as soon as it shows: nothing (robot, objects) moved by
+    more than `stall_tolerance` for this long while the policy drove."""
+    stall_tolerance: float = 0.02
+    """Largest change of any simulator position coordinate (m or rad) that still counts as standing still."""
     # --- evaluation and bookkeeping
     eval_every: int = 0
     """Evaluate the policy every this many episodes (0: never), on seeds from 100000."""
@@ -103,7 +122,6 @@ class FireArgs:
         require_positive(
             self,
             "budget_expert_samples",
-            "ensemble_size",
             "batch_size",
             "retrain_every",
             "retrain_max_epochs",
@@ -113,8 +131,20 @@ class FireArgs:
             "online_lr",
             "retrain_lr",
             "d_lr",
+            "stall_seconds",
+            "stall_tolerance",
         )
         require_positive(self, "d_start", "fp_cooldown", "eval_every", "grad_penalty", allow_zero=True)
+        if self.ensemble_size is not None and self.ensemble_size <= 0:
+            raise ConfigError(f"ensemble_size must be positive, got {self.ensemble_size}")
+        if "doubt" in self.predictor and self.ensemble_size == 1:
+            raise ConfigError(f"the {self.predictor} predictor needs an ensemble (ensemble_size >= 2) for its doubt")
+        if not 0.0 < self.val_fraction < 1.0:
+            raise ConfigError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
+        if self.output_activation not in OUTPUT_ACTIVATIONS:
+            raise ConfigError(
+                f"unknown output activation {self.output_activation!r} (choose from {', '.join(OUTPUT_ACTIVATIONS)})"
+            )
         if self.max_episodes is not None and self.max_episodes <= 0:
             raise ConfigError(f"max_episodes must be positive, got {self.max_episodes}")
         if not 0.0 < self.gamma < 1.0:
@@ -128,7 +158,10 @@ class FireArgs:
         repo_id = self.repo_id or f"local/{Path(self.output_dir).name}"
         if repo_id.count("/") != 1 or not all(repo_id.split("/")):
             raise ConfigError(f"repo_id must look like ORG/NAME, got {repo_id!r}")
-        return dataclasses.replace(self, repo_id=repo_id, hidden=list(self.hidden), d_hidden=list(self.d_hidden))
+        members = self.ensemble_size or (5 if "doubt" in self.predictor else 1)
+        return dataclasses.replace(
+            self, repo_id=repo_id, ensemble_size=members, hidden=list(self.hidden), d_hidden=list(self.d_hidden)
+        )
 
 
 # The rules a failure predictor file holds (`policies/fire_predictor.py`); here so that `fire aggregate

@@ -1,6 +1,7 @@
-"""One FIRE episode (thesis Algorithm 2, lines 3-34): the BC ensemble and D act (`Agent`), the failure
-predictor watches, the simulated expert answers and takes over (`oracle.SimulatedOracle`), and the
-episode comes back as dataset frames plus the signals of the policy's uninterrupted trajectory.
+"""One FIRE episode (thesis Algorithm 2, lines 3-34): the BC policy and D act (`Agent`), the failure
+predictor watches, the simulated expert answers, takes over and hands back (`oracle.SimulatedOracle`),
+and the episode comes back as dataset frames, its executed segments and the signals of the policy's
+uninterrupted trajectory.
 """
 
 from __future__ import annotations
@@ -13,15 +14,16 @@ import torch
 
 from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt
+from shiftkit.policies.dagger_recording import runs
 from shiftkit.policies.discriminator import Discriminator
 from shiftkit.policies.evaluation import ObservationMap
-from shiftkit.policies.failure_predictors import EpisodeTrace
+from shiftkit.policies.failure_predictors import EpisodeTrace, Segment
 from shiftkit.policies.fire_aggregate import SOURCE_EXPERT, SOURCE_POLICY
 from shiftkit.policies.oracle import SimulatedOracle
 
 
 class Agent:
-    """The BC ensemble and D at one step: action (members' mean), doubt and D(s, a)."""
+    """The BC policy and D at one step: action (the members' mean), doubt (0 for one member) and D(s, a)."""
 
     def __init__(self, policy: BCPolicy, disc: Discriminator, obs_map: ObservationMap, device: torch.device) -> None:
         self.policy, self.disc, self.obs_map, self.device = policy, disc, obs_map, device
@@ -71,14 +73,31 @@ class EpisodeResult:
     """Dataset frames (dataset features + FIRE_FEATURES, timestamps and task added later)."""
     success: bool
     trace: EpisodeTrace
-    """Signals of the policy's uninterrupted trajectory (executed part + look-ahead)."""
-    trajectory: dict[str, np.ndarray]
-    """That trajectory's policy inputs and actions (for re-scoring by a retrained D)."""
+    """Signals of the policy's uninterrupted trajectory from the reset (executed part up to the first
+    intervention + the oracle's look-ahead from there): what the ROC scores and labels use."""
     policy_failed: bool
-    """Whether that uninterrupted trajectory fails (the label of the ROC curves)."""
+    """Whether that uninterrupted trajectory fails (the label of the ROC curves and success curves)."""
+    segments: list[Segment]
+    """The executed stretches in order (policy / expert; a policy stretch that ends in an intervention
+    failed), without D values: what GDA's statistics learn from."""
+    interventions: list[dict[str, Any]]
+    """Each expert takeover: start and end step (end: where the policy took control back, or the
+    episode's length) and why ("tp": an agreed prediction, "fn": an unpredicted failure stopped)."""
+    stops: list[dict[str, Any]]
+    """Each unpredicted failure the oracle stopped: step and reason ("stalled" or "deadline")."""
     feedback: list[str]
-    intervened_at: int | None
     predictions: int
+
+
+def _segments(intervention: np.ndarray, success: bool) -> list[Segment]:
+    """The stretches of one episode from its per-frame `intervention` flags: a policy stretch failed
+    when an expert stretch follows it, or when it ends an unsuccessful episode."""
+    parts = runs(intervention)
+    out = []
+    for k, (start, end, expert) in enumerate(parts):
+        failed = not expert and (k + 1 < len(parts) or not success)
+        out.append(Segment(start, failed, expert, payload=(start, end)))
+    return out
 
 
 def run_episode(
@@ -87,40 +106,56 @@ def run_episode(
     agent: Agent,
     predictor: Any,
     oracle: SimulatedOracle,
-    d_ready: bool,
+    active: bool,
     features: dict[str, dict],
     fp_cooldown: int,
 ) -> EpisodeResult:
-    """Thesis Algorithm 2, lines 3-34: one episode of policy, predictions, oracle and expert."""
+    """Thesis Algorithm 2, lines 3-34: one episode of policy, predictions, oracle and expert.
+
+    Until D is ready (`active` False) the policy runs on its own: no prediction, no stop, no takeover.
+    Afterwards a predicted failure asks the oracle; an agreed one (or a failure the oracle stops
+    itself) hands control to the expert, who gives it back as soon as the policy can finish from the
+    current state; the policy may be stopped again later in the episode."""
     obs, info = env.reset(seed=seed)
     predictor.reset()
     oracle.start_episode()
     rows: list[dict[str, Any]] = []
-    executed: list[dict[str, Any]] = []  # records of the policy's own steps
-    expert, feedback, intervened_at, predictions, cooldown, t = None, [], None, 0, 0, 0
-    success = False
+    executed: list[dict[str, Any]] = []  # the policy's own steps until the first intervention
+    expert, verdict = None, None
+    feedback: list[str] = []
+    interventions: list[dict[str, Any]] = []
+    stops: list[dict[str, Any]] = []
+    predictions, cooldown, t, success = 0, 0, 0, False
     while not success:  # at least one step, even where the reset state already counts as solved
         feats = agent.observe(env, obs)
         request = False
+        if expert is not None and t > interventions[-1]["start"] and oracle.can_finish(env, obs, t):
+            expert, interventions[-1]["end"] = None, t  # lines 27-28: the policy can finish from here
+            predictor.reset()
         if expert is None:
             action, doubt = agent.decide(feats)
             d = agent.d_score(feats, action)
-            executed.append({"d": d, "doubt": doubt, "frame": {**{k: feats[k] for k in agent.keys}, "action": action}})
-            if cooldown > 0:
-                cooldown -= 1
-            elif predictor.predict(t, d if d_ready else None, doubt):
-                request, predictions = True, predictions + 1
-                if oracle.will_fail(env, obs, t):
-                    feedback.append("tp")
-                else:
-                    feedback.append("fp")
-                    cooldown = fp_cooldown
-                predictor.feedback(feedback[-1])
-            if not request and oracle.stops_unpredicted(env, obs, t):
-                feedback.append("fn")
-                predictor.feedback("fn")
-            if feedback and feedback[-1] in ("tp", "fn") and intervened_at is None:
-                intervened_at, expert = t, oracle.take_over(env)
+            if not interventions:
+                executed.append({"d": d, "doubt": doubt})
+            if active:
+                asked = predictor.predict(t, d, doubt)
+                answer = None
+                if cooldown > 0:
+                    cooldown -= 1
+                elif asked:
+                    request, predictions = True, predictions + 1
+                    answer = "tp" if oracle.will_fail(env, obs, t) else "fp"
+                    cooldown = fp_cooldown if answer == "fp" else 0
+                elif reason := oracle.stops_unpredicted(env, obs, t):
+                    answer = "fn"
+                    stops.append({"step": t, "reason": reason})
+                if answer is not None:
+                    feedback.append(answer)
+                    predictor.feedback(answer)
+                if answer in ("tp", "fn"):
+                    verdict = verdict or oracle.look_ahead
+                    interventions.append({"start": t, "end": None, "kind": answer})
+                    expert = oracle.take_over(env, seed=seed * 1000 + t)
         if expert is not None:
             action = np.asarray(expert.act(feats), dtype=np.float32)
             d = agent.d_score(feats, action)
@@ -141,16 +176,18 @@ def run_episode(
         t += 1
         if terminated or truncated:
             break
+    for stretch in interventions:
+        stretch["end"] = t if stretch["end"] is None else stretch["end"]
 
     # the policy's uninterrupted trajectory: its executed steps, then the look-ahead that decided
-    look = oracle.look_ahead
-    if intervened_at is not None:
-        signals, policy_failed = executed[:intervened_at] + look.records[intervened_at - look.start :], True
+    if interventions:
+        first = interventions[0]["start"]
+        signals, policy_failed = executed[:first] + verdict.records[first - verdict.start :], True
     else:
         signals, policy_failed = executed, not success
     trace = EpisodeTrace(
-        d=np.array([s["d"] if d_ready else np.nan for s in signals]), doubt=np.array([s["doubt"] for s in signals])
+        d=np.array([s["d"] if active else np.nan for s in signals]), doubt=np.array([s["doubt"] for s in signals])
     )
     frames = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
-    trajectory = {k: np.stack([s["frame"][k] for s in signals]) for k in signals[0]["frame"]}
-    return EpisodeResult(frames, success, trace, trajectory, policy_failed, feedback, intervened_at, predictions)
+    segments = _segments(frames["intervention"][:, 0], success)
+    return EpisodeResult(frames, success, trace, policy_failed, segments, interventions, stops, feedback, predictions)

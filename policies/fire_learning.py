@@ -1,5 +1,7 @@
 """FIRE's BC learning between episodes (thesis Algorithm 2, lines 36-39): a few gradient steps on the
-expert set after every episode, and a full warm-started retraining every `retrain_every` samples.
+expert set after every episode, and a full warm-started retraining every `retrain_every` samples,
+early-stopped on held-out expert frames that the per-episode steps never sample (so the hold-out
+measures what the retraining adds, 5.3.4).
 """
 
 from __future__ import annotations
@@ -15,27 +17,27 @@ from shiftkit.policies.trainers.bc.training import update_members
 
 
 def online_update(
-    policy: BCPolicy, optimizers: list, expert: FrameBuffer, steps: int, args: FireArgs, rng, device
+    policy: BCPolicy, optimizers: list, expert: FrameBuffer, rows: np.ndarray, steps: int, args: FireArgs, rng, device
 ) -> float | None:
-    """Algorithm 2 line 36: `steps` gradient steps of every member on batches of the expert set."""
+    """Algorithm 2 line 36: `steps` gradient steps of every member on batches drawn from the expert
+    set's `rows` (those not held out)."""
     m, b = len(policy.members), args.batch_size
     policy.train()
     losses = []
     for _ in range(steps):
-        batch = expert.sample(m * b, rng, device)
+        batch = expert.gather(rows[rng.integers(0, len(rows), m * b)], device)
         losses += update_members(policy, optimizers, batch, b, [True] * m, args.online_lr)
     policy.eval()
     return float(np.mean(losses)) if losses else None
 
 
-def retrain(policy: BCPolicy, optimizers: list, expert: FrameBuffer, args: FireArgs, seed: int, device) -> dict:
-    """Algorithm 2 line 39: BC on the whole expert set, warm-started; each member keeps its weights of
-    lowest loss on a seeded 20% hold-out of frames and stops after `retrain_patience` epochs without
-    improvement."""
-    n = len(expert)
-    perm = np.random.default_rng([seed, n, 0xB0]).permutation(n)
-    n_val = max(1, n // 5)
-    val, train_rows = perm[:n_val], perm[n_val:]
+def retrain(
+    policy: BCPolicy, optimizers: list, expert: FrameBuffer, held_out: np.ndarray, args: FireArgs, seed: int, device
+) -> dict:
+    """Algorithm 2 line 39: BC on the expert set's training frames, warm-started; each member keeps
+    its weights of lowest loss on the `held_out` frames and stops after `retrain_patience` epochs
+    without improvement."""
+    val, train_rows = np.flatnonzero(held_out), np.flatnonzero(~held_out)
     m = len(policy.members)
     b = min(args.batch_size, len(train_rows))
     val_batch = expert.gather(val, device)
@@ -47,6 +49,7 @@ def retrain(policy: BCPolicy, optimizers: list, expert: FrameBuffer, args: FireA
 
     policy.eval()
     best = val_losses()
+    start = list(best)
     best_weights = [{k: v.clone() for k, v in net.state_dict().items()} for net in policy.members]
     bad, active, epoch = [0] * m, [True] * m, 0
     for epoch in range(args.retrain_max_epochs):
@@ -69,4 +72,10 @@ def retrain(policy: BCPolicy, optimizers: list, expert: FrameBuffer, args: FireA
             break
     for net, weights in zip(policy.members, best_weights, strict=True):
         net.load_state_dict(weights)
-    return {"retrain_epochs": epoch + 1, "retrain_val_loss": float(np.mean(best)), "retrain_frames": n}
+    return {
+        "retrain_epochs": epoch + 1,
+        "retrain_val_loss": float(np.mean(best)),
+        "retrain_frames": len(train_rows),
+        "retrain_val_frames": len(val),
+        "retrain_improved": bool(any(b < s for b, s in zip(best, start, strict=True))),
+    }

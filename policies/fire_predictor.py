@@ -4,9 +4,10 @@
 aggregated dataset: the discriminator D(s, a), its input normalisation, and the beta and GDA rules
 fitted on the recorded interventions (thesis 5.3-5.4). Two ways to use it:
 
-* `FailurePredictor.load(path)`, then per step `score, request = predictor.predict(observation,
-  action)`; `reset()` at an episode's start and, once the operator answered a request,
-  `feedback("tp" | "fp" | "fn")` so the rule adapts as it does inside FIRE;
+* `FailurePredictor.load(path)`, then per policy step `score, request = predictor.predict(observation,
+  action)`; `reset()` at an episode's start, `resume(steps)` when the policy takes control back
+  after the operator drove `steps` frames (the rules' statistics are per episode step) and, once the
+  operator answered a request, `feedback("tp" | "fp" | "fn")` so the rule adapts as it does inside FIRE;
 * as a lerobot processor step, `shiftkit_failure_predictor` in lerobot's `ProcessorStepRegistry`
   (import this module first): it reads the transition's observation and action, puts
   `failure_score` and `intervention_request` into the transition's `info`, and tells the operator
@@ -37,7 +38,7 @@ from shiftkit.policies.failure_predictors import BetaRule, GDARule
 from shiftkit.policies.fire_config import RULES
 
 FORMAT = "shiftkit-failure-predictor"
-VERSION = 1
+VERSION = 2  # 2: GDA keeps executed segments (smoothing, ROC-derived threshold)
 
 
 def _plain(state: Any) -> Any:
@@ -112,8 +113,14 @@ class FailurePredictor:
 
     # --- use in a rollout
     def reset(self) -> None:
-        """A new episode (or the policy resumed after a correction): the rule's watch restarts."""
+        """A new episode: the step count and the rule's watch restart."""
         self.t = 0
+        self.rule.reset()
+
+    def resume(self, steps: int) -> None:
+        """The policy drives again after the operator's correction of `steps` frames: the episode's
+        step count goes on, the rule's watch restarts."""
+        self.t += int(steps)
         self.rule.reset()
 
     def _frame(self, observation: Mapping[str, Any], action: Any) -> dict[str, np.ndarray]:

@@ -13,21 +13,55 @@ from shiftkit.policies.evaluation import wilson_interval
 from shiftkit.policies.run_dir import RunDir
 
 
-def summary(run_dir: RunDir, counters: dict, expert_samples: int) -> dict:
-    """The final summary of a run: episodes, outcomes, the expert's answers and samples."""
+def summary(run_dir: RunDir, counters: dict) -> dict:
+    """The final summary of a run: episodes (and how many were the warm-up), outcomes, the expert's
+    answers, takeovers and hand-backs, and samples (expert samples: demonstrations + corrections)."""
     lines = [x for x in run_dir.read_metrics() if x["split"] == "episode"]
     feedback = [f for x in lines for f in x["feedback"]]
     return {
         "episodes": counters["episode"],
+        "warm_up_episodes": sum(not x["d_ready"] for x in lines),
         "successes": sum(x["success"] for x in lines),
         "policy_successes": sum(x["policy_success"] for x in lines),
         "corrections": counters["corrections"],
-        "expert_samples": expert_samples,
+        "interventions": counters["interventions"],
+        "hand_backs": counters["hand_backs"],
+        "expert_samples": counters["demo_frames"] + counters["corrections"],
         "env_steps": counters["env_steps"],
         "true_positives": feedback.count("tp"),
         "false_positives": feedback.count("fp"),
         "false_negatives": feedback.count("fn"),
         "retrains": counters["retrains"],
+    }
+
+
+def protocol_check(run_path: str | Path) -> dict:
+    """Algorithm 2's warm-up and hand-backs as a finished run shows them, read twice: from its episode
+    lines (metrics.jsonl) and from its DAgger-layout recording (rollouts/, `intervention` per frame).
+    A hand-back is a correction after which the policy drives again in the same episode."""
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    lines = [x for x in RunDir(Path(run_path), resume=True).read_metrics() if x["split"] == "episode"]
+    warm = sum(not x["d_ready"] for x in lines)
+    flags = [
+        ep.frames["intervention"][:, 0] for ep in open_lerobot_dataset(Path(run_path) / "rollouts").iter_episodes()
+    ]
+    handed = [int((np.diff(f.astype(int)) == -1).sum()) for f in flags]
+    return {
+        "metrics": {
+            "episodes": len(lines),
+            "warm_up_episodes": warm,
+            "interventions_before_d": sum(len(x["interventions"]) for x in lines[:warm]),
+            "interventions": sum(len(x["interventions"]) for x in lines),
+            "hand_backs": sum(i["end"] < x["length"] for x in lines for i in x["interventions"]),
+        },
+        "recording": {
+            "episodes": len(flags),
+            "intervention_frames_before_d": int(sum(f.sum() for f in flags[:warm])),
+            "first_episode_with_intervention": next((i for i, f in enumerate(flags) if f.any()), None),
+            "hand_backs": sum(handed),
+            "episodes_with_hand_back": sum(h > 0 for h in handed),
+        },
     }
 
 
@@ -58,17 +92,20 @@ def read_episode_lines(run_path: str | Path) -> list[dict]:
 
 
 def roc_scores(lines: list[dict]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Per-predictor episode scores (beta, gda, doubt and the quantile OR of gda and doubt) and the
-    labels (the policy's uninterrupted run failed) of the episodes after D started."""
+    """Per-predictor episode scores (beta, gda and, for an ensemble policy, doubt and the quantile OR
+    of gda and doubt) and the labels (the policy's uninterrupted run failed) of the episodes after D
+    started."""
     from shiftkit.pipelines.errors import ShiftkitError
     from shiftkit.policies.failure_predictors import quantile_or
 
     ready = [x for x in lines if x["d_ready"]]
-    missing = {name for x in ready for name in ("beta", "gda", "doubt") if name not in x["scores"]}
+    missing = {name for x in ready for name in ("beta", "gda") if name not in x["scores"]}
     if missing:
         raise ShiftkitError(f"a FIRE episode line has no {sorted(missing)[0]!r} score")
-    scores = {name: np.array([x["scores"][name] for x in ready], dtype=float) for name in ("beta", "gda", "doubt")}
-    scores["gda+doubt"] = quantile_or(scores["gda"], scores["doubt"])
+    names = [n for n in ("beta", "gda", "doubt") if all(n in x["scores"] for x in ready)]
+    scores = {name: np.array([x["scores"][name] for x in ready], dtype=float) for name in names}
+    if "doubt" in scores:
+        scores["gda+doubt"] = quantile_or(scores["gda"], scores["doubt"])
     return scores, np.array([not x["policy_success"] for x in ready])
 
 
@@ -87,6 +124,35 @@ def success_curve(
         low.append(lo)
         high.append(hi)
     return x, np.array(rate), np.array(low), np.array(high)
+
+
+def seed_curve(
+    runs: list[list[dict]], x_key: str, window: int = 10, reps: int = 2000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One method over seeds: each run's `success_curve` as a step function of `x_key`, read on the
+    x values where every run has data; (x, IQM over the runs, 95% low, high), the interval a
+    bootstrap over runs (`curves.stratified_bootstrap_ci`; a single run's band is its line)."""
+    from shiftkit.policies.curves import iqm, stratified_bootstrap_ci
+
+    curves = [success_curve(lines, x_key, window)[:2] for lines in runs]
+    first, last = max(x[0] for x, _ in curves), min(x[-1] for x, _ in curves)
+    grid = np.unique(np.concatenate([x[(x >= first) & (x <= last)] for x, _ in curves]))
+    values = np.array([[y[np.searchsorted(x, g, side="right") - 1] for g in grid] for x, y in curves])
+    low, high = stratified_bootstrap_ci(values, np.zeros(len(runs)), reps)
+    return grid, iqm(values, axis=0), low, high
+
+
+def bc_curve(run_paths: list[str | Path]) -> list[dict]:
+    """BC as a curve over its training data: the runs grouped by the datasets they trained on (e.g.
+    seeds of BC from 10, 20, ... demonstrations), each group pooled as `bc_reference`, in order of
+    expert samples."""
+    from shiftkit.policies.run_dir import trained_datasets
+
+    groups: dict[tuple, list[Path]] = {}
+    for path in map(Path, run_paths):
+        key = tuple(sorted(str(d.get("root", "")) for d in trained_datasets(path)))
+        groups.setdefault(key, []).append(path)
+    return sorted((bc_reference(paths) for paths in groups.values()), key=lambda r: r["expert_samples"])
 
 
 def bc_reference(run_paths: list[str | Path]) -> dict:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import signal
 import subprocess
@@ -92,8 +93,9 @@ def test_oracle_look_ahead_leaves_the_episode_bit_identical(env_name, task):
     twin.close()
 
 
-def _reference_look_ahead(env, obs, agent_step) -> tuple[bool, list, list]:
-    """The look-ahead as a plain deep copy of the env runs it (nothing shared with the original):
+def _reference_look_ahead(env, obs, agent_step, stall_steps=5, tolerance=1e-3) -> tuple[bool, list, list]:
+    """The look-ahead as a plain deep copy of the env runs it (nothing shared with the original), to
+    success, the episode's end or a standstill (the last `stall_steps` qpos within `tolerance`):
     (failed, actions, (qpos, qvel) per step)."""
     sim = copy.deepcopy(env)
     actions, states = [], []
@@ -104,7 +106,9 @@ def _reference_look_ahead(env, obs, agent_step) -> tuple[bool, list, list]:
         actions.append(action)
         if info.get("is_success", False):
             return False, actions, states
-        if terminated or truncated:
+        last = [q for q, _ in states[-stall_steps:]]
+        still = len(last) == stall_steps and all(np.abs(q - last[-1]).max() < tolerance for q in last)
+        if terminated or truncated or still:
             return True, actions, states
 
 
@@ -156,13 +160,145 @@ def test_oracle_answers_from_one_look_ahead_and_the_expert_finishes(env_name, ta
     obs, *_ = env.step(hold)
     assert oracle.will_fail(env, obs, 1) is True and oracle.forks == 1  # the same future, no new fork
     obs, *_ = env.step(hold)
-    assert oracle.stops_unpredicted(env, obs, 2) and not oracle.stops_unpredicted(env, obs, 3)
+    assert oracle.stops_unpredicted(env, obs, 2) == "deadline"
     expert = oracle.take_over(env)
     info = {"is_success": False}
     truncated = False
     while not info["is_success"] and not truncated:
         obs, _, _, truncated, info = env.step(expert.act(obs))
     assert info["is_success"]
+    env.close()
+
+
+@pytest.mark.parametrize(("env_name", "task"), EXPERT_ENVS)
+def test_oracle_stops_a_standstill_as_it_shows_and_a_wandering_failure_at_the_deadline(env_name, task):
+    """Unpredicted failures are stopped where a person would see them: once nothing has moved for
+    `stall_steps` (qpos within the tolerance), else at `check_step`; never when the policy would
+    still succeed."""
+    env = make(env_name, task)
+    dim = env.action_space.shape[0]
+    hold = np.zeros(dim, dtype=np.float32)
+    oracle = SimulatedOracle(env_name, lambda sim, o: (hold, {}), check_step=60, stall_steps=4, stall_tolerance=1e-3)
+    obs, info = env.reset(seed=4)
+    oracle.start_episode()
+    seen = []
+    for t in range(60):
+        seen.append(info["qpos"])
+        reason = oracle.stops_unpredicted(env, obs, t)
+        window = seen[-4:]
+        still = len(window) == 4 and all(np.max(np.abs(q - window[-1])) < 1e-3 for q in window)
+        assert (reason == "stalled") is still, t
+        if reason:
+            break
+        obs, _, _, _, info = env.step(hold)
+    assert reason == "stalled" and t >= 3
+
+    def wander(sim, o):  # keeps moving back and forth (simulated time sets the phase), never solves the task
+        data = sim.unwrapped.physics.data if hasattr(sim.unwrapped, "physics") else sim.unwrapped.data
+        return np.full(dim, 0.6 * np.sin(4.0 * data.time), dtype=np.float32), {}
+
+    oracle = SimulatedOracle(env_name, wander, check_step=12, stall_steps=4, stall_tolerance=1e-3)
+    obs, _ = env.reset(seed=5)
+    oracle.start_episode()
+    reasons = []
+    for t in range(13):
+        reasons.append(oracle.stops_unpredicted(env, obs, t))
+        obs, *_ = env.step(wander(env, obs)[0])
+    if reasons[-1] is not None:  # the wandering run failed: stopped at the deadline, not before
+        assert reasons == [None] * 12 + ["deadline"]
+    experts = {}
+
+    def expert(sim, o):
+        if id(sim) not in experts:
+            experts[id(sim)] = scripted_expert(env_name, sim)
+            experts[id(sim)].reset()
+        return np.asarray(experts[id(sim)].act(o), dtype=np.float32), {}
+
+    oracle = SimulatedOracle(env_name, expert, check_step=0, stall_steps=4, stall_tolerance=1e-3)
+    obs, _ = env.reset(seed=6)
+    assert oracle.stops_unpredicted(env, obs, 0) is None  # past the deadline, but it would succeed
+    env.close()
+
+
+class _HoldAgent:
+    """A policy that holds still (it never solves the task), with a constant D."""
+
+    keys = ["observation.state"]
+
+    def __init__(self, dim: int) -> None:
+        self.hold = np.zeros(dim, dtype=np.float32)
+
+    def observe(self, env, obs):
+        return {"observation.state": np.asarray(obs, dtype=np.float32)}
+
+    def decide(self, features):
+        return self.hold, 0.0
+
+    def d_score(self, features, action):
+        return 0.1
+
+    def __call__(self, env, obs):
+        return self.hold, {"d": 0.1, "doubt": 0.0}
+
+
+class _AskAt:
+    """A predictor that asks at the given steps (and records what it was told)."""
+
+    def __init__(self, steps):
+        self.steps, self.told, self.resets = set(steps), [], 0
+
+    def reset(self):
+        self.resets += 1
+
+    def predict(self, t, d, doubt=0.0):
+        return t in self.steps
+
+    def feedback(self, kind):
+        self.told.append(kind)
+
+
+def test_an_episode_holds_several_interventions_and_none_before_d_is_ready():
+    """`run_episode`: before D is ready nothing asks, stops or takes over, whatever the predictor
+    says; afterwards every agreed prediction starts a correction that ends where the expert hands
+    back (here a person who hands back after two steps, too early), and the policy drives again."""
+    from shiftkit.policies.fire_episode import run_episode
+
+    env_name, task = EXPERT_ENVS[-1]
+    env = make(env_name, task)
+    agent = _HoldAgent(env.action_space.shape[0])
+
+    class EarlyHandBack(SimulatedOracle):
+        calls = 0
+
+        def can_finish(self, env, obs, t):
+            EarlyHandBack.calls += 1
+            return t - self.taken >= 2
+
+        def take_over(self, env, seed=0):
+            self.taken = self._t
+            return super().take_over(env, seed)
+
+        def will_fail(self, env, obs, t):
+            self._t = t
+            return super().will_fail(env, obs, t)
+
+    oracle = EarlyHandBack(env_name, agent, check_step=10**6, stall_steps=10**6)  # no stops of its own
+    features = {"observation.state": {}}
+    warm = run_episode(env, 3, agent, _AskAt(range(200)), oracle, False, features, fp_cooldown=5)
+    assert not warm.frames["intervention"].any() and not warm.frames["intervention_request"].any()
+    assert warm.feedback == [] and warm.interventions == [] and oracle.forks == 0 and EarlyHandBack.calls == 0
+    assert [(s.start, s.expert, s.failed) for s in warm.segments] == [(0, False, not warm.success)]
+
+    asker = _AskAt([3, 9])
+    ep = run_episode(env, 3, agent, asker, oracle, True, features, fp_cooldown=5)
+    assert asker.told == ["tp", "tp"] and asker.resets == 3  # the episode's start and two hand-backs
+    assert [(x["start"], x["end"], x["kind"]) for x in ep.interventions] == [(3, 5, "tp"), (9, 11, "tp")]
+    flags = ep.frames["intervention"][:, 0]
+    np.testing.assert_array_equal(np.flatnonzero(flags), [3, 4, 9, 10])
+    np.testing.assert_array_equal(ep.frames["source"][:, 0], np.where(flags, 2, 1))
+    parts = [(s.start, s.expert, s.failed) for s in ep.segments]
+    assert parts == [(0, False, True), (3, True, False), (5, False, True), (9, True, False), (11, False, True)]
+    assert ep.policy_failed and ep.frames["intervention_request"][[3, 9], 0].all()
     env.close()
 
 
@@ -181,7 +317,7 @@ def _fire_cli(env_name: str, task: str, demo: Path, out: Path, *extra: str) -> l
         "--output",
         str(out),
         "--max-episodes",
-        "3",
+        "4",
         "--budget-expert-samples",
         "100000",
         "--bc-regime",
@@ -257,9 +393,9 @@ def test_fire_writes_the_aggregated_dataset(demo, fire_run):
 
     run, ds_root = fire_run
     lines = _episode_lines(run)
-    assert len(lines) == 3
+    assert len(lines) == 4
     ds = LeRobotDataset("test/fire-agg", root=ds_root)
-    assert ds.meta.total_episodes == 3 + 3
+    assert ds.meta.total_episodes == 3 + 4
     for key, dtype in (("intervention", "bool"), ("source", "int64"), ("discriminator_score", "float32")):
         assert ds.meta.features[key]["dtype"] == dtype and tuple(ds.meta.features[key]["shape"]) == (1,)
     assert ds[len(ds) - 1]["intervention"].numel() == 1  # lerobot hands (1,) features out as scalars
@@ -273,12 +409,13 @@ def test_fire_writes_the_aggregated_dataset(demo, fire_run):
         np.testing.assert_array_equal(ep.frames["intervention"][:, 0], source == 2)
         assert np.isin(source, (1, 2)).all()
         assert not ep.frames["intervention_request"][source == 2].any()  # requests only where the policy drove
-        start = line["intervened_at"]
-        if start is None:
-            assert (source == 1).all()
-        else:  # the expert keeps control from its takeover to the end of the episode
-            assert (source[:start] == 1).all() and (source[start:] == 2).all()
-            assert line["feedback"][-1] in ("tp", "fn")
+        # the expert drove exactly the logged interventions, each started by an agreed prediction or a stop
+        expected = np.ones(len(ep), dtype=int)
+        for x in line["interventions"]:
+            expected[x["start"] : x["end"]] = 2
+        np.testing.assert_array_equal(source, expected)
+        assert [x["kind"] for x in line["interventions"]] == [f for f in line["feedback"] if f != "fp"]
+        assert line["intervened_at"] == (line["interventions"][0]["start"] if line["interventions"] else None)
         assert line["length"] == len(ep)
     # lerobot's own declaration of the DAgger flag, kept as it is
     assert ds.meta.features["intervention"]["names"] is None
@@ -301,6 +438,208 @@ def test_shiftkit_train_bc_on_the_aggregated_dataset_by_id(fire_run, tmp_path, m
     args = ["train", "bc", "--dataset", "test/fire-agg", "--output", str(tmp_path / "bc"), "--regime", "fixed"]
     assert main([*args, "--steps", "3", "--ensemble", "1", "--hidden", "8", "--device", "cpu"]) == 0
     assert (tmp_path / "bc" / "checkpoints" / "last.txt").is_file()
+
+
+# ------------------------------------------------------------------------------ Algorithm 2, item by item
+
+
+def _rollout_episodes(run: Path) -> list:
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    return list(open_lerobot_dataset(run / "rollouts").iter_episodes())
+
+
+def test_no_intervention_prediction_or_bc_update_before_d_is_ready(fire_run):
+    """Warm-up (thesis 5.4.2): until D has trained on `--d-start` policy samples, the BC policy runs
+    on its own: no prediction, no stop, no takeover, no BC update; the DAgger recording agrees."""
+    run, _ = fire_run
+    lines = _episode_lines(run)
+    warm = [x for x in lines if not x["d_ready"]]
+    assert warm and lines[len(warm)]["d_ready"]  # the warm-up, then Algorithm 2 proper
+    for x in warm:
+        assert x["predictions"] == 0 and x["feedback"] == [] and x["interventions"] == [] and x["stops"] == []
+        assert x["episode_expert_samples"] == 0 and x["bc_loss"] is None and "retrain_epochs" not in x
+    assert warm[-1]["policy_samples"] >= 20 and all(x["policy_samples"] < 20 for x in warm[:-1])
+    for ep in _rollout_episodes(run)[: len(warm)]:
+        assert not ep.frames["intervention"].any()
+    assert all(x["bc_loss"] is not None for x in lines[len(warm) :])
+
+
+def test_the_expert_hands_control_back_once_the_policy_can_finish(fire_run):
+    """Algorithm 2, lines 27-28 (Fig. 5.1): a correction ends as soon as the policy can finish from
+    the current state; the policy then drives again, and succeeds (the oracle's look-ahead is exact).
+    The DAgger recording shows it as `intervention` True, then False, within one episode."""
+    run, _ = fire_run
+    episodes = _rollout_episodes(run)
+    back = [i for i, ep in enumerate(episodes) if (np.diff(ep.frames["intervention"][:, 0].astype(int)) == -1).any()]
+    assert back, "no correction was handed back to the policy"
+    lines = _episode_lines(run)
+    for i in back:
+        flags = episodes[i].frames["intervention"][:, 0]
+        handed = [x for x in lines[i]["interventions"] if x["end"] < len(flags)]
+        assert handed and lines[i]["success"]
+        for stretch in handed:
+            assert flags[stretch["start"] : stretch["end"]].all() and not flags[stretch["end"] :].any()
+    assert lines[-1]["corrections"] < sum(x["length"] - x["intervened_at"] for x in lines if x["intervened_at"])
+
+
+def test_protocol_check_reads_warm_up_and_hand_backs_from_metrics_and_recording(fire_run):
+    """`fire_runs.protocol_check` (the study's acceptance numbers): no intervention before D is ready
+    and the hand-backs, counted alike from the episode lines and the DAgger recording."""
+    from shiftkit.policies.fire_runs import protocol_check
+
+    run, _ = fire_run
+    check = protocol_check(run)
+    metrics, recording = check["metrics"], check["recording"]
+    lines = _episode_lines(run)
+    assert metrics["episodes"] == recording["episodes"] == len(lines)
+    assert metrics["warm_up_episodes"] == sum(not x["d_ready"] for x in lines) > 0
+    assert metrics["interventions_before_d"] == recording["intervention_frames_before_d"] == 0
+    assert recording["first_episode_with_intervention"] >= metrics["warm_up_episodes"]
+    assert metrics["hand_backs"] == recording["hand_backs"] >= 1
+    assert metrics["interventions"] == sum(len(x["interventions"]) for x in lines)
+
+
+def test_missed_failures_are_stopped_where_they_show_and_logged(fire_run, demo):
+    """An unpredicted failure is stopped once the policy has stood still for 2 s (every simulator
+    position within 2 cm or rad, checked here on the recorded sim.qpos), at the latest at the
+    episode's end minus the median demonstration's length; each stop is logged with its reason and
+    starts an intervention ("fn")."""
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.policies.fire_recording import load_npz
+
+    run, _ = fire_run
+    env_name, task, root = demo
+    demos = open_lerobot_dataset(root)
+    lengths = [len(ep) for ep in demos.iter_episodes()]
+    horizon = make(env_name, task, control_hz=demos.fps).max_episode_steps
+    deadline = horizon - int(np.median(lengths))
+    stall = math.ceil(2.0 * demos.fps)
+    lines = _episode_lines(run)
+    stopped = 0
+    for line in lines:
+        frames, _ = load_npz(run / "episodes" / f"episode_{line['episode']:06d}.npz")
+        first, kinds = line["intervened_at"], [f for f in line["feedback"] if f != "fp"]
+        if first is None or kinds[0] != "fn":  # the first intervention was not a stop
+            continue
+        stopped += 1
+        qpos = frames["sim.qpos"][max(0, first - stall + 1) : first + 1]
+        still = first + 1 >= stall and (np.abs(qpos - qpos[-1]).max(axis=1) < 0.02).all()
+        assert still or first >= deadline, (line["episode"], first, deadline)
+    assert stopped
+    assert lines[0]["deadline_step"] == deadline
+    for line in lines:
+        for stop in line["stops"]:
+            assert stop["reason"] in ("stalled", "deadline")
+            assert {"start": stop["step"], "kind": "fn"}.items() <= next(
+                i for i in line["interventions"] if i["start"] == stop["step"]
+            ).items()
+
+
+def test_gda_learns_from_executed_segments(fire_run):
+    """GDA's statistics hold executed stretches: a policy stretch that ended in an intervention is a
+    failure, expert corrections are success-class data (the reference's `append_traj`)."""
+    from shiftkit.policies.run_dir import load_checkpoint
+
+    run, _ = fire_run
+    state = load_checkpoint(sorted((run / "checkpoints").glob("step-*.safetensors"))[-1])
+    lines = _episode_lines(run)
+    ends = {i["start"] for x in lines for i in x["interventions"]} | {x["length"] for x in lines if not x["success"]}
+    segments = state["gda"]["segments"]
+    assert any(s["expert"] for s in segments) and any(s["failed"] for s in segments)
+    for s in segments:
+        if s["failed"] and not s["expert"]:  # ended in an intervention or the episode's failure
+            assert s["start"] + len(s["d"]) in ends
+        assert s["d"] is not None  # re-scored by the trained D
+
+
+def _demo_frames(root: Path) -> tuple[int, int]:
+    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+
+    demos = open_lerobot_dataset(root)
+    return sum(len(ep) for ep in demos.iter_episodes()), demos.fps
+
+
+def test_execution_time_counts_the_demonstrations(fire_run, demo):
+    """Execution time = (demonstration frames + every executed step) / fps (thesis 5.5.1: the
+    demonstrations are robot time too)."""
+    run, _ = fire_run
+    frames, fps = _demo_frames(demo[2])
+    last = _episode_lines(run)[-1]
+    assert last["execution_time_s"] == pytest.approx((frames + last["env_steps"]) / fps)
+
+
+def test_success_finals_join_the_expert_set_but_are_not_expert_samples(fire_run, demo):
+    """A success's final (s_T, a_T) joins D_E (thesis 5.3.4) but no expert gave it: expert samples
+    = demonstration frames + corrections."""
+    from shiftkit.policies.fire_recording import load_npz
+    from shiftkit.policies.run_dir import load_checkpoint
+
+    run, _ = fire_run
+    frames, _ = _demo_frames(demo[2])
+    lines = _episode_lines(run)
+    finals = 0  # successes whose last step the policy took
+    for line in lines:
+        flags, _ = load_npz(run / "episodes" / f"episode_{line['episode']:06d}.npz")
+        finals += line["success"] and not flags["intervention"][-1, 0]
+    assert finals > 0
+    assert lines[-1]["expert_samples"] == frames + lines[-1]["corrections"]
+    state = load_checkpoint(sorted((run / "checkpoints").glob("step-*.safetensors"))[-1])
+    assert len(state["expert_set"]["action"]) == frames + lines[-1]["corrections"] + finals
+
+
+def test_fire_policy_is_the_thesis_network_by_default(fire_run):
+    """Thesis 5.4.2: one 2x256 MLP with a tanh output, FIRE's own defaults; the ensemble-doubt
+    predictors keep an ensemble."""
+    from shiftkit.policies.bc_policy import load_policy
+    from shiftkit.policies.fire_config import FireArgs
+
+    args = FireArgs(dataset="d", env="panda-play", task="lift", output_dir="o").resolved()
+    assert (args.ensemble_size, args.hidden, args.output_activation) == (1, [256, 256], "tanh")
+    assert FireArgs("d", "panda-play", "lift", "o", predictor="gda+doubt").resolved().ensemble_size == 5
+    with pytest.raises(ConfigError, match="needs an ensemble"):
+        FireArgs("d", "panda-play", "lift", "o", predictor="doubt", ensemble_size=1).resolved()
+    run, _ = fire_run
+    policy = load_policy(run / "policy")
+    assert policy.spec.output_activation == "tanh" and len(policy.members) == 2  # the fixture's --ensemble 2
+    assert policy.act({k: np.zeros(ft["shape"], np.float32) for k, ft in policy.features.items()}).max() <= 1.0
+
+
+def test_per_episode_updates_never_sample_the_retraining_hold_out():
+    """The full retraining early-stops on expert frames the per-episode updates never drew (thesis
+    5.3.4), so its validation measures what the retraining adds."""
+    import torch
+
+    from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
+    from shiftkit.policies.fire_config import FireArgs
+    from shiftkit.policies.fire_learning import online_update, retrain
+    from shiftkit.policies.frame_buffer import FrameBuffer
+
+    spec = PolicySpec(
+        features={"observation.state": {"dtype": "float32", "shape": [3], "names": None}},
+        action={"dtype": "float32", "shape": [2], "names": None},
+        stats={"observation.state": {"mean": [0.0] * 3, "std": [1.0] * 3}, "action": {"mean": [0, 0], "std": [1, 1]}},
+        encoder="cnn", num_keypoints=4, hidden=[8], ensemble_size=1, output_activation="tanh",
+    )  # fmt: skip
+    rng = np.random.default_rng(0)
+    expert = FrameBuffer(["observation.state", "action"])
+    expert.add({"observation.state": rng.normal(size=(50, 3)).astype(np.float32), "action": np.zeros((50, 2), "f4")})
+    held = np.zeros(50, dtype=bool)
+    held[rng.choice(50, 10, replace=False)] = True
+    drawn = []
+    gather = expert.gather
+    expert.gather = lambda rows, device="cpu": (drawn.append(np.asarray(rows)), gather(rows, device))[1]
+    policy = BCPolicy(spec)
+    opts = [torch.optim.Adam(policy.members[0].parameters())]
+    args = FireArgs("d", "panda-play", "lift", "o", batch_size=8, retrain_max_epochs=3)
+    online_update(policy, opts, expert, np.flatnonzero(~held), 20, args, rng, "cpu")
+    assert drawn and not held[np.concatenate(drawn)].any()
+    drawn.clear()
+    out = retrain(policy, opts, expert, held, args, 0, "cpu")
+    assert (out["retrain_frames"], out["retrain_val_frames"]) == (40, 10)
+    validation, *training = drawn
+    np.testing.assert_array_equal(np.sort(validation), np.flatnonzero(held))
+    assert not held[np.concatenate(training)].any()
 
 
 @pytest.mark.slow
@@ -344,8 +683,18 @@ def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):
     assert (tmp_path / "fire-expert.png").stat().st_size > 0 and (tmp_path / "fire-time.png").stat().st_size > 0
     lines = _episode_lines(run)
     expert, time = (fig.axes[0] for fig in drawn)
-    assert [t.get_text() for t in expert.get_legend().get_texts()] == [f"mine, {len(lines)} episodes (n = 1 run)"]
-    assert expert.get_title().startswith("mine, ") and time.get_xlabel() == "total execution time (s)"
+    assert [t.get_text() for t in expert.get_legend().get_texts()] == [f"mine ({len(lines)} episodes) (n = 1 run)"]
+    assert expert.get_title().startswith("mine (") and time.get_xlabel() == "total execution time (s)"
+    # runs under one label are one method's seeds: one line, the IQM of their curves
+    drawn.clear()
+    assert main(["plot", "fire", f"a={run}", f"a={run}", "--out", str(tmp_path / "two.png"), "--window", "2"]) == 0
+    (line,) = drawn[0].axes[0].lines
+    from shiftkit.policies.fire_runs import success_curve
+
+    x, rate, _, _ = success_curve(lines, "expert_samples", 2)
+    last = [rate[np.flatnonzero(x <= g)[-1]] for g in np.unique(x)]
+    np.testing.assert_allclose(line.get_ydata(), last)
+    assert drawn[0].axes[0].get_legend().get_texts()[0].get_text() == "a (IQM, 95% bootstrap CI) (n = 2 runs)"
     labels = [not x["policy_success"] for x in lines if x["d_ready"]]
     code = main(["plot", "roc", str(run), "--out", str(tmp_path / "roc.png")])
     if 0 < sum(labels) < len(labels):
@@ -357,6 +706,22 @@ def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):
         )
     else:  # too few episodes for both outcomes: a one-line error, no figure
         assert code == 2 and not (tmp_path / "roc.png").exists()
+
+
+def test_seed_curve_is_the_iqm_of_the_runs_step_functions():
+    """`plot fire` draws one line per method: at every x where all its runs have data, the IQM of each
+    run's last windowed success at or before x, with a bootstrap band over the runs."""
+    from shiftkit.policies.fire_runs import seed_curve
+
+    def lines(xs, ok):
+        return [{"expert_samples": x, "policy_success": o} for x, o in zip(xs, ok, strict=True)]
+
+    runs = [lines([10, 20, 30], [0, 1, 1]), lines([10, 25, 40], [1, 1, 0]), lines([15, 30, 35], [0, 0, 1])]
+    x, mid, low, high = seed_curve(runs, "expert_samples", window=1, reps=200)
+    np.testing.assert_array_equal(x, [15, 20, 25, 30])  # from the latest first x to the earliest last x
+    expected = np.array([[0, 1, 1, 1], [1, 1, 1, 1], [0, 0, 0, 0]], dtype=float).mean(axis=0)  # 3 runs: IQM = mean
+    np.testing.assert_allclose(mid, expected)
+    assert (low <= mid + 1e-12).all() and (high >= mid - 1e-12).all()
 
 
 def test_plot_fire_draws_bc_at_its_training_frames(demo, fire_run, tmp_path, capsys):
@@ -399,6 +764,17 @@ def test_plot_fire_draws_bc_at_its_training_frames(demo, fire_run, tmp_path, cap
     assert line.get_xdata()[0] == ref["execution_time_s"] and line.get_ydata()[0] == pytest.approx(3 / 7)
     assert ax.get_legend().get_texts()[0].get_text() == "BC 3 demos (n = 7 episodes)"
     assert "BC 3 demos" in ax.get_title()
+
+    # BC on more data (here the aggregated dataset): a curve over the datasets, each pooled over its runs
+    _, agg_root = fire_run
+    bigger = tmp_path / "bc-agg"
+    train = ["train", "bc", "--dataset", str(agg_root), "--output", str(bigger), "--regime", "fixed", "--steps", "2"]
+    assert main([*train, "--ensemble", "1", "--hidden", "8", "--device", "cpu", "--no-progress"]) == 0
+    record_evaluation(EvalReport(env_name, task, str(bigger), 100, [EpisodeResult(0, 100, True, 5, 0.0)]), bigger)
+    curve_args = ["plot", "fire", f"fire={fire}", "--bc", f"BC={bc},{other},{bigger}", "--window", "2"]
+    assert main([*curve_args, "--out", str(tmp_path / "c.png")]) == 0
+    agg_frames = json.loads((agg_root / "meta" / "info.json").read_text())["total_frames"]
+    assert f"BC: 1 BC run(s), {agg_frames} expert samples" in capsys.readouterr().out
 
     # one run without its evaluation: a one-line error naming the folder
     shutil.rmtree(other / "eval")
@@ -524,7 +900,7 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
     )
     windows = open_lerobot_dataset(corrections)
     lines = _episode_lines(run)
-    assert windows.num_episodes == sum(x["intervened_at"] is not None for x in lines)
+    assert windows.num_episodes == sum(len(x["interventions"]) for x in lines)
 
     out = tmp_path / "agg"
     assert main(_aggregate_cli(demo_root, [run / "rollouts", corrections], out, "--d-steps", "64")) == 0

@@ -1,5 +1,7 @@
-"""FIRE failure predictors: beta update rules, the GDA posterior against a hand computation, doubt,
-their OR, ROC curves, and the discriminator learning to tell expert from policy frames."""
+"""FIRE failure predictors: beta update rules, GDA step by step as the authors' statistical predictor
+runs it (statistics from executed segments, smoothing, ROC-derived threshold) against hand
+computations, doubt, their OR, ROC curves, and the discriminator learning to tell expert from policy
+frames."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from shiftkit.policies.failure_predictors import (
     EpisodeTrace,
     GDARule,
     OrRule,
+    Segment,
     make_predictor,
     quantile_or,
     roc_curve,
@@ -61,63 +64,126 @@ def test_beta_update_rules():
     assert BetaRule().score(trace([0.4, 0.4, 0.9, 0.1, 0.2, 0.3, np.nan, 0.2])) == 3
 
 
-def test_gda_posterior_matches_hand_computation():
-    gda = GDARule(gamma=0.5)
-    # failed episodes: D at t=1 is 0.2 and 0.4 -> mean 0.3, std 0.1 (population std)
-    gda.update(trace([0.5, 0.2]), failed=True)
-    gda.update(trace([0.5, 0.4]), failed=True)
-    # successful episodes: D at t=1 is 0.7 and 0.9 -> mean 0.8, std 0.1; 3 of them (0.8 twice)
-    for d in (0.7, 0.9, 0.8):
-        gda.update(trace([0.5, d]), failed=False)
-    # success at t=1: values 0.7, 0.9, 0.8 -> mean 0.8, std sqrt(2/300)
-    s_std = math.sqrt(((0.7 - 0.8) ** 2 + (0.9 - 0.8) ** 2 + 0.0) / 3)
-    d = 0.45
-    pdf = lambda x, m, s: math.exp(-0.5 * ((x - m) / s) ** 2) / (s * math.sqrt(2 * math.pi))  # noqa: E731
-    prior_f = 2 / 5
-    pf = pdf(d, 0.3, 0.1) * prior_f
-    ps = pdf(d, 0.8, s_std) * (1 - prior_f)
-    assert gda.posterior(1, d) == pytest.approx(pf / (pf + ps), rel=1e-9)
-    assert gda.predict(1, d) is True  # posterior ~1 > gamma 0.5
-    assert gda.predict(1, 0.85) is False
-    # t=0: identical values in both classes -> std floor, equal likelihoods, posterior = prior
-    assert gda.posterior(0, 0.5) == pytest.approx(prior_f)
-    # beyond the recorded length, or without a score: no prediction
-    assert gda.posterior(2, 0.1) is None and gda.predict(1, None) is False
+def seg(start, d, failed=False, expert=False) -> Segment:
+    return Segment(start, failed, expert, d=np.asarray(d, dtype=float))
 
 
-def test_gda_needs_both_outcomes_and_adapts_gamma():
-    gda = GDARule(gamma=0.5, delta_fp=0.1, delta_fn=0.3)
-    gda.update(trace([0.1, 0.1]), failed=True)
-    gda.update(trace([0.1, 0.2]), failed=True)
-    assert gda.posterior(0, 0.1) is None  # no successful episode yet
-    assert gda.predict(0, 0.1) is False
-    gda.feedback("fn")
-    assert gda.gamma == 0.5  # without statistics it could not have predicted: not blamed
-    gda.update(trace([0.9, 0.9]), failed=False)
-    gda.update(trace([0.8, 0.8]), failed=False)
+def _pdf(x, m, s):
+    return math.exp(-0.5 * ((x - m) / s) ** 2) / (s * math.sqrt(2 * math.pi))
+
+
+def test_gda_posterior_from_executed_segments_matches_hand_computation():
+    """Statistics per episode step from executed segments (thesis 5.3.3, the reference's
+    `append_traj`): a failed policy segment that started at step 3 feeds steps 3.., an expert
+    correction counts as successful data, the prior is the recent outcomes' failure share."""
+    gda = GDARule(min_count=2)
+    gda.add_segment(seg(3, [0.2, 0.1], failed=True))  # steps 3, 4
+    gda.add_segment(seg(3, [0.4, 0.3], failed=True))
+    gda.add_segment(seg(0, [0.9, 0.9, 0.9, 0.7]))  # a success, steps 0-3
+    gda.add_segment(seg(3, [0.9], expert=True))  # an expert correction at step 3: success class
+    for failed in (True, True, False):
+        gda.add_outcome(failed)
+    # step 3: fail values 0.2, 0.4 (mean 0.3, std 0.1); success values 0.7, 0.9 (mean 0.8, std 0.1)
+    prior_f = 2 / 3
+    pf, ps = _pdf(0.45, 0.3, 0.1) * prior_f, _pdf(0.45, 0.8, 0.1) * (1 - prior_f)
+    assert gda.posterior(3, 0.45) == pytest.approx(pf / (pf + ps), rel=1e-9)
+    # steps where a class has fewer than min_count values say nothing; so does a missing score
+    assert gda.posterior(0, 0.5) is None and gda.posterior(4, 0.2) is None and gda.posterior(3, None) is None
+    # the prior is clipped to [0.05, 0.95] and covers the last prior_window outcomes only
+    for _ in range(30):
+        gda.add_outcome(True)
+    assert gda.prior() == 0.95
+
+
+def test_gda_keeps_the_last_window_values_per_step():
+    gda = GDARule(window=2, min_count=1)
+    gda.add_segment(seg(0, [0.1, 0.1], failed=True))
+    gda.add_segment(seg(1, [0.3], failed=True))
+    gda.add_segment(seg(1, [0.5], failed=True))  # step 1 now holds 0.3, 0.5; step 0 still 0.1
+    gda.add_segment(seg(0, [0.9, 0.9]))
+    mean, _, count = gda._stats[True]
+    np.testing.assert_allclose(mean[:2], [0.1, 0.4])
+    np.testing.assert_array_equal(count[:2], [1, 2])
+    first = gda.segments[0]
+    gda.add_segment(seg(0, [0.7], failed=True))  # step 0: 0.7, 0.1
+    assert gda._stats[True][0][0] == pytest.approx(0.4) and first in gda.segments
+    gda.add_segment(seg(0, [0.5], failed=True))  # step 0: 0.5, 0.7: the first segment adds nothing now
+    assert gda._stats[True][0][0] == pytest.approx(0.6) and first not in gda.segments
+
+
+def test_gda_smooths_the_posterior_over_five_steps_and_fits_gamma_by_roc():
+    """The reference's rule: the posterior's mean over the last 5 steps (zeros before the segment's
+    first) reaches gamma; gamma is the ROC threshold (TPR > 0.8, closest to (0, 1)) over the stored
+    policy segments' highest smoothed posteriors; a verdict moves it by 5% of their range."""
+    gda = GDARule(min_count=1)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        gda.add_segment(seg(0, rng.uniform(0.0, 0.3, 8), failed=True))
+        gda.add_segment(seg(0, rng.uniform(0.6, 1.0, 8)))
+    gda.add_outcome(True)
+    gda.add_outcome(False)
+    policy = [s for s in gda.segments if not s.expert]
+    scores = []
+    for s in policy:  # by hand: smoothed posterior along each segment, its maximum
+        window = [0.0] * 5
+        best = 0.0
+        for t, d in enumerate(s.d):
+            window = [*window[1:], gda.posterior(t, d)]
+            best = max(best, sum(window) / 5)
+        scores.append(best)
+    scores, failed = np.array(scores), np.array([s.failed for s in policy])
+    candidates = np.linspace(scores.min() - 0.01, scores.max() + 0.01, 2 * len(policy))
+    tpr = np.array([(scores[failed] >= c).mean() for c in candidates])
+    fpr = np.array([(scores[~failed] >= c).mean() for c in candidates])
+    ok = np.flatnonzero(tpr > 0.8)
+    expected = candidates[ok[np.argmin(np.hypot(fpr[ok], 1 - tpr[ok]))]]
+    assert gda.gamma == pytest.approx(expected)
+    assert gda.delta == pytest.approx(0.05 * (scores.max() - scores.min()))
+    # online: one low D value is smoothed (1/5 of it), a run of them reaches gamma
     gda.reset()
-    gda.predict(0, 0.85)
+    low = float(policy[0].d[0]) if policy[0].failed else float(policy[1].d[0])
+    p = gda.posterior(0, low)
+    assert gda.predict(0, low) is (p / 5 >= gda.gamma)
+    fired = [gda.predict(t, 0.05) for t in range(1, 8)]
+    assert any(fired)
+    gamma = gda.gamma
     gda.feedback("fp")
-    assert gda.gamma == pytest.approx(0.6)
+    assert gda.gamma == pytest.approx(min(1.0, gamma + gda.delta))
     gda.feedback("fn")
-    assert gda.gamma == pytest.approx(0.3)
-    for _ in range(5):
-        gda.feedback("fn")
-    assert gda.gamma == pytest.approx(0.01)
+    assert gda.gamma == pytest.approx(min(1.0, gamma + gda.delta) - gda.delta)
     restored = GDARule()
     restored.load_state_dict(gda.state_dict())
-    assert restored.gamma == gda.gamma and restored.n_failed == 2
+    assert restored.gamma == gda.gamma and len(restored.segments) == len(gda.segments)
+    assert restored.posterior(3, 0.2) == gda.posterior(3, 0.2)
+
+
+def test_gda_needs_both_outcomes_and_is_blamed_only_when_watching():
+    gda = GDARule(gamma=0.5, min_count=1)
+    gda.add_segment(seg(0, [0.1, 0.1], failed=True))
+    gda.add_outcome(True)
+    assert gda.posterior(0, 0.1) is None and gda.predict(0, 0.1) is False  # no successful segment yet
+    gda.delta = 0.1
+    gda.feedback("fn")
+    assert gda.gamma == 0.5  # without statistics it could not have predicted: not blamed
+    # segments without D values (D not trained yet) hold their place; `rescore` fills them in
+    gda.add_segment(Segment(0, False, payload={"x": np.array([0.9, 0.8])}))
+    assert gda.posterior(0, 0.5) is None
+    gda.rescore(lambda frames: frames["x"])
+    assert gda.posterior(0, 0.5) is not None
 
 
 def test_gda_with_beta_needs_consecutive_steps():
-    gda = GDARule(beta=2)
+    gda = GDARule(beta=2, min_count=1, smoothing=1)
     for d, failed in ((0.1, True), (0.2, True), (0.9, False), (0.8, False)):
-        gda.update(trace([d] * 4), failed)
+        gda.add_segment(seg(0, [d] * 4, failed))
+        gda.add_outcome(failed)
+    gda.gamma = 0.5
     assert [gda.predict(t, 0.15) for t in range(3)] == [False, True, True]
+    gda.delta = 0.02
     gda.feedback("fp")
     assert gda.beta.beta == 3 and gda.gamma == pytest.approx(0.52)
     gda.feedback("fn")
-    assert gda.beta.beta == 1 and gda.gamma == pytest.approx(0.46)
+    assert gda.beta.beta == 1 and gda.gamma == pytest.approx(0.50)
 
 
 def test_doubt_and_or():

@@ -156,3 +156,29 @@ def test_expert_success_rate_50_seeds(task):
     rate = np.mean([rollout(env, seed).succeeded for seed in range(50)])
     print(f"{task}: {rate:.2f}")
     assert rate >= 0.9
+
+
+def test_suboptimal_expert_varies_pace_and_approach_from_its_seed_and_still_succeeds():
+    """The suboptimal expert (FIRE's human-like demonstrator): per seed its own pace and hover height,
+    the same bytes for the same seed, slower than the scripted expert, and still successful; `collect
+    --expert suboptimal` records it and FIRE's oracle can take over with it."""
+    from shiftkit.envs import env_family
+    from shiftkit.envs.panda_play.experts import SUBOPTIMAL_HOVER, SuboptimalExpert, suboptimal_rollout
+
+    env = make("panda-play", "lift", control_hz=5)
+    runs = [suboptimal_rollout(env, seed) for seed in range(6)]
+    assert all(r.succeeded for r in runs)
+    again = suboptimal_rollout(env, 3)
+    assert np.array_equal(again.actions, runs[3].actions) and np.array_equal(again.qpos, runs[3].qpos)
+    scripted = [rollout(env, seed) for seed in range(6)]
+    assert sum(len(r.actions) for r in runs) > sum(len(r.actions) for r in scripted)
+    env.reset(seed=0)
+    drawn = [SuboptimalExpert(env, seed) for seed in range(6)]
+    assert len({round(e.speed, 6) for e in drawn}) == 6
+    assert all(SUBOPTIMAL_HOVER[0] <= e.base.above <= SUBOPTIMAL_HOVER[1] for e in drawn)
+    family = env_family("panda-play")
+    assert family.experts["suboptimal"] is suboptimal_rollout
+    policy = family.expert_policies["suboptimal"](env, 7)
+    policy.reset()
+    assert policy.act({}).shape == (4,)
+    env.close()

@@ -40,7 +40,19 @@ _RULES = {
         "positive_int",
     ),
     **dict.fromkeys(("seed", "env_seed", "d_start", "fp_cooldown", "expert_margin", "eval_every"), "non_negative_int"),
-    **dict.fromkeys(("online_lr", "retrain_lr", "d_lr", "doubt_threshold", "gamma"), "positive_float"),
+    **dict.fromkeys(
+        (
+            "online_lr",
+            "retrain_lr",
+            "d_lr",
+            "doubt_threshold",
+            "gamma",
+            "stall_seconds",
+            "stall_tolerance",
+            "val_fraction",
+        ),
+        "positive_float",
+    ),
     "grad_penalty": "non_negative_float",
 }
 
@@ -48,12 +60,13 @@ _RULES = {
 def _fire_options() -> DataclassOptions:
     from shiftkit.policies.failure_predictors import PREDICTORS
     from shiftkit.policies.fire_config import FireArgs
+    from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS
 
     return DataclassOptions(
         FireArgs,
         flags={"output_dir": "output", "ensemble_size": "ensemble", "env_kwargs": "env-kwarg"},
         rules=_RULES,
-        choices={"predictor": tuple(PREDICTORS)},
+        choices={"predictor": tuple(PREDICTORS), "output_activation": OUTPUT_ACTIVATIONS},
         cli_defaults={"progress": True},
     )
 
@@ -111,9 +124,10 @@ def run(args: argparse.Namespace) -> int:
     with DestinationLock(Path(config.output_dir)):  # a second run on the same --output is told who holds it
         summary = run_fire(config)
     print(
-        f"FIRE: {summary['episodes']} episodes ({summary['successes']} successful, the policy alone "
-        f"{summary['policy_successes']}), {summary['corrections']} expert corrections "
-        f"(predictions: {summary['true_positives']} agreed, {summary['false_positives']} refused; "
-        f"{summary['false_negatives']} unpredicted failures); dataset {summary['dataset']}"
+        f"FIRE: {summary['episodes']} episodes ({summary['warm_up_episodes']} of warm-up; {summary['successes']} "
+        f"successful, the policy alone {summary['policy_successes']}), {summary['corrections']} expert corrections "
+        f"in {summary['interventions']} interventions ({summary['hand_backs']} handed back to the policy; "
+        f"predictions: {summary['true_positives']} agreed, {summary['false_positives']} refused; "
+        f"{summary['false_negatives']} unpredicted failures stopped); dataset {summary['dataset']}"
     )
     return 0

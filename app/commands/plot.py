@@ -27,18 +27,22 @@ class RocFigure:
 
 @dataclass(frozen=True)
 class FireFigure:
-    """`plot fire`: policy success against expert samples and against execution time, BC as points."""
+    """`plot fire`: policy success against expert samples and against execution time, one line per
+    method over its seeds, BC as points or a curve over its number of demonstrations (thesis Figs. 5.3
+    and 5.9)."""
 
     out: str
     """PNG path; -expert and -time are added before .png"""
     runs: tuple[str, ...] = ()
-    """FIRE run folders, each as [LABEL=]RUN (positional)"""
+    """FIRE run folders, each as [LABEL=]RUN (positional); runs given the same LABEL (e.g. seeds) are one
+    line: the IQM of their success curves with a 95% bootstrap band over the runs"""
     window: int = 10
     """episodes per success estimate"""
     bc: dict[str, str] = field(default_factory=dict)
-    """LABEL=RUN[,RUN...]: BC runs (each with its one eval/*.json) drawn as one point: x = their training
-    frames (/ fps on the time panel), y = their pooled evaluation episodes' success with the Wilson 95% CI;
-    list several runs (e.g. seeds) to pool them; repeatable, one LABEL each"""
+    """LABEL=RUN[,RUN...]: BC runs (each with its one eval/*.json): runs on the same training data (e.g.
+    seeds) pooled into one point, x = its frames (/ fps on the time panel), y = the pooled evaluation
+    episodes' success with the Wilson 95% CI; runs on several datasets (e.g. 10, 20, ... 60
+    demonstrations) a curve through those points; repeatable, one LABEL each"""
     title: str = ""
     """plot title (default: the curves and points)"""
 
@@ -145,58 +149,64 @@ def _run_roc(args: RocFigure) -> int:
 def _run_fire(args: FireFigure) -> int:
     from pathlib import Path
 
+    import numpy as np
+
     from shiftkit.pipelines.dataclass_config import csv_list
-    from shiftkit.pipelines.errors import ConfigError
     from shiftkit.policies.curves import Curve, Point, plot_curves
-    from shiftkit.policies.fire_runs import bc_reference, read_episode_lines, success_curve
+    from shiftkit.policies.fire_runs import bc_curve, read_episode_lines, seed_curve, success_curve
 
     check_figure_path(args.out)
-    runs = []
+    methods: dict[str, list[list[dict]]] = {}  # label -> its runs' episode lines
     for item in args.runs:
         label, sep, path = item.partition("=")
-        runs.append((label, path) if sep else (Path(item).name, item))
-    labels = [label for label, _ in runs]
-    if len(set(labels)) < len(labels):
-        twice = next(label for label in labels if labels.count(label) > 1)
-        raise ConfigError(f"label {twice!r} is given to two runs; give each run its own LABEL=RUN")
-    lines = {label: read_episode_lines(path) for label, path in runs}
-    bc = {label: bc_reference(csv_list(str(paths))) for label, paths in args.bc.items()}
+        label, path = (label, path) if sep else (Path(item).name, item)
+        methods.setdefault(label, []).append(read_episode_lines(path))
+    bc = {label: bc_curve(csv_list(str(paths))) for label, paths in args.bc.items()}
     out = Path(args.out)
     written = []
     for suffix, key, xlabel in (
         ("expert", "expert_samples", "expert samples (demonstrations + corrections)"),
         ("time", "execution_time_s", "total execution time (s)"),
     ):
-        curves = []
-        for label, episode_lines in lines.items():
-            x, rate, low, high = success_curve(episode_lines, key, args.window)
-            curves.append(Curve(f"{label}, {len(episode_lines)} episodes", x, rate, low, high, 1))
-        points = tuple(
-            Point(f"{label}, {p['runs']} run{'s' if p['runs'] != 1 else ''} pooled", p[key], p["success"], *p["ci95"],
-                  p["episodes"])
-            for label, p in bc.items()
-        )  # fmt: skip
+        curves, points = [], []
+        for label, runs in methods.items():
+            x, rate, low, high = seed_curve(runs, key, args.window)
+            what = "IQM, 95% bootstrap CI" if len(runs) > 1 else f"{len(runs[0])} episodes"
+            curves.append(Curve(f"{label} ({what})", x, rate, low, high, len(runs)))
+        for label, refs in bc.items():
+            runs = sum(r["runs"] for r in refs)
+            if len(refs) == 1:
+                p = refs[0]
+                points.append(Point(f"{label}, {runs} run{'s' if runs != 1 else ''} pooled", p[key], p["success"],
+                                    *p["ci95"], p["episodes"]))  # fmt: skip
+            else:
+                xs, ys = np.array([r[key] for r in refs]), np.array([r["success"] for r in refs])
+                lows, highs = (np.array([r["ci95"][i] for r in refs]) for i in (0, 1))
+                curves.append(Curve(f"{label} (seeds pooled per size, Wilson 95%)", xs, ys, lows, highs, runs))
         path = out.with_name(f"{out.stem}-{suffix}{out.suffix or '.png'}")
-        ylabel = f"policy success ({args.window}-episode window)"
+        ylabel = f"policy success ({args.window}-episode window for FIRE)"
         try:
-            written.append(plot_curves(curves, path, args.title, xlabel, ylabel, points))
+            written.append(plot_curves(curves, path, args.title, xlabel, ylabel, tuple(points)))
         except BaseException:  # both figures or neither
             for done in written:
                 done.unlink(missing_ok=True)
             raise
-    for label, episode_lines in lines.items():
-        last = episode_lines[-1]
+    for label, runs in methods.items():
+        finals = [success_curve(lines, "expert_samples", args.window)[1][-1] for lines in runs]
+        last = [lines[-1] for lines in runs]
         print(
-            f"{label}: {len(episode_lines)} episodes, {last['expert_samples']} expert samples, "
-            f"{last['execution_time_s']:.0f} s executed; policy success over the last {args.window}: "
-            f"{success_curve(episode_lines, 'expert_samples', args.window)[1][-1]:.0%}"
+            f"{label}: {len(runs)} run(s), {np.mean([len(lines) for lines in runs]):.0f} episodes, "
+            f"{np.mean([x['expert_samples'] for x in last]):.0f} expert samples, "
+            f"{np.mean([x['execution_time_s'] for x in last]):.0f} s executed (means); policy success over "
+            f"the last {args.window}: {', '.join(f'{f:.0%}' for f in finals)}"
         )
-    for label, p in bc.items():
-        print(
-            f"{label}: {p['runs']} BC run(s), {p['expert_samples']:.0f} expert samples, "
-            f"{p['execution_time_s']:.0f} s; success {p['successes']}/{p['episodes']} = {p['success']:.0%} "
-            f"[{p['ci95'][0]:.0%}, {p['ci95'][1]:.0%}]"
-        )
+    for label, refs in bc.items():
+        for p in refs:
+            print(
+                f"{label}: {p['runs']} BC run(s), {p['expert_samples']:.0f} expert samples, "
+                f"{p['execution_time_s']:.0f} s; success {p['successes']}/{p['episodes']} = {p['success']:.0%} "
+                f"[{p['ci95'][0]:.0%}, {p['ci95'][1]:.0%}]"
+            )
     print("wrote " + ", ".join(str(p) for p in written))
     return 0
 

@@ -3,7 +3,14 @@ insertion slots; reset-based tasks and play episodes. Scene and physics in `phys
 predicates in `tasks`, the gymnasium env in `env`, scripted experts in `experts`, the published
 VPACE data's conventions in `vpace_compat`."""
 
-from shiftkit.envs.panda_play.experts import PLAY_SEQUENCES, ExpertPolicy, play_rollout, rollout
+from shiftkit.envs.panda_play.experts import (
+    PLAY_SEQUENCES,
+    ExpertPolicy,
+    SuboptimalExpertPolicy,
+    play_rollout,
+    rollout,
+    suboptimal_rollout,
+)
 from shiftkit.envs.panda_play.physics import (
     ACTION_NAMES,
     CAMERAS,
@@ -36,5 +43,7 @@ FAMILY = register_family(
         play_sequences=PLAY_SEQUENCES,
         action_conventions={"vpace": vpace_action_to_shiftkit},
         expert_policy=ExpertPolicy,
+        experts={"suboptimal": suboptimal_rollout},
+        expert_policies={"suboptimal": SuboptimalExpertPolicy},
     )
 )

@@ -57,6 +57,7 @@ class PandaPlayExpert:
 
     def reset(self) -> None:
         """Back to the start of the task's script."""
+        self.above = ABOVE  # height of the hover point before a grasp
         self.phase = "start"
         self.timer = 0
         self.aim = np.zeros(3)
@@ -117,7 +118,7 @@ class PandaPlayExpert:
         side = 1.0 if self.turns % 2 == 0 else -1.0
         offset = np.array([0.0, side * TURN_OFFSET if turn else 0.0, 0.0])
         if self.phase == "above":
-            target = block + offset + [0.0, 0.0, ABOVE]
+            target = block + offset + [0.0, 0.0, self.above]
             if self.p.gripper_closed or np.min(self.p.fingers()) < 0.95:
                 return self._act(self._toward(np.r_[self.p.desired_tcp[:2], target[2]]), False)
             if self._at(target, 0.006):
@@ -342,6 +343,69 @@ class ExpertPolicy:
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """The expert's next action (`obs` unused)."""
         return self.expert.act()
+
+
+# --------------------------------------------------------------------------- the suboptimal expert
+# A person demonstrating by teleoperation is not the scripted expert: each demonstration goes at its own
+# pace and approaches the block its own way (thesis 5.4.3, Fig. 5.3: "due to the suboptimality of
+# human demonstrations, behavioural cloning has high variance", the setting FIRE is meant for). The
+# suboptimal expert is the scripted one (still closed-loop on the true state, so it still finishes)
+# with that variance, drawn per episode from its own seeded generator. Its demonstrations are slower
+# than the scripted expert's and varied, and BC needs more of them (docs/fire.md).
+#
+# Why only these two: motion noise or misjudged grasps added to the pace, or hesitations and detours
+# with them, left BC from 40 demonstrations at 0-2 of 30 held-out successes (seed 0, docs/fire.md): its
+# policies reach over the block and stop 1-2 cm above it without ever closing the fingers.
+SUBOPTIMAL_SPEED = (0.4, 1.0)
+"""Range of the per-episode speed scale of the free motion (each demonstrator keeps a pace); the final
+descent and the closing of the fingers stay as the scripted expert does them."""
+SUBOPTIMAL_HOVER = (0.03, 0.08)
+"""Range of the per-episode height (m) above the block from which grasps descend (the scripted: 5 cm)."""
+# phases of the scripted grasp done at the scripted expert's own pace
+_CAREFUL = ("descend", "close")
+
+
+class SuboptimalExpert:
+    """The scripted expert of `task` with a person's pace and approach (`SUBOPTIMAL_*` above); `seed`
+    draws them."""
+
+    def __init__(self, env: PandaPlayEnv, seed: int, task: str | None = None) -> None:
+        self.base = PandaPlayExpert(env, task)
+        self.rng = np.random.default_rng([seed, 0x5B0])
+        self.reset()
+
+    def reset(self) -> None:
+        """A new demonstration: a new pace and hover height."""
+        self.base.reset()
+        self.speed = self.rng.uniform(*SUBOPTIMAL_SPEED)
+        self.base.above = self.rng.uniform(*SUBOPTIMAL_HOVER)
+
+    def act(self) -> np.ndarray:
+        """The scripted action, its free motion at this demonstration's pace."""
+        action = self.base.act()
+        if self.base.phase not in _CAREFUL:
+            action[:3] *= self.speed
+        return action
+
+
+class SuboptimalExpertPolicy(ExpertPolicy):
+    """The suboptimal expert in the policy interface (`ExpertPolicy`); `seed` draws its variance."""
+
+    def __init__(self, env: PandaPlayEnv, seed: int = 0) -> None:
+        self.env, self.seed = env, seed
+        self.expert = SuboptimalExpert(env, seed)
+
+    def reset(self) -> None:
+        """A fresh suboptimal expert (the same draws for the same seed)."""
+        self.expert = SuboptimalExpert(self.env, self.seed)
+
+
+def suboptimal_rollout(
+    env: PandaPlayEnv, seed: int, cameras: tuple[str, ...] = (), depth: bool = False, extra_steps: int = 0
+) -> Rollout:
+    """One episode of the suboptimal expert from `reset(seed=seed)` (its variance drawn from `seed`),
+    recorded as `rollout` records the scripted expert (`shiftkit collect --expert suboptimal`)."""
+    return expert_rollout(env, seed, lambda e: SuboptimalExpert(e, seed), cameras, depth, extra_steps)
 
 
 def _free_spot(avoid: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ TRAINER = register(
 
 def options() -> DataclassOptions:
     """`BCArgs` as options: counts and widths positive, the seed >= 0, rates positive."""
-    from shiftkit.policies.trainers.bc.args import REGIMES
+    from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS, REGIMES
 
     positive = (
         "steps",
@@ -48,7 +48,7 @@ def options() -> DataclassOptions:
             **dict.fromkeys(("weight_decay", "val_fraction", "norm_std_floor"), "non_negative_float"),
             "seed": "non_negative_int",
         },
-        choices={"regime": REGIMES, "encoder": ("cnn", "resnet18")},
+        choices={"regime": REGIMES, "encoder": ("cnn", "resnet18"), "output_activation": OUTPUT_ACTIVATIONS},
     )
 
 

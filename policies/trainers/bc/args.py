@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     from shiftkit.policies.bc_policy import Normalization
 
 REGIMES = ("early-stop", "fixed")
+OUTPUT_ACTIVATIONS = ("linear", "tanh")
 
 
 @dataclass
@@ -56,6 +57,8 @@ class BCArgs:
     """Spatial soft-argmax keypoints per camera."""
     hidden: list[int] = field(default_factory=lambda: [512, 512])
     """Widths of the fully connected layers after the encoders."""
+    output_activation: str = "linear"
+    """`linear` or `tanh` (actions bounded to [-1, 1], as the policy of thesis 5.4.2)."""
     seed: int = 0
     """Seed of the episode split, the shuffles and the init."""
     checkpoint_every: int = 1000
@@ -102,6 +105,10 @@ class BCArgs:
             "num_keypoints",
             "lr",
         )
+        if out.output_activation not in OUTPUT_ACTIVATIONS:
+            raise ConfigError(
+                f"unknown output activation {out.output_activation!r} (choose from {', '.join(OUTPUT_ACTIVATIONS)})"
+            )
         if out.root is not None and len(out.datasets) != 1:
             raise ConfigError("--root names one dataset's folder; with several datasets give their IDs or paths")
         if out.threads is not None and out.threads <= 0:

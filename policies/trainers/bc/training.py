@@ -143,6 +143,7 @@ def train(args: BCArgs, progress: bool = False) -> dict:
         hidden=args.hidden,
         ensemble_size=args.ensemble_size,
         normalization=args.normalization(),
+        output_activation=args.output_activation,
     )
 
     # --- model and optimisers: one AdamW per member ---
