@@ -34,7 +34,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.run_dir import torch_device

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.datasets.dataset import Dataset
+from shiftkit.datasets.errors import DatasetError
 from shiftkit.policies.data import example_set_origin, numeric_column, open_datasets, refuse_example_sets
 
 STATE_KEYS = ("observation.state", "observation.environment_state")
@@ -65,7 +65,7 @@ def load_dataset_examples(
     with_actions: bool = False,
     observation_names: list[str] | None = None,
     require_example_set: bool = False,
-) -> tuple[dict[str, TaskExamples], list[ResolvedDataset]]:
+) -> tuple[dict[str, TaskExamples], list[Dataset]]:
     """Collect each task's frames from LeRobot datasets, keyed by the frame's `task` string.
 
     With `with_actions` (LfGP), frames keep their actions and every episode's final state is added once

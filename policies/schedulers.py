@@ -18,7 +18,7 @@ from typing import override
 
 import numpy as np
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 
 MAIN = "main"  # how handcrafted sequences name the main task
 

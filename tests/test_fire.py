@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from shiftkit.app.cli import main
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.envs import families, make
-from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
 from tests.helpers import lerobot_train_two_steps
 
@@ -253,7 +253,7 @@ def _episode_lines(run: Path) -> list[dict]:
 def test_fire_writes_the_aggregated_dataset(demo, fire_run):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     run, ds_root = fire_run
     lines = _episode_lines(run)
@@ -447,7 +447,7 @@ def test_simulated_rollouts_are_what_lerobots_dagger_strategy_writes(fire_run, t
     add_frame per step, save_episode per episode, finalize."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     run, _ = fire_run
     ours = run / "rollouts"
@@ -508,7 +508,7 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
     from lerobot.lerobot_types import TransitionKey
     from lerobot.processor.pipeline import DataProcessorPipeline, ProcessorStepRegistry
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
     from shiftkit.policies.fire_predictor import FailurePredictor, FailurePredictorStep
     from shiftkit.policies.fire_recording import recorded_episodes
@@ -563,7 +563,7 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
 
 
 def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_path, capsys):
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
     from shiftkit.policies.fire_recording import recorded_episodes
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
 from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
@@ -514,15 +514,9 @@ def test_cli_train_and_plot(tmp_path, monkeypatch):
     )
     assert main(["train", "vpace", *common, "--aux-tasks", "lift", "--output", str(tmp_path / "bad2")]) == 2
 
-    import argparse
-
-    from shiftkit.policies.trainers import vpace as vpace_cli
-
-    parser = argparse.ArgumentParser()
-    vpace_cli.add_plot_arguments(parser)
     png = tmp_path / "curves.png"
     groups = [f"vpace={tmp_path / 'vpace0'},{tmp_path / 'vpace1'}", f"sqil={tmp_path / 'sqil'}"]
-    assert vpace_cli.run_plot(parser.parse_args([*groups, "--out", str(png)])) == 0
+    assert main(["plot", "curves", *groups, "--out", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

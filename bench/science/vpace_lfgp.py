@@ -34,7 +34,7 @@ by side; finished runs (with their card.json) and evaluations are reused by a re
 Reported: per method the success curve over seeds, interquartile mean with stratified-bootstrap 95%
 CIs (`_study.iqm_ci`, rliable's convention, scipy's bootstrap, seed 0), over the evaluation steps
 every seed reached; and the final success pooled over seeds with its Wilson 95% interval
-(`_study.pool`). `shiftkit train plot VPACE=RUN,RUN,... SQIL=... --out lift.png` draws the same
+(`_study.pool`). `shiftkit plot curves VPACE=RUN,RUN,... SQIL=... --out lift.png` draws the same
 curves. Last line: the JSON result, LfGP's final success minus DAC's (the thesis claim: > 0), with
 VPACE minus SQIL on lift, the curves and every run. `--quick`: one seed, 200 interactions per run
 (100 random before the first update, curve points at 100 and 200), 3 scripted episodes per example

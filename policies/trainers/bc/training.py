@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
 from shiftkit.policies.data import (
     FrameTable,
@@ -104,8 +104,8 @@ def _merged_stats(datasets: list, keys: list[str]) -> dict[str, dict[str, list]]
 def check_root_id(ref: str, root: str | None) -> None:
     """`--dataset ID --root DIR`: the folder must hold that dataset (by the ID its provenance
     records), else the run would record an ID it did not train on."""
-    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
-    from shiftkit.pipelines.loaders import load_provenance
+    from shiftkit.datasets.loaders import load_provenance
+    from shiftkit.datasets.provenance import PROVENANCE_PATH
 
     path = Path(root) / PROVENANCE_PATH if root is not None else None
     if path is None or not path.is_file():

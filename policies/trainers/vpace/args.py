@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "vpace": dict(reward_model="sqil", multitask=True, value_penalty=10.0, full_trajectories=False),
