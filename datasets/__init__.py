@@ -16,11 +16,24 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-if __name__ == "datasets":  # this folder found as the top-level `datasets`: the clone's root is on sys.path first
-    raise ImportError(
-        f"{Path(__file__).parent} (shiftkit.datasets) shadows the installed Hugging Face `datasets` because "
-        f"{Path(__file__).parents[1]} comes first on sys.path: run Python from another folder or with `python -P`"
+if __name__ == "datasets":
+    # This folder was found as the top-level `datasets`: Python runs in the clone's root with the root
+    # first on sys.path (`python -m`, `python -c`, pytest's rootdir). That name is the installed Hugging
+    # Face `datasets` (lerobot imports it): load that one in this module's place (the import system hands
+    # out what sys.modules holds once this module has run).
+    import importlib.machinery
+    import importlib.util
+    import sys
+
+    _root = Path(__file__).resolve().parents[1]
+    _spec = importlib.machinery.PathFinder.find_spec(
+        "datasets", [p for p in sys.path if Path(p or ".").resolve() != _root]
     )
+    if _spec is None or _spec.loader is None:
+        raise ImportError(f"{Path(__file__).parent} is shiftkit.datasets; the Hugging Face `datasets` is not installed")
+    _installed = importlib.util.module_from_spec(_spec)
+    sys.modules["datasets"] = _installed
+    _spec.loader.exec_module(_installed)
 
 
 def __getattr__(name: str) -> Any:

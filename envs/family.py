@@ -17,7 +17,6 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -76,10 +75,9 @@ class EnvFamily:
 
 
 def import_families(path: list[str] | None = None) -> None:
-    """Import every family package on `path` (default: the `shiftkit.envs` folder), which registers it."""
-    import_modules(
-        __name__.rpartition(".")[0], [str(Path(__file__).parent)] if path is None else path, packages_only=True
-    )
+    """Import every family package on `path` (default: the `shiftkit.envs` package's path), which registers it."""
+    package = __name__.rpartition(".")[0]
+    import_modules(package, importlib.import_module(package).__path__ if path is None else path, packages_only=True)
 
 
 FAMILIES: Registry[EnvFamily] = Registry("env", error=ValueError, discover=[import_families])

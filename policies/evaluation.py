@@ -199,7 +199,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> Policy:
 def policy_rate(path: str | Path) -> int | None:
     """The control rate (Hz) a trained policy acts at: its datasets' fps (BC, FIRE), or for RL
     trainers the rate of the env it trained in; None when the run does not say."""
-    from shiftkit.datasets.loaders import load_info
+    from shiftkit.datasets.dataset import as_dataset
     from shiftkit.envs import env_family
     from shiftkit.policies.run_dir import RunDir, run_folder
 
@@ -209,7 +209,7 @@ def policy_rate(path: str | Path) -> int | None:
         fps = record.get("fps")
         info = Path(record.get("root") or "") / "meta" / "info.json"
         if fps is None and record.get("root") and info.is_file():  # a run recorded before fps was
-            fps = load_info(info)["fps"]
+            fps = as_dataset(record["root"]).info["fps"]
         if fps is not None:
             rates.add(fps)
     if config.get("trainer") in ("vpace", "lfgp"):
@@ -402,7 +402,7 @@ def training_yaw(policy_path: str | Path) -> dict[str, Any] | None:
     (`meta/cameras.json` base poses): {"episodes", "low", "high"} (low == high: a fixed-view policy),
     or None when the run records no dataset with base poses."""
     from shiftkit.datasets.camera_meta import episode_cameras, read_cameras_file
-    from shiftkit.datasets.loaders import load_info
+    from shiftkit.datasets.dataset import as_dataset
     from shiftkit.policies.run_dir import trained_datasets
 
     yaws = []
@@ -411,7 +411,7 @@ def training_yaw(policy_path: str | Path) -> dict[str, Any] | None:
         if not record.get("root") or not (root / "meta" / "info.json").is_file():
             continue
         doc = read_cameras_file(root)
-        for i in range(load_info(root / "meta" / "info.json").get("total_episodes", 0)):
+        for i in range(as_dataset(root).info.get("total_episodes", 0)):
             poses = [cam["base_pose"] for cam in episode_cameras(doc, i).values() if "base_pose" in cam]
             yaws += [float(pose["yaw"]) for pose in poses[:1]]
     if not yaws:

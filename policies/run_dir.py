@@ -167,7 +167,7 @@ def dataset_records(resolved: list[Dataset]) -> list[dict[str, str | int | None]
             "root": str(r.root),
             "revision": r.revision,
             "fingerprint": r.fingerprint,
-            "fps": loaders.load_info(Path(r.root) / "meta" / "info.json")["fps"],
+            "fps": r.info["fps"],
         }
         for r in resolved
     ]

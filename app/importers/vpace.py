@@ -34,6 +34,7 @@ from shiftkit.datasets.episode import Episode
 from shiftkit.datasets.errors import DatasetError
 from shiftkit.datasets.features import Features, vector_feature
 from shiftkit.datasets.importers import Importer, register_importer
+from shiftkit.datasets.sources import groups_by_file
 
 Kind = Literal["auto", "examples", "trajectories"]
 
@@ -347,10 +348,7 @@ class VpaceSource:
 
     def episode_groups(self) -> list[list[int]]:
         """The episodes of each file."""
-        groups: dict[int, list[int]] = {}
-        for i, (f, _) in enumerate(self._episodes):
-            groups.setdefault(f, []).append(i)
-        return list(groups.values())
+        return groups_by_file([f for f, _ in self._episodes])
 
     def iter_episodes(self, indices: list[int]) -> Iterator[Episode]:
         """The episodes at `indices`, in that order."""

@@ -40,6 +40,7 @@ from shiftkit.datasets.episode import Episode
 from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.datasets.features import Features, image_feature, vector_feature
 from shiftkit.datasets.importers import Importer, register_importer
+from shiftkit.datasets.sources import groups_by_file
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 _CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
@@ -447,10 +448,7 @@ class Ros2Source:
 
     def episode_groups(self) -> list[list[int]]:
         """The episodes of each bag."""
-        groups: dict[int, list[int]] = {}
-        for i, (b, _) in enumerate(self._episodes):
-            groups.setdefault(b, []).append(i)
-        return list(groups.values())
+        return groups_by_file([b for b, _ in self._episodes])
 
     def iter_episodes(self, indices: list[int]) -> Iterator[Episode]:
         """The episodes at `indices`, in that order."""

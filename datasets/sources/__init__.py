@@ -86,6 +86,15 @@ def open_source(config: SourceConfig, base_dir: Path | None = None) -> Source:
     return open(config.repo_id, revision=config.revision)
 
 
+def groups_by_file(files: list[int]) -> list[list[int]]:
+    """Episode indices grouped by the file each episode is read from (`files[i]`: episode i's), in
+    order: a source's `episode_groups` when one file holds several episodes."""
+    groups: dict[int, list[int]] = {}
+    for i, file in enumerate(files):
+        groups.setdefault(file, []).append(i)
+    return list(groups.values())
+
+
 def input_paths(config: SourceConfig, source: Any) -> list[Path]:
     """The local files and folders a source reads (its folder, a resolved dataset ID's, an importer's
     inputs): what `staging.check_inputs_and_outputs` holds apart from the destination."""

@@ -206,7 +206,7 @@ ROBOMIMIC_EXAMPLES = 12
 def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, control_freq, total):
     import h5py
 
-    from shiftkit.datasets.importers.robomimic import import_robomimic
+    from shiftkit.app.importing import import_dataset
     from tests.test_import_robomimic import _write
 
     tmp = tmp_path_factory.mktemp("rm")
@@ -220,7 +220,7 @@ def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, co
         f["data"].attrs["env_args"] = json.dumps(args)
         if total is not None:
             f["data"].attrs["total"] = total
-    clean_or_error(lambda: import_robomimic(path, "rm/fuzz", tmp / "out"))
+    clean_or_error(lambda: import_dataset("robomimic", {"file": str(path)}, "rm/fuzz", tmp / "out"))
 
 
 VPACE_EXAMPLES = 25
@@ -238,7 +238,7 @@ def test_vpace_importer_on_mutated_buffers(tmp_path_factory, key, value):
     import gzip
     import pickle
 
-    from shiftkit.app.importers.vpace import import_vpace
+    from shiftkit.app.importing import import_dataset
 
     tmp = tmp_path_factory.mktemp("vp")
     n = 4
@@ -259,7 +259,7 @@ def test_vpace_importer_on_mutated_buffers(tmp_path_factory, key, value):
     path = tmp / "3_lift.gz"
     with gzip.open(path, "wb") as f:
         pickle.dump(data, f)
-    clean_or_error(lambda: import_vpace([path], "vp/fuzz", tmp / "out"))
+    clean_or_error(lambda: import_dataset("vpace", {"files": [str(path)]}, "vp/fuzz", tmp / "out"))
 
 
 ROS2_EXAMPLES = 6
@@ -273,7 +273,7 @@ ROS2_EXAMPLES = 6
 )
 def test_ros2_importer_on_joint_vectors_of_changing_width(tmp_path_factory, widths, value, field):
     """Joint vectors whose width changes through the bag (cycling `widths`), holding `value`."""
-    from shiftkit.datasets.importers.ros2 import import_ros2
+    from shiftkit.app.importing import import_dataset
     from tests import test_import_ros2 as bags
 
     tmp = tmp_path_factory.mktemp("ros")
@@ -291,7 +291,8 @@ def test_ros2_importer_on_joint_vectors_of_changing_width(tmp_path_factory, widt
     mapping = tmp / "m.toml"
     camera = '[features."observation.images.front"]\ntopic = "/camera/image_raw"\n'  # not what is fuzzed here
     mapping.write_text(bags.MAPPING.replace('field = "position"', f'field = "{field}"').replace(camera, ""))
-    clean_or_error(lambda: import_ros2([bag], mapping, "ros/fuzz", tmp / "out"))
+    options = {"bags": [str(bag)], "mapping": str(mapping)}
+    clean_or_error(lambda: import_dataset("ros2", options, "ros/fuzz", tmp / "out"))
 
 
 V21_EXAMPLES = 8
@@ -306,7 +307,7 @@ V21_EXAMPLES = 8
     value=json_values,
 )
 def test_lerobot_v21_importer_on_mutated_metadata(tmp_path_factory, target, key, value):
-    from shiftkit.datasets.importers.lerobot_v21 import import_lerobot_v21
+    from shiftkit.app.importing import import_dataset
     from tests.test_import_lerobot_v21 import _write_v21
 
     tmp = tmp_path_factory.mktemp("v21")
@@ -320,7 +321,7 @@ def test_lerobot_v21_importer_on_mutated_metadata(tmp_path_factory, target, key,
         lines = [json.loads(line) for line in path.read_text().splitlines()]
         lines[-1][key] = value
         path.write_text("".join(json.dumps(line) + "\n" for line in lines))
-    clean_or_error(lambda: import_lerobot_v21(src, "v21/fuzz", tmp / "out"))
+    clean_or_error(lambda: import_dataset("lerobot-v2.1", {"source": str(src)}, "v21/fuzz", tmp / "out"))
 
 
 INFO_VALIDATE_EXAMPLES = 12
