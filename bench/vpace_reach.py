@@ -13,7 +13,7 @@ Steps, all through shiftkit's own entry points:
    --examples-per-task 200` with the thesis hyperparameters, evaluating the main intention (mean action)
    every `--eval-every` environment steps (the success curve);
 3. a final evaluation on `--final-episodes` seeds that neither training nor the curve used, of the
-   policy at its best curve point (checkpoints/best.pt, the value) and of the last checkpoint; the
+   policy at its best curve point (checkpoints/best.safetensors, the value) and of the last checkpoint; the
    baseline, in the same run, is the scripted reach expert on the same seeds.
 
     python bench/vpace_reach.py [--quick] [--examples published|scene] [--total-steps N] [--workdir DIR]
@@ -121,7 +121,7 @@ def main() -> None:
     from shiftkit.envs import make
     from shiftkit.envs.panda_play.experts import ExpertPolicy
     from shiftkit.policies.evaluation import evaluate, run_episodes, wilson_interval
-    from shiftkit.policies.run_dir import RunDir, load_checkpoint
+    from shiftkit.policies.run_dir import BEST, RunDir, load_checkpoint
     from shiftkit.policies.trainers.vpace.args import VPACEArgs
     from shiftkit.policies.trainers.vpace.training import load_policy, train
 
@@ -154,7 +154,7 @@ def main() -> None:
     train_s = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    best = run / "checkpoints" / "best.pt"  # absent when no curve point was taken (--total-steps < --eval-every)
+    best = run / "checkpoints" / BEST  # absent when no curve point was taken (--total-steps < --eval-every)
     held_out = {
         name: evaluate(
             load_policy(path),

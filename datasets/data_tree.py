@@ -4,7 +4,8 @@ A pickle runs code when it is read, so a file a user may have received (a checkp
 copied work folder) must not be one. `split` turns a tree of dicts, lists, tuples, numbers, strings,
 bytes, numpy arrays and scalars (and the container's own tensor type, e.g. torch tensors in a
 checkpoint) into a JSON document and a flat `{name: array}` map, which a data-only container stores
-(safetensors for checkpoints, `.npz` read with `allow_pickle=False` for a run's parts). `join`
+(safetensors for checkpoints, `.npz` read with `allow_pickle=False` for a run's parts); object
+arrays (per-frame strings, lerobot's language rows) are kept as strings or JSON values. `join`
 rebuilds the identical tree: dtypes, tuples, non-string keys (a torch optimizer's integer state
 keys) and non-finite floats survive, so a resumed run continues bit for bit. A malformed document is
 a one-line `DatasetError` naming the file, never a crash deep in a trainer.
@@ -55,9 +56,11 @@ def split(tree: Any, tensor_types: tuple[type, ...] = ()) -> tuple[Any, dict[str
             }
         if isinstance(value, np.ndarray):
             if value.dtype == object:
-                if not all(isinstance(v, str) for v in value.flat):
-                    raise TypeError(f"{where}: an object array holds only strings here, got {value.dtype}")
-                return {TAG: "strings", "k": add(np.asarray(value.tolist(), dtype=str).reshape(value.shape))}
+                if all(isinstance(v, str) for v in value.flat):
+                    return {TAG: "strings", "k": add(np.asarray(value.tolist(), dtype=str).reshape(value.shape))}
+                # any other per-frame values (lerobot's language rows: lists of dicts) as JSON values
+                items = [walk(v, f"{where}[{i}]") for i, v in enumerate(value.flat)]
+                return {TAG: "objects", "shape": list(value.shape), "v": items}
             return {TAG: "array", "k": add(np.asarray(value))}
         if isinstance(value, np.generic):
             return {TAG: "scalar", "k": add(np.asarray(value))}
@@ -107,6 +110,15 @@ def join(doc: Any, arrays: dict[str, Any], where: str, tensor: Any = None) -> An
             return numpy(value.get("k"))
         if kind == "strings":
             return numpy(value.get("k")).astype(object)
+        if kind == "objects" and isinstance(value.get("v"), list) and isinstance(value.get("shape"), list):
+            items = [walk(v) for v in value["v"]]
+            out = np.empty(len(items), dtype=object)
+            for i, item in enumerate(items):  # element by element: equal-length lists must stay lists
+                out[i] = item
+            try:
+                return out.reshape(value["shape"])
+            except (TypeError, ValueError):
+                raise DatasetError(f"{where}: stored values do not fit their shape") from None
         if kind == "scalar":
             return numpy(value.get("k"))[()]
         if kind == "bytes":

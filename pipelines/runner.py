@@ -81,8 +81,10 @@ def _run_locked(config: PipelineConfig, plan: Plan, engine: Executor, work: Path
             "resuming: %d of %d source episodes were already transformed", done, plan.num_source_episodes
         )
     # The writer's imports (lerobot, torch) take seconds; made while the executor transforms they
-    # overlap the work instead of adding to it afterwards, when the workers would be idle.
-    preload = threading.Thread(target=preload_writer, name="shiftkit-preload-writer", daemon=True)
+    # overlap the work instead of adding to it afterwards, when the workers would be idle. Not a
+    # daemon: a run that fails meanwhile exits after the imports, since CPython (< 3.14) ends a daemon
+    # thread at exit with pthread_exit, whose unwinding through torch's C++ frames aborts (exit 134).
+    preload = threading.Thread(target=preload_writer, name="shiftkit-preload-writer")
     preload.start()
     with _progress(plan.num_source_episodes, done, "transform", progress) as bar:
         if not engine.run(plan, units, parts, bar):

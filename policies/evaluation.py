@@ -482,7 +482,7 @@ def write_yaw_sweep(sweep: dict[str, Any], path: str | Path) -> tuple[Path, Path
 
 def record_evaluation(report: EvalReport, policy_path: str | Path, out: str | Path | None = None) -> Path:
     """Write the per-episode results JSON (default: `<run>/eval/<env>-<task>-seed<S>.json`, with
-    `-<checkpoint name>` added for a checkpoint file such as best.pt) and, when it lands in the policy's
+    `-<checkpoint name>` added for a checkpoint file such as best.safetensors) and, when it lands in the policy's
     run folder, add the result to the run's model card."""
     from shiftkit.policies.run_dir import EVAL, RunDir, checkpoint_name, run_folder
 

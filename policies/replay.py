@@ -25,6 +25,17 @@ class ReplaySample:
     reward_obs: np.ndarray  # (B, n, obs_dim) s_t .. s_{t+n-1}; rows past `steps` repeat the last valid one
     steps: np.ndarray  # (B,) k, the number of rewarded steps (1 <= k <= n)
 
+    def extended(self, obs: np.ndarray, act: np.ndarray, next_obs: np.ndarray) -> ReplaySample:
+        """This sample with one-step transitions (rows, ·) appended (LfGP's expert rows)."""
+        reward_obs = np.repeat(obs[:, None], self.reward_obs.shape[1], axis=1)
+        return ReplaySample(
+            np.concatenate([self.obs, obs]),
+            np.concatenate([self.act, act]),
+            np.concatenate([self.next_obs, next_obs]),
+            np.concatenate([self.reward_obs, reward_obs]),
+            np.concatenate([self.steps, np.ones(len(obs), self.steps.dtype)]),
+        )
+
 
 class ReplayBuffer:
     """Fixed-capacity circular buffer; the oldest rows are overwritten first."""

@@ -1,12 +1,16 @@
 """Reward models for learning from examples: SQIL labels, a DAC discriminator, and RCE's classifier TD.
 
 * SQIL (Reddy et al. 2020, with the thesis' -1 label): buffer data is labelled -1, example data +1.
-* DAC (Kostrikov et al. 2019): one discriminator per task (independent batched MLPs with tanh), trained
-  with binary cross-entropy (examples = 1, buffer = 0) plus a gradient penalty (weight 10) on
-  interpolates; reward log D - log(1 - D), i.e. the discriminator's logit. State-only for VPACE,
-  state-action for LfGP.
+* DAC (Kostrikov et al. 2019): one multitask discriminator, as in the reference code (utiasSTARS/lfgp
+  `ActionConditionedFullyConnectedDiscriminator`, thesis A.6 and B.2.6): two tanh layers shared by all
+  tasks and one logit per task, trained with binary cross-entropy (buffer rows = 0 for every task,
+  each task's expert rows = 1 for its own logit) plus a gradient penalty (weight 10) on interpolates;
+  reward log D - log(1 - D), i.e. the task's logit. State-only for VPACE, state-action for LfGP.
 * RCE (Eysenbach et al. 2021): no separate reward; the critic is a classifier of future success,
   trained with weighted cross-entropy TD targets (thesis B.1.3).
+
+Shapes: replay rows are shared by all tasks, (B, ..., in_dim) -> rewards (T, B, ...); example rows
+belong to one task each, (T, n, in_dim) -> task t's reward of its own rows, (T, n).
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from shiftkit.policies.sac import batched_mlp
+from shiftkit.policies.networks import mlp
 
 
 class SQILReward:
@@ -23,20 +27,20 @@ class SQILReward:
 
     learned = False
 
-    def __init__(self, policy_label: float = -1.0, example_label: float = 1.0):
-        self.policy_label, self.example_label = policy_label, example_label
+    def __init__(self, num_tasks: int, policy_label: float = -1.0, example_label: float = 1.0):
+        self.num_tasks, self.policy_label, self.example_label = num_tasks, policy_label, example_label
 
     def buffer_reward(self, x: torch.Tensor) -> torch.Tensor:
-        """The constant policy label for every input in `x`, (..., in_dim) -> (...)."""
-        return torch.full(x.shape[:-1], self.policy_label, device=x.device)
+        """The policy label of every task for shared rows `x`, (B, ..., in_dim) -> (T, B, ...)."""
+        return torch.full((self.num_tasks, *x.shape[:-1]), self.policy_label, device=x.device)
 
     def example_reward(self, x: torch.Tensor) -> torch.Tensor:
-        """The constant example label for every input in `x`, (..., in_dim) -> (...)."""
+        """The example label for each task's own rows `x`, (T, n, in_dim) -> (T, n)."""
         return torch.full(x.shape[:-1], self.example_label, device=x.device)
 
 
 class DACReward(nn.Module):
-    """Per-task discriminators D_T(x) = sigmoid(logit_T(x)); x is a state, or state + action for LfGP."""
+    """The multitask discriminator D_T(x) = sigmoid(logit(x)[T]); x is a state, or state + action for LfGP."""
 
     learned = True
 
@@ -44,32 +48,45 @@ class DACReward(nn.Module):
         self, num_tasks: int, in_dim: int, hidden: tuple[int, ...] = (256, 256), gradient_penalty: float = 10.0
     ):
         super().__init__()
-        self.net = batched_mlp(num_tasks, in_dim, 1, hidden, act=nn.Tanh)
+        self.net = mlp(in_dim, num_tasks, hidden, act=nn.Tanh)
         self.gradient_penalty = gradient_penalty
 
-    def logit(self, x: torch.Tensor) -> torch.Tensor:
-        """(T, ..., in_dim) -> (T, ...)."""
-        return self.net(x.reshape(x.shape[0], -1, x.shape[-1])).reshape(x.shape[:-1])
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Every task's logit of rows `x`, (..., in_dim) -> (T, ...)."""
+        return self.net(x).movedim(-1, 0)
+
+    def own_logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Task t's logit of its own rows x[t], (T, n, in_dim) -> (T, n)."""
+        return self.logits(x).diagonal(dim1=0, dim2=1).T
 
     @torch.no_grad()
     def buffer_reward(self, x: torch.Tensor) -> torch.Tensor:
-        """The discriminators' logits log D - log(1 - D), (T, ..., in_dim) -> (T, ...)."""
-        return self.logit(x)  # log D - log(1 - D) of a sigmoid is its logit
+        """log D - log(1 - D) (a sigmoid's logit) of every task for shared rows, (B, ..., in_dim) -> (T, B, ...)."""
+        return self.logits(x)
 
-    example_reward = buffer_reward
+    @torch.no_grad()
+    def example_reward(self, x: torch.Tensor) -> torch.Tensor:
+        """Each task's reward of its own rows, (T, n, in_dim) -> (T, n)."""
+        return self.own_logits(x)
 
-    def loss(self, buffer_x: torch.Tensor, example_x: torch.Tensor) -> torch.Tensor:
-        """Cross-entropy + gradient penalty per task (T,); each task's term touches only its own net."""
-        buffer_logit, example_logit = self.logit(buffer_x), self.logit(example_x)
-        bce = F.binary_cross_entropy_with_logits(buffer_logit, torch.zeros_like(buffer_logit), reduction="none").mean(
-            -1
-        ) + F.binary_cross_entropy_with_logits(example_logit, torch.ones_like(example_logit), reduction="none").mean(-1)
-        n = min(buffer_x.shape[1], example_x.shape[1])
-        mix = torch.rand(buffer_x.shape[0], n, 1, device=buffer_x.device)
-        interp = (mix * example_x[:, :n] + (1 - mix) * buffer_x[:, :n]).requires_grad_(True)
-        (grad,) = torch.autograd.grad(self.logit(interp).sum(), interp, create_graph=True)
-        penalty = (grad.norm(dim=-1) - 1.0).square().mean(-1)
-        return bce + self.gradient_penalty * penalty
+    def loss(self, buffer_x: torch.Tensor, example_x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loss, per-task cross-entropy (T,)) for shared buffer rows (B, in_dim) and each task's expert
+        rows (T, n, in_dim), as the reference's `update_discriminator`: the two cross-entropies' mean
+        over every task's logits, halved, plus the gradient penalty on interpolates of the buffer rows
+        with each task's expert rows (a uniform weight per element), on the gradient of the sum of all
+        tasks' logits."""
+        zeros = torch.zeros_like
+        buffer_logit, example_logit = self.logits(buffer_x), self.own_logits(example_x)
+        bce = (
+            F.binary_cross_entropy_with_logits(buffer_logit, zeros(buffer_logit), reduction="none").mean(-1)
+            + F.binary_cross_entropy_with_logits(example_logit, zeros(example_logit) + 1.0, reduction="none").mean(-1)
+        ) / 2
+        n = min(buffer_x.shape[0], example_x.shape[1])
+        mix = torch.rand(example_x.shape[0], n, buffer_x.shape[-1], device=buffer_x.device)
+        interp = (mix * buffer_x[:n] + (1 - mix) * example_x[:, :n]).requires_grad_(True)
+        (grad,) = torch.autograd.grad(self.logits(interp).sum(), interp, create_graph=True)
+        penalty = (grad.norm(dim=-1) - 1.0).square().mean()
+        return bce.mean() + self.gradient_penalty * penalty, bce.detach()
 
 
 def rce_targets(next_prob: torch.Tensor, gamma: float, eps: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
@@ -84,12 +101,18 @@ def rce_targets(next_prob: torch.Tensor, gamma: float, eps: float = 1e-4) -> tup
 
 
 def rce_loss(
-    buffer_logit: torch.Tensor, example_logit: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, gamma: float
+    buffer_logit: torch.Tensor,
+    example_logit: torch.Tensor,
+    target: torch.Tensor,
+    weight: torch.Tensor,
+    example_weight: torch.Tensor,
+    gamma: float,
 ) -> torch.Tensor:
-    """Weighted binary cross-entropy of the critic's logits (2, T, ·), mean over buffer + example rows."""
+    """Weighted binary cross-entropy of the critic's logits (2, T, ·), summed over buffer rows and each
+    task's own example rows (`example_weight` (T, n): 1 for a task's rows, 0 for padding), (2, T)."""
     target, weight = target.expand_as(buffer_logit), weight.expand_as(buffer_logit)
     buffer_term = weight * F.binary_cross_entropy_with_logits(buffer_logit, target, reduction="none")
     example_term = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
         example_logit, torch.ones_like(example_logit), reduction="none"
     )
-    return torch.cat([buffer_term, example_term], dim=-1).mean(-1)
+    return buffer_term.sum(-1) + (example_weight * example_term).sum(-1)

@@ -135,7 +135,10 @@ def _load_safetensors(path: Path, device: str | torch.device) -> Any:
 def _load_legacy(path: Path, device: str | torch.device) -> Any:
     """A `.pt` checkpoint of an older shiftkit, through torch's weights-only unpickler only."""
     import pickle
+    import zipfile
 
+    if not zipfile.is_zipfile(path):  # torch.save writes a zip archive; anything else is no checkpoint
+        raise DatasetError(f"{path} is not a readable checkpoint (not a torch checkpoint archive)")
     try:
         return torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError as exc:

@@ -1,10 +1,11 @@
-"""Batched multi-intention SAC: one independent actor, twin critic and temperature per task.
+"""Batched multi-intention SAC: an actor, twin critic and temperature per task.
 
-Every network is a stack of per-task parameters (`BatchedLinear`: weight (members, in, out)), so one
-batched matmul evaluates all tasks at once and one optimizer step updates all of them. Nothing is
-shared between tasks or between actor and critic: task t's outputs depend only on slice t of each
-parameter, Adam and weight decay act element-wise, and gradient clipping is done per member, so the
-batched update equals running one SAC per task.
+Every per-task network is a stack of per-task parameters (`BatchedLinear`: weight (members, in, out)),
+so one batched matmul evaluates all tasks at once and one optimizer step updates all of them. Task t's
+outputs depend only on slice t of each parameter (and, with LfGP's shared trunk, on the trunk), Adam
+and weight decay act element-wise; as in the reference code, gradients are clipped to one norm over
+all tasks' parameters of a role (policies, Q-functions, temperatures), so a large gradient of one task
+scales the step of every task.
 
 Shapes: observations and actions are (num_tasks, batch, dim); Q-values are (2, num_tasks, batch) for
 the twin critics; log-probabilities and rewards (num_tasks, batch).
@@ -77,7 +78,7 @@ class BatchedLinear(nn.Module):
         out, start = None, 0
         for x in parts:
             rows = self.weight[:, start : start + x.shape[-1]]
-            out = torch.baddbmm(self.bias, x, rows) if out is None else out.baddbmm_(x, rows)
+            out = torch.baddbmm(self.bias if out is None else out, x, rows)
             start += x.shape[-1]
         return out
 
@@ -96,7 +97,20 @@ def batched_mlp(
 
 
 class Intentions(nn.Module):
-    """SAC-X intentions: per task a tanh-squashed Gaussian policy, twin Q with target, learned alpha."""
+    """SAC-X intentions: per task a tanh-squashed Gaussian policy, twin Q with target, learned alpha.
+
+    Two architectures, as the reference code builds them:
+    * separate (VPACE, thesis B.2.6: sharing "substantially hurt performance"): every task's policy and
+      each of its twin Q-functions is its own MLP of `hidden` layers;
+    * `shared_trunk` (LfGP, thesis A.6; utiasSTARS/lfgp's multitask SAC): one trunk of `hidden` ReLU
+      layers on the observation feeds every task's heads, a policy head (hidden[-1] -> hidden[-1] ->
+      2 x action) and two Q heads ((hidden[-1] + action) -> hidden[-1] -> 1) per task. The trunk is a
+      Q parameter (the reference's `qs_parameters`): the critic loss trains it and the target network
+      averages it; the policy step reads its features without training it.
+
+    Callers turn observations into the heads' input with `encode` first: (B, obs) rows shared by all
+    tasks or (T, B, obs) rows per task give (T, B, features), the trunk evaluated once per row.
+    """
 
     def __init__(
         self,
@@ -105,12 +119,24 @@ class Intentions(nn.Module):
         act_dim: int,
         hidden: Sequence[int] = (256, 256),
         initial_alpha: float = 1e-2,
+        shared_trunk: bool = False,
     ):
         super().__init__()
         self.num_tasks, self.obs_dim, self.act_dim = num_tasks, obs_dim, act_dim
-        self.actor = batched_mlp(num_tasks, obs_dim, 2 * act_dim, hidden)
+        if shared_trunk:
+            layers: list[nn.Module] = []
+            for width in hidden:
+                layers += [nn.Linear(obs_dim, width), nn.ReLU()]
+                obs_dim = width
+            self.trunk: nn.Module | None = nn.Sequential(*layers)
+            self.target_trunk: nn.Module | None = copy.deepcopy(self.trunk).requires_grad_(False)
+            head = (hidden[-1],)
+        else:
+            self.trunk = self.target_trunk = None
+            head = tuple(hidden)
+        self.actor = batched_mlp(num_tasks, obs_dim, 2 * act_dim, head)
         # Both twins of every task in one stack: members [0, T) are Q1, [T, 2T) are Q2.
-        self.critic = batched_mlp(2 * num_tasks, obs_dim + act_dim, 1, hidden)
+        self.critic = batched_mlp(2 * num_tasks, obs_dim + act_dim, 1, head)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = nn.Parameter(torch.full((num_tasks,), math.log(initial_alpha)))
 
@@ -119,13 +145,28 @@ class Intentions(nn.Module):
         """The entropy temperature per task (num_tasks,), exp(log_alpha)."""
         return self.log_alpha.exp()
 
-    def _gaussian(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, pre_std = self.actor(obs).chunk(2, dim=-1)
+    def actor_parameters(self) -> list[nn.Parameter]:
+        """What the policy step trains: the policies (heads)."""
+        return list(self.actor.parameters())
+
+    def critic_parameters(self) -> list[nn.Parameter]:
+        """What the critic step trains: the Q-functions (heads) and the shared trunk."""
+        return list(self.critic.parameters()) + ([] if self.trunk is None else list(self.trunk.parameters()))
+
+    def encode(self, obs: torch.Tensor, target: bool = False) -> torch.Tensor:
+        """The heads' input (T, B, features) of (B, obs) shared or (T, B, obs) per-task rows: the
+        (target) trunk's features, or the observation itself without a trunk."""
+        trunk = self.target_trunk if target else self.trunk
+        h = obs if trunk is None else trunk(obs)
+        return h.expand(self.num_tasks, *h.shape) if h.dim() == 2 else h
+
+    def _gaussian(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, pre_std = self.actor(h).chunk(2, dim=-1)
         return mean, F.softplus(pre_std) + LOG_STD_EPS
 
-    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Reparameterized squashed sample and its log-probability: (T, B, A), (T, B)."""
-        mean, std = self._gaussian(obs)
+    def sample(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reparameterized squashed sample and its log-probability from `encode`d rows: (T, B, A), (T, B)."""
+        mean, std = self._gaussian(h)
         noise = torch.randn_like(mean)
         pre_tanh = mean + std * noise
         # Normal(mean, std).log_prob(pre_tanh) in closed form: (pre_tanh - mean) / std is the noise.
@@ -134,33 +175,27 @@ class Intentions(nn.Module):
         log_prob = log_prob - (2.0 * (math.log(2.0) - pre_tanh - F.softplus(-2.0 * pre_tanh))).sum(-1)
         return torch.tanh(pre_tanh), log_prob
 
-    def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
-        """Deterministic action (tanh of the mean), used for evaluation."""
-        return torch.tanh(self._gaussian(obs)[0])
+    def mean_action(self, h: torch.Tensor) -> torch.Tensor:
+        """Deterministic action (tanh of the mean) of `encode`d rows, used for evaluation."""
+        return torch.tanh(self._gaussian(h)[0])
 
-    def q(self, obs: torch.Tensor, act: torch.Tensor, target: bool = False) -> torch.Tensor:
-        """Twin Q-values (2, T, B) of per-task (T, B, ·) observations and actions."""
+    def q(self, h: torch.Tensor, act: torch.Tensor, target: bool = False) -> torch.Tensor:
+        """Twin Q-values (2, T, B) of per-task `encode`d rows (T, B, ·) (with `target`, encoded by the
+        target trunk) and actions (T, B, A)."""
         net = self.target_critic if target else self.critic
-        x = net[0].forward_parts(torch.cat([obs, obs]), torch.cat([act, act]))  # both twins
+        x = net[0].forward_parts(torch.cat([h, h]), torch.cat([act, act]))  # both twins
         for layer in net[1:]:
             x = layer(x)
         return x.view(2, self.num_tasks, -1)
 
-
-def clip_grad_norm_per_member(params: Iterable[nn.Parameter], max_norm: float) -> torch.Tensor:
-    """Clip gradients to `max_norm` separately for each member (leading dim) of stacked parameters.
-
-    Returns the pre-clip norm per member. All parameters must share the same leading dim.
-    """
-    grads = [p.grad for p in params if p.grad is not None]
-    norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads]), dim=0)
-    scale = (max_norm / (norm + 1e-6)).clamp(max=1.0)
-    for g in grads:
-        g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))
-    return norm
+    def target_pairs(self) -> list[tuple[nn.Module, nn.Module]]:
+        """(target, source) modules that Polyak averaging moves together."""
+        pairs = [(self.target_critic, self.critic)]
+        return pairs if self.trunk is None else [*pairs, (self.target_trunk, self.trunk)]
 
 
 @torch.no_grad()
-def polyak_update(target: nn.Module, source: nn.Module, tau: float) -> None:
-    """target <- (1 - tau) target + tau source."""
-    torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+def polyak_update(pairs: Iterable[tuple[nn.Module, nn.Module]], tau: float) -> None:
+    """target <- (1 - tau) target + tau source, for every (target, source) pair."""
+    targets, sources = zip(*((list(t.parameters()), list(s.parameters())) for t, s in pairs), strict=True)
+    torch._foreach_lerp_(sum(targets, []), sum(sources, []), tau)

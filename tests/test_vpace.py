@@ -15,14 +15,14 @@ import torch
 
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
-from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples, load_dataset_examples
+from shiftkit.policies.example_buffer import ExampleBuffer, ExampleRows, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
 from shiftkit.policies.run_dir import load_checkpoint
-from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, clip_grad_norm_per_member
+from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, polyak_update
 from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.trainers.vpace.args import VPACEArgs
-from shiftkit.policies.trainers.vpace.training import Agent, make_env, train
+from shiftkit.policies.trainers.vpace.training import Agent, expert_transitions, make_env, train
 
 GOAL = np.array([0.5, 0.5], np.float32)
 
@@ -207,7 +207,7 @@ def test_q_max_is_the_mean_or_max_of_the_example_batch(tmp_path, reduce):
     for t in range(64):
         replay.add(rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2), episode_end=t % 8 == 7)
     examples = ExampleBuffer(point_examples(), args.tasks, aug_factor=0.0)
-    stats = agent.update(replay.sample(rng, 16), *examples.sample(rng, 16))
+    stats = agent.update(replay.sample(rng, 16), examples.sample(rng, 32), None)
     # The first update's bound is this batch's reduction of min-twin Q(s*, a*); `q_examples` is its mean.
     if reduce == "mean":
         assert torch.equal(stats["q_max"], stats["q_examples"])
@@ -219,17 +219,105 @@ def test_intentions_are_independent_per_task():
     torch.manual_seed(0)
     net = Intentions(num_tasks=3, obs_dim=4, act_dim=2, hidden=(8, 8))
     obs = torch.randn(3, 5, 4)
-    act, logp = net.sample(obs)
+    h = net.encode(obs)
+    act, logp = net.sample(h)
     assert act.shape == (3, 5, 2) and logp.shape == (3, 5) and act.abs().max() <= 1.0
-    assert net.q(obs, act).shape == (2, 3, 5)
-    # Task 1's loss leaves every other task's parameters untouched (no weight sharing).
-    net.q(obs, act.detach())[:, 1].sum().backward()
+    assert net.q(h, act).shape == (2, 3, 5)
+    assert torch.equal(net.encode(obs[0]), obs[0].expand(3, 5, 4))  # shared rows, every task's
+    # Task 1's loss leaves every other task's parameters untouched (no weight sharing, VPACE).
+    net.q(h, act.detach())[:, 1].sum().backward()
     for p in net.critic.parameters():
         assert p.grad[[0, 2, 3, 5]].abs().sum() == 0 and p.grad[[1, 4]].abs().sum() > 0
-    # Per-member clipping scales each member to the bound separately.
-    norms = clip_grad_norm_per_member(net.critic.parameters(), max_norm=1e-3)
-    after = torch.stack([p.grad.flatten(1).square().sum(1) for p in net.critic.parameters()]).sum(0).sqrt()
-    assert torch.allclose(after[[1, 4]], torch.full((2,), 1e-3), rtol=1e-3) and norms[0] == 0
+    assert net.trunk is None and net.critic_parameters() == list(net.critic.parameters())
+
+
+def reference_lfgp_parameter_count(tasks: int, obs: int, act: int, width: int = 256) -> int:
+    """Parameters of utiasSTARS/lfgp's `MultiTaskFullyConnectedSquashedGaussianSAC` with shared layers
+    and branched outputs (its default): trunk obs->w->w, per task a policy head w->w->2 act and two Q
+    heads (w + act)->w->1 (grouped 1x1 convolutions), and a temperature per task."""
+    trunk = (obs * width + width) + (width * width + width)
+    policy = tasks * ((width * width + width) + (width * 2 * act + 2 * act))
+    q = 2 * tasks * (((width + act) * width + width) + (width + 1))
+    return trunk + policy + q + tasks
+
+
+def test_lfgp_intentions_share_one_trunk_under_per_task_heads():
+    # Thesis A.6 and the LfGP reference: one trunk for every task's policy and Q-functions, a small head
+    # per task; the trunk is a critic parameter (trained by the critic loss, averaged into the target).
+    args = VPACEArgs.for_variant("lfgp", main_task="stack", aux_tasks=["open", "close", "lift", "reach", "move"])
+    agent = Agent(args, 59, gym.spaces.Box(-1.0, 1.0, (4,), np.float32), torch.device("cpu"))
+    net = agent.intentions
+    trainable = [p for p in net.parameters() if p.requires_grad]
+    assert sum(p.numel() for p in trainable) == reference_lfgp_parameter_count(6, 59, 4)
+    assert [tuple(p.shape) for p in net.trunk.parameters()] == [(256, 59), (256,), (256, 256), (256,)]
+    assert [tuple(p.shape) for p in net.actor.parameters()] == [(6, 256, 256), (6, 1, 256), (6, 256, 8), (6, 1, 8)]
+    assert [tuple(p.shape) for p in net.critic.parameters()] == [(12, 260, 256), (12, 1, 256), (12, 256, 1), (12, 1, 1)]
+    trunk = set(map(id, net.trunk.parameters()))
+    assert trunk <= set(map(id, net.critic_parameters())) and not trunk & set(map(id, net.actor_parameters()))
+    opt_params = lambda opt: {id(p) for g in opt.param_groups for p in g["params"]}  # noqa: E731
+    assert trunk <= opt_params(agent.critic_opt) and not trunk & opt_params(agent.actor_opt)
+    # One task's Q loss reaches the trunk and that task's twin heads only.
+    obs, act = torch.randn(7, 59), torch.rand(6, 7, 4)
+    net.q(net.encode(obs), act)[:, 2].sum().backward()
+    assert all(p.grad.abs().sum() > 0 for p in net.trunk.parameters())
+    for p in net.critic.parameters():
+        assert p.grad[[2, 8]].abs().sum() > 0 and p.grad[[i for i in range(12) if i not in (2, 8)]].abs().sum() == 0
+    # The trunk is evaluated once per shared row: every task's heads read the same features.
+    h = net.encode(obs)
+    assert h.shape == (6, 7, 256) and h.stride(0) == 0
+    # Polyak averaging moves the target trunk with the target Q heads.
+    with torch.no_grad():
+        for p in net.trunk.parameters():
+            p.add_(1.0)
+    before = [p.clone() for p in net.target_trunk.parameters()]
+    polyak_update(net.target_pairs(), 0.5)
+    for b, t, s in zip(before, net.target_trunk.parameters(), net.trunk.parameters(), strict=True):
+        assert torch.allclose(t, 0.5 * b + 0.5 * s)
+    # VPACE keeps SPEC 6.2's separate networks (its reference: `shared_layers: false`).
+    assert VPACEArgs.for_variant("vpace", main_task="lift").shared_trunk is False
+
+
+def record_grads_at_step(opt: torch.optim.Optimizer) -> list[list[torch.Tensor]]:
+    """The gradients an optimizer steps with, recorded at each `step` call."""
+    seen, step = [], opt.step
+
+    def recording(*args, **kwargs):
+        seen.append([p.grad.clone() for g in opt.param_groups for p in g["params"] if p.grad is not None])
+        return step(*args, **kwargs)
+
+    opt.step = recording
+    return seen
+
+
+@pytest.mark.parametrize("variant", ["vpace", "lfgp"])
+def test_gradients_are_clipped_to_one_norm_over_all_tasks(variant):
+    # The reference clips `clip_grad_norm_(qs_parameters, 10)` (and the policies' and temperatures'):
+    # one norm over every task's parameters (both twins, and the trunk), not one per task.
+    full = variant == "lfgp"
+    args = VPACEArgs.for_variant(variant, main_task="m", aux_tasks=["a", "b"], hidden=(16, 16), max_grad_norm=1e-3)
+    agent = Agent(args, 3, gym.spaces.Box(-1.0, 1.0, (2,), np.float32), torch.device("cpu"))
+    rng = np.random.default_rng(0)
+    replay = ReplayBuffer(64, 3, 2)
+    for _ in range(64):
+        replay.add(rng.standard_normal(3), rng.uniform(-1, 1, 2), rng.standard_normal(3), False)
+    examples = {t: TaskExamples(rng.standard_normal((20, 3)).astype(np.float32)) for t in args.tasks}
+    if full:
+        examples = {t: TaskExamples(e.obs, rng.uniform(-1, 1, (20, 2)).astype(np.float32)) for t, e in examples.items()}
+    buffer = ExampleBuffer(examples, args.tasks, 0.0)
+    seen = {name: record_grads_at_step(getattr(agent, f"{name}_opt")) for name in ("critic", "actor", "alpha")}
+    rows = None if full else buffer.sample(rng, 48)
+    discriminator = (replay.sample(rng, 16), buffer.sample_discriminator(rng, 16)) if full else None
+    agent.update(replay.sample(rng, 16), rows, discriminator)
+    for name, [grads] in seen.items():
+        total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+        assert total == pytest.approx(1e-3, rel=1e-3), name
+    # Every task keeps its share of the joint gradient (a per-task clip would equalise them).
+    critic = dict(
+        zip([id(p) for g in agent.critic_opt.param_groups for p in g["params"]], seen["critic"][0], strict=True)
+    )
+    weight = critic[id(agent.intentions.critic[0].weight)]
+    per_member = weight.flatten(1).norm(dim=1)
+    assert per_member.max() / per_member.min() > 1.5
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings")
@@ -243,7 +331,8 @@ def test_cpu_update_keeps_its_memory_instead_of_faulting_it_in_again():
     replay = ReplayBuffer(1000, 59, 4)
     for _ in range(1000):
         replay.add(rng.standard_normal(59), rng.uniform(-1, 1, 4), rng.standard_normal(59), False)
-    batches = [(replay.sample(rng, 128), rng.standard_normal((5, 128, 59), np.float32)) for _ in range(3)]
+    rows = lambda: ExampleRows(rng.standard_normal((5, 128, 59), np.float32), None, np.ones((5, 128), np.float32))  # noqa: E731
+    batches = [(replay.sample(rng, 128), rows()) for _ in range(3)]
     for batch, examples in batches * 2:  # the heap grows to the update's peak
         agent.update(batch, examples, None)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -303,22 +392,143 @@ def test_weight_decay_does_not_collapse_a_critic_without_data_gradient():
 
 
 def test_reward_model_signs():
-    sqil = SQILReward()
+    sqil = SQILReward(num_tasks=2)
     x = torch.zeros(2, 3, 4)
-    assert torch.all(sqil.buffer_reward(x) == -1.0) and torch.all(sqil.example_reward(x) == 1.0)
+    assert sqil.buffer_reward(x[0]).shape == (2, 3) and torch.all(sqil.buffer_reward(x[0]) == -1.0)
+    assert torch.all(sqil.example_reward(x) == 1.0)
 
     torch.manual_seed(0)
     dac = DACReward(num_tasks=2, in_dim=2, hidden=(32, 32))
     opt = torch.optim.Adam(dac.parameters(), 1e-2)
-    buffer_x, example_x = torch.randn(2, 64, 2) - 2.0, torch.randn(2, 64, 2) + 2.0
-    for _ in range(100):
+    # Task 0's expert rows lie at +2, task 1's at -2; the buffer rows between them at 0.
+    buffer_x, example_x = torch.randn(64, 2) * 0.3, torch.stack([torch.randn(64, 2) + 2.0, torch.randn(64, 2) - 2.0])
+    for _ in range(150):
         opt.zero_grad()
-        dac.loss(buffer_x, example_x).sum().backward()
+        dac.loss(buffer_x, example_x)[0].backward()
         opt.step()
     assert torch.all(dac.example_reward(example_x).mean(-1) > 0) and torch.all(dac.buffer_reward(buffer_x).mean(-1) < 0)
+    assert dac.buffer_reward(example_x[0])[0].mean() > 0 > dac.buffer_reward(example_x[0])[1].mean()  # own task only
 
     target, weight = rce_targets(torch.tensor([0.01, 0.5, 0.99]), gamma=0.99)
     assert torch.all((target > 0) & (target < 1)) and torch.all(target.diff() > 0) and torch.all(weight >= 1)
+
+
+def test_discriminator_is_the_reference_multitask_network_and_loss():
+    # One discriminator for all tasks (utiasSTARS/lfgp `ActionConditionedFullyConnectedDiscriminator`
+    # with shared layers): in -> 256 -> 256 (tanh) -> one logit per task; the loss of its
+    # `update_discriminator`, recomputed here step by step.
+    torch.manual_seed(0)
+    dac = DACReward(num_tasks=3, in_dim=5, hidden=(256, 256), gradient_penalty=10.0)
+    linear = [m for m in dac.net if isinstance(m, torch.nn.Linear)]
+    assert [tuple(m.weight.shape) for m in linear] == [(256, 5), (256, 256), (3, 256)]
+    assert [type(m) for m in dac.net if not isinstance(m, torch.nn.Linear)] == [torch.nn.Tanh, torch.nn.Tanh]
+    buffer_x, expert_x = torch.randn(8, 5), torch.randn(3, 8, 5)
+    torch.manual_seed(1)
+    loss, bce = dac.loss(buffer_x, expert_x)
+    torch.manual_seed(1)
+    mix = torch.rand(3, 8, 5)  # the same draw: a uniform weight per element
+    logits = dac.net(buffer_x)  # (8, 3): every task's logit of the buffer rows, labelled 0
+    own = torch.stack([dac.net(expert_x[t])[:, t] for t in range(3)])  # each task's rows, its own logit, 1
+    bce_loss = torch.nn.BCEWithLogitsLoss()
+    gan = (bce_loss(logits.reshape(-1), torch.zeros(24)) + bce_loss(own.reshape(-1), torch.ones(24))) / 2
+    interp = (mix * buffer_x.expand(3, 8, 5) + (1 - mix) * expert_x).reshape(24, 5).requires_grad_(True)
+    (grad,) = torch.autograd.grad(dac.net(interp), interp, torch.ones(24, 3))  # d(sum of all logits)/dx
+    expected = gan + 10.0 * ((grad.norm(dim=-1) - 1) ** 2).mean()
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-5)
+    assert bce.mean().item() == pytest.approx(gan.item(), rel=1e-5)
+    assert torch.equal(dac.buffer_reward(buffer_x), logits.detach().T) and torch.allclose(
+        dac.example_reward(expert_x), own
+    )
+
+
+def test_lfgp_preset_is_thesis_table_a2():
+    args = VPACEArgs.for_variant("lfgp", main_task="stack")
+    table = dict(
+        batch_size=256, actor_lr=1e-5, lr=3e-4, polyak=1e-4, buffer_warmup=25_000, random_steps=50_000,
+        initial_alpha=1e-2, max_grad_norm=10.0, weight_decay=1e-2, gamma=0.99, gradient_penalty=10.0,
+        expert_sample_rate=0.1, expert_sample_decay=0.99999, final_pair_bias=0.95, reward_scale=1.0,
+        shared_trunk=True, reward_model="dac", full_trajectories=True,
+    )  # fmt: skip
+    assert {k: getattr(args, k) for k in table} == table
+    vpace = VPACEArgs.for_variant("vpace", main_task="lift")  # Table B.2
+    assert (vpace.actor_lr, vpace.polyak, vpace.buffer_warmup, vpace.random_steps, vpace.batch_size) == (
+        3e-4, 1e-3, 5_000, 10_000, 128,
+    )  # fmt: skip
+    # The expert share of a batch decays per update, the reference's rounding down.
+    assert [expert_transitions(args, 25_000 + k) for k in (0, 99_999, 229_999, 399_999)] == [25, 9, 2, 0]
+
+
+def test_example_rows_divide_the_batch_among_the_tasks_as_the_reference():
+    # The reference's `fraction` sampling: batch 256 = 128 replay + 128 expert rows, the latter
+    # divided among the tasks (the main task gets the remainder); a task's critic counts its own rows.
+    sets = {t: TaskExamples(np.full((10, 2), i, np.float32)) for i, t in enumerate(["main", "a", "b"])}
+    buffer = ExampleBuffer(sets, ["main", "a", "b"], aug_factor=0.0)
+    assert buffer.split(128).tolist() == [44, 42, 42]
+    rows = buffer.sample(np.random.default_rng(0), 128)
+    assert rows.obs.shape == (3, 44, 2) and rows.weight.sum(1).tolist() == [44, 42, 42]
+    assert all(np.all(rows.obs[t] == t) for t in range(3))
+    four = ExampleBuffer({**sets, "c": sets["a"]}, ["main", "a", "b", "c"])
+    assert four.split(128).tolist() == [32, 32, 32, 32]
+
+
+def test_padding_rows_do_not_change_the_update(tmp_path):
+    # Tasks with a smaller share pad their block; padded rows weigh nothing.
+    args = tiny_args(tmp_path, aux_tasks=["go-right", "x"])
+    replay = ReplayBuffer(64, 2, 2)
+    rng = np.random.default_rng(0)
+    for _ in range(64):
+        replay.add(rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2), rng.uniform(-1, 1, 2), False)
+    batch = replay.sample(rng, 16)
+    rows = ExampleBuffer({**point_examples(), "x": point_examples()["go-right"]}, args.tasks, 0.0).sample(rng, 32)
+    assert rows.weight.sum(1).tolist() == [12, 10, 10]
+    results = []
+    for fill in (0.0, 100.0):
+        obs = rows.obs.copy()
+        obs[rows.weight == 0] = fill
+        torch.manual_seed(0)
+        agent = Agent(args, 2, PointMass.action_space, torch.device("cpu"))
+        torch.manual_seed(1)
+        agent.update(batch, ExampleRows(obs, None, rows.weight), None)
+        results.append([p.detach().clone() for p in agent.intentions.parameters()])
+    for a, b in zip(*results, strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_expert_rows_for_the_discriminator_and_the_batch():
+    rng = np.random.default_rng(0)
+    obs = np.arange(20, dtype=np.float32).reshape(10, 2)
+    final = np.zeros(10, bool)
+    final[[4, 9]] = True
+    nxt = np.roll(obs, -1, 0)
+    nxt[final] = obs[final]
+    buffer = ExampleBuffer({"t": TaskExamples(obs, np.ones((10, 1), np.float32), nxt, final)}, ["t"], 0.0)
+    rows = buffer.sample_discriminator(rng, 200, final_bias=0.95)
+    ends = np.isin(rows.obs[0, :, 0], obs[final, 0])
+    assert rows.obs.shape == (1, 200, 2) and ends.sum() == 190  # 95 % (s_T, 0) / last rows
+    o, a, n = buffer.sample_transitions(rng, 50)
+    index = (o[:, 0] / 2).astype(int)
+    assert np.array_equal(n, nxt[index]) and a.shape == (50, 1)
+
+
+def test_lift_and_stack_studies_use_the_reference_task_sets_and_budgets():
+    # utiasSTARS/vpace env_default_configs.py at 5 Hz: lift `expert_filenames = 0_stack-open,1_close,
+    # 3_lift,4_reach`, max_steps 200000; stack `0_stack-open,1_close,2_stack,3_lift,4_reach,5_move`,
+    # 500000 (the thesis' 2M at 20 Hz in robot time).
+    import importlib
+    import tomllib
+
+    repo = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(repo / "bench" / "science"))
+    try:
+        study = importlib.import_module("vpace_lfgp")
+    finally:
+        sys.path.remove(str(repo / "bench" / "science"))
+    assert sorted(study.EXAMPLE_TASKS) == ["close", "lift", "open", "reach"] and study.EXAMPLE_TASKS[0] == "lift"
+    assert sorted(study.LFGP_TASKS["stack"]) == ["close", "lift", "move-object", "open", "reach", "stack"]
+    assert (study.LIFT_STEPS, study.STACK_STEPS) == (200_000, 500_000)
+    pipeline = tomllib.loads((repo / "docs" / "pipelines" / "vpace_lift_examples.toml").read_text())
+    sources = sorted(Path(s["path"]).name.removeprefix("example-src-") for s in pipeline["sources"])
+    assert sources == sorted(study.EXAMPLE_TASKS)
 
 
 def test_replay_n_step_stops_at_episode_end():
@@ -338,7 +548,7 @@ def test_example_augmentation_keeps_constant_dims_exact():
     obs = np.stack([rng.normal(0, 2.0, 5000), np.full(5000, 0.3)], 1).astype(np.float32)
     buf = ExampleBuffer({"t": TaskExamples(obs)}, ["t"], aug_factor=0.1)
     a = np.random.default_rng(1)
-    sampled, _ = buf.sample(a, 5000)
+    sampled = buf.sample(a, 5000).obs
     assert np.all(sampled[0, :, 1] == np.float32(0.3))
     idx = np.random.default_rng(1).integers(0, 5000, 5000)
     noise = sampled[0, :, 0] - obs[idx, 0]
@@ -428,8 +638,11 @@ def test_examples_from_lerobot_dataset(tmp_path, monkeypatch):
     assert set(examples["reach-goal"].obs[:, 0]) == {0.0, 2.0} and np.all(examples["go-right"].obs[:, 2] == 7)
     assert sources[0].fingerprint
     traj, _ = load_dataset_examples([str(root)], ["reach-goal"], with_actions=True)
-    # 6 frames + one (s_T, 0) pair per episode
-    assert traj["reach-goal"].obs.shape == (8, 3) and np.all(traj["reach-goal"].act[-2:] == 0)
+    # 6 frames + one (s_T, 0) pair per episode; next states within an episode, the last row and its
+    # (s_T, 0) pair transition to themselves and end the demonstration
+    t = traj["reach-goal"]
+    assert t.obs.shape == (8, 3) and np.all(t.act[-2:] == 0)
+    assert t.next_obs[:, 1].tolist() == [1, 2, 2, 1, 2, 2, 2, 2] and t.final.tolist() == [0, 0, 1, 0, 0, 1, 1, 1]
 
 
 def test_cli_train_and_plot(tmp_path, monkeypatch):

@@ -35,7 +35,13 @@ def _tampered(run: Path, tmp: Path, name: str) -> tuple[Path, Path]:
     marker = tmp / "payload-ran"
     for old in (copy / "checkpoints").glob("step-*"):
         old.unlink()
-    (copy / "checkpoints" / name).write_bytes(pickle.dumps({"step": 2, "model": Payload(marker)}))
+    payload = {"step": 2, "model": Payload(marker)}
+    if name.endswith(".pt"):  # as torch.save writes it: a zip archive around the pickle
+        import torch
+
+        torch.save(payload, copy / "checkpoints" / name)
+    else:
+        (copy / "checkpoints" / name).write_bytes(pickle.dumps(payload))
     (copy / "checkpoints" / "last.txt").write_text(name)
     return copy, marker
 

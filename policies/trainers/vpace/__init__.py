@@ -23,7 +23,7 @@ for _name, _help, _citation in (
     ),
     (
         "lfgp",
-        "Learning from Guided Play (expert trajectories, per-task DAC)",
+        "Learning from Guided Play (expert trajectories, multitask DAC, thesis Table A.2)",
         "Ablett et al., *Learning from guided play: improving exploration for adversarial imitation learning "
         "with simple auxiliary tasks*, RA-L 2023.",
     ),
@@ -54,8 +54,13 @@ _POSITIVE_INT = (
     "log_every",
     "torch_threads",
 )
-_POSITIVE_FLOAT = ("gamma", "reward_scale", "lr", "initial_alpha", "polyak", "max_grad_norm")
-_NON_NEGATIVE_FLOAT = ("value_penalty", "aug_factor", "weight_decay", "gradient_penalty", "main_rate", "handcraft_rate")
+_POSITIVE_FLOAT = (
+    "gamma", "reward_scale", "lr", "actor_lr", "initial_alpha", "polyak", "max_grad_norm", "expert_sample_decay",
+)  # fmt: skip
+_NON_NEGATIVE_FLOAT = (
+    "value_penalty", "aug_factor", "weight_decay", "gradient_penalty", "main_rate", "handcraft_rate",
+    "expert_sample_rate", "final_pair_bias",
+)  # fmt: skip
 
 
 def options() -> DataclassOptions:

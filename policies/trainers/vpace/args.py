@@ -16,7 +16,25 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "sqil": dict(reward_model="sqil", multitask=False, value_penalty=0.0, full_trajectories=False),
     "dac": dict(reward_model="dac", multitask=False, value_penalty=0.0, full_trajectories=False),
     "rce": dict(reward_model="rce", multitask=False, value_penalty=0.0, full_trajectories=False),
-    "lfgp": dict(reward_model="dac", multitask=True, value_penalty=0.0, full_trajectories=True),
+    # LfGP: thesis Table A.2 and the reference code's defaults (utiasSTARS/lfgp `common_args.py`: reward
+    # scale 1, no example augmentation), with its shared-trunk network (thesis A.6).
+    "lfgp": dict(
+        reward_model="dac",
+        multitask=True,
+        value_penalty=0.0,
+        full_trajectories=True,
+        shared_trunk=True,
+        batch_size=256,
+        actor_lr=1e-5,
+        polyak=1e-4,
+        buffer_warmup=25_000,
+        random_steps=50_000,
+        expert_sample_rate=0.1,
+        expert_sample_decay=0.99999,
+        final_pair_bias=0.95,
+        reward_scale=1.0,
+        aug_factor=0.0,
+    ),
 }
 
 
@@ -43,7 +61,11 @@ class VPACEArgs:
     value_penalty: float = 10.0
     """VP weight lambda; 0 turns value penalization off."""
     full_trajectories: bool = False
-    """LfGP: examples are expert trajectories with actions; DAC on (s, a); critic on buffer data only."""
+    """LfGP: examples are expert trajectories with actions; DAC on (s, a); no per-task example rows in
+    the critic (expert transitions enter the batch instead, `expert_sample_rate`)."""
+    shared_trunk: bool = False
+    """LfGP's network (thesis A.6): policies and Q-functions of every task share one trunk of `hidden`
+    layers, with a small head per task; off (VPACE, thesis B.2.6): every network is its own."""
     frames_as_examples: bool = False
     """Use every frame of an `examples` dataset as a success example even if it holds trajectories."""
     examples_per_task: int | None = None
@@ -63,11 +85,23 @@ class VPACEArgs:
     reward_scale: float = 0.1
     """Multiplies every reward."""
     batch_size: int = 128
-    """Replay rows per update (shared by all intentions)."""
+    """Replay rows per update, shared by all intentions (LfGP: expert transitions take the place of a
+    share of them); also the discriminator's rows per task."""
     example_batch_size: int = 128
-    """Example rows per task per update."""
+    """Example rows per update for the critics, divided among the tasks (rows // tasks each, the main
+    task the remainder), as the reference code's `fraction` sampling does."""
+    expert_sample_rate: float = 0.0
+    """Full trajectories: share of the batch that is expert transitions (thesis Table A.2 "BE sampling
+    proportion", 0.1), divided among the tasks, for critics and policies of every task."""
+    expert_sample_decay: float = 1.0
+    """Factor on `expert_sample_rate` per update (Table A.2: 0.99999)."""
+    final_pair_bias: float = 0.0
+    """Share of the discriminator's expert rows drawn from rows that end a demonstration, the (s_T, 0)
+    pairs and segments' last rows (Table A.2 "(s_T, 0) sampling bias", 0.95)."""
     lr: float = 3e-4
-    """Adam(W) learning rate of policies, critics, discriminators and temperatures."""
+    """Adam(W) learning rate of critics, discriminators and temperatures."""
+    actor_lr: float = 3e-4
+    """AdamW learning rate of the policies (LfGP, Table A.2: 1e-5)."""
     weight_decay: float = 1e-2
     """Decoupled (AdamW) weight decay of policies, critics and discriminators. Adam's coupled L2 form must
     not be used here: where a critic's data gradients are small, Adam normalises the decay term itself to
@@ -75,9 +109,10 @@ class VPACEArgs:
     initial_alpha: float = 1e-2
     """Initial SAC temperature of every intention (target entropy is -dim(action))."""
     polyak: float = 1e-3
-    """Target critic averaging rate."""
+    """Target critic averaging rate (LfGP, Table A.2: 1e-4)."""
     max_grad_norm: float = 10.0
-    """Gradient norm clip, per intention."""
+    """Gradient norm clip of the policies, of the critics and of the temperatures, each one norm over
+    every task's parameters (as the reference code clips)."""
     buffer_warmup: int = 5_000
     """Interactions before the first update."""
     random_steps: int = 10_000
@@ -135,6 +170,12 @@ class VPACEArgs:
             raise ConfigError(f"unknown reward model {self.reward_model!r}; choose sqil, dac or rce")
         if self.reward_model == "rce" and self.value_penalty > 0:
             raise ConfigError("RCE's classifier critic is bounded already; value penalty must be 0 with rce")
+        if not 0.0 <= self.expert_sample_rate <= 1.0 or not 0.0 <= self.final_pair_bias <= 1.0:
+            raise ConfigError("expert_sample_rate and final_pair_bias must lie in [0, 1]")
+        if not 0.0 < self.expert_sample_decay <= 1.0:
+            raise ConfigError("expert_sample_decay must lie in (0, 1]")
+        if self.expert_sample_rate > 0 and not self.full_trajectories:
+            raise ConfigError("expert transitions in the batch (expert_sample_rate) need full trajectories (lfgp)")
         if self.full_trajectories and self.reward_model != "dac":
             raise ConfigError("full trajectories (lfgp) need the dac reward model")
         if (self.full_trajectories or self.reward_model == "rce") and self.n_step != 1:

@@ -9,13 +9,14 @@ Variants (`--variant`) are presets of three switches, any of which can be overri
     vpace   SQIL, all tasks, VP          ace     SQIL, all tasks, no VP
     vp-sqil SQIL, main task only, VP     sqil    SQIL, main task only, no VP
     dac     DAC, main task only          rce     RCE, main task only
-    lfgp    DAC on (s, a) from full expert trajectories, all tasks, critic on buffer data only
+    lfgp    DAC on (s, a) from full expert trajectories, all tasks, thesis Table A.2 and the
+            reference's shared-trunk network; expert transitions enter the batch instead of examples
 
 The loop below reads top to bottom: set-up, then per episode a scheduler plan, per step act, store and
 update, with periodic evaluation, metrics and resumable checkpoints (written at episode ends, where the
 state to restore is only models, optimizers, buffer and random generators: each episode's environment
 reset is seeded by the run seed and the episode number). The intentions at the best periodic evaluation
-are also kept (checkpoints/best.pt): a policy that solved the task can lose it with further training
+are also kept (checkpoints/best.safetensors): a policy that solved the task can lose it with further training
 (docs/vpace.md), and the best evaluation picks the snapshot to deploy, the way early stopping does.
 """
 
@@ -34,10 +35,16 @@ import torch
 from shiftkit.datasets.dataset import Dataset
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
-from shiftkit.policies.example_buffer import STATE_KEYS, ExampleBuffer, TaskExamples, load_dataset_examples
+from shiftkit.policies.example_buffer import (
+    STATE_KEYS,
+    ExampleBuffer,
+    ExampleRows,
+    TaskExamples,
+    load_dataset_examples,
+)
 from shiftkit.policies.replay import ReplayBuffer, ReplaySample
 from shiftkit.policies.reward_models import DACReward, SQILReward, rce_loss, rce_targets
-from shiftkit.policies.sac import Intentions, clip_grad_norm_per_member, polyak_update
+from shiftkit.policies.sac import Intentions, polyak_update
 from shiftkit.policies.schedulers import QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.trainers.vpace.args import VPACEArgs
 from shiftkit.policies.value_penalty import ValueBounds, value_penalty
@@ -74,6 +81,35 @@ def improves(result: dict[str, float], best: dict[str, float]) -> bool:
     return not best or (result["success_rate"], result["env_return"]) > (best["success_rate"], best["env_return"])
 
 
+def expert_transitions(args: VPACEArgs, step: int) -> int:
+    """Expert transitions in the batch of the update at interaction `step` (LfGP, thesis Table A.2: a
+    share `expert_sample_rate` of the batch, times `expert_sample_decay` per update; the reference
+    decays the rate before each update and rounds the rows down)."""
+    rate = args.expert_sample_rate * args.expert_sample_decay ** (step - args.buffer_warmup + 1)
+    return int(rate * args.batch_size)
+
+
+def sample_update(
+    args: VPACEArgs, step: int, replay: ReplayBuffer, examples: ExampleBuffer, rng: np.random.Generator
+) -> tuple[ReplaySample, ExampleRows | None, tuple[ReplaySample, ExampleRows] | None]:
+    """The data of the update at interaction `step`, `Agent.update`'s arguments: the replay batch (with
+    LfGP's expert transitions in it), each task's example rows for its critic (success examples) and,
+    for a learned reward, the discriminator's own replay rows and each task's expert rows (the
+    reference samples the discriminator's batch apart from the critic's)."""
+    n_expert = expert_transitions(args, step)
+    batch = replay.sample(rng, args.batch_size - n_expert, args.n_step)
+    if n_expert:
+        batch = batch.extended(*examples.sample_transitions(rng, n_expert))
+    example_rows = None if args.full_trajectories else examples.sample(rng, args.example_batch_size)
+    discriminator = None
+    if args.reward_model == "dac":
+        discriminator = (
+            replay.sample(rng, args.batch_size),
+            examples.sample_discriminator(rng, args.batch_size, args.final_pair_bias),
+        )
+    return batch, example_rows, discriminator
+
+
 def evaluate(agent: Agent, env: gym.Env, episodes: int, horizon: int, seed: int) -> dict[str, float]:
     """Main intention, mean action; an episode succeeds if the env ever reports `is_success`."""
     successes, returns = [], []
@@ -104,23 +140,25 @@ class Agent:
         act_dim = int(np.prod(action_space.shape))
         self.action_low, self.action_high = action_space.low.astype(np.float32), action_space.high.astype(np.float32)
         self.target_entropy = -float(act_dim)
-        self.intentions = Intentions(self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha).to(device)
+        self.intentions = Intentions(
+            self.num_tasks, obs_dim, act_dim, args.hidden, args.initial_alpha, args.shared_trunk
+        ).to(device)
         # One fused kernel per parameter instead of a dozen element-wise passes: the default (for-loop)
         # AdamW on CPU took about 8 % of a profiled update; fused is the same rule.
         fused = device.type in ("cpu", "cuda")
 
-        def adamw(params: Any) -> torch.optim.AdamW:
-            return torch.optim.AdamW(params, args.lr, weight_decay=args.weight_decay, fused=fused)
+        def adamw(params: Any, lr: float) -> torch.optim.AdamW:
+            return torch.optim.AdamW(params, lr, weight_decay=args.weight_decay, fused=fused)
 
-        self.actor_opt = adamw(self.intentions.actor.parameters())
-        self.critic_opt = adamw(self.intentions.critic.parameters())
+        self.actor_opt = adamw(self.intentions.actor_parameters(), args.actor_lr)
+        self.critic_opt = adamw(self.intentions.critic_parameters(), args.lr)
         self.alpha_opt = torch.optim.Adam([self.intentions.log_alpha], args.lr, fused=fused)
         if args.reward_model == "dac":
             in_dim = obs_dim + (act_dim if args.full_trajectories else 0)
             self.reward = DACReward(self.num_tasks, in_dim, args.hidden, args.gradient_penalty).to(device)
-            self.reward_opt = adamw(self.reward.parameters())
+            self.reward_opt = adamw(self.reward.parameters(), args.lr)
         else:
-            self.reward = SQILReward()
+            self.reward = SQILReward(self.num_tasks)
         self.bounds = ValueBounds(self.num_tasks, args.reward_scale, args.gamma, args.vp_filter_size)
 
     # -- acting -------------------------------------------------------------------------------------
@@ -128,15 +166,15 @@ class Agent:
     @torch.no_grad()
     def act(self, obs: np.ndarray, task: int, deterministic: bool = False) -> np.ndarray:
         """Action in [-1, 1] of intention `task` (all intentions run batched; one is kept)."""
-        x = torch.as_tensor(obs, device=self.device).expand(self.num_tasks, 1, -1)
-        action = self.intentions.mean_action(x) if deterministic else self.intentions.sample(x)[0]
+        h = self.intentions.encode(torch.as_tensor(obs, device=self.device).unsqueeze(0))
+        action = self.intentions.mean_action(h) if deterministic else self.intentions.sample(h)[0]
         return action[task, 0].cpu().numpy()
 
     @torch.no_grad()
     def main_task_rewards(self, obs: np.ndarray, act: np.ndarray) -> np.ndarray:
         """Scaled learned reward of the main task for an episode's (L, ·) states (and actions for LfGP)."""
         x = torch.as_tensor(np.concatenate([obs, act], -1) if self.args.full_trajectories else obs, device=self.device)
-        return (self.args.reward_scale * self.reward.buffer_reward(x.expand(self.num_tasks, *x.shape))[0]).cpu().numpy()
+        return (self.args.reward_scale * self.reward.buffer_reward(x)[0]).cpu().numpy()
 
     def env_action(self, action: np.ndarray) -> np.ndarray:
         """Map [-1, 1] to the environment's action bounds."""
@@ -144,110 +182,134 @@ class Agent:
 
     # -- learning -----------------------------------------------------------------------------------
 
-    def update(self, batch: ReplaySample, example_obs: np.ndarray, example_act: np.ndarray | None) -> dict:
-        """One gradient step of every intention (and discriminator) on one shared replay batch."""
+    def update(
+        self,
+        batch: ReplaySample,
+        examples: ExampleRows | None,
+        discriminator: tuple[ReplaySample, ExampleRows] | None = None,
+    ) -> dict:
+        """One gradient step of every intention (and the discriminator) on one replay batch shared by all
+        tasks, each task's own example rows for its critic (`examples`: success examples; None with full
+        trajectories) and, for a learned reward, the discriminator's replay rows and each task's expert
+        rows (`discriminator`)."""
         a, T, dev = self.args, self.num_tasks, self.device
         tensor = lambda x: torch.as_tensor(x, device=dev)  # noqa: E731
-        shared = lambda x: tensor(x).expand(T, *x.shape)  # noqa: E731  same replay rows for every task
-        obs, act, next_obs = shared(batch.obs), shared(batch.act), shared(batch.next_obs)
-        ex_obs = tensor(example_obs)
+        obs, act, next_obs = tensor(batch.obs), tensor(batch.act), tensor(batch.next_obs)  # (B, ·), every task's
         stats: dict[str, torch.Tensor] = {}
 
-        # Reward model: train the discriminators, then score the batch (SQIL: fixed labels).
-        if self.reward.learned:
-            buffer_x = torch.cat([obs, act], -1) if a.full_trajectories else obs
-            example_x = torch.cat([ex_obs, tensor(example_act)], -1) if a.full_trajectories else ex_obs
-            d_loss = self.reward.loss(buffer_x, example_x)
+        # Reward model: train the discriminator (the reference clips no gradient here), then score the
+        # batch (SQIL: fixed labels).
+        if self.reward.learned and discriminator is not None:
+            replay_rows, expert = discriminator
+            buffer_x, expert_x = tensor(replay_rows.obs), tensor(expert.obs)
+            if a.full_trajectories:
+                buffer_x = torch.cat([buffer_x, tensor(replay_rows.act)], -1)
+                expert_x = torch.cat([expert_x, tensor(expert.act)], -1)
+            d_loss, stats["discriminator_loss"] = self.reward.loss(buffer_x, expert_x)
             self.reward_opt.zero_grad(set_to_none=True)
-            d_loss.sum().backward()
-            clip_grad_norm_per_member(self.reward.parameters(), a.max_grad_norm)
+            d_loss.backward()
             self.reward_opt.step()
-            stats["discriminator_loss"] = d_loss.detach()
         if a.full_trajectories:
-            step_rewards = self.reward.buffer_reward(torch.cat([obs, act], -1)).unsqueeze(-1)
+            step_rewards = self.reward.buffer_reward(torch.cat([obs, act], -1)).unsqueeze(-1)  # (T, B, 1)
         else:
-            reward_obs = shared(batch.reward_obs)  # (T, B, n, obs)
-            step_rewards = self.reward.buffer_reward(reward_obs)  # (T, B, n)
+            step_rewards = self.reward.buffer_reward(tensor(batch.reward_obs))  # (T, B, n)
         steps = tensor(batch.steps)
         n = step_rewards.shape[-1]
         discounts = a.gamma ** torch.arange(n, device=dev, dtype=torch.float32)
         valid = (torch.arange(n, device=dev) < steps.unsqueeze(-1)).float()  # (B, n)
         buffer_reward = a.reward_scale * (step_rewards * discounts * valid).sum(-1)  # (T, B)
         bootstrap_discount = a.gamma ** steps.float()  # (B,)
-        use_examples = not a.full_trajectories  # LfGP's critic learns from the buffer only (DAC)
 
-        # Critic targets: buffer rows bootstrap from s'; examples transition to themselves. Buffer and
-        # example rows go through each network in one pass (one batched matmul per layer, not two).
+        # Critic targets: buffer rows bootstrap from s'; each task's example rows transition to
+        # themselves. Rows go through each network in one pass (one batched matmul per layer); a
+        # shared trunk sees each replay row once.
+        if examples is None:  # full trajectories: no example rows (padding of width 0)
+            ex_obs, ex_weight = obs.new_zeros(T, 0, obs.shape[-1]), obs.new_zeros(T, 0)
+        else:
+            ex_obs, ex_weight = tensor(examples.obs), tensor(examples.weight)
+        rows = [obs.shape[0], ex_obs.shape[1]]
+        encode = self.intentions.encode
+        h = torch.cat([encode(obs), encode(ex_obs)], 1)  # with gradient: the critic loss trains a trunk
         alpha = self.intentions.alpha.detach().unsqueeze(-1)  # (T, 1)
-        rows = [obs.shape[1], ex_obs.shape[1]]
         with torch.no_grad():
-            next_and_ex_obs = torch.cat([next_obs, ex_obs], 1)
-            next_and_ex_act, next_and_ex_logp = self.intentions.sample(next_and_ex_obs)
-            next_act, ex_act = next_and_ex_act.split(rows, 1)  # ex_act: a* ~ pi(s*)
+            next_and_ex_act, next_and_ex_logp = self.intentions.sample(
+                torch.cat([encode(next_obs), h[:, rows[0] :]], 1)
+            )
+            ex_act = next_and_ex_act[:, rows[0] :]  # a* ~ pi(s*)
             next_logp = next_and_ex_logp[:, : rows[0]]
-            if use_examples:
-                target_q = self.intentions.q(next_and_ex_obs, next_and_ex_act, target=True).min(0).values
-                next_q, ex_next_q = target_q.split(rows, -1)
-            else:
-                next_q = self.intentions.q(next_obs, next_act, target=True).min(0).values
+            target_h = torch.cat([encode(next_obs, target=True), encode(ex_obs, target=True)], 1)
+            next_q, ex_next_q = self.intentions.q(target_h, next_and_ex_act, target=True).min(0).values.split(rows, -1)
             if a.reward_model == "rce":
                 target, weight = rce_targets(torch.sigmoid(next_q), a.gamma)
             else:
                 target = buffer_reward + bootstrap_discount * (next_q - alpha * next_logp)
-            if use_examples:
-                ex_reward = self.reward.example_reward(ex_obs)
-                ex_target = a.reward_scale * ex_reward + a.gamma * ex_next_q
+            ex_reward = self.reward.example_reward(ex_obs) if rows[1] else ex_next_q.new_zeros(T, 0)
+            ex_target = a.reward_scale * ex_reward + a.gamma * ex_next_q
 
-        q, q_ex = self.intentions.q(torch.cat([obs, ex_obs], 1), torch.cat([act, ex_act], 1)).split(rows, -1)
+        q, q_ex = self.intentions.q(h, torch.cat([act.expand(T, *act.shape), ex_act], 1)).split(rows, -1)
+        # As the reference: every term is summed over rows and divided by the batch's rows, replay and
+        # all tasks' examples, so a task's examples weigh by their share of the batch.
+        total_rows = rows[0] + (0 if examples is None else float(examples.weight.sum()))
         if a.reward_model == "rce":
-            critic_loss = rce_loss(q, q_ex, target, weight, a.gamma)
+            critic_loss = rce_loss(q, q_ex, target, weight, ex_weight, a.gamma)  # (2, T) sums
         else:
-            errors = (q - target).square()
-            if use_examples:
-                errors = torch.cat([errors, (q_ex - ex_target).square()], dim=-1)
-            critic_loss = errors.mean(-1)  # (2, T)
+            critic_loss = (q - target).square().sum(-1) + (ex_weight * (q_ex - ex_target).square()).sum(-1)
             if a.value_penalty > 0:
                 if self.reward.learned:  # minimum of the learned reward over this batch (thesis Alg. 4)
                     min_reward = step_rewards.flatten(1).min(1).values
-                    if use_examples:
-                        min_reward = torch.minimum(min_reward, ex_reward.min(1).values)
+                    if rows[1]:
+                        min_reward = torch.minimum(
+                            min_reward, ex_reward.masked_fill(ex_weight == 0, math.inf).min(1).values
+                        )
                 else:
                     min_reward = torch.full((T,), self.reward.policy_label, device=dev)
                 q_ex_min = q_ex.detach().min(0).values
-                example_q = q_ex_min.amax(-1) if a.vp_q_max == "max" else q_ex_min.mean(-1)
+                if a.vp_q_max == "max":
+                    example_q = q_ex_min.masked_fill(ex_weight == 0, -math.inf).amax(-1)
+                else:
+                    example_q = (ex_weight * q_ex_min).sum(-1) / ex_weight.sum(-1)
                 q_max, q_min = self.bounds.update(example_q, min_reward, self.reward.learned)
-                critic_loss = critic_loss + value_penalty(q, q_max.unsqueeze(-1), q_min.unsqueeze(-1), a.value_penalty)
+                penalty = value_penalty(q, q_max.unsqueeze(-1), q_min.unsqueeze(-1), a.value_penalty)  # row mean
+                critic_loss = critic_loss + rows[0] * penalty
                 stats["q_max"], stats["q_min"] = q_max, q_min
+        critic_loss = critic_loss / total_rows
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.sum().backward()
-        clip_grad_norm_per_member(self.intentions.critic.parameters(), a.max_grad_norm)
+        torch.nn.utils.clip_grad_norm_(self.intentions.critic_parameters(), a.max_grad_norm)
         self.critic_opt.step()
 
-        # Policies and temperatures learn from buffer states only.
+        # Policies and temperatures learn from replay rows only, after the critic step (the reference's
+        # order: the updated trunk and Q-functions score the policies' actions).
         self.intentions.critic.requires_grad_(False)
-        new_act, logp = self.intentions.sample(obs)
-        q_pi = self.intentions.q(obs, new_act)
+        with torch.no_grad():
+            h = encode(obs)
+        new_act, logp = self.intentions.sample(h)
+        q_pi = self.intentions.q(h, new_act)
         value = (torch.sigmoid(q_pi) if a.reward_model == "rce" else q_pi).min(0).values
         actor_loss = (alpha * logp - value).mean(-1)  # (T,)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.sum().backward()
-        clip_grad_norm_per_member(self.intentions.actor.parameters(), a.max_grad_norm)
+        torch.nn.utils.clip_grad_norm_(self.intentions.actor_parameters(), a.max_grad_norm)
         self.actor_opt.step()
         self.intentions.critic.requires_grad_(True)
 
-        alpha_loss = -(self.intentions.log_alpha.unsqueeze(-1) * (logp.detach() + self.target_entropy)).mean(-1)
+        with torch.no_grad():  # the updated policies' log-probabilities, as the reference's alpha step
+            logp = self.intentions.sample(h)[1]
+        alpha_loss = -(self.intentions.log_alpha.unsqueeze(-1) * (logp + self.target_entropy)).mean(-1)
         self.alpha_opt.zero_grad(set_to_none=True)
         alpha_loss.sum().backward()
+        torch.nn.utils.clip_grad_norm_([self.intentions.log_alpha], a.max_grad_norm)
         self.alpha_opt.step()
 
-        polyak_update(self.intentions.target_critic, self.intentions.critic, a.polyak)
+        polyak_update(self.intentions.target_pairs(), a.polyak)
         stats |= {
             "critic_loss": critic_loss.detach().mean(0),
             "actor_loss": actor_loss.detach(),
             "alpha": self.intentions.alpha.detach(),
             "q_buffer": q.detach().min(0).values.mean(-1),
-            "q_examples": q_ex.detach().min(0).values.mean(-1),
         }
+        if rows[1]:
+            stats["q_examples"] = (ex_weight * q_ex.detach().min(0).values).sum(-1) / ex_weight.sum(-1)
         return stats
 
     # -- checkpoints --------------------------------------------------------------------------------
@@ -411,8 +473,7 @@ def train(
             obs = next_obs
 
             if step >= args.buffer_warmup:
-                batch = replay.sample(rng, args.batch_size, args.n_step)
-                stats = agent.update(batch, *example_buffer.sample(rng, args.example_batch_size))
+                stats = agent.update(*sample_update(args, step, replay, example_buffer, rng))
             if step % args.log_every == 0 and stats:
                 run.log(step, "train", episode=episode, **metrics_row(stats, tasks))
             if args.eval_every and step % args.eval_every == 0:
@@ -463,7 +524,7 @@ class MainIntentionPolicy:
 
 def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
     """The main intention of a VPACE/LfGP run folder (its newest checkpoint) or of a checkpoint file,
-    e.g. `RUN/checkpoints/best.pt` for the best evaluated one."""
+    e.g. `RUN/checkpoints/best.safetensors` for the best evaluated one."""
     from shiftkit.datasets.dataclass_config import from_dict
     from shiftkit.datasets.errors import DatasetError
     from shiftkit.policies.run_dir import RunDir, load_checkpoint, run_folder, torch_device
