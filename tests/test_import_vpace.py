@@ -114,7 +114,7 @@ def test_published_example_sets(tmp_path):
     assert source["importer"]["kind"] == "examples"
 
     # The VPACE trainer reads the example set back in the env's observation order, by dimension name.
-    from shiftkit.policies.example_buffer import load_dataset_examples
+    from shiftkit.policies.trainers.vpace.example_buffer import load_dataset_examples
 
     examples, _ = load_dataset_examples([str(tmp_path / "ex")], ["reach"], observation_names=list(OBSERVATION_NAMES))
     np.testing.assert_array_equal(examples["reach"].obs, raw_reach["observations"][:10, :59])

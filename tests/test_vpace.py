@@ -15,13 +15,18 @@ import torch
 
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
-from shiftkit.policies.example_buffer import ExampleBuffer, ExampleRows, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
-from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
 from shiftkit.policies.run_dir import load_checkpoint
 from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, polyak_update
-from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.trainers.vpace.args import VPACEArgs
+from shiftkit.policies.trainers.vpace.example_buffer import (
+    ExampleBuffer,
+    ExampleRows,
+    TaskExamples,
+    load_dataset_examples,
+)
+from shiftkit.policies.trainers.vpace.reward_models import DACReward, SQILReward, rce_targets
+from shiftkit.policies.trainers.vpace.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.trainers.vpace.training import Agent, expert_transitions, make_env, train
 
 GOAL = np.array([0.5, 0.5], np.float32)

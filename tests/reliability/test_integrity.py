@@ -236,7 +236,7 @@ def test_train_bc_refuses_an_id_that_is_not_the_roots(tmp_path, rel_ds):
 
 
 def test_vpace_examples_must_be_an_example_set(tmp_path, rel_ds):
-    from shiftkit.policies.example_buffer import load_dataset_examples
+    from shiftkit.policies.trainers.vpace.example_buffer import load_dataset_examples
 
     with pytest.raises(DatasetError, match="success_examples"):
         load_dataset_examples([str(rel_ds)], ["reach"], require_example_set=True)

@@ -39,46 +39,16 @@ for _name, _help, _citation in (
         )
     )
 
-_POSITIVE_INT = (
-    "examples_per_task",
-    "total_steps",
-    "batch_size",
-    "example_batch_size",
-    "n_step",
-    "hidden",
-    "vp_filter_size",
-    "num_periods",
-    "episode_steps",
-    "eval_episodes",
-    "checkpoint_every",
-    "log_every",
-    "torch_threads",
-)
-_POSITIVE_FLOAT = (
-    "gamma", "reward_scale", "lr", "actor_lr", "initial_alpha", "polyak", "max_grad_norm", "expert_sample_decay",
-)  # fmt: skip
-_NON_NEGATIVE_FLOAT = (
-    "value_penalty", "aug_factor", "weight_decay", "gradient_penalty", "main_rate", "handcraft_rate",
-    "expert_sample_rate", "final_pair_bias",
-)  # fmt: skip
-
 
 def options() -> DataclassOptions:
-    """`VPACEArgs` as options; `variant` and `handcrafted` are made by `add_arguments`, the
-    preset-only `full_trajectories` has none."""
+    """`VPACEArgs` as options (each field's rule and choices are the field's own); `variant` and
+    `handcrafted` are made by `add_arguments`, the preset-only `full_trajectories` has none."""
     from shiftkit.policies.trainers.vpace.args import VPACEArgs
 
     return DataclassOptions(
         VPACEArgs,
         skip=("variant", "handcrafted", "full_trajectories"),
         flags={"output_dir": "output", "torch_threads": "threads", "env_kwargs": "env-kwarg"},
-        rules={
-            **dict.fromkeys(_POSITIVE_INT, "positive_int"),
-            **dict.fromkeys(("seed", "buffer_warmup", "random_steps", "eval_every"), "non_negative_int"),
-            **dict.fromkeys(_POSITIVE_FLOAT, "positive_float"),
-            **dict.fromkeys(_NON_NEGATIVE_FLOAT, "non_negative_float"),
-        },
-        choices={"reward_model": ("sqil", "dac", "rce"), "vp_q_max": ("mean", "max"), "scheduler": ("wrs", "learned")},
         required=("examples", "main_task", "output_dir"),
     )
 

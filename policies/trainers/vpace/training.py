@@ -35,19 +35,19 @@ import torch
 from shiftkit.datasets.dataset import Dataset
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
-from shiftkit.policies.example_buffer import (
+from shiftkit.policies.replay import ReplayBuffer, ReplaySample
+from shiftkit.policies.sac import Intentions, polyak_update
+from shiftkit.policies.trainers.vpace.args import VPACEArgs
+from shiftkit.policies.trainers.vpace.example_buffer import (
     STATE_KEYS,
     ExampleBuffer,
     ExampleRows,
     TaskExamples,
     load_dataset_examples,
 )
-from shiftkit.policies.replay import ReplayBuffer, ReplaySample
-from shiftkit.policies.reward_models import DACReward, SQILReward, rce_loss, rce_targets
-from shiftkit.policies.sac import Intentions, polyak_update
-from shiftkit.policies.schedulers import QTableScheduler, WeightedRandomScheduler
-from shiftkit.policies.trainers.vpace.args import VPACEArgs
-from shiftkit.policies.value_penalty import ValueBounds, value_penalty
+from shiftkit.policies.trainers.vpace.reward_models import DACReward, SQILReward, rce_loss, rce_targets
+from shiftkit.policies.trainers.vpace.schedulers import QTableScheduler, WeightedRandomScheduler
+from shiftkit.policies.trainers.vpace.value_penalty import ValueBounds, value_penalty
 
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes never reuse a training reset seed
 
