@@ -101,14 +101,11 @@ class Dataset:
             "num_episodes": self.num_episodes,
         }
 
+    @functools.cached_property
     def lerobot(self) -> Any:
         """lerobot's `LeRobotDataset` over the same folder (its Arrow table and metadata, for the
         trainers' batches), opened once: depth in metres, as shiftkit's trainers take it, and the video
         backend chosen by `video.decoder_backend` (lerobot logs a long traceback where torchcodec fails)."""
-        return self._lerobot
-
-    @functools.cached_property
-    def _lerobot(self) -> Any:
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         from shiftkit.datasets.video import decoder_backend

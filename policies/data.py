@@ -38,7 +38,7 @@ def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Datase
     if not refs:
         raise DatasetError("no dataset given")
     opened = [datasets.open(ref, root=root) for ref in refs]
-    return [(dataset, dataset.lerobot()) for dataset in opened]
+    return [(dataset, dataset.lerobot) for dataset in opened]
 
 
 def example_set_origin(dataset: Dataset | str | Path) -> str | None:

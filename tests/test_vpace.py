@@ -187,9 +187,9 @@ def test_config_errors(tmp_path):
         run(tiny_args(tmp_path, "h", handcrafted=["main,lift"]))
     with pytest.raises(ConfigError, match="learned scheduler needs"):
         run(tiny_args(tmp_path, "q", scheduler="learned"))  # SQIL labels give the scheduler no signal
-    with pytest.raises(ConfigError, match="unknown vp_q_max"):
+    with pytest.raises(ConfigError, match="vp_q_max must be one of mean, max, got 'median'"):
         run(tiny_args(tmp_path, "m", vp_q_max="median"))
-    with pytest.raises(ConfigError, match="unknown scheduler"):
+    with pytest.raises(ConfigError, match="scheduler must be one of wrs, learned, got 'round-robin'"):
         run(tiny_args(tmp_path, "u", scheduler="round-robin"))
     with pytest.raises(ConfigError, match="unknown env"):
         make_env("no-such-env", "reach", {})
