@@ -8,7 +8,7 @@ folders and cannot put them under `shiftkit.`.
 
 from setuptools import find_packages, setup
 
-TOP_LEVEL = ("pipelines", "transforms", "policies", "envs", "cards", "app")
+TOP_LEVEL = ("datasets", "pipelines", "transforms", "policies", "envs", "cards", "app")
 
 setup(
     package_dir={f"shiftkit.{folder}": folder for folder in TOP_LEVEL},

@@ -8,8 +8,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.staging import require_writable
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.staging import require_writable
 
 
 @dataclass(frozen=True)
@@ -24,11 +25,11 @@ class CalibrateConfig:
     """Calibration file to write (JSON); not with `plan`."""
     plot: str | None = None
     """Fit-vs-data PNG; default: the `out` path with .png."""
-    pushes: int = 3
+    pushes: int = option(3, rule="positive_int")
     """Pushes of each kind to fit on."""
-    held_out: int = 2
+    held_out: int = option(2, rule="non_negative_int")
     """Pushes of each kind to test on."""
-    seed: int = 0
+    seed: int = option(0, rule="non_negative_int")
     """Push i uses seed `seed + i` (fit pushes first, then the held-out ones)."""
     plan: str | None = None
     """Write the pushes as a raw-format plan folder for a robot to execute (no fit)."""
@@ -39,8 +40,7 @@ class CalibrateConfig:
 
     def seeds(self) -> tuple[list[int], list[int]]:
         """The fit seeds and the held-out seeds."""
-        if self.pushes < 1 or self.held_out < 0:
-            raise ConfigError("--pushes must be >= 1 and --held-out >= 0")
+        check_fields(self)
         fit = list(range(self.seed, self.seed + self.pushes))
         return fit, list(range(fit[-1] + 1, fit[-1] + 1 + self.held_out))
 

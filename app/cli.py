@@ -1,7 +1,8 @@
 """The `shiftkit` command line: a thin dispatcher over `shiftkit.app.commands.*`.
 
-Each command module defines `HELP` (one line, plain text), `add_arguments(parser)` and `run(args) -> int`, and
-imports its heavy dependencies inside `run`. Only the command named on the command line gets its
+Each command module of `shiftkit.app.commands` (registered in `COMMANDS` by its name) defines `HELP`
+(one line, plain text), `add_arguments(parser)` and `run(args) -> int`, and imports its heavy
+dependencies inside `run`. Only the command named on the command line gets its
 options built (`shiftkit --help` builds none, so it imports no trainer, torch or simulator); a command
 with subcommands may take `add_arguments(parser, argv)`, the words after its name, to build only the
 chosen subcommand's. No parser accepts abbreviated options (`--expert` is not `--expert-margin`).
@@ -11,46 +12,14 @@ User mistakes raise `ShiftkitError`, printed here as one line with exit code 2.
 from __future__ import annotations
 
 import argparse
-import importlib
 import inspect
 import logging
 import os
 import sys
 import typing
 
-from shiftkit.pipelines.errors import ShiftkitError
-
-# command name -> module under shiftkit.app.commands
-COMMANDS: dict[str, str] = {
-    "demo": "demo",
-    "collect": "collect",
-    "plan": "plan",
-    "run": "run",
-    "info": "info",
-    "validate": "validate",
-    "import": "import_",
-    "push": "push",
-    "pull": "pull",
-    "train": "train",
-    "eval": "eval",
-    "fire": "fire",
-    "plot": "plot",
-    "calibrate": "calibrate",
-    "merge": "merge",
-    "sim-robot": "sim_robot",
-    "view": "view",
-}
-
-
-def _available_commands() -> dict[str, object]:
-    modules = {}
-    for name, module in COMMANDS.items():
-        try:
-            modules[name] = importlib.import_module(f"shiftkit.app.commands.{module}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"shiftkit.app.commands.{module}":
-                raise
-    return modules
+from shiftkit.app.commands import COMMANDS
+from shiftkit.datasets.errors import ShiftkitError
 
 
 class Parser(argparse.ArgumentParser):
@@ -102,7 +71,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--verbose", "-v", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     chosen, rest = _chosen(argv) if argv is not None else (None, None)
-    for name, module in _available_commands().items():
+    for name, module in COMMANDS.items():
         p = sub.add_parser(name, help=module.HELP.replace("%", "%%"), description=module.HELP)
         if chosen is None or chosen == name:
             nested = len(inspect.signature(module.add_arguments).parameters) > 1

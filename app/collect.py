@@ -20,8 +20,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from shiftkit.pipelines.errors import ConfigError, ShiftkitError
-from shiftkit.pipelines.staging import remove_dead_staging
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.errors import ConfigError, ShiftkitError
+from shiftkit.datasets.staging import remove_dead_staging
 
 log = logging.getLogger(__name__)
 
@@ -34,9 +35,9 @@ class CollectConfig:
     """Environment name (`shiftkit.envs.ENV_TASKS`)."""
     task: str = "lift"
     """Task, e.g. lift, stack, insert; with `play`, the main task whose play sequence is recorded."""
-    episodes: int = 10
+    episodes: int = option(10, rule="positive_int")
     """Number of episodes."""
-    seed: int = 0
+    seed: int = option(0, rule="non_negative_int")
     """Episode i is reset with seed `seed + i`."""
     out: str | None = None
     """Raw-episode output directory (must not exist)."""
@@ -46,7 +47,7 @@ class CollectConfig:
     """LeRobot dataset root directory (with `lerobot`)."""
     play: bool = False
     """Record play episodes: one reset, then the task's play sequence with segment labels."""
-    control_hz: int | None = None
+    control_hz: int | None = option(None, rule="positive_int")
     """Control frequency; default: the env's first supported rate (panda-play: 20, or 5)."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Extra keyword arguments for the env constructor (e.g. `view="multiview"`)."""
@@ -59,13 +60,13 @@ class CollectConfig:
     """Also record depth images for each camera."""
     video: bool = False
     """Write camera features as lerobot videos (with `lerobot`); default: PNG images."""
-    width: int = 64
+    width: int = option(64, rule="positive_int")
     """Image width in pixels."""
-    height: int = 48
+    height: int = option(48, rule="positive_int")
     """Image height in pixels."""
     render_quality: Literal["fast", "full"] = "fast"
     """Geometry shown: "fast" (collision geometry) or "full" (visual meshes)."""
-    extra_steps: int = 0
+    extra_steps: int = option(0, rule="non_negative_int")
     """Frames kept after success first holds (reset-based episodes)."""
     only_successful: bool = False
     """Skip failed episodes (their seeds are still consumed)."""
@@ -82,16 +83,9 @@ class CollectConfig:
         if self.task not in ENV_TASKS[self.env]:
             raise ConfigError(f"unknown task {self.task!r} for {self.env}; known: {', '.join(ENV_TASKS[self.env])}")
         family = env_family(self.env)
-        if self.episodes < 1:
-            raise ConfigError(f"--episodes must be >= 1, got {self.episodes}")
-        if self.seed < 0:
-            raise ConfigError(f"--seed must be >= 0, got {self.seed}")
-        if self.width < 1 or self.height < 1:
-            raise ConfigError(f"--width and --height must be >= 1, got {self.width}x{self.height}")
-        if self.extra_steps < 0:
-            raise ConfigError(f"--extra-steps must be >= 0, got {self.extra_steps}")
+        check_fields(self)
         if self.lerobot is not None:
-            from shiftkit.pipelines.hub import validate_repo_id
+            from shiftkit.datasets.hub import validate_repo_id
 
             validate_repo_id(self.lerobot)
         if self.root is not None:
@@ -251,7 +245,7 @@ def collect(config: CollectConfig, progress: bool = False) -> tuple[Path, dict[s
 
 
 def _write_raw(recording: _Recording, episodes: Iterator[dict[str, Any]], out_dir: Path) -> None:
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+    from shiftkit.datasets.sources.raw import RawDatasetWriter
 
     config = recording.config
     with RawDatasetWriter(
@@ -272,10 +266,10 @@ def _write_lerobot(recording: _Recording, episodes: Iterator[dict[str, Any]], ro
     (so the dataset equals recording raw episodes and importing them), without writing them."""
     import json
 
-    from shiftkit.pipelines.features import plain_camera_features
-    from shiftkit.pipelines.jsonutil import dumps
-    from shiftkit.pipelines.sources import write_imported
-    from shiftkit.pipelines.sources.raw import raw_episode, raw_features, validate_arrays
+    from shiftkit.datasets.features import plain_camera_features
+    from shiftkit.datasets.jsonutil import dumps
+    from shiftkit.datasets.sources.raw import raw_episode, raw_features, validate_arrays
+    from shiftkit.datasets.writer import write_episodes
 
     config = recording.config
 
@@ -295,7 +289,7 @@ def _write_lerobot(recording: _Recording, episodes: Iterator[dict[str, Any]], ro
     if config.video:
         features = plain_camera_features(features, "video")
     rest = (converted(i, e) for i, e in enumerate(episodes, start=1))
-    write_imported(
+    write_episodes(
         config.lerobot,
         root,
         config.control_hz,

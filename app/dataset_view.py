@@ -30,10 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines.depth import is_depth
-from shiftkit.pipelines.errors import ShiftkitError
-from shiftkit.pipelines.features import CAMERA_DTYPES, NUMERIC_DTYPES
-from shiftkit.pipelines.quality import dimension_names
+from shiftkit.datasets.dataset import Dataset
+from shiftkit.datasets.depth import is_depth
+from shiftkit.datasets.errors import ShiftkitError
+from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES
+from shiftkit.datasets.quality import dimension_names
 
 TIMELINE = "frame"
 RECORDED = "recorded"
@@ -195,7 +196,7 @@ class _Sender:
             )
             self._columns(f"{base}/depth", frames, columns)
             return
-        from shiftkit.pipelines.encoded_frames import source_bytes
+        from shiftkit.datasets.encoded_frames import source_bytes
 
         blobs = [source_bytes(f, values) for f in values]
         if all(b is not None for b in blobs):  # the dataset's own PNG bytes
@@ -313,16 +314,16 @@ def _blueprint(rr: Any, features: dict[str, dict[str, Any]], views: list[str], m
 
 
 def view_dataset(
-    root: str | Path, episode: int | None = None, save: str | Path | None = None, progress: bool = True
+    dataset: Dataset, episode: int | None = None, save: str | Path | None = None, progress: bool = True
 ) -> ViewSummary:
-    """Send the dataset at `root` (one episode and its views with `episode`) to Rerun: into the
-    file `save` (`.rrd`, written atomically), else to a spawned viewer."""
+    """Send `dataset` (one episode and its views with `episode`) to Rerun: into the file `save`
+    (`.rrd`, written atomically), else to a spawned viewer."""
     from tqdm import tqdm
 
-    from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
+    from shiftkit.datasets.episode import META_COLUMN
 
     rr = import_rerun()
-    reader = open_lerobot_dataset(root)
+    root, reader = dataset.root, dataset.reader
     metas = [
         json.loads(m) if isinstance(m, str) else {}
         for m in (reader.episodes[META_COLUMN] if META_COLUMN in reader.episodes else [None] * reader.num_episodes)

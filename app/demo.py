@@ -15,7 +15,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from shiftkit.pipelines.errors import ShiftkitError
+from shiftkit.datasets.errors import ShiftkitError
 
 MARKER = ".shiftkit-demo"
 ENV, TASK, CAMERA = "mv-lift", "lift", "base"
@@ -52,8 +52,8 @@ repo_id = "shiftkit/demo"
 def run_demo(out: Path, episodes: int, seed: int, overwrite: bool, progress: bool = True, views: int = 2) -> dict:
     """Record mv-lift episodes into `out`, run the demo pipeline over them and draw the views figure; return the paths
     written, the dataset's counts and its summary."""
+    from shiftkit.datasets.check import summarize, validate_dataset
     from shiftkit.pipelines.config import load_pipeline_config
-    from shiftkit.pipelines.dataset_check import summarize, validate_dataset
     from shiftkit.pipelines.runner import run_pipeline
 
     if out.exists():
@@ -107,7 +107,7 @@ def views_figure(dataset: Path, views: int) -> Any:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     reader = open_lerobot_dataset(dataset)
     episodes = list(reader.iter_episodes(list(range(min(views + 1, reader.num_episodes)))))

@@ -1,5 +1,5 @@
 """`--env-kwarg` values checked against the env's constructor before any work (the same rules and
-messages as every other numeric option, `pipelines/option_values.py`)."""
+messages as every other numeric option, `datasets/option_values.py`)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import inspect
 from importlib import import_module
 from typing import Any
 
+from shiftkit.datasets.dataclass_config import meets, rule_error
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.envs import env_family
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.option_values import meets, rule_error
 
 # No env quantity (a rate, a size, a duration in seconds) comes near this; a larger value is a typo,
 # and the env's arithmetic on it (seconds x rate -> steps) would overflow into a traceback.

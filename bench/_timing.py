@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import Features
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import Features
 from shiftkit.pipelines.stage import Stage, register_stage
 
 START, END = "bench_start", "bench_end"
@@ -84,7 +84,8 @@ def timed_run(config, workers: int) -> dict[str, float]:
 
     A stage that makes several episodes of one (multiview's views) gives them the same start stamp:
     they count as one source episode, finished when its last output passed the end stamp."""
-    from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
+    from shiftkit.datasets.episode import META_COLUMN
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.pipelines.runner import run_pipeline
 
     t0 = time.time()

@@ -43,8 +43,8 @@ def _frames(length: int, size: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def make_source(root: Path, dtype: str, episodes: int, length: int, size: int) -> Path:
-    from shiftkit.pipelines.episode import Episode
-    from shiftkit.pipelines.lerobot_io import DatasetWriter
+    from shiftkit.datasets.episode import Episode
+    from shiftkit.datasets.writer import DatasetWriter
 
     rng = np.random.default_rng(0)
     features = {
@@ -101,9 +101,9 @@ def lerobot_copy(src: Path, dst: Path, dtype: str) -> float:
 
 
 def shiftkit_copy(src: Path, dst: Path) -> float:
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     t0 = time.perf_counter()
     config = PipelineConfig(sources=[SourceConfig(path=str(src))], destination=DestinationConfig(root=str(dst)))

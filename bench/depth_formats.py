@@ -5,7 +5,7 @@ Records real MuJoCo depth (panda-play `lift`, `front` camera, 64x48) with `shift
 then stores it, beside an RGB camera, with lerobot's own writer (`LeRobotDataset.create`,
 `add_frame`, `save_episode`, `finalize`) as:
   * `float32_m_image`: an (H, W, 1) `image` depth feature (`info.is_depth_map`, `depth_unit: m`),
-    lossless float32 TIFF in metres (shiftkit's default, pipelines/depth.py);
+    lossless float32 TIFF in metres (shiftkit's default, datasets/depth.py);
   * `uint16_mm_image`: the same in uint16 millimetres (`depth_unit: mm`);
   * `depth_video`: an (H, W, 1) `video` depth feature, lerobot's depth encoder (12-bit log
     quantiser, lossless HEVC gray12le, `video.depth_min/max/shift/use_log` in the feature's info);
@@ -43,7 +43,7 @@ RANGE_M = 2.55  # the gray8 encoding's range, and the range the errors are repor
 
 def representations(h: int, w: int) -> dict[str, tuple[dict, bool]]:
     """name -> (depth feature as given to `LeRobotDataset.create`, use_videos)."""
-    from shiftkit.pipelines.depth import depth_feature
+    from shiftkit.datasets.depth import depth_feature
 
     return {
         "float32_m_image": (depth_feature(h, w, "image", "m"), False),
@@ -55,7 +55,7 @@ def representations(h: int, w: int) -> dict[str, tuple[dict, bool]]:
 
 def to_frame(name: str, metres: np.ndarray) -> np.ndarray:
     """(H, W) float metres -> the array handed to `add_frame`."""
-    from shiftkit.pipelines.depth import clean_metres, legacy_grey, to_stored
+    from shiftkit.datasets.depth import clean_metres, legacy_grey, to_stored
 
     if name == "gray8_image":
         return legacy_grey(metres)
@@ -64,7 +64,7 @@ def to_frame(name: str, metres: np.ndarray) -> np.ndarray:
 
 def to_metres(name: str, value) -> np.ndarray:
     """What `LeRobotDataset(..., depth_output_unit="m")[i][KEY]` returns -> (H, W) float metres."""
-    from shiftkit.pipelines.depth import legacy_depth_to_metres
+    from shiftkit.datasets.depth import legacy_depth_to_metres
 
     arr = value.numpy()  # (C, H, W)
     if arr.shape[0] == 3:  # grey levels as lerobot hands out an RGB image: floats in [0, 1]

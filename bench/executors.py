@@ -50,10 +50,9 @@ import _device  # noqa: E402  (bench/, beside this file)
 import _timing  # noqa: E402
 import numpy as np  # noqa: E402
 
-from shiftkit.pipelines.episode import Episode  # noqa: E402
-from shiftkit.pipelines.features import Features  # noqa: E402
-from shiftkit.pipelines.lerobot_io import META_COLUMN  # noqa: E402
-from shiftkit.pipelines.stage import Stage, register_stage  # noqa: E402
+from shiftkit.datasets.episode import META_COLUMN, Episode
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import Stage, register_stage
 
 
 @dataclasses.dataclass
@@ -132,9 +131,9 @@ shutil.rmtree = _measuring_rmtree  # the runner removes its work directory with 
 def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episodes: int) -> dict[str, float]:
     """The run's time split (`_timing.breakdown`: start-up, processing span, where a span exceeds an
     even split of the work) and the bytes it wrote (`bytes_written`: work directory and dataset)."""
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     config = PipelineConfig(
         sources=[SourceConfig(path=str(source))],
@@ -142,7 +141,7 @@ def timed_run(source: Path, dest: Path, executor: str, workers: int, shard_episo
         destination=DestinationConfig(root=str(dest)),
     )
     options = {} if executor == "local" else {"shard_episodes": shard_episodes}
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     t0 = time.time()
     run_pipeline(config, workers=workers, executor=executor, executor_options=options, progress=False)
@@ -164,7 +163,7 @@ def main() -> None:
         os.environ.setdefault("HF_LEROBOT_HOME", str(tmp / "home"))
         os.environ.setdefault("HF_DATASETS_CACHE", str(tmp / "datasets-cache"))
         source = make_source(tmp / "raw", episodes)
-        from shiftkit.pipelines.sources.raw import open_raw_dataset
+        from shiftkit.datasets.sources.raw import open_raw_dataset
 
         raw = open_raw_dataset(source)
         # The writer's lerobot modules (they load torch) are imported by whichever run writes first;

@@ -52,8 +52,8 @@ def record(out: Path, task: str, episodes: int, seed: int = 0, cameras: tuple[st
 
 def run_pipeline_timed(raw: Path, dest: Path, workers: int) -> dict[str, float]:
     """The run's time split (`_timing.breakdown`: start-up, processing span, write, ...)."""
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-    from shiftkit.pipelines.sources import SourceConfig
 
     stages = [
         StageSpec(name="force_match", params={"mode": "position", "hold_steps": 5}),
@@ -114,8 +114,8 @@ def replay_success(
     """Replay each demonstration with the stage's code (no images) by position and force-matched."""
     from tqdm import tqdm
 
+    from shiftkit.datasets.episode import Episode
     from shiftkit.envs import env_family, make
-    from shiftkit.pipelines.episode import Episode
     from shiftkit.pipelines.stage import StageContext, build_stage
 
     family = env_family("door-tactile")

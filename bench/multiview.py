@@ -50,11 +50,11 @@ def record(out: Path, episodes: int) -> Path:
 
 def bare(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
     """The same IK + RGB-D rendering with plain mujoco calls: per episode, frames and seconds."""
+    from shiftkit.datasets.sources.raw import open_raw_dataset
     from shiftkit.envs.base_pose import SAMPLER, BasePose
     from shiftkit.envs.cameras import disable_costly_flags, scene_option
     from shiftkit.envs.geometry import rotation_z
     from shiftkit.envs.multiview.physics import MultiviewPhysics, rebase_state
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     dataset = open_raw_dataset(raw)
     physics = MultiviewPhysics("mv-lift-v1", "lift", ("block",))
@@ -100,10 +100,10 @@ def bare(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
 def ik_targets(raw: Path, views: int, episodes: int):
     """Per (episode, view): the physics at the new base pose, the arm's start and the re-expressed
     TCP targets, as the stage computes them."""
+    from shiftkit.datasets.sources.raw import open_raw_dataset
     from shiftkit.envs.base_pose import SAMPLER, BasePose
     from shiftkit.envs.geometry import quat_xyzw_to_matrix, rotation_z
     from shiftkit.envs.multiview.physics import MultiviewPhysics, rebase_state
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     dataset = open_raw_dataset(raw)
     physics = MultiviewPhysics("mv-lift-v1", "lift", ("block",))
@@ -185,7 +185,7 @@ def ik_comparison(
 
 def stage(raw: Path, views: int) -> Callable[[int], tuple[int, float]]:
     """The stage's `process` on the same episodes: per episode, output frames and seconds."""
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.datasets.sources.raw import open_raw_dataset
     from shiftkit.pipelines.stage import StageContext
     from shiftkit.transforms.multiview import Multiview, MultiviewConfig
 
@@ -217,8 +217,8 @@ def stage_vs_bare(raw: Path, views: int, episodes: int) -> tuple[tuple[int, floa
 
 
 def _config(raw: Path, dest: Path, views: int):
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-    from shiftkit.pipelines.sources import SourceConfig
 
     return PipelineConfig(
         sources=[SourceConfig(path=str(raw))],

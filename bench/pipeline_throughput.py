@@ -31,8 +31,8 @@ import numpy as np  # noqa: E402
 
 
 def make_source(root: Path, episodes: int, length: int, seed: int = 0) -> Path:
-    from shiftkit.pipelines.episode import Episode
-    from shiftkit.pipelines.lerobot_io import DatasetWriter
+    from shiftkit.datasets.episode import Episode
+    from shiftkit.datasets.writer import DatasetWriter
 
     rng = np.random.default_rng(seed)
     features = {
@@ -113,9 +113,9 @@ def raw_camera_floor(src: Path, dst: Path) -> float:
 
 
 def shiftkit_copy(src: Path, dst: Path, workers: int = 1) -> float:
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     t0 = time.perf_counter()
     run_pipeline(
@@ -176,7 +176,7 @@ def main() -> None:
         if args.profile:
             print_profile(src, tmp / "profiled_copy", args.profile)
         fps_lerobot, fps_shiftkit = frames / t_lerobot, frames / t_shiftkit
-        from shiftkit.pipelines.synthetic import write_synthetic_raw
+        from shiftkit.datasets.synthetic import write_synthetic_raw
 
         cam_episodes = 20 if args.quick else 50
         raw_cam = write_synthetic_raw(tmp / "raw_cam", episodes=cam_episodes, length=length, seed=3, camera=(96, 96))

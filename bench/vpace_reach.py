@@ -47,9 +47,9 @@ def scene_examples(dest: Path, work: Path, tasks: list[str]) -> None:
     """200 final states per task of successful scripted-expert episodes at 5 Hz, one example dataset at
     `dest`; the raw episodes are kept in `work` (written atomically, so a rerun reuses them)."""
     from shiftkit.app.collect import CollectConfig, collect
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     raws = []
     for i, task in enumerate(tasks):

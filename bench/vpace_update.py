@@ -50,13 +50,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
-from shiftkit.policies.example_buffer import ExampleBuffer, TaskExamples
 from shiftkit.policies.replay import ReplayBuffer
 from shiftkit.policies.run_dir import torch_device
 from shiftkit.policies.sac import batched_mlp
 from shiftkit.policies.trainers.vpace.args import VPACEArgs
+from shiftkit.policies.trainers.vpace.example_buffer import ExampleBuffer, TaskExamples
 from shiftkit.policies.trainers.vpace.training import Agent, sample_update
 
 OBS_DIM, ACT_DIM = 59, 4

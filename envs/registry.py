@@ -1,144 +1,121 @@
-"""The registry over environment families: CLI names, tasks, gymnasium ids and the facts that the
-dataset tools need (how an observation splits into LeRobot features, cameras, experts).
+"""One registry shape for everything shiftkit finds by name: stages, env families, experts,
+importers, trainers, executors and commands.
 
-A family is a package under `shiftkit/envs/` whose `__init__` calls `register_family(EnvFamily(...))`
-with everything the rest of shiftkit uses of it (dataset layout, recorders, the expert as a policy);
-the first question asked of the registry imports every such package under `shiftkit/envs/` (pkgutil),
-so a new family only adds a folder, and importing a shared module (`geometry`, `base_pose`) loads no
-family and no MuJoCo. Gymnasium ids are `shiftkit/<gym_prefix>-<TaskName>-v0` (e.g.
-`shiftkit/PandaPlay-Lift-v0`), registered with the family; `gymnasium.make(id, control_hz=5,
-render_mode="rgb_array")` passes keyword arguments through once the family is imported
-(`gymnasium.make("shiftkit.envs.panda_play:shiftkit/PandaPlay-Lift-v0")` imports it).
+A `Registry` holds the named things of one kind. The module that defines a thing registers it
+(`register`, or `named(name)` as a decorator); code elsewhere asks by name (`get`, one line naming
+the known ones when the name is unknown), lists (`names`, `items`) and never keeps its own list.
+What a registry holds is found, not listed: its discoverers (`import_modules` of a package's folder,
+`import_entry_points` of a plugin group) run once, on the first question asked of it, so importing
+a registry loads nothing else.
+
+The class lives here, in `shiftkit.envs`, because it is the lowest layer that needs one (env
+families and their experts) and envs may import nothing else of shiftkit; every layer above imports
+it from here. This module imports nothing beyond the standard library (docs/architecture.md).
 """
 
 from __future__ import annotations
 
 import importlib
 import pkgutil
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
-
-import gymnasium as gym
-import numpy as np
+from collections.abc import Callable, Iterable, Iterator
+from importlib import metadata
 
 
-@dataclass(frozen=True)
-class EnvFamily:
-    """One environment family (a scene with its tasks, experts and dataset layout)."""
+class Registry[T]:
+    """The things of one kind (`kind`, as error messages name it) by name. `error`: the exception
+    type of an unknown name (a layer's user-error type, e.g. `ConfigError`); `discover`: callables
+    that import the modules which register the things, run once before the first lookup (more can
+    be added with `discover_with`)."""
 
-    name: str
-    """CLI name (`--env`)."""
-    tasks: dict[str, str]
-    """CLI task name -> CamelCase part of the gymnasium id."""
-    gym_prefix: str
-    """Family part of the gymnasium id."""
-    entry_point: str
-    """`module:Class` of the gymnasium env; its constructor takes `task=` plus keyword arguments."""
-    robot: str
-    """Robot type written into datasets."""
-    sim_model_id: str
-    """Identifier of the MuJoCo model recorded with simulator states (replay/re-render check it)."""
-    cameras: tuple[str, ...]
-    """Camera names that can be rendered into datasets."""
-    observation_names: tuple[str, ...]
-    """Names of the flat observation vector's dimensions."""
-    state_indices: np.ndarray
-    """Observation dims that form `observation.state` (robot proprioception)."""
-    environment_state_indices: np.ndarray
-    """Observation dims that form `observation.environment_state` (privileged object state)."""
-    action_names: tuple[str, ...]
-    """Names of the action dimensions."""
-    observation_layout: str
-    """One line saying how the observation splits (recorded in raw datasets)."""
-    rollout: Callable[..., Any]
-    """`rollout(env, seed, cameras=(), depth=False, extra_steps=0)`: one scripted-expert episode."""
-    control_rates: tuple[int, ...] = (20,)
-    """Supported control frequencies in Hz (the first is the default)."""
-    experts: dict[str, Callable[..., Any]] = field(default_factory=dict)
-    """Other ways to record an episode than `rollout`, by name (e.g. "kinesthetic"); same signature."""
-    play_rollout: Callable[..., Any] | None = None
-    """`play_rollout(env, seed, sequence, cameras=(), depth=False)`: one play episode, if supported."""
-    play_sequences: dict[str, tuple[str, ...]] = field(default_factory=dict)
-    """Default play sequence per main task."""
-    action_conventions: dict[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
-    """Converters from other codebases' action conventions (e.g. "vpace") into this family's."""
-    expert_policy: Callable[[Any], Any] | None = None
-    """`expert_policy(env)`: the scripted expert as a policy that acts from the env's current state
-    (`reset()`, `act(obs)`), if the family has one: FIRE's simulated oracle takes over with it."""
-    expert_policies: dict[str, Callable[..., Any]] = field(default_factory=dict)
-    """The other experts of `experts` that act from any state, as policies by the same name:
-    `expert_policies[name](env, seed)` (the seed draws a stochastic expert's variance); FIRE's oracle
-    takes over with the one its run names (`shiftkit fire --expert-policy`)."""
+    def __init__(
+        self, kind: str, *, error: type[Exception] = LookupError, discover: Iterable[Callable[[], None]] = ()
+    ) -> None:
+        self.kind = kind
+        self._error = error
+        self._items: dict[str, T] = {}
+        self._discoverers = list(discover)
+        self._discovered = False
 
-    def gym_id(self, task: str) -> str:
-        """The gymnasium id of `task` (`shiftkit/<gym_prefix>-<Task>-v0`)."""
-        return f"shiftkit/{self.gym_prefix}-{self.tasks[task]}-v0"
+    def register(self, item: T, name: str | None = None) -> T:
+        """Add `item` under `name` (default: its `name` attribute); registering the same item again is
+        a no-op, another item under a taken name a TypeError. Returns `item` (usable as a decorator)."""
+        name = name if name is not None else item.name  # type: ignore[attr-defined]
+        known = self._items.get(name)
+        if known is not None and known is not item and known != item:
+            raise TypeError(f"{self.kind} {name!r} is registered twice ({_label(known)}, {_label(item)})")
+        self._items[name] = item
+        return item
+
+    def named(self, name: str) -> Callable[[T], T]:
+        """A decorator registering what it decorates under `name`."""
+        return lambda item: self.register(item, name)
+
+    def discover_with(self, discoverer: Callable[[], None]) -> None:
+        """Add a discoverer; it runs before the next lookup (at once if the registry was asked before)."""
+        self._discoverers.append(discoverer)
+        if self._discovered:
+            discoverer()
+
+    def _found(self) -> dict[str, T]:
+        if not self._discovered:
+            self._discovered = True  # first, so that a discovered module asking the registry does not recurse
+            try:
+                for discoverer in self._discoverers:
+                    discoverer()
+            except BaseException:
+                self._discovered = False  # asked again, it tries again (and fails with the same message)
+                raise
+        return self._items
+
+    def get(self, name: str) -> T:
+        """The thing registered as `name`; `error` with one line naming the known ones otherwise."""
+        items = self._found()
+        if name not in items:
+            raise self._error(f"unknown {self.kind} {name!r} (known: {', '.join(sorted(items)) or 'none'})")
+        return items[name]
+
+    def names(self) -> list[str]:
+        """Every registered name, sorted."""
+        return sorted(self._found())
+
+    def items(self) -> list[tuple[str, T]]:
+        """Every (name, registered thing), sorted by name."""
+        items = self._found()
+        return [(name, items[name]) for name in sorted(items)]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._found()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
 
 
-_FAMILIES: dict[str, EnvFamily] = {}
-_DISCOVERED = False
+def _label(item: object) -> str:
+    return getattr(item, "__qualname__", None) or type(item).__name__
 
 
-def import_families(path: list[str] | None = None) -> None:
-    """Import every family package on `path` (default: the `shiftkit.envs` folder), which registers it."""
-    package = __name__.rpartition(".")[0]
-    for module in pkgutil.iter_modules([str(Path(__file__).parent)] if path is None else path):
-        if module.ispkg:
+def import_modules(package: str, path: Iterable[str], packages_only: bool = False) -> None:
+    """Import every module (with `packages_only`, every subpackage) found on `path` (a package's
+    `__path__`) as `package.<name>`: how a package loads the things its modules register without
+    listing them."""
+    for module in pkgutil.iter_modules(list(path)):
+        if module.ispkg or not packages_only:
             importlib.import_module(f"{package}.{module.name}")
 
 
-def _registered() -> dict[str, EnvFamily]:
-    """The registered families, after importing every family package of `shiftkit.envs` once."""
-    global _DISCOVERED
-    if not _DISCOVERED:
-        import_families()
-        _DISCOVERED = True
-    return _FAMILIES
+def import_entry_points(group: str) -> None:
+    """Import the module of every installed entry point of `group`: how a registry finds what an
+    application (or another installed package) registers, without naming it."""
+    for entry_point in metadata.entry_points(group=group):
+        entry_point.load()
 
 
-def register_family(family: EnvFamily) -> EnvFamily:
-    """Add a family and register its gymnasium ids (idempotent)."""
-    _FAMILIES[family.name] = family
-    for task in family.tasks:
-        env_id = family.gym_id(task)
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=family.entry_point, kwargs={"task": task})
-    return family
+# The entry-point group through which an application plugs its stages and importers into the
+# registries of the layers below it (shiftkit's own: `shiftkit.app.plugins`, pyproject.toml).
+PLUGINS = "shiftkit.plugins"
 
 
-def env_family(env_name: str) -> EnvFamily:
-    """The registered family `env_name`; ValueError (one line) for unknown names."""
-    known = _registered()
-    if env_name not in known:
-        raise ValueError(f"unknown env {env_name!r}; known: {', '.join(known)}")
-    return known[env_name]
-
-
-def families() -> dict[str, EnvFamily]:
-    """Every registered family by CLI name."""
-    return dict(_registered())
-
-
-def env_tasks() -> dict[str, tuple[str, ...]]:
-    """CLI env name -> its task names."""
-    return {name: tuple(f.tasks) for name, f in _registered().items()}
-
-
-def gym_id(env_name: str, task: str) -> str:
-    """The gymnasium id of a registered env/task pair."""
-    family = _registered().get(env_name)
-    if family is None or task not in family.tasks:
-        raise ValueError(f"unknown env/task {env_name}/{task}")
-    return family.gym_id(task)
-
-
-def make(env_name: str, task: str, **kwargs: Any) -> gym.Env:
-    """Build an environment by CLI name (unwrapped, with its own episode limit); ValueError (one
-    line) for unknown names."""
-    family = env_family(env_name)
-    if task not in family.tasks:
-        raise ValueError(f"unknown task {task!r} for env {env_name}; known: {', '.join(family.tasks)}")
-    module, _, cls = family.entry_point.partition(":")
-    return getattr(importlib.import_module(module), cls)(task=task, **kwargs)
+def import_plugins() -> None:
+    """Import every installed `shiftkit.plugins` entry point (the discoverer of the stage and importer
+    registries)."""
+    import_entry_points(PLUGINS)

@@ -14,7 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from shiftkit.pipelines.episode import Episode
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.provenance import make_provenance
+from shiftkit.pipelines.config import config_record
 from shiftkit.pipelines.planner import Plan
 from shiftkit.pipelines.stage import select_outputs
 from shiftkit.pipelines.work import PartStore
@@ -69,8 +71,7 @@ def run_report(plan: Plan, parts: PartStore, keep: list[bool] | None) -> RunRepo
 
 def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], bar: Any) -> Path:
     """Write `plan.destination` from the finished `parts` (every executor's), atomically; returns it."""
-    from shiftkit.pipelines.lerobot_io import DatasetWriter, lerobot_roots
-    from shiftkit.pipelines.provenance import build_provenance
+    from shiftkit.datasets.writer import DatasetWriter, lerobot_roots
 
     def outputs() -> Iterator[tuple[Episode, dict]]:
         for s, source in enumerate(plan.sources):
@@ -89,3 +90,45 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
         )
         writer.close(provenance=provenance, carry_from=lerobot_roots(plan.sources))
     return plan.destination
+
+
+def build_provenance(
+    plan: Any, executor: dict[str, Any], num_episodes: int, num_frames: int, report: Any
+) -> dict[str, Any]:
+    """A pipeline run's provenance. `report` (`assembly.RunReport`): the run's totals of the events
+    each stage counted (`Stage.report`), stored as the stage entry's "report" when it counted any,
+    and the output episodes per source. Each source entry records its fps, its own stages and
+    the range of output episodes it became (`episodes`: [first, end)) and, where its depth is stored
+    in another unit, which (`depth_units`: feature -> [source unit, output unit])."""
+    sources, start = [], 0
+    for s, source in enumerate(plan.sources):
+        count = report.source_episodes[s]
+        converted = plan.depth_units(s)  # depth stored in another unit than the source's
+        sources.append(
+            {
+                **source.describe(),
+                "fps": source.fps,
+                "stages": _stage_entries(plan.source_stages[s], report.source_stages[s]),
+                "episodes": [start, start + count],
+                **({"depth_units": converted} if converted else {}),
+            }
+        )
+        start += count
+    return make_provenance(
+        repo_id=plan.repo_id,
+        fps=plan.fps,
+        num_episodes=num_episodes,
+        num_frames=num_frames,
+        sources=sources,
+        stages=_stage_entries(plan.stages, report.stages),
+        seed=plan.config.seed,
+        executor=executor,
+        # The pipeline config itself: `shiftkit run` accepts this object saved as a .json file.
+        pipeline=config_record(plan.config),
+    )
+
+
+def _stage_entries(stages: list[Any], report: list[dict[str, int]]) -> list[dict[str, Any]]:
+    return [
+        {**s.describe(), "report": counts} if counts else s.describe() for s, counts in zip(stages, report, strict=True)
+    ]

@@ -1,8 +1,12 @@
 """Pipeline config files (TOML, YAML or JSON): sources, ordered stages, destination, seed.
 
 [[sources]]
-path = "raw/lift"            # or repo_id = "org/name" (+ revision)
+path = "raw/lift"            # or repo_id = "org/name" (+ revision), or an importer's format:
 stages = [{ name = "resample", params = { fps = 10 } }]   # optional: this source's own stages
+
+[[sources]]
+format = "robomimic"         # `shiftkit import --help` lists the formats
+options = { file = "demos.hdf5", filter_key = "train" }
 
 [[stages]]
 name = "trim"
@@ -17,31 +21,14 @@ seed = 0                     # top-level keys must come before the first table i
 
 from __future__ import annotations
 
-import json
 import math
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shiftkit.pipelines.dataclass_config import from_dict
-from shiftkit.pipelines.errors import ConfigError
-
-
-@dataclass
-class SourceConfig:
-    """One pipeline input: a local path or a dataset ID (`shiftkit.pipelines.sources.open_source` opens it)."""
-
-    path: str | None = None
-    """A raw-episode directory or a LeRobot dataset directory (relative to the config file)."""
-    repo_id: str | None = None
-    """A LeRobot dataset ID: looked up in $HF_LEROBOT_HOME first, then on the hub."""
-    revision: str | None = None
-    """Hub revision (branch, tag or commit) when `repo_id` is pulled."""
-
-    def __post_init__(self) -> None:
-        if (self.path is None) == (self.repo_id is None):
-            raise ValueError("give exactly one of 'path' and 'repo_id'")
+from shiftkit.datasets.dataclass_config import check_fields, from_dict, option, read_config_file
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.sources import SourceConfig
 
 
 @dataclass
@@ -95,14 +82,13 @@ class PipelineConfig:
     """Where the output LeRobot dataset goes."""
     stages: list[StageSpec] = field(default_factory=list)
     """Stages applied in order to every episode (after its source's own stages)."""
-    seed: int = 0
+    seed: int = option(0, rule="non_negative_int")
     """Seed of every random choice a stage makes."""
 
     def __post_init__(self) -> None:
         if not self.sources:
             raise ValueError("at least one source is required")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        check_fields(self)
         # A plain SourceConfig (built in code) is a source without stages of its own.
         self.sources = [s if isinstance(s, PipelineSource) else PipelineSource(**asdict(s)) for s in self.sources]
 
@@ -150,9 +136,11 @@ def pipeline_toml(config: PipelineConfig) -> str:
     lines = [f"seed = {config.seed}", ""] if config.seed else []
     for src in config.sources:
         lines.append("[[sources]]")
-        for key in ("path", "repo_id", "revision"):
+        for key in ("path", "repo_id", "revision", "format"):
             if getattr(src, key) is not None:
                 lines.append(f"{key} = {toml_string(getattr(src, key))}")
+        if src.options:
+            lines.append(f"options = {toml_value(src.options)}")
         if src.stages:
             lines.append("stages = [")
             lines += [f"  {_stage_toml(stage)}," for stage in src.stages]
@@ -187,44 +175,27 @@ def parse_pipeline_config(data: Any, base_dir: Path, where: str) -> PipelineConf
     if not config.destination.root.strip():
         raise ConfigError(f"{where}: destination root is empty; give the output dataset's folder")
     # Make relative paths relative to the config file, so a pipeline runs from any directory.
-    for src in config.sources:
+    for i, src in enumerate(config.sources):
         if src.path is not None and not Path(src.path).is_absolute():
             src.path = str((base_dir / src.path).resolve())
+        if src.format is not None:  # an importer's input files, checked by its options
+            from shiftkit.datasets.importers import IMPORTERS
+
+            importer = IMPORTERS.get(src.format)
+            src.options = asdict(importer.options(src.options, f"{where}: sources[{i}].options", base_dir))
     if not Path(config.destination.root).is_absolute():
         config.destination.root = str((base_dir / config.destination.root).resolve())
     return config
 
 
-def read_config_file(path: str | Path, what: str = "pipeline config") -> Any:
-    """The plain data in a .toml, .yaml/.yml or .json file; a ConfigError names a missing or malformed one."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise ConfigError(f"{what} not found: {path}") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{what} is a directory: {path}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not UTF-8 text") from None
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".toml":
-            return tomllib.loads(text)
-        if suffix in (".yaml", ".yml"):
-            import yaml
-
-            return yaml.safe_load(text)
-        if suffix == ".json":
-            return json.loads(text)
-        raise ConfigError(f"{path}: unknown config format {suffix!r} (use .toml, .yaml or .json)")
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
-    except Exception as exc:  # yaml.YAMLError and friends
-        if isinstance(exc, ConfigError):
-            raise
-        raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+def config_record(config: PipelineConfig) -> dict[str, Any]:
+    """`config` as plain data, as the provenance keeps it (`shiftkit run` reads it back from a .json
+    file): a source's `format` and `options` only where it has them."""
+    record = asdict(config)
+    for source in record["sources"]:
+        if source["format"] is None:
+            del source["format"], source["options"]
+    return record
 
 
 def load_pipeline_config(path: str | Path) -> PipelineConfig:

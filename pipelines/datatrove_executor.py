@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, ClassVar, override
 
-from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.pipelines.executor_settings import RaySettings, SlurmSettings
 from shiftkit.pipelines.planner import Plan
 from shiftkit.pipelines.shards import RAY_NODE_VAR, FailureStore, Shard, ShardStep, nodes_used, plan_shards
@@ -410,10 +410,3 @@ episodes into parts (`{work}/parts`). Each task runs `launch_pickled_pipeline ex
    (cancelled, timed out), that command submits it again (finished episodes are kept); if a shard
    failed, it names the episode and the reason: fix it and run the command again.
 """
-
-
-DATATROVE_EXECUTORS: dict[str, type[DatatroveExecutor]] = {
-    "datatrove-local": DatatroveLocalExecutor,
-    "ray": RayExecutor,
-    "slurm": SlurmExecutor,
-}

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from shiftkit.datasets.dataclass_config import option
+
 
 @dataclass(frozen=True)
 class RaySettings:
@@ -25,9 +27,9 @@ class SlurmSettings:
     """slurm: partition of the job array (required for slurm)."""
     time: str = "04:00:00"
     """slurm: time limit per array task."""
-    cpus_per_task: int = 1
+    cpus_per_task: int = option(1, rule="positive_int")
     """slurm: CPUs per array task."""
-    mem_per_cpu_gb: int = 2
+    mem_per_cpu_gb: int = option(2, rule="positive_int")
     """slurm: GB of memory per CPU."""
     setup: str | None = None
     """slurm: shell command that prepares each task's environment, e.g. 'module load python; source

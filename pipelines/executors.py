@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Protocol
 
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.envs.registry import Registry
 from shiftkit.pipelines import work
-from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.planner import Plan
 from shiftkit.pipelines.work import PartStore, WorkUnit
 
@@ -72,29 +74,29 @@ class LocalExecutor:
         return True
 
 
-def _datatrove(name: str) -> Any:
+def _datatrove(cls: str) -> Any:
+    """A factory of the datatrove executor class `cls`, importing datatrove (and ray) only when used."""
+
     def make(workers: int = 1, **options: Any) -> Executor:
         from shiftkit.pipelines import datatrove_executor
 
-        return datatrove_executor.DATATROVE_EXECUTORS[name](workers=workers, **options)
+        return getattr(datatrove_executor, cls)(workers=workers, **options)
 
     return make
 
 
-EXECUTORS = {
-    "local": LocalExecutor,
-    # datatrove (and ray) are imported only when one of these is chosen.
-    "datatrove-local": _datatrove("datatrove-local"),
-    "ray": _datatrove("ray"),
-    "slurm": _datatrove("slurm"),
-}
+# Executor factories by the name `shiftkit run --executor` takes.
+EXECUTORS: Registry[Callable[..., Executor]] = Registry("executor", error=ConfigError)
+EXECUTORS.register(LocalExecutor, "local")
+EXECUTORS.register(_datatrove("DatatroveLocalExecutor"), "datatrove-local")
+EXECUTORS.register(_datatrove("RayExecutor"), "ray")
+EXECUTORS.register(_datatrove("SlurmExecutor"), "slurm")
 
 
 def get_executor(name: str, workers: int = 1, **options: Any) -> Executor:
     """The executor registered as `name`; a ConfigError for an unknown name or an option it does not take."""
-    if name not in EXECUTORS:
-        raise ConfigError(f"unknown executor {name!r} (available: {', '.join(EXECUTORS)})")
+    make = EXECUTORS.get(name)
     try:
-        return EXECUTORS[name](workers=workers, **options)
+        return make(workers=workers, **options)
     except TypeError:  # an option this executor does not take, e.g. --address for local
         raise ConfigError(f"executor {name!r} does not take these options: {', '.join(options)}") from None

@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import object_column
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import object_column
 
 EVENT_KEYS = ("next.success", "next.done")
 LANGUAGE_EVENTS = "language_events"  # lerobot.datasets.language.LANGUAGE_EVENTS

@@ -18,17 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from shiftkit.datasets.depth import depth_unit, is_depth
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES, Features, check_features, plain_camera_features
+from shiftkit.datasets.sources import Source, input_paths, open_source
 from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
-from shiftkit.pipelines.depth import depth_unit, is_depth
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import (
-    CAMERA_DTYPES,
-    NUMERIC_DTYPES,
-    Features,
-    check_features,
-    plain_camera_features,
-)
-from shiftkit.pipelines.sources import Source, open_source
 from shiftkit.pipelines.stage import Stage, StageContext, build_stage, selecting_stages
 
 
@@ -79,6 +73,33 @@ class Plan:
     def chain(self, source: int) -> list[Stage]:
         """Every stage an episode of `source` goes through: its own, then the common ones."""
         return [*self.source_stages[source], *self.stages]
+
+    def frames_pass_unchanged(self, feature: str) -> bool:
+        """Whether every frame of the output camera `feature`, from every source, is its source
+        frame's pixels, stored alike: each stage of each chain keeps that camera's frames one for one
+        (`Stage.kept_frames`, following renames back to the source's feature), and the source stores it
+        as the output does (image or video, shape, depth unit, fps). What the writer needs to know to
+        copy a source's encoded frames (a video's) instead of decoding and encoding them again."""
+        out = self.features.get(feature)
+        if out is None or out["dtype"] not in CAMERA_DTYPES:
+            return False
+        for s, source in enumerate(self.sources):
+            inputs, features = [], source.features
+            for stage in self.source_stages[s]:
+                inputs.append(features)
+                features = stage.transform_features(features)
+            features = self.input_features  # the common stages start from sources[0]'s schema (units)
+            for stage in self.stages:
+                inputs.append(features)
+                features = stage.transform_features(features)
+            name: str | None = feature
+            for stage, stage_input in zip(reversed(self.chain(s)), reversed(inputs), strict=True):
+                name = stage.kept_frames(stage_input).get(name)
+                if name is None:
+                    return False
+            if source.fps != self.fps or not _stored_alike(source.features.get(name), out):
+                return False
+        return True
 
 
 def build_chain(specs: list[StageSpec], features: Features, fps: int, where: str) -> tuple[list[Stage], Features, int]:
@@ -136,16 +157,26 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
 def check_sources_and_destination(config: PipelineConfig, sources: list[Any], destination: Path) -> None:
     """No source twice (by resolved path or, for LeRobot datasets, content; with the same own stages)
     and the destination outside every source (`staging.check_inputs_and_outputs`)."""
-    from shiftkit.pipelines.lerobot_io import dataset_fingerprint
-    from shiftkit.pipelines.staging import check_inputs_and_outputs
+    from shiftkit.datasets.ids import dataset_fingerprint
+    from shiftkit.datasets.staging import check_inputs_and_outputs
 
     groups: dict[str, list[tuple[str, Path]]] = {}
     for i, (spec, src) in enumerate(zip(config.sources, sources, strict=True)):
-        root = getattr(src, "root", None) or spec.path
-        if root is not None:  # a source listed twice with other own stages yields other episodes
-            groups.setdefault(repr(spec.stages), []).append((_source_name(config, i), Path(root)))
+        for path in input_paths(spec, src):  # a source listed twice with other own stages yields other episodes
+            groups.setdefault(repr(spec.stages), []).append((_source_name(config, i), path))
     for inputs in groups.values():
         check_inputs_and_outputs(inputs, [("destination", destination)], content_key=dataset_fingerprint)
+
+
+def _stored_alike(source: dict[str, Any] | None, out: dict[str, Any]) -> bool:
+    """Whether a source camera feature is stored as the output one: dtype (image or video), shape, and
+    for depth its unit."""
+    return (
+        source is not None
+        and (source["dtype"], tuple(source["shape"])) == (out["dtype"], tuple(out["shape"]))
+        and is_depth(source) == is_depth(out)
+        and (not is_depth(out) or depth_unit(source) == depth_unit(out))
+    )
 
 
 def _video_at(feature: dict[str, Any], fps: int) -> dict[str, Any]:
@@ -174,7 +205,7 @@ def declared_units(feature: dict[str, Any]) -> dict[str, Any]:
 
 def _source_name(config: PipelineConfig, i: int) -> str:
     src = config.sources[i]
-    return f"sources[{i}] ({Path(src.path).name if src.path is not None else src.repo_id})"
+    return f"sources[{i}] ({Path(src.path).name if src.path is not None else src.repo_id or src.format})"
 
 
 def _fix(where: str, name: str, params: dict[str, Any]) -> str:

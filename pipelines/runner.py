@@ -19,13 +19,14 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from shiftkit.datasets.errors import ShiftkitError
+from shiftkit.datasets.reader import require_utf8_path
+from shiftkit.datasets.staging import DestinationLock, remove_dead_staging
+from shiftkit.datasets.writer import preload_writer
 from shiftkit.pipelines.assembly import write_dataset
 from shiftkit.pipelines.config import PipelineConfig
-from shiftkit.pipelines.errors import ShiftkitError
 from shiftkit.pipelines.executors import Executor, get_executor
-from shiftkit.pipelines.lerobot_io import preload_writer, require_utf8_path
 from shiftkit.pipelines.planner import Plan, plan_pipeline
-from shiftkit.pipelines.staging import DestinationLock, remove_dead_staging
 from shiftkit.pipelines.work import PartStore, plan_units, run_key, work_dir_for
 
 
@@ -40,7 +41,7 @@ def run_pipeline(
     """Run the pipeline to completion (resuming earlier partial work unless `restart`) and return
     the dataset path, or None when the executor handed the work to a scheduler (slurm): re-running
     then assembles. One run at a time per destination (a lock beside the work directory)."""
-    from shiftkit.pipelines.hub import validate_repo_id
+    from shiftkit.datasets.hub import validate_repo_id
 
     engine = get_executor(executor, workers, **(executor_options or {}))
     if config.destination.repo_id is not None:
@@ -99,7 +100,7 @@ def _run_locked(config: PipelineConfig, plan: Plan, engine: Executor, work: Path
         raise
     shutil.rmtree(work, ignore_errors=True)
     if config.destination.push:
-        from shiftkit.pipelines import hub
+        from shiftkit.datasets import hub
 
         # After the atomic rename: a failed push leaves the local dataset for `shiftkit push`.
         result = hub.push_dataset(

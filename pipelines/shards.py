@@ -25,9 +25,9 @@ from typing import Any, override
 
 from datatrove.pipeline.base import PipelineStep
 
+from shiftkit.datasets.errors import DatasetError
 from shiftkit.pipelines import work
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.stage import Stage, register_stage, registered_stages
+from shiftkit.pipelines.stage import STAGES, Stage, register_stage
 from shiftkit.pipelines.work import PartStore, WorkUnit
 
 _LOG = logging.getLogger("shiftkit")
@@ -128,9 +128,8 @@ class ShardStep(PipelineStep):
     @override
     def run(self, data: Any = None, rank: int = 0, world_size: int = 1) -> Any:
         work.exit_with_parent(getattr(self, "main_pid", None))
-        known = registered_stages()
         for cls in self.stage_classes:
-            if cls.name not in known:
+            if cls.name not in STAGES:
                 register_stage(cls)
         work_dir = work.work_dir_for(Path(self.config.destination.root))
         parts, failures = PartStore(work_dir), FailureStore(work_dir)

@@ -13,27 +13,41 @@ A stage may count named events while it processes an episode (`report`, e.g. epi
 and why, also for an episode that yields nothing); the runner keeps the counts with that source
 episode's part, so their totals over a run do not depend on the executor, the worker count or
 resumes, and puts them into the run summary and the provenance.
+
+Two kinds of stage say what they do to an episode's frames, as lerobot's typed processor steps say
+what they transform:
+
+* `FrameStage`: frame for frame. Each output episode has its input's frames one for one (it may
+  drop an episode or yield several, e.g. re-rendered views); columns are added, removed, renamed
+  or recomputed. The cameras it does not touch pass unchanged (`kept_frames`), which the planner
+  chains into `Plan.frames_pass_unchanged`.
+* `ReindexStage`: keeps, drops, repeats or resamples frames. It gives, per output episode, the map
+  from its frames to the input's (`Reindex`); the base moves everything that is not a per-frame value
+  (events, task segments, language rows) once, through `frame_map.reindexed`.
+
+A stage that is neither (e.g. a replay that re-enacts a demonstration more slowly) subclasses
+`Stage` and sets its outputs' frame maps itself.
+
+The registry (`STAGES`) is filled by the stage modules (`@register_stage`); the engine names no
+stage package: the application declares its stages through the `shiftkit.plugins` entry point,
+which the registry loads on its first lookup (`shiftkit.envs.registry`).
 """
 
 from __future__ import annotations
 
-import importlib
-import pkgutil
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, final, override
 
 import numpy as np
 
-from shiftkit.pipelines.dataclass_config import from_dict, to_dict
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.features import Features
-
-# Packages whose import registers the built-in stages (the core never imports them directly): each
-# imports every module in it (`import_modules`), so a new stage is one new module.
-BUILTIN_STAGE_PACKAGES = ("shiftkit.transforms",)
+from shiftkit.datasets.dataclass_config import from_dict, to_dict
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.features import CAMERA_DTYPES, Features
+from shiftkit.envs.registry import Registry, import_plugins
+from shiftkit.pipelines.frame_map import reindexed
 
 
 @dataclass
@@ -124,6 +138,12 @@ class Stage(ABC):
         same = {k: k for k, ft in out.items() if k in features and _schema(ft) == _schema(features[k])}
         return {**same, "task": "task"}
 
+    def kept_frames(self, features: Features) -> dict[str, str]:
+        """Output camera feature -> the input camera whose frames it holds unchanged, one for one
+        (same pixels, stored alike), for an input schema `features`. A stage that is not known to
+        keep frames (`Stage`, `ReindexStage`) keeps none; `FrameStage` keeps what it carries."""
+        return {}
+
     def describe(self) -> dict[str, Any]:
         """The stage as the provenance records it (the dataset card cites `citation`)."""
         entry = {"name": self.name, "version": self.version, "params": to_dict(self.config)}
@@ -132,26 +152,82 @@ class Stage(ABC):
         return entry
 
 
+class FrameStage(Stage):
+    """A stage that works frame for frame (see the module docstring): every episode it yields has its
+    input's frames one for one; the runner refuses one of another length or with a frame map of its
+    own. The cameras it carries under the same name and feature entry pass unchanged."""
+
+    @override
+    def kept_frames(self, features: Features) -> dict[str, str]:
+        out = self.transform_features(features)
+        return {
+            key: source
+            for key, source in self.carried_features(features).items()
+            if key in out and out[key]["dtype"] in CAMERA_DTYPES and out[key] == features.get(source)
+        }
+
+
+@dataclass
+class Reindex:
+    """One output episode of a `ReindexStage`, as a map from its frames to the input's."""
+
+    index: np.ndarray
+    """Per output frame, the input frame it stands for (non-decreasing)."""
+    timestamps: np.ndarray
+    """The output frames' times (seconds from the episode start)."""
+    frames: dict[str, np.ndarray] | None = None
+    """Per-frame values the stage computes itself (e.g. interpolated); every other feature takes the
+    stood-for frame's value."""
+    cover: tuple[int, int] | None = None
+    """The input frames [start, stop) the output stands for (default: all; `trim`: the kept ones)."""
+    meta: dict[str, Any] | None = None
+    """The output's meta (default: the input's, its task segments moved)."""
+
+
+class ReindexStage(Stage):
+    """A stage that keeps, drops, repeats or resamples frames (see the module docstring): it says
+    which input frame each output frame stands for (`reindex`); values, events, segments and
+    language rows move from that map alone (`frame_map.reindexed`)."""
+
+    @abstractmethod
+    def reindex(self, episode: Episode, rng: np.random.Generator) -> Iterable[Reindex]:
+        """The frame maps of the episodes made from `episode` (none: it is dropped)."""
+
+    @final
+    @override
+    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+        for r in self.reindex(episode, rng):
+            out = reindexed(episode, r.index, r.timestamps, r.frames, r.cover)
+            if r.meta is not None:
+                out.meta = r.meta
+            yield out
+
+
+def check_output(stage: Stage, out: Episode, parent: Episode) -> None:
+    """A `FrameStage`'s output keeps its input's frames (`Episode.follow` has set its frame map)."""
+    if isinstance(stage, FrameStage) and not np.array_equal(out.origin(), parent.origin()):
+        raise ValueError(
+            f"frame stage {stage.name!r} changed its episode's frames ({len(parent)} -> {len(out)}, or another "
+            "frame map): a stage that keeps, drops or resamples frames is a ReindexStage"
+        )
+
+
 def _schema(feature: dict[str, Any]) -> tuple:
     """What makes two features' values comparable frame for frame: dtype, shape and names."""
     return feature["dtype"], tuple(feature["shape"]), feature.get("names")
 
 
-_REGISTRY: dict[str, type[Stage]] = {}
+STAGES: Registry[type[Stage]] = Registry("stage", error=ConfigError, discover=[import_plugins])
 
 
 def register_stage(cls: type[Stage]) -> type[Stage]:
-    """Class decorator: make a stage available to pipelines under `cls.name`."""
+    """Class decorator: make a stage available to pipelines under `cls.name` (in `STAGES`)."""
     for attr in ("name", "version", "Config"):
         if not hasattr(cls, attr):
             raise TypeError(f"stage {cls.__name__} lacks class attribute {attr!r}")
     if cls.transform_fps is not Stage.transform_fps and not cls.resampling_params:
         raise TypeError(f"stage {cls.__name__} changes the frame rate but gives no resampling_params")
-    existing = _REGISTRY.get(cls.name)
-    if existing is not None and existing is not cls:
-        raise TypeError(f"stage name {cls.name!r} is registered twice ({existing.__name__}, {cls.__name__})")
-    _REGISTRY[cls.name] = cls
-    return cls
+    return STAGES.register(cls)
 
 
 def selecting_stages(stages: list[Stage]) -> list[Stage]:
@@ -181,33 +257,14 @@ def select_outputs(stages: list[Stage], read_metas: Callable[[], list[dict[str, 
     return keep
 
 
-def import_modules(package: str, path: Iterable[str]) -> None:
-    """Import every module found on `path` (a package's `__path__`) as `package.<module>`: how the
-    stage packages load their stages without listing them."""
-    for module in pkgutil.iter_modules(list(path)):
-        importlib.import_module(f"{package}.{module.name}")
-
-
-def load_builtin_stages() -> None:
-    """Import shiftkit's stage packages, so their stages are registered."""
-    for package in BUILTIN_STAGE_PACKAGES:
-        importlib.import_module(package)
-
-
-def registered_stages() -> dict[str, type[Stage]]:
-    """Every registered stage class by name, sorted (shiftkit's own loaded first)."""
-    load_builtin_stages()
-    return dict(sorted(_REGISTRY.items()))
-
-
 def build_stage(
     name: str, params: dict[str, Any] | None, context: StageContext, where: str, version: int | None = None
 ) -> Stage:
     """Instantiate a registered stage from config values, with one-line errors."""
-    stages = registered_stages()
-    if name not in stages:
-        raise ConfigError(f"{where}: unknown stage {name!r} (registered: {', '.join(stages)})")
-    cls = stages[name]
+    try:
+        cls = STAGES.get(name)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
     if version is not None and version != cls.version:
         raise ConfigError(f"{where}: stage {name!r} is version {cls.version}, the config asks for version {version}")
     config = from_dict(cls.Config, params or {}, f"{where} ({name})")
@@ -219,10 +276,10 @@ def describe_stages() -> str:
     import dataclasses
     import sys
 
-    from shiftkit.pipelines.dataclass_config import field_docs
+    from shiftkit.datasets.dataclass_config import field_docs
 
     lines = []
-    for name, cls in registered_stages().items():
+    for name, cls in STAGES.items():
         doc = (sys.modules[cls.__module__].__doc__ or "").strip().splitlines()
         lines.append(f"{name} (v{cls.version}): {doc[0] if doc else ''}")
         docs = field_docs(cls.Config)

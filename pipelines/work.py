@@ -23,12 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines import data_tree
+from shiftkit.datasets import data_tree
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import check_episode
+from shiftkit.datasets.staging import sibling
 from shiftkit.pipelines.config import PipelineConfig
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import check_episode
 from shiftkit.pipelines.planner import Plan, plan_pipeline
-from shiftkit.pipelines.staging import sibling
+from shiftkit.pipelines.stage import check_output
 
 MAX_EPISODES_PER_UNIT = 16
 
@@ -54,7 +55,7 @@ class PartStore:
     One file per source episode holds its output episodes, with their images' PNG bytes, and their
     position-independent statistics, computed by the worker so the writer does not have to. Parts
     are data, not code: arrays in an `.npz` read with `allow_pickle=False` plus a JSON document
-    (`pipelines/data_tree.py`), so a work folder someone copied or sent cannot run code on resume.
+    (`datasets/data_tree.py`), so a work folder someone copied or sent cannot run code on resume.
     A second, small file per source episode in `metas/` holds just the output metas and the
     stages' event counts for that episode (`Stage.report`; kept even when it has no outputs).
     """
@@ -77,7 +78,8 @@ class PartStore:
     ) -> None:
         """Store one source episode's outputs (images encoded, with their statistics) and the stages'
         event counts, the metas first; the part file appears last, marking it done."""
-        from shiftkit.pipelines.lerobot_io import encode_images, episode_stats
+        from shiftkit.datasets.images import encode_images
+        from shiftkit.datasets.stats import episode_stats
 
         records = [(encode_images(ep, features).frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
         for folder in (self.dir, self.meta_path(source, episode).parent):
@@ -137,7 +139,7 @@ def _files_of(source: Any) -> str | None:
 
 def run_key(plan: Plan) -> str:
     """Identifies the job: same config, same source contents, same stage versions -> resumable parts."""
-    from shiftkit.pipelines.provenance import versions
+    from shiftkit.datasets.provenance import versions
 
     doc = {
         "pipeline": asdict(plan.config),
@@ -165,8 +167,14 @@ def transform_episode(plan: Plan, source: int, episode: Episode) -> tuple[list[E
     # Stage j of the chain draws from the same stream as stage j of that chain run alone.
     for j, stage in enumerate(plan.chain(source)):
         rng = episode_rng(plan.config.seed, source, index, j)
-        # each output knows the source frame each of its frames stands for (Episode.follow)
-        current = [out.follow(ep, stage.name) for ep in current for out in stage.process(ep, rng)]
+        # each output knows the source frame each of its frames stands for (Episode.follow); a frame
+        # stage's keeps its input's (check_output)
+        outputs = []
+        for ep in current:
+            for out in stage.process(ep, rng):
+                check_output(stage, out.follow(ep, stage.name), ep)
+                outputs.append(out)
+        current = outputs
         report.append(stage.take_report())
     where = f"source {source} episode {index}"
     for out in current:

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import numpy_dtype
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import numpy_dtype
 from shiftkit.policies.networks import image_encoder, mlp, orthogonal_init_
 from shiftkit.policies.run_dir import RunDir, load_checkpoint
 from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shiftkit.pipelines.errors import ShiftkitError
+from shiftkit.datasets.errors import ShiftkitError
 
 
 def iqm(scores: np.ndarray, axis: int = -1) -> np.ndarray:
@@ -53,7 +53,7 @@ class Curve:
 
 def read_success(run_dir: Path, metric: str = "success_rate") -> tuple[str, dict[int, float]]:
     """(task, {step: success}) from a run directory's config.json and metrics.jsonl."""
-    from shiftkit.pipelines import loaders
+    from shiftkit.datasets import loaders
 
     config = loaders.load_run_config(run_dir / "config.json")
     lines = loaders.load_metrics(run_dir / "metrics.jsonl", split="eval")

@@ -22,16 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, user_features
-from shiftkit.pipelines.lerobot_io import (
-    DatasetWriter,
-    LeRobotDatasetReader,
-    ResolvedDataset,
-    open_lerobot_dataset,
-    resolve_dataset,
-)
+from shiftkit.datasets.dataset import Dataset
+from shiftkit.datasets.dataset import open as resolve_dataset
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.features import Features, user_features
+from shiftkit.datasets.reader import LeRobotDatasetReader, open_lerobot_dataset
+from shiftkit.datasets.writer import DatasetWriter
 
 INTERVENTION = "intervention"
 # exactly as lerobot's rollout context declares it (rollout/context.py)
@@ -89,7 +86,7 @@ def write_recording(
 class Recording:
     """One opened DAgger recording (its layout shows in its frames: corrections only, or both)."""
 
-    resolved: ResolvedDataset
+    resolved: Dataset
     reader: LeRobotDatasetReader
 
     @property

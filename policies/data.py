@@ -25,42 +25,27 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import numpy_dtype
-from shiftkit.pipelines.lerobot_io import ResolvedDataset, decode_image, decode_video, resolve_dataset
-from shiftkit.pipelines.video import decoder_backend
+from shiftkit import datasets
+from shiftkit.datasets.dataset import Dataset, as_dataset
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.features import numpy_dtype
+from shiftkit.datasets.images import decode_image, decode_video
 
 
-def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[ResolvedDataset, object]]:
-    """Resolve dataset IDs (or local paths) and open them with lerobot's reader."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
+def open_datasets(refs: list[str], root: str | None = None) -> list[tuple[Dataset, object]]:
+    """The datasets `refs` name (IDs or local paths; `root`: the one dataset's folder), each with its
+    lerobot `LeRobotDataset` (`Dataset.lerobot`), whose Arrow table the batches read."""
     if not refs:
         raise DatasetError("no dataset given")
-    opened = []
-    for ref in refs:
-        resolved = resolve_dataset(ref, root=root)
-        try:
-            # Depth (features and statistics) in metres, as shiftkit's trainers take it; the video
-            # backend chosen here, not by lerobot (which logs a long traceback where torchcodec fails).
-            ds = LeRobotDataset(
-                resolved.repo_id, root=resolved.root, depth_output_unit="m", video_backend=decoder_backend()
-            )
-        except Exception as exc:  # lerobot raises many types for a bad folder
-            raise DatasetError(f"cannot open LeRobot dataset {ref!r} at {resolved.root}: {exc}") from exc
-        opened.append((resolved, ds))
-    return opened
+    opened = [datasets.open(ref, root=root) for ref in refs]
+    return [(dataset, dataset.lerobot) for dataset in opened]
 
 
-def example_set_origin(root: str | Path) -> str | None:
-    """What made the dataset at `root` a success-example set (frames of successful states, not
-    demonstrations), as its provenance says: the `success_examples` stage or `import vpace` of
+def example_set_origin(dataset: Dataset | str | Path) -> str | None:
+    """What made `dataset` (a handle or a folder) a success-example set (frames of successful states,
+    not demonstrations), as its provenance says: the `success_examples` stage or `import vpace` of
     example files; None for anything else."""
-    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
-    from shiftkit.pipelines.loaders import load_provenance
-
-    path = Path(root) / PROVENANCE_PATH
-    provenance = load_provenance(path) if path.is_file() else {}
+    provenance = as_dataset(dataset).provenance
     stages = [s["name"] for s in provenance.get("stages", [])]
     importer = provenance.get("importer") or {}
     if "success_examples" in stages:
@@ -70,14 +55,14 @@ def example_set_origin(root: str | Path) -> str | None:
     return None
 
 
-def refuse_example_sets(opened: list[tuple[ResolvedDataset, object]], trainer: str) -> None:
+def refuse_example_sets(opened: list[tuple[Dataset, object]], trainer: str) -> None:
     """Trainers that imitate demonstrations (BC, FIRE, LfGP) refuse a success-example set: its
     frames are isolated successful states, and their actions are no demonstration."""
-    for resolved, _ in opened:
-        origin = example_set_origin(resolved.root)
+    for dataset, _ in opened:
+        origin = example_set_origin(dataset)
         if origin is not None:
             raise DatasetError(
-                f"{resolved.repo_id} is a success-example set (made by {origin}), not demonstrations: {trainer} "
+                f"{dataset.repo_id} is a success-example set (made by {origin}), not demonstrations: {trainer} "
                 "learns from trajectories; give it to `train vpace --examples` instead"
             )
 

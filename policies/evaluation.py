@@ -31,8 +31,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from shiftkit.pipelines.depth import clean_metres, is_legacy_depth, legacy_grey
-from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
+from shiftkit.datasets.depth import clean_metres, is_legacy_depth, legacy_grey
+from shiftkit.datasets.errors import ConfigError, DatasetError, ShiftkitError
 
 
 class Policy(Protocol):
@@ -113,7 +113,7 @@ class ObservationMap:
                 out[key] = env.render_rgb(cam)
             elif key in self.grey_depth:  # trained on older shiftkit data: its 8-bit grey levels
                 out[key] = legacy_grey(env.render_depth(cam))
-            else:  # (H, W, 1) metres, as the dataset reader gives depth (pipelines.depth)
+            else:  # (H, W, 1) metres, as the dataset reader gives depth (datasets.depth)
                 out[key] = clean_metres(env.render_depth(cam))
         return out
 
@@ -177,7 +177,7 @@ class EvalReport:
 def load_policy(path: str | Path, device: str = "cpu") -> Policy:
     """A trained policy from a run folder or checkpoint file, whichever trainer made it."""
     from shiftkit.policies.run_dir import RunDir, run_folder, torch_device
-    from shiftkit.policies.trainers import trainers
+    from shiftkit.policies.trainers import TRAINERS
 
     path = Path(path)
     if not path.exists():
@@ -187,11 +187,10 @@ def load_policy(path: str | Path, device: str = "cpu") -> Policy:
         raise DatasetError(f"{path} is not a shiftkit run (no {run_folder(path) / 'config.json'})")
     torch_device(device)  # an unknown or absent device fails here, in one line
     name = config.get("trainer")
-    registered = trainers()  # the trainer that made the run loads its policies
-    if name not in registered:
+    if name not in TRAINERS:  # the trainer that made the run loads its policies
         raise DatasetError(f"{run_folder(path) / 'config.json'}: unknown trainer {name!r}")
     try:
-        loader = registered[name].policy_loader()
+        loader = TRAINERS.get(name).policy_loader()
     except ModuleNotFoundError as exc:
         raise ShiftkitError(f"policies of trainer {name!r} cannot be loaded in this install ({exc})") from exc
     return loader(path, device=device)
@@ -200,8 +199,8 @@ def load_policy(path: str | Path, device: str = "cpu") -> Policy:
 def policy_rate(path: str | Path) -> int | None:
     """The control rate (Hz) a trained policy acts at: its datasets' fps (BC, FIRE), or for RL
     trainers the rate of the env it trained in; None when the run does not say."""
+    from shiftkit.datasets.dataset import as_dataset
     from shiftkit.envs import env_family
-    from shiftkit.pipelines.loaders import load_info
     from shiftkit.policies.run_dir import RunDir, run_folder
 
     config = RunDir(run_folder(path), resume=True).read_config() or {"datasets": [], "args": {}}
@@ -210,7 +209,7 @@ def policy_rate(path: str | Path) -> int | None:
         fps = record.get("fps")
         info = Path(record.get("root") or "") / "meta" / "info.json"
         if fps is None and record.get("root") and info.is_file():  # a run recorded before fps was
-            fps = load_info(info)["fps"]
+            fps = as_dataset(record["root"]).info["fps"]
         if fps is not None:
             rates.add(fps)
     if config.get("trainer") in ("vpace", "lfgp"):
@@ -402,8 +401,8 @@ def training_yaw(policy_path: str | Path) -> dict[str, Any] | None:
     """The base yaws a policy was trained at, from its training datasets' camera metadata
     (`meta/cameras.json` base poses): {"episodes", "low", "high"} (low == high: a fixed-view policy),
     or None when the run records no dataset with base poses."""
-    from shiftkit.pipelines.camera_meta import episode_cameras, read_cameras_file
-    from shiftkit.pipelines.loaders import load_info
+    from shiftkit.datasets.camera_meta import episode_cameras, read_cameras_file
+    from shiftkit.datasets.dataset import as_dataset
     from shiftkit.policies.run_dir import trained_datasets
 
     yaws = []
@@ -412,7 +411,7 @@ def training_yaw(policy_path: str | Path) -> dict[str, Any] | None:
         if not record.get("root") or not (root / "meta" / "info.json").is_file():
             continue
         doc = read_cameras_file(root)
-        for i in range(load_info(root / "meta" / "info.json").get("total_episodes", 0)):
+        for i in range(as_dataset(root).info.get("total_episodes", 0)):
             poses = [cam["base_pose"] for cam in episode_cameras(doc, i).values() if "base_pose" in cam]
             yaws += [float(pose["yaw"]) for pose in poses[:1]]
     if not yaws:

@@ -41,10 +41,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.features import user_features
-from shiftkit.pipelines.lerobot_io import lerobot_home, open_lerobot_dataset
-from shiftkit.pipelines.provenance import recorded_envs
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.features import user_features
+from shiftkit.datasets.ids import lerobot_home
+from shiftkit.datasets.provenance import recorded_envs
+from shiftkit.datasets.reader import open_lerobot_dataset
 from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt, load_policy
 from shiftkit.policies.dagger_recording import rollout_repo_id, write_recording
 from shiftkit.policies.data import FrameTable, open_datasets, refuse_example_sets

@@ -36,13 +36,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import numpy_dtype, vector_feature
-from shiftkit.pipelines.jsonutil import dumps, read_json_file
-from shiftkit.pipelines.lerobot_io import DatasetWriter, dataset_fingerprint, open_lerobot_dataset, resolve_dataset
-from shiftkit.pipelines.provenance import make_provenance
-from shiftkit.pipelines.staging import check_inputs_and_outputs
+from shiftkit.datasets.dataset import open as resolve_dataset
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import numpy_dtype, vector_feature
+from shiftkit.datasets.ids import dataset_fingerprint
+from shiftkit.datasets.jsonutil import dumps, read_json_file
+from shiftkit.datasets.provenance import make_provenance
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.staging import check_inputs_and_outputs
+from shiftkit.datasets.writer import DatasetWriter
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
 from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shiftkit.pipelines.errors import ConfigError, require_positive
+from shiftkit.datasets.errors import ConfigError, require_positive
 from shiftkit.policies.failure_predictors import PREDICTORS
 from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS
 
@@ -213,7 +213,7 @@ class AggregateArgs:
         """ConfigError (one line) for a bad value."""
         if self.predictor not in RULES:
             raise ConfigError(f"predictor must be one of {', '.join(RULES)}, got {self.predictor!r}")
-        from shiftkit.pipelines.hub import validate_repo_id
+        from shiftkit.datasets.hub import validate_repo_id
 
         validate_repo_id(self.repo_id)
         if self.d_steps is not None and self.d_steps <= 0:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt
 from shiftkit.policies.dagger_recording import runs
 from shiftkit.policies.discriminator import Discriminator

@@ -31,7 +31,7 @@ import torch
 from lerobot.lerobot_types import TransitionKey
 from lerobot.processor.pipeline import ProcessorStep, ProcessorStepRegistry
 
-from shiftkit.pipelines.errors import DatasetError
+from shiftkit.datasets.errors import DatasetError
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature
 from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.failure_predictors import BetaRule, GDARule

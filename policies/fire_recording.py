@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
+from shiftkit.datasets.episode import Episode
 from shiftkit.policies.fire_aggregate import AggregateArgs
 from shiftkit.policies.fire_config import FireArgs
 from shiftkit.policies.fire_predictor import RULES

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shiftkit.pipelines import loaders
+from shiftkit.datasets import loaders
 from shiftkit.policies.evaluation import wilson_interval
 from shiftkit.policies.run_dir import RunDir
 
@@ -39,7 +39,7 @@ def protocol_check(run_path: str | Path) -> dict:
     """Algorithm 2's warm-up and hand-backs as a finished run shows them, read twice: from its episode
     lines (metrics.jsonl) and from its DAgger-layout recording (rollouts/, `intervention` per frame).
     A hand-back is a correction after which the policy drives again in the same episode."""
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     lines = [x for x in RunDir(Path(run_path), resume=True).read_metrics() if x["split"] == "episode"]
     warm = sum(not x["d_ready"] for x in lines)
@@ -78,7 +78,7 @@ EPISODE_LINE = loaders.obj(
 def read_episode_lines(run_path: str | Path) -> list[dict]:
     """The per-episode metric lines of a FIRE run, each with the numbers the figures read;
     ShiftkitError (one line) for anything else."""
-    from shiftkit.pipelines.errors import ShiftkitError
+    from shiftkit.datasets.errors import ShiftkitError
 
     run_dir = RunDir(Path(run_path), resume=True)
     config = run_dir.read_config() if (Path(run_path) / "config.json").is_file() else None
@@ -95,7 +95,7 @@ def roc_scores(lines: list[dict]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Per-predictor episode scores (beta, gda and, for an ensemble policy, doubt and the quantile OR
     of gda and doubt) and the labels (the policy's uninterrupted run failed) of the episodes after D
     started."""
-    from shiftkit.pipelines.errors import ShiftkitError
+    from shiftkit.datasets.errors import ShiftkitError
     from shiftkit.policies.failure_predictors import quantile_or
 
     ready = [x for x in lines if x["d_ready"]]
@@ -160,7 +160,7 @@ def bc_reference(run_paths: list[str | Path]) -> dict:
     seed): expert samples = the frames of its training datasets (mean over the runs), execution time =
     those frames / fps, success = its evaluations' episodes (the one eval/*.json of each run) with the
     Wilson 95% interval."""
-    from shiftkit.pipelines.errors import ShiftkitError
+    from shiftkit.datasets.errors import ShiftkitError
     from shiftkit.policies.run_dir import EVAL, trained_datasets
 
     samples, seconds, successes, episodes = [], [], 0, 0

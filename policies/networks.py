@@ -19,7 +19,7 @@ from typing import override
 import torch
 from torch import nn
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 
 
 def mlp(

@@ -31,7 +31,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 
 # one policy step in a (forked) env: obs -> (action, per-step record such as D and doubt)
 AgentStep = Callable[[Any, np.ndarray], tuple[np.ndarray, dict[str, Any]]]

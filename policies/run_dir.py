@@ -16,7 +16,7 @@
 
 Checkpoints and last.txt are written to a temporary file and renamed into place, so a run killed at
 any moment leaves the previous checkpoint loadable. A checkpoint is data, not code: it is read without
-unpickling anything (`pipelines/data_tree.py` rebuilds the state from the JSON document and the
+unpickling anything (`datasets/data_tree.py` rebuilds the state from the JSON document and the
 tensors), so one pulled from a hub cannot run code when `shiftkit eval` or `--resume` loads it.
 Checkpoints of older shiftkit versions (`step-*.pt`, `best.pt`: torch pickles) are still read, through
 torch's weights-only loader only, which refuses any file holding more than tensors and plain values. Resuming drops the metric lines a killed run
@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from shiftkit.pipelines import data_tree, loaders, provenance
-from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
-from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.datasets import data_tree, loaders, provenance
+from shiftkit.datasets.dataset import Dataset
+from shiftkit.datasets.errors import ConfigError, DatasetError, ShiftkitError
 
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
@@ -161,7 +161,7 @@ def check_checkpoint_files(folder: Path) -> None:
             load_checkpoint(path)
 
 
-def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | int | None]]:
+def dataset_records(resolved: list[Dataset]) -> list[dict[str, str | int | None]]:
     """The `datasets` entry of config.json: what a run trained on, pinned by content fingerprint, with
     its fps (the rate `shiftkit eval` runs the policy's env at)."""
     return [
@@ -170,7 +170,7 @@ def dataset_records(resolved: list[ResolvedDataset]) -> list[dict[str, str | int
             "root": str(r.root),
             "revision": r.revision,
             "fingerprint": r.fingerprint,
-            "fps": loaders.load_info(Path(r.root) / "meta" / "info.json")["fps"],
+            "fps": r.info["fps"],
         }
         for r in resolved
     ]
@@ -337,7 +337,7 @@ class RunDir:
     def refresh_model_card(self) -> None:
         """Re-render README.md (e.g. after an evaluation wrote eval/*.json)."""
         from shiftkit.cards import render_model_card
-        from shiftkit.policies.trainers import trainers
+        from shiftkit.policies.trainers import TRAINERS
 
         config = self.read_config()
         if config is None:
@@ -355,7 +355,7 @@ class RunDir:
             lo, hi = ev["ci95"]
             metrics[f"success {name}"] = f"{ev['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%})"
             envs.append(f"{ev['env']} / {ev['task']}")
-        registered = trainers().get(config["trainer"])
+        registered = TRAINERS.get(config["trainer"]) if config["trainer"] in TRAINERS else None
         card = {
             "trainer": config["trainer"],
             "citation": registered.citation if registered is not None else None,

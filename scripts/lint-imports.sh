@@ -10,7 +10,7 @@ tree="$(mktemp -d)"
 trap 'rm -rf "$tree"' EXIT
 mkdir "$tree/shiftkit"
 touch "$tree/shiftkit/__init__.py"
-for package in pipelines transforms policies envs cards app; do
+for package in datasets pipelines transforms policies envs cards app; do
     (cd "$here" && find "$package" -name '*.py' -not -path '*/__pycache__/*' -exec cp --parents {} "$tree/shiftkit/" \;)
 done
 cd "$here" && PYTHONPATH="$tree" "$venv/bin/lint-imports" --no-cache

@@ -37,7 +37,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 @pytest.fixture
 def synthetic_raw(tmp_path):
     """A small synthetic raw dataset (5 episodes, state + action + success)."""
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     return write_synthetic_raw(tmp_path / "raw", episodes=5, length=12, seed=1)
 
@@ -45,6 +45,6 @@ def synthetic_raw(tmp_path):
 @pytest.fixture
 def synthetic_raw_images(tmp_path):
     """Like `synthetic_raw` with a 48x64 RGB camera."""
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     return write_synthetic_raw(tmp_path / "raw_img", episodes=3, length=8, seed=2, camera=(48, 64))

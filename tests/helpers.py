@@ -74,9 +74,9 @@ def lerobot_train_two_steps(repo_id: str, root: Path, output_dir: Path, policy_a
 
 def write_raw_as_lerobot(raw_dir: Path, repo_id: str, root: Path) -> Path:
     """A raw-episode directory as a LeRobot dataset at `root` (a pipeline with no stages)."""
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     config = PipelineConfig(
         sources=[SourceConfig(path=str(Path(raw_dir).resolve()))],

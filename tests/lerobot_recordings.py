@@ -152,7 +152,7 @@ def write_recording(root: Path, rec: Recording) -> Path:
     if rec.language:
         _annotate(root, rec)
     if rec.camera_meta:
-        from shiftkit.pipelines.camera_meta import write_cameras_file
+        from shiftkit.datasets.camera_meta import write_cameras_file
 
         write_cameras_file(root, {e: camera_metadata(rec) for e in range(len(rec.lengths))})
     return root

@@ -22,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.pipelines.camera_meta import feature_entries
-from shiftkit.pipelines.depth import depth_unit, is_depth
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import CAMERA_DTYPES, Features
+from shiftkit.datasets.camera_meta import feature_entries
+from shiftkit.datasets.depth import depth_unit, is_depth
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import CAMERA_DTYPES, Features
 from shiftkit.pipelines.frame_map import EVENT_KEYS, LANGUAGE_EVENTS, LANGUAGE_PERSISTENT
 
 # Written by lerobot's video writer from the encoded file, not predicted by a stage.
@@ -190,7 +190,7 @@ def check_written(root: Path, features: Features, fps: int, expected: list[Episo
     """The dataset at `root` declares `features` at `fps` exactly (`info` included, but the keys
     lerobot's video writer records from the files, which must describe the written video) and holds
     the episodes `expected` (as read back: depth in metres; video within its coding error)."""
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     info = json.loads((root / "meta" / "info.json").read_text())
     assert info["fps"] == fps
@@ -241,7 +241,7 @@ def _close_video(got: np.ndarray, want: np.ndarray, ft: dict, key: str) -> None:
     """Video is lossy: RGB within a few grey levels on average; depth within a few of lerobot's 12-bit
     log quantiser steps."""
     if is_depth(ft):
-        from shiftkit.pipelines.video import depth_quantiser
+        from shiftkit.datasets.video import depth_quantiser
 
         lo, hi, shift, _ = depth_quantiser(ft.get("info"))
         step = (float(np.max(want)) + shift) * (np.log(hi + shift) - np.log(lo + shift)) / 4095

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from shiftkit.pipelines.errors import ConfigError, DatasetError, ShiftkitError
+from shiftkit.datasets.errors import ConfigError, DatasetError, ShiftkitError
 from shiftkit.policies.bc_policy import BCPolicy, Normalization, PolicySpec, load_policy
 from shiftkit.policies.networks import KeypointCNN, ResNet18Keypoints, SpatialSoftArgmax
 from shiftkit.policies.run_dir import checkpoint_bytes, load_checkpoint
@@ -463,7 +463,7 @@ def test_video_backend_is_chosen_without_a_traceback(monkeypatch, caplog):
     import ctypes.util
     import importlib.util
 
-    from shiftkit.pipelines import video
+    from shiftkit.datasets import video
 
     video.decoder_backend.cache_clear()
     find_spec = importlib.util.find_spec

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.transforms.force_calibration import (
     WRENCH_AXES,
     AxisFit,
@@ -180,7 +180,7 @@ def test_plan_executed_by_the_simulated_robot_fits_like_the_simulated_pushes(tmp
 
 def test_bad_plans_and_recordings_are_one_line_errors(tmp_path, capsys):
     from shiftkit.app.cli import main
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+    from shiftkit.datasets.sources.raw import RawDatasetWriter
 
     assert main(["calibrate", "--plan", str(tmp_path / "plan"), "--pushes", "1", "--held-out", "0"]) == 0
     capsys.readouterr()

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from shiftkit.app.cli import main
-from shiftkit.pipelines.camera_meta import episode_cameras, factor_cameras
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
-from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
+from shiftkit.datasets.camera_meta import episode_cameras, factor_cameras
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources.raw import RawDatasetWriter, open_raw_dataset
 from tests.helpers import write_raw_as_lerobot
 
 INTRINSICS = {"fx": 57.9, "fy": 57.9, "cx": 31.5, "cy": 23.5, "width": 64, "height": 48}
@@ -94,9 +94,9 @@ def test_lerobot_dataset_carries_cameras_outside_the_features(tmp_path, capsys):
 
 
 def test_stages_carry_each_episodes_cameras_to_its_new_index(tmp_path):
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     src = write_raw_as_lerobot(_write_raw(tmp_path / "raw"), "test/cams", tmp_path / "ds")
     config = PipelineConfig(
@@ -113,9 +113,9 @@ def test_stages_carry_each_episodes_cameras_to_its_new_index(tmp_path):
 def test_sharded_executor_keeps_the_cameras(tmp_path):
     """The datatrove executor's workers transform shards of episodes: the dataset keeps every
     episode's cameras, indexed by its place in the whole dataset."""
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     raw = _write_raw(tmp_path / "raw")
     config = PipelineConfig(

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from shiftkit.cards.render import render_dataset_card
-from shiftkit.pipelines.stage import StageContext, build_stage, registered_stages
+from shiftkit.pipelines.stage import STAGES, StageContext, build_stage
 
 
 def _root(tmp_path: Path) -> Path:
@@ -30,7 +30,7 @@ def _root(tmp_path: Path) -> Path:
 )
 def test_a_dataset_card_cites_the_method_of_its_stages(tmp_path, stage, title):
     # the stage's entry as the runner records it in the provenance
-    entry = build_stage(stage, registered_stages()[stage].example_params, StageContext(fps=10), stage).describe()
+    entry = build_stage(stage, STAGES.get(stage).example_params, StageContext(fps=10), stage).describe()
     root = _root(tmp_path)
     assert title in render_dataset_card(root, {"stages": [entry], "sources": []})
     own = {"stages": [], "sources": [{"path": "raw", "stages": [entry]}]}
@@ -38,7 +38,7 @@ def test_a_dataset_card_cites_the_method_of_its_stages(tmp_path, stage, title):
 
 
 def test_a_card_cites_each_paper_once(tmp_path):
-    stages = registered_stages()
+    stages = dict(STAGES.items())
     entries = [
         build_stage(n, stages[n].example_params, StageContext(fps=10), n).describe()
         for n in ("mode_label", "resample", "mode_label")

@@ -14,8 +14,8 @@ from typing import Any, Literal
 import pytest
 
 from shiftkit.app.cli import Parser, build_parser, main
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.option_values import DataclassOptions
 
 
 @dataclass
@@ -153,12 +153,12 @@ def command_paths(parser: argparse.ArgumentParser | None = None, prefix: tuple[s
 
 def test_the_help_walk_finds_every_command_and_subcommand():
     paths = command_paths()
-    from shiftkit.app.cli import COMMANDS
-    from shiftkit.policies.trainers import trainers
+    from shiftkit.app.commands import COMMANDS
+    from shiftkit.policies.trainers import TRAINERS
 
-    assert {p[0] for p in paths if p} == set(COMMANDS)
+    assert {p[0] for p in paths if p} == set(COMMANDS.names())
     assert ["fire", "aggregate"] in paths and ["plot", "roc"] in paths and ["import", "robomimic"] in paths
-    assert all(["train", name] in paths for name in trainers())
+    assert all(["train", name] in paths for name in TRAINERS.names())
 
 
 def test_every_help_imports_no_torch_or_mujoco():
@@ -203,7 +203,7 @@ def test_planning_imports_no_torch_or_mujoco(argv, synthetic_raw, tmp_path):
 THROWAWAY_INIT = """
 import argparse
 
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.option_values import DataclassOptions
 from shiftkit.policies.trainers import Trainer, register
 
 TRAINER = register(Trainer(name="throwaway", help="a trainer made by a test", args=f"{__name__}.args:Args",
@@ -235,17 +235,18 @@ def test_trainers_register_themselves_and_a_new_folder_is_found(tmp_path, monkey
     """Adding a trainer is one new folder under policies/trainers/: discovery registers it, `train
     --help` lists it and `train NAME` takes the options of the args dataclass in its folder."""
     import shiftkit.policies.trainers as registry
+    from shiftkit.policies.trainers import TRAINERS
 
-    assert {"bc", "vpace", "lfgp"} <= set(registry.trainers())
+    assert {"bc", "vpace", "lfgp"} <= set(TRAINERS.names())
     (tmp_path / "throwaway").mkdir()
     (tmp_path / "throwaway" / "__init__.py").write_text(THROWAWAY_INIT)
     (tmp_path / "throwaway" / "args.py").write_text(THROWAWAY_ARGS)
     (tmp_path / "stray.py").write_text("raise AssertionError('a lone module is not a trainer')\n")
     monkeypatch.setattr(registry, "__path__", [*registry.__path__, str(tmp_path)])
-    monkeypatch.setattr(registry, "_DISCOVERED", False)
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    monkeypatch.setattr(TRAINERS, "_discovered", False)
+    monkeypatch.setattr(TRAINERS, "_items", dict(TRAINERS._items))
     try:
-        found = registry.trainer("throwaway")
+        found = TRAINERS.get("throwaway")
         assert found.citation == "Me, 2026."
         assert found.args_class().__module__ == "shiftkit.policies.trainers.throwaway.args"
         assert main(["train", "--help"]) == 0
@@ -255,16 +256,56 @@ def test_trainers_register_themselves_and_a_new_folder_is_found(tmp_path, monkey
     finally:
         for name in ("shiftkit.policies.trainers.throwaway", "shiftkit.policies.trainers.throwaway.args"):
             sys.modules.pop(name, None)
-    with pytest.raises(ConfigError, match="unknown trainer 'nope'"):
-        registry.trainer("nope")
+    with pytest.raises(ConfigError, match=r"unknown trainer 'nope' \(known: bc, lfgp, throwaway, vpace\)"):
+        TRAINERS.get("nope")
+
+
+THROWAWAY_COMMAND = '''
+"""`shiftkit say_hello NAME`: a command made by a test."""
+
+import argparse
+
+HELP = "greet NAME (a command made by a test)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("name")
+
+
+def run(args: argparse.Namespace) -> int:
+    print(f"hello {args.name}")
+    return 0
+'''
+
+
+def test_a_new_command_module_is_found(tmp_path, monkeypatch, capsys):
+    """Adding a command is one new module in `shiftkit.app.commands`: discovery registers it under its
+    name (`_` as `-`), `shiftkit --help` lists it and it runs; an unknown command is one line."""
+    import shiftkit.app.commands as commands
+    from shiftkit.app.commands import COMMANDS
+
+    assert "sim-robot" in COMMANDS and "import" in COMMANDS  # module names sim_robot, import_
+    (tmp_path / "say_hello.py").write_text(THROWAWAY_COMMAND)
+    monkeypatch.setattr(commands, "__path__", [*commands.__path__, str(tmp_path)])
+    monkeypatch.setattr(COMMANDS, "_discovered", False)
+    monkeypatch.setattr(COMMANDS, "_items", {})
+    try:
+        assert main(["--help"]) == 0
+        assert "greet NAME (a command made by a test)" in capsys.readouterr().out
+        assert main(["say-hello", "world"]) == 0
+        assert capsys.readouterr().out == "hello world\n"
+    finally:
+        sys.modules.pop("shiftkit.app.commands.say_hello", None)
+    assert main(["say-goodbye"]) == 2
+    assert "invalid choice: 'say-goodbye'" in capsys.readouterr().err
 
 
 def test_model_cards_cite_the_registered_trainer(tmp_path):
     from shiftkit.policies.run_dir import RunDir
-    from shiftkit.policies.trainers import trainer
+    from shiftkit.policies.trainers import TRAINERS
 
     run = RunDir(tmp_path / "run", resume=False)
     run.write_config({"trainer": "lfgp", "args": {}, "datasets": []})
     run.write_model_card({"steps": 1})
-    assert trainer("lfgp").citation in (tmp_path / "run" / "README.md").read_text()
+    assert TRAINERS.get("lfgp").citation in (tmp_path / "run" / "README.md").read_text()
     assert json.loads((tmp_path / "run" / "config.json").read_text())["trainer"] == "lfgp"

@@ -118,7 +118,7 @@ def ray_cluster(tmp_path_factory) -> Iterator[RayCluster]:
 
 
 def test_ray_cluster_runs_tasks_on_both_nodes_and_writes_the_local_bytes(ray_cluster, tmp_path):
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=EPISODES, length=6, seed=4, camera=(12, 16))
     configs = {name: write_config(tmp_path, raw, name) for name in ("local", "ray")}

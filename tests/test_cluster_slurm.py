@@ -161,7 +161,7 @@ def slurm(tmp_path_factory) -> Iterator[Slurm]:
 
 @pytest.fixture(scope="module")
 def raw(tmp_path_factory) -> Path:
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     root = tmp_path_factory.mktemp("raw")
     return write_synthetic_raw(
@@ -215,7 +215,7 @@ def test_slurm_job_array_writes_the_local_executors_bytes(slurm, raw, tmp_path):
 
 
 def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, tmp_path):
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
     from shiftkit.pipelines.work import work_dir_for
 
     # Enough work that the job is still running when the first part appears: 24 small episodes

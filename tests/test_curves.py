@@ -1,4 +1,4 @@
-"""Success-curve figures (`shiftkit train plot`, `plot fire`): the title names the methods and tasks,
+"""Success-curve figures (`shiftkit plot curves`, `plot fire`): the title names the methods and tasks,
 every legend entry its n."""
 
 from __future__ import annotations

@@ -17,12 +17,13 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.datasets.check import validate_dataset
+from shiftkit.datasets.depth import LEGACY_DEFAULT, VIDEO_DEFAULTS, legacy_grey
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.writer import DatasetWriter
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.dataset_check import validate_dataset
-from shiftkit.pipelines.depth import LEGACY_DEFAULT, VIDEO_DEFAULTS, legacy_grey
-from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig
 from tests.helpers import SMALL_DIFFUSION, lerobot_train_two_steps, tree_hashes
 
 H, W = 48, 64  # lerobot's diffusion backbone needs > 1 pixel after its stride-32 trunk
@@ -229,7 +230,7 @@ def test_lerobot_dataset_tools_accept_depth(collected, tmp_path):
 def test_depth_image_migrates_older_grey_depth(collected, tmp_path):
     """A dataset as older shiftkit wrote it (8-bit grey RGB depth, range in meta/cameras.json)
     becomes native depth in metres within the old encoding's half step."""
-    from shiftkit.pipelines.features import image_feature
+    from shiftkit.datasets.features import image_feature
 
     raw, root = collected
     reader = open_lerobot_dataset(root)

@@ -137,7 +137,7 @@ def test_kinesthetic_dataset_converts_to_lerobot(tmp_path, capsys):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from shiftkit.app.cli import main
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.datasets.sources.raw import open_raw_dataset
 
     raw, out = tmp_path / "raw", tmp_path / "lerobot"
     args = ["collect", "--env", "door-tactile", "--task", "knob-close", "--kinesthetic", "--episodes", "5"]
@@ -222,7 +222,7 @@ def test_collect_in_a_fixed_sensor_mode(tmp_path, expert, fixed):
     """`collect --env-kwarg sensor_mode=...` records the fixed-mode env: 6-dim actions named as the
     env names them, every frame in that mode (state and STS image)."""
     from shiftkit.app.collect import CollectConfig, collect
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.datasets.sources.raw import open_raw_dataset
 
     kwargs = {"sensor_mode": fixed}
     out, _ = collect(

@@ -9,11 +9,12 @@ import cv2
 import numpy as np
 import pyarrow.parquet as pq
 
+from shiftkit.datasets.encoded_frames import EncodedFrames, source_bytes
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.writer import DatasetWriter
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.encoded_frames import EncodedFrames, source_bytes
-from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig
 from tests.helpers import write_raw_as_lerobot
 
 KEY = "observation.images.front"
@@ -75,9 +76,9 @@ def test_changed_frames_are_encoded_afresh(synthetic_raw_images, tmp_path):
 def test_new_frames_are_encoded_by_the_workers_not_the_writer(synthetic_raw_images, tmp_path, monkeypatch):
     """Frames a source or stage made anew are PNG-encoded where the stages run (in parallel with
     several workers); the one writer copies the bytes."""
-    from shiftkit.pipelines import lerobot_io
+    from shiftkit.datasets import images
 
-    real_png, real_init = lerobot_io._png_bytes, DatasetWriter.__init__
+    real_png, real_init = images._png_bytes, DatasetWriter.__init__
     seen = {"writer": False, "encoded_by_writer": 0}
 
     def png(frame):
@@ -88,7 +89,7 @@ def test_new_frames_are_encoded_by_the_workers_not_the_writer(synthetic_raw_imag
         seen["writer"] = True
         real_init(self, *args, **kwargs)
 
-    monkeypatch.setattr(lerobot_io, "_png_bytes", png)
+    monkeypatch.setattr(images, "_png_bytes", png)
     monkeypatch.setattr(DatasetWriter, "__init__", init)
     config = PipelineConfig(
         sources=[SourceConfig(path=str(synthetic_raw_images))],
@@ -107,12 +108,12 @@ def test_new_frames_are_encoded_by_the_workers_not_the_writer(synthetic_raw_imag
 def test_raw_camera_frames_travel_as_their_png_files(synthetic_raw_images, tmp_path, monkeypatch):
     """A pass-through of a raw-episode source copies each camera PNG file's bytes into the
     dataset: no frame is encoded again."""
-    from shiftkit.pipelines import lerobot_io
+    from shiftkit.datasets import images
 
     def no_encoding(frame):
         raise AssertionError("an unchanged raw frame was PNG-encoded again")
 
-    monkeypatch.setattr(lerobot_io, "_png_bytes", no_encoding)
+    monkeypatch.setattr(images, "_png_bytes", no_encoding)
     files = {p.read_bytes() for p in synthetic_raw_images.rglob("frame_*.png")}
     config = PipelineConfig(
         sources=[SourceConfig(path=str(synthetic_raw_images))],

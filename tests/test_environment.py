@@ -24,7 +24,7 @@ pytestmark = pytest.mark.skipif(
 
 PROBE = """
 import json, shiftkit.pipelines
-from shiftkit.pipelines.provenance import versions
+from shiftkit.datasets.provenance import versions
 print(json.dumps({"file": shiftkit.pipelines.__file__, "mark": getattr(shiftkit.pipelines, "MARK", None), **versions()}))
 """
 

@@ -192,7 +192,7 @@ NEW_FAMILY = '''"""A family a test adds as a new folder: Panda play's scene and 
 from dataclasses import replace
 
 from shiftkit.envs import panda_play
-from shiftkit.envs.registry import register_family
+from shiftkit.envs.family import register_family
 
 FAMILY = register_family(replace(panda_play.FAMILY, name="toy-play", gym_prefix="ToyPlay"))
 '''
@@ -204,15 +204,15 @@ def test_a_new_family_folder_is_discovered(tmp_path, monkeypatch):
     its registration."""
     import sys
 
-    from shiftkit.envs import registry
+    from shiftkit.envs.family import FAMILIES
 
     (tmp_path / "toy_play").mkdir()
     (tmp_path / "toy_play" / "__init__.py").write_text(NEW_FAMILY)
-    monkeypatch.setattr(registry, "_FAMILIES", dict(registry._FAMILIES))
+    assert "panda-play" in FAMILIES  # discovered
+    monkeypatch.setattr(FAMILIES, "_items", dict(FAMILIES._items))
+    monkeypatch.setattr(FAMILIES, "_discovered", False)
     monkeypatch.setattr(envs, "__path__", [*envs.__path__, str(tmp_path)])
-    assert "toy-play" not in envs.families()
-    envs.import_families([str(tmp_path)])
-    family = envs.env_family("toy-play")
+    family = envs.env_family("toy-play")  # the registry's discovery imports the new folder too
     try:
         assert envs.gym_id("toy-play", "lift") in gym.registry
         env = envs.make("toy-play", "lift")
@@ -223,3 +223,5 @@ def test_a_new_family_folder_is_discovered(tmp_path, monkeypatch):
         sys.modules.pop("shiftkit.envs.toy_play", None)
         for task in family.tasks:
             gym.registry.pop(family.gym_id(task), None)
+    with pytest.raises(ValueError, match=r"unknown env 'toy-pl' \(known: .*toy-play"):
+        envs.env_family("toy-pl")

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.envs.panda_play.experts import ExpertPolicy
-from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.policies.evaluation import EvalReport, ObservationMap, load_policy, run_episodes, wilson_interval
 
 
@@ -207,11 +207,11 @@ def test_eval_cli_fixed_mode_baseline_from_a_mode_label_dataset(tmp_path, capsys
     """A BC policy trained on a `mode_label` source="visual" dataset (6-dim action) evaluates with
     `--env-kwarg sensor_mode=visual`; on the mode-switching env (7 dims) it is a one-line error."""
     from shiftkit.app.cli import main
+    from shiftkit.datasets.sources import SourceConfig
+    from shiftkit.datasets.sources.raw import RawDatasetWriter
     from shiftkit.envs.door_tactile.env import ACTION_NAMES, OBSERVATION_NAMES
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
     rng = np.random.default_rng(0)
     names = {"state": list(OBSERVATION_NAMES[:19]), "action": list(ACTION_NAMES)}

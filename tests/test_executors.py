@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.pipelines.config import load_pipeline_config
-from shiftkit.pipelines.errors import ConfigError, DatasetError
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.stage import Stage, register_stage
 from shiftkit.pipelines.work import work_dir_for
@@ -36,7 +36,7 @@ repo_id = "test/executors"
 @pytest.fixture
 def raw(tmp_path):
     """6 episodes with a camera and two tasks (task indices must survive the merge)."""
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     return write_synthetic_raw(tmp_path / "raw", episodes=6, length=8, seed=4, camera=(12, 16), tasks=("reach", "push"))
 

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from shiftkit.app.cli import main
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.envs import families, make
-from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
 from tests.helpers import lerobot_train_two_steps
 
@@ -389,7 +389,7 @@ def _episode_lines(run: Path) -> list[dict]:
 def test_fire_writes_the_aggregated_dataset(demo, fire_run):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     run, ds_root = fire_run
     lines = _episode_lines(run)
@@ -444,7 +444,7 @@ def test_shiftkit_train_bc_on_the_aggregated_dataset_by_id(fire_run, tmp_path, m
 
 
 def _rollout_episodes(run: Path) -> list:
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     return list(open_lerobot_dataset(run / "rollouts").iter_episodes())
 
@@ -505,7 +505,7 @@ def test_missed_failures_are_stopped_where_they_show_and_logged(fire_run, demo):
     position within 2 cm or rad, checked here on the recorded sim.qpos), at the latest at the
     episode's end minus the median demonstration's length; each stop is logged with its reason and
     starts an intervention ("fn")."""
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.policies.fire_recording import load_npz
 
     run, _ = fire_run
@@ -554,7 +554,7 @@ def test_gda_learns_from_executed_segments(fire_run):
 
 
 def _demo_frames(root: Path) -> tuple[int, int]:
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     demos = open_lerobot_dataset(root)
     return sum(len(ep) for ep in demos.iter_episodes()), demos.fps
@@ -823,7 +823,7 @@ def test_simulated_rollouts_are_what_lerobots_dagger_strategy_writes(fire_run, t
     add_frame per step, save_episode per episode, finalize."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     run, _ = fire_run
     ours = run / "rollouts"
@@ -884,7 +884,7 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
     from lerobot.lerobot_types import TransitionKey
     from lerobot.processor.pipeline import DataProcessorPipeline, ProcessorStepRegistry
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
     from shiftkit.policies.fire_predictor import FailurePredictor, FailurePredictorStep
     from shiftkit.policies.fire_recording import recorded_episodes
@@ -939,7 +939,7 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
 
 
 def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_path, capsys):
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.policies.dagger_recording import write_recording
     from shiftkit.policies.fire_recording import recorded_episodes
 

@@ -107,7 +107,7 @@ def stage(features, **params):
 
 
 def episodes(raw):
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.datasets.sources.raw import open_raw_dataset
 
     ds = open_raw_dataset(raw)
     return ds.features(), list(ds.iter_episodes())
@@ -181,7 +181,7 @@ def test_drop_failed_and_outcome(kinesthetic):
 
 
 def test_bad_inputs_are_one_line_errors(kinesthetic, synthetic_raw, tmp_path):
-    from shiftkit.pipelines.errors import ConfigError, DatasetError
+    from shiftkit.datasets.errors import ConfigError, DatasetError
 
     features, (ep, _) = episodes(kinesthetic)
     linear_calibration().save(tmp_path / "other.json")  # sensor "test"
@@ -279,7 +279,7 @@ def test_docs_pipelines_run_with_two_workers_and_train_act(kinesthetic, tmp_path
 
 
 def test_damping_feed_forward_moves_targets_along_the_velocity(tmp_path):
-    from shiftkit.pipelines.episode import Episode
+    from shiftkit.datasets.episode import Episode
 
     Calibration(SENSOR, linear_calibration().axes).save(tmp_path / "zero.json")
     poses = random_poses(1)[[0] * 6]
@@ -363,9 +363,9 @@ def test_docs_pipelines_resume_after_sigkill(tmp_path, caplog):
 
 # ----------------------------------------------------------------------------- replay plans for a robot
 def run_stages(source: Path, dest: Path, *stages: tuple[str, dict]) -> Path:
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
 
     stages_ = [StageSpec(name=n, params=p) for n, p in stages]
     config = PipelineConfig([SourceConfig(path=str(source))], DestinationConfig(root=str(dest)), stages_, seed=0)
@@ -400,7 +400,7 @@ def test_replay_plan_executed_by_the_robot_joins_into_the_simulated_replay(four_
     float32 rounding of the action; the simulated robot runs the same physics, so in practice
     exactly), the same replay outcome and first contact."""
     from shiftkit.app.cli import main
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     fm = {"calibration": str(CALIBRATION), "slowdown": 2, "damping_time": 0.25}
     sim = run_stages(four_demos, tmp_path / "sim", ("force_match", fm))
@@ -431,8 +431,8 @@ def test_replay_plan_executed_by_the_robot_joins_into_the_simulated_replay(four_
 
 def test_bad_replay_plans_and_recordings_are_one_line_errors(four_demos, tmp_path, capsys):
     from shiftkit.app.cli import main
-    from shiftkit.pipelines.errors import ConfigError, DatasetError
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter
+    from shiftkit.datasets.errors import ConfigError, DatasetError
+    from shiftkit.datasets.sources.raw import RawDatasetWriter
     from shiftkit.pipelines.stage import StageContext, build_stage
 
     demos = run_stages(four_demos, tmp_path / "demos")  # a LeRobot dataset that is no plan

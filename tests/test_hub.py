@@ -147,7 +147,7 @@ def test_push_pull_round_trip_is_identical_and_loads(hub, dataset, tmp_path):
     (variant / "README.md").write_text("---\nlicense: apache-2.0\ntags: [LeRobot, shiftkit]\n---\n# variant\n")
     extra = copy_tree(variant, tmp_path / "variant-extra")
     (extra / "meta" / "notes.json").write_text("{}")
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=2, length=6)
     (tmp_path / "p.toml").write_text(f'[[sources]]\npath = "{raw}"\n[destination]\nroot = "{tmp_path / "piped"}"\n')

@@ -1,6 +1,7 @@
 """The module import graph: no import cycles between shiftkit's modules (read with grimp, the graph
 library import-linter uses), and the dependency contracts (pyproject's [tool.importlinter], run by
-`scripts/lint-imports.sh`) break when a core module, existing or new, imports upwards."""
+`scripts/lint-imports.sh`) break when a module, existing or new, imports upwards or sideways (the
+engine and the trainers are independent of each other)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("pipelines", "transforms", "policies", "envs", "cards", "app")
+PACKAGES = ("datasets", "pipelines", "transforms", "policies", "envs", "cards", "app")
 
 
 # The strongly connected components (Tarjan) of grimp's graph of direct imports, module level and
@@ -73,25 +74,34 @@ def _repo_copy(dest: Path) -> Path:
     return dest
 
 
-WRONG_WAY = "\nimport shiftkit.policies.fire  # noqa: E402, F401\n"
+WRONG_WAYS = {
+    # a dataset-layer module importing the engine above it
+    "existing dataset module": ("datasets/jsonutil.py", "shiftkit.pipelines.runner"),
+    # a new engine module importing a trainer beside it
+    "new engine module": ("pipelines/fresh_engine_module.py", "shiftkit.policies.fire"),
+    # a trainer module importing the engine beside it
+    "existing policy module": ("policies/replay.py", "shiftkit.pipelines.runner"),
+}
 
 
-@pytest.mark.parametrize("mutation", ["none", "existing core module", "new core module"])
+@pytest.mark.parametrize("mutation", ["none", *WRONG_WAYS])
 def test_a_wrong_way_import_breaks_the_contracts(tmp_path, mutation):
     repo = _repo_copy(tmp_path / "repo")
-    if mutation == "existing core module":
-        with open(repo / "pipelines" / "jsonutil.py", "a") as f:
-            f.write(WRONG_WAY)
-    elif mutation == "new core module":
-        (repo / "pipelines" / "fresh_core_module.py").write_text('"""A core module added later."""' + WRONG_WAY)
+    if mutation != "none":
+        path, target = WRONG_WAYS[mutation]
+        with open(repo / path, "a") as f:
+            f.write(
+                ('"""A module added later."""' if not (repo / path).exists() else "") + f"\nimport {target}  # noqa\n"
+            )
     proc = subprocess.run(
         ["bash", str(repo / "scripts" / "lint-imports.sh"), sys.prefix], capture_output=True, text=True, timeout=300
     )
     if mutation == "none":
         assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
     else:
-        module = "jsonutil" if mutation == "existing core module" else "fresh_core_module"
+        path, target = WRONG_WAYS[mutation]
+        module = "shiftkit." + path.removesuffix(".py").replace("/", ".")
         assert proc.returncode != 0
-        assert "layers: applications (CLI, collect, demo) > stages > policies > pipeline core > " in proc.stdout
-        assert "envs | cards BROKEN" in proc.stdout
-        assert f"shiftkit.pipelines.{module} -> shiftkit.policies.fire" in proc.stdout
+        assert "layers: applications (CLI, collect, demo) > stages > policies | pipeline engine" in proc.stdout
+        assert "> datasets > envs | cards BROKEN" in proc.stdout
+        assert f"{module} -> {target}" in proc.stdout, proc.stdout[-3000:]

@@ -13,8 +13,8 @@ import pytest
 from PIL import Image
 
 from shiftkit.app.cli import main
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
-from shiftkit.pipelines.sources.lerobot_v21 import import_lerobot_v21
+from shiftkit.app.importing import import_dataset
+from shiftkit.datasets.reader import open_lerobot_dataset
 
 FPS = 10
 EPISODES = [("pick", 3), ("place", 4)]
@@ -77,9 +77,10 @@ def _write_v21(root, video=False):
     the data written as lerobot v2.1 did (a `datasets.Dataset` with lerobot's HF features, to_parquet);
     with `video`, the camera is an AV1 video per episode (videos/chunk-000/<key>/episode_*.mp4) encoded
     with lerobot's own encoder."""
-    from datasets import Dataset
     from lerobot.datasets.feature_utils import get_hf_features_from_features
     from lerobot.datasets.video_utils import encode_video_frames
+
+    from datasets import Dataset
 
     features = {**FEATURES, "observation.images.front": VIDEO} if video else FEATURES
     (root / "meta").mkdir(parents=True)
@@ -148,7 +149,8 @@ def test_v21_dataset_converts_into_a_new_directory(tmp_path, capsys):
     before = _tree(src)
     args = ["import", "lerobot-v2.1", str(src), "--repo-id", "me/new_ds", "--root", str(tmp_path / "out")]
     assert main(args) == 0
-    assert "wrote 2 episodes, 7 frames at 10 fps (converted)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "old_ds: converted" in out and "wrote 2 episodes, 7 frames at 10 fps" in out
     assert _tree(src) == before, "the source must stay byte-identical"
     assert sorted(p.name for p in (tmp_path / "src").iterdir()) == ["old_ds"], "nothing renamed or added beside it"
 
@@ -181,8 +183,8 @@ def test_v21_video_dataset_converts(tmp_path):
 
     src = _write_v21(tmp_path / "src" / "vid", video=True)
     before = _tree(src)
-    summary = import_lerobot_v21(src, "me/vid", tmp_path / "out")
-    assert (summary.episodes, summary.frames) == (2, 7)
+    dataset = import_dataset("lerobot-v2.1", {"source": str(src)}, "me/vid", tmp_path / "out")
+    assert (dataset.num_episodes, dataset.info["total_frames"]) == (2, 7)
     assert _tree(src) == before
     assert sorted(p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").glob("videos/**/*.mp4")) == [
         "videos/observation.images.front/chunk-000/file-000.mp4"
@@ -228,8 +230,8 @@ def test_bad_sources_are_one_line_errors(tmp_path, capsys, damage, message):
 
 def test_destination_inside_source_is_refused(tmp_path):
     src = _write_v21(tmp_path / "src")
-    from shiftkit.pipelines.errors import ShiftkitError
+    from shiftkit.datasets.errors import ShiftkitError
 
     with pytest.raises(ShiftkitError, match="lies inside the input source"):
-        import_lerobot_v21(src, "a/b", src / "converted")
+        import_dataset("lerobot-v2.1", {"source": str(src)}, "a/b", src / "converted")
     assert not (src / "converted").exists()

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from shiftkit.app.cli import main
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
-from shiftkit.pipelines.sources.robomimic import import_robomimic
+from shiftkit.app.importing import import_dataset
+from shiftkit.datasets.reader import open_lerobot_dataset
 
 LENGTHS = {"demo_0": 5, "demo_1": 3, "demo_10": 4}  # demo_10 sorts after demo_1 numerically
 
@@ -75,8 +75,8 @@ def test_robomimic_file_imports(tmp_path):
 
     src = _write(tmp_path / "low_dim.hdf5")
     digest = _sha(src)
-    summary = import_robomimic(src, "rm/lift", tmp_path / "out")
-    assert (summary.episodes, summary.frames, summary.fps) == (3, 12, 20)
+    dataset = import_dataset("robomimic", {"file": str(src)}, "rm/lift", tmp_path / "out")
+    assert (dataset.num_episodes, dataset.info["total_frames"], dataset.fps) == (3, 12, 20)
     assert _sha(src) == digest
 
     ds = LeRobotDataset("rm/lift", root=tmp_path / "out")
@@ -118,7 +118,18 @@ def test_robomimic_file_imports(tmp_path):
 
     provenance = json.loads((tmp_path / "out" / "meta" / "shiftkit_provenance.json").read_text())
     assert provenance["sources"][0]["sha256"] == digest
-    assert provenance["importer"]["env_args"]["env_name"] == "Lift"
+    assert provenance["sources"][0]["importer"]["env_args"]["env_name"] == "Lift"
+    # an import is a pipeline with the importer as its source: its record re-runs it
+    assert provenance["pipeline"]["sources"] == [
+        {
+            "path": None,
+            "repo_id": None,
+            "revision": None,
+            "format": "robomimic",
+            "options": {"file": str(src), "filter_key": None, "fps": None, "task": None, "obs_keys": None},
+            "stages": [],
+        }
+    ]
 
 
 def test_filter_key_fps_and_task(tmp_path, capsys):
@@ -152,7 +163,7 @@ def test_language_instruction_per_demo(tmp_path):
         ep_meta=lambda name: {"lang": f"open drawer {name[5:]}", "layout_id": 3},
         edit=one_dim_actions,
     )
-    import_robomimic(src, "rm/lang", tmp_path / "o", filter_key="valid")
+    import_dataset("robomimic", {"file": str(src), "filter_key": "valid"}, "rm/lang", tmp_path / "o")
     (ep,) = open_lerobot_dataset(tmp_path / "o").iter_episodes()
     assert set(ep.frames["task"]) == {"open drawer 1"}
     np.testing.assert_array_equal(
@@ -168,8 +179,8 @@ def test_states_only_file(tmp_path):
             del arrays[key]
 
     src = _write(tmp_path / "demo.hdf5", edit=states_only)
-    summary = import_robomimic(src, "rm/raw", tmp_path / "o")
-    assert (summary.episodes, summary.frames) == (3, 12)
+    dataset = import_dataset("robomimic", {"file": str(src)}, "rm/raw", tmp_path / "o")
+    assert (dataset.num_episodes, dataset.info["total_frames"]) == (3, 12)
     ep = next(open_lerobot_dataset(tmp_path / "o").iter_episodes())
     assert sorted(k for k in ep.frames if k not in ("timestamp", "task")) == ["action", "sim.state"]
     np.testing.assert_array_equal(ep.frames["sim.state"], _demo_arrays("demo_0", 5)["states"])
@@ -211,7 +222,7 @@ def test_bad_options_are_one_line_errors(tmp_path, capsys):
     for extra, message in (
         (["--filter-key", "20_percent"], "no filter key '20_percent' under mask/ (known: ['train', 'valid'])"),
         (["--obs-keys", "robot0_joint_pos"], "has no key(s) ['robot0_joint_pos']"),
-        (["--fps", "0"], "fps must be a positive integer"),
+        (["--fps", "0"], "--fps: must be a positive integer"),
     ):
         assert main(["import", "robomimic", str(src), "--repo-id", "a/b", "--root", str(tmp_path / "o"), *extra]) == 2
         err = capsys.readouterr().err

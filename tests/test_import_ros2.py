@@ -13,10 +13,11 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from shiftkit.app.cli import main
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
-from shiftkit.pipelines.sources.ros2 import _fetch, _plan, _scan, import_ros2, load_mapping
-from shiftkit.pipelines.sources.ros2 import _image as _image_of
+from shiftkit.app.importing import import_dataset
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.importers.ros2 import _fetch, _plan, _scan, load_mapping
+from shiftkit.datasets.importers.ros2 import _image as _image_of
+from shiftkit.datasets.reader import open_lerobot_dataset
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T0 = 1_700_000_000 * 10**9  # bag clock (ns)
@@ -162,9 +163,10 @@ def test_mcap_nearest_alignment_and_split_topic(tmp_path):
         "  action: {topic: /cmd_vel, field: linear.x}\n"
     )
     digest = hashlib.sha256(mcap_file.read_bytes()).hexdigest()
-    summary = import_ros2([mcap_file], mapping, "r/m", tmp_path / "o")  # a bare .mcap file, no metadata.yaml
+    options = {"bags": [str(mcap_file)], "mapping": str(mapping)}
+    dataset = import_dataset("ros2", options, "r/m", tmp_path / "o")  # a bare .mcap file, no metadata.yaml
     assert hashlib.sha256(mcap_file.read_bytes()).hexdigest() == digest
-    assert summary.per_file[0]["lengths"] == [9, 9] and summary.fps == 20
+    assert dataset.provenance["sources"][0]["bags"][0]["lengths"] == [9, 9] and dataset.fps == 20
     first, second = open_lerobot_dataset(tmp_path / "o").iter_episodes()
     # episode 1: [0, 0.5 s) -> start 0.03 (camera), end 0.43 (camera's last in the segment); nearest message
     t = 0.03 + np.arange(9) / 20
@@ -279,7 +281,7 @@ def test_header_stamps_align_sensor_time(tmp_path):
     for time in ("receive", "header"):
         mapping = tmp_path / f"{time}.toml"
         mapping.write_text(f'time = "{time}"\n' + base)
-        import_ros2([mcap_file], mapping, "r/t", tmp_path / time)
+        import_dataset("ros2", {"bags": [str(mcap_file)], "mapping": str(mapping)}, "r/t", tmp_path / time)
         (results[time],) = open_lerobot_dataset(tmp_path / time).iter_episodes()
     # receive time: the camera arrives 45 ms late, so frames start at 75 ms and pair image k with joints
     # read 45 ms after it was taken; header time: frames start at the image stamp (30 ms), joints from then.
@@ -297,7 +299,7 @@ def test_header_stamps_align_sensor_time(tmp_path):
     )
     bag = _write_bag(tmp_path / "rec", duration_ns=200_000_000)
     with pytest.raises(DatasetError, match=r"/cmd_vel \(geometry_msgs/msg/Twist\) has no header.stamp"):
-        import_ros2([bag], mapping, "r/t", tmp_path / "bad")
+        import_dataset("ros2", {"bags": [str(bag)], "mapping": str(mapping)}, "r/t", tmp_path / "bad")
 
 
 def test_image_encodings():

@@ -15,13 +15,14 @@ import pytest
 from shiftkit.app.cli import main
 from shiftkit.app.importers.vpace import (
     ReferenceName,
-    import_vpace,
     parse_reference_name,
     read_vpace_buffer,
     task_from_filename,
 )
-from shiftkit.pipelines.errors import DatasetError, ShiftkitError
-from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
+from shiftkit.app.importing import import_dataset
+from shiftkit.datasets.episode import META_COLUMN
+from shiftkit.datasets.errors import DatasetError, ShiftkitError
+from shiftkit.datasets.reader import open_lerobot_dataset
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vpace"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"published VPACE data not found at {DATA}")
@@ -84,8 +85,9 @@ def test_published_example_sets(tmp_path):
         pointer=0,
         count=10,
     )
-    summary = import_vpace(files, "vpace/examples", tmp_path / "ex")
-    assert (summary.kind, summary.episodes, summary.frames, summary.fps) == ("examples", 1210, 1210, 20)
+    dataset = import_dataset("vpace", {"files": [str(f) for f in files]}, "vpace/examples", tmp_path / "ex")
+    kind = dataset.provenance["sources"][0]["importer"]["kind"]
+    assert (kind, dataset.num_episodes, dataset.info["total_frames"], dataset.fps) == ("examples", 1210, 1210, 20)
 
     ds = LeRobotDataset("vpace/examples", root=tmp_path / "ex")
     assert ds.num_episodes == 1210 and len(ds) == 1210
@@ -106,12 +108,13 @@ def test_published_example_sets(tmp_path):
     assert json.loads(reader.episodes.iloc[1201][META_COLUMN])["source"] == {"file": "10_reach.gz", "rows": [1, 2]}
 
     provenance = json.loads((tmp_path / "ex" / "meta" / "shiftkit_provenance.json").read_text())
-    assert [s["sha256"] for s in provenance["sources"]] == [hashlib.sha256(f.read_bytes()).hexdigest() for f in files]
-    assert provenance["sources"][0]["path"] == str(files[0].resolve())
-    assert provenance["importer"]["kind"] == "examples"
+    (source,) = provenance["sources"]
+    assert [f["sha256"] for f in source["files"]] == [hashlib.sha256(f.read_bytes()).hexdigest() for f in files]
+    assert source["files"][0]["path"] == str(files[0].resolve())
+    assert source["importer"]["kind"] == "examples"
 
     # The VPACE trainer reads the example set back in the env's observation order, by dimension name.
-    from shiftkit.policies.example_buffer import load_dataset_examples
+    from shiftkit.policies.trainers.vpace.example_buffer import load_dataset_examples
 
     examples, _ = load_dataset_examples([str(tmp_path / "ex")], ["reach"], observation_names=list(OBSERVATION_NAMES))
     np.testing.assert_array_equal(examples["reach"].obs, raw_reach["observations"][:10, :59])
@@ -121,9 +124,12 @@ def test_published_example_sets(tmp_path):
 def test_published_trajectories_split_into_episodes(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    summary = import_vpace([DATA / f for f in TRAJECTORY_FILES], "vpace/trajectories", tmp_path / "tr")
-    assert {f["task"]: f["lengths"] for f in summary.per_file} == EXPECTED_LENGTHS
-    assert (summary.kind, summary.episodes, summary.frames, summary.fps) == ("trajectories", 55, 600, 5)
+    files = [str(DATA / f) for f in TRAJECTORY_FILES]
+    dataset = import_dataset("vpace", {"files": files}, "vpace/trajectories", tmp_path / "tr")
+    (source,) = dataset.provenance["sources"]
+    assert {f["task"]: f["lengths"] for f in source["files"]} == EXPECTED_LENGTHS
+    counts = (source["importer"]["kind"], dataset.num_episodes, dataset.info["total_frames"], dataset.fps)
+    assert counts == ("trajectories", 55, 600, 5)
 
     ds = LeRobotDataset("vpace/trajectories", root=tmp_path / "tr")
     assert ds.num_episodes == 55 and len(ds) == 600 and ds.fps == 5
@@ -187,8 +193,8 @@ def test_circular_buffer_order_and_reward_columns(tmp_path):
     np.testing.assert_array_equal(buf.observations, obs[2:, :53])
     assert buf.kind() == "trajectories" and buf.episode_bounds() == [(0, 1), (1, 4), (4, 7)]
 
-    summary = import_vpace([path], "t/ring", tmp_path / "ds")
-    assert summary.per_file[0]["lengths"] == [1, 3, 3]
+    dataset = import_dataset("vpace", {"files": [str(path)]}, "t/ring", tmp_path / "ds")
+    assert dataset.provenance["sources"][0]["files"][0]["lengths"] == [1, 3, 3]
     episodes = list(open_lerobot_dataset(tmp_path / "ds").iter_episodes())
     assert episodes[0].meta["source"]["start_overwritten"] and not episodes[1].meta["source"]["start_overwritten"]
     np.testing.assert_array_equal(np.concatenate([ep.frames["next.reward"] for ep in episodes]), rewards[2:])
@@ -225,7 +231,7 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
     with pytest.raises(DatasetError, match="empty buffer"):
         read_vpace_buffer(empty)
     with pytest.raises(ShiftkitError, match="invalid repo id"):
-        import_vpace([bad_width], "not a repo id", tmp_path / "never")
+        import_dataset("vpace", {"files": [str(bad_width)]}, "not a repo id", tmp_path / "never")
     assert not (tmp_path / "never").exists()
 
     assert (
@@ -444,7 +450,7 @@ def test_revised_recording_imports_without_task(tmp_path, capsys):
     assert [ep.meta["task"] for ep in episodes] == ["move-object"] * 3
     np.testing.assert_array_equal(np.concatenate([_full_observation(ep) for ep in episodes]), obs[:, :53])
     provenance = json.loads((tmp_path / "m" / "meta" / "shiftkit_provenance.json").read_text())
-    assert provenance["sources"][0]["file_name"] == {"task": "move-object", "scene": None, "variant": "new"}
+    assert provenance["sources"][0]["files"][0]["file_name"] == {"task": "move-object", "scene": None, "variant": "new"}
     assert hashlib.sha256(path.read_bytes()).hexdigest() == digest
 
     # Files of the reference's other environments have their names mapped; their layout is refused by name.

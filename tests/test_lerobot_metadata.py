@@ -8,12 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import object_column
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.writer import DatasetWriter
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import object_column
-from shiftkit.pipelines.lerobot_io import DatasetWriter, open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig
 
 FPS, LENGTH = 10, 12
 

@@ -13,10 +13,10 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.sources.raw import RawDatasetWriter
 from shiftkit.pipelines.config import load_pipeline_config
-from shiftkit.pipelines.errors import DatasetError
 from shiftkit.pipelines.planner import plan_pipeline
-from shiftkit.pipelines.sources.raw import RawDatasetWriter
 from tests.helpers import lerobot_train_two_steps, write_raw_as_lerobot
 
 TELEOP_STAGES = """stages = [

@@ -8,13 +8,14 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.datasets.episode import META_COLUMN
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.sources.raw import RawDatasetWriter, open_raw_dataset
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
 from shiftkit.pipelines.planner import plan_pipeline
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig
-from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
 from shiftkit.transforms.mode_labels import contact_modes, operator_modes, timing_report
 
 VISUAL, TACTILE = 40, 200  # grey levels of the two synthetic STS images

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from shiftkit.app.demo import run_demo
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+from shiftkit.datasets.reader import open_lerobot_dataset
 
 
 def test_demo_records_rerenders_validates_and_draws_the_views(tmp_path):

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.envs import env_family
 from shiftkit.envs.multiview.experts import ExpertPolicy
-from shiftkit.pipelines.errors import ConfigError
 from shiftkit.policies.evaluation import YAW_BINS, draw_yaw_sweep, write_yaw_sweep, yaw_sweep
 
 

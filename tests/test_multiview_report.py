@@ -11,10 +11,10 @@ import pytest
 
 from shiftkit.app.cli import main
 from shiftkit.app.collect import CollectConfig, collect
+from shiftkit.datasets.sources.raw import open_raw_dataset
 from shiftkit.envs.base_pose import BasePose
 from shiftkit.pipelines.config import load_pipeline_config
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources.raw import open_raw_dataset
 from shiftkit.pipelines.stage import StageContext
 from shiftkit.pipelines.work import episode_rng, work_dir_for
 from shiftkit.transforms.multiview import Multiview, MultiviewConfig

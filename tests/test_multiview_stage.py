@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from shiftkit.app.collect import CollectConfig, collect
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.sources.raw import open_raw_dataset
 from shiftkit.envs import make
 from shiftkit.envs.base_pose import SAMPLER, BasePose
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.planner import plan_pipeline
-from shiftkit.pipelines.sources import SourceConfig
-from shiftkit.pipelines.sources.raw import open_raw_dataset
 from shiftkit.pipelines.stage import StageContext
 from shiftkit.transforms.multiview import Multiview, MultiviewConfig
 
@@ -126,7 +126,7 @@ def test_input_without_simulator_state_is_refused(synthetic_raw, tmp_path):
 def test_multiview_dataset_cameras_json_carries_per_episode_base_poses(tmp_path):
     import json
 
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.pipelines.runner import run_pipeline
 
     raw, _ = collect(

@@ -68,7 +68,7 @@ def test_play_episode_labels_contiguous_segments():
 
 
 def test_collect_raw_then_lerobot(tmp_path, capsys):
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.datasets.sources.raw import open_raw_dataset
 
     out = tmp_path / "raw"
     assert (

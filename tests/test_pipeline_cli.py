@@ -81,7 +81,7 @@ def test_two_workers_give_the_same_bytes(tmp_path, synthetic_raw):
 
 @pytest.mark.slow
 def test_sigkill_then_resume(tmp_path):
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=120, length=30, seed=3, camera=(48, 64))
     before = tree_hashes(raw)

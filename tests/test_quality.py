@@ -1,4 +1,4 @@
-"""The quality verdict (`pipelines/quality.py`, `shiftkit validate --quality`): datasets written by
+"""The quality verdict (`datasets/quality.py`, `shiftkit validate --quality`): datasets written by
 lerobot's own writer, a good one with no finding and bad ones whose every planted problem is found
 in the episode and dimension it was planted in; the verdict in the provenance and the card of what
 `shiftkit run` writes."""
@@ -87,7 +87,7 @@ def bad(tmp_path_factory) -> Path:
 
 
 def test_good_dataset_has_no_finding(good):
-    from shiftkit.pipelines.quality import quality_verdict
+    from shiftkit.datasets.quality import quality_verdict
 
     verdict = quality_verdict(good)
     assert verdict["verdict"] == "ok", verdict["findings"]
@@ -95,7 +95,7 @@ def test_good_dataset_has_no_finding(good):
 
 
 def test_every_planted_problem_is_found_where_it_was_planted(bad):
-    from shiftkit.pipelines.quality import quality_verdict
+    from shiftkit.datasets.quality import quality_verdict
 
     verdict = quality_verdict(bad)
     assert verdict["verdict"] == "warn"
@@ -127,7 +127,7 @@ def test_every_planted_problem_is_found_where_it_was_planted(bad):
 
 
 def test_nan_fails(tmp_path):
-    from shiftkit.pipelines.quality import quality_verdict
+    from shiftkit.datasets.quality import quality_verdict
 
     episodes = [smooth_episode(40, 0.3 * k) for k in range(3)]
     episodes[1]["action"][7, 1] = np.nan
@@ -160,8 +160,8 @@ def test_chunk_size_option(good, capsys):
 
 
 def test_depth_against_its_unit():
-    from shiftkit.pipelines.depth import depth_feature
-    from shiftkit.pipelines.quality import _depth_findings
+    from shiftkit.datasets.depth import depth_feature
+    from shiftkit.datasets.quality import _depth_findings
 
     metres, mm = depth_feature(4, 4, unit="m"), depth_feature(4, 4, unit="mm")
     assert _depth_findings("d", metres, {"min": [[[0.2]]], "max": [[[2.0]]]}) == []
@@ -176,7 +176,7 @@ def test_depth_against_its_unit():
 
 
 def test_sts_mode_flicker_and_done_before_the_end():
-    from shiftkit.pipelines.quality import _Checks
+    from shiftkit.datasets.quality import _Checks
 
     features = {
         "action": {"dtype": "float32", "shape": (2,), "names": ["dx", "sts_mode"]},

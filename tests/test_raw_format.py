@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.sources.raw import RawDatasetWriter, open_raw_dataset
 from tests.helpers import tree_hashes
 
 

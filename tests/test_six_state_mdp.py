@@ -2,7 +2,13 @@
 
 import pytest
 
-from shiftkit.policies.six_state_mdp import greedy_action, greedy_rollout, lfgp_fix, thesis_q_history, true_return
+from shiftkit.policies.trainers.vpace.six_state_mdp import (
+    greedy_action,
+    greedy_rollout,
+    lfgp_fix,
+    thesis_q_history,
+    true_return,
+)
 
 
 def test_six_state_mdp():

@@ -13,12 +13,13 @@ import shutil
 
 import pytest
 
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.envs.registry import import_modules
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.errors import ConfigError
 from shiftkit.pipelines.planner import plan_pipeline
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig
-from shiftkit.pipelines.stage import registered_stages
+from shiftkit.pipelines.stage import STAGES as REGISTRY
 from tests.helpers import tree_hashes
 from tests.stage_truth import check_against_source, check_written
 
@@ -33,7 +34,7 @@ EXAMPLE_INPUTS = {
 
 def shipped_stages() -> dict[str, type]:
     """Every stage shiftkit ships (tests may register their own stages; those are not covered here)."""
-    return {name: cls for name, cls in registered_stages().items() if cls.__module__.startswith("shiftkit.")}
+    return {name: cls for name, cls in REGISTRY.items() if cls.__module__.startswith("shiftkit.")}
 
 
 STAGES = sorted(shipped_stages())
@@ -170,7 +171,7 @@ def test_stage_is_true_on_a_lerobot_recording(name, tmp_path):
     from tests.lerobot_recordings import Recording, recording
 
     src = recording(Recording(**LEROBOT_RECORDING))
-    config = config_for(src, tmp_path / "out", name, registered_stages()[name].example_params, seed=7)
+    config = config_for(src, tmp_path / "out", name, REGISTRY.get(name).example_params, seed=7)
     plan = plan_pipeline(config)
     expected = transformed_and_checked(plan)
     run_pipeline(config, progress=False)
@@ -201,7 +202,7 @@ def test_stage_rejects_bad_config(name, synthetic_raw, tmp_path):
 
 def assert_rejects_bad_config(name, raw, tmp_path):
     """An unknown key and a wrongly typed value are one-line ConfigErrors naming the key."""
-    example = registered_stages()[name].example_params
+    example = REGISTRY.get(name).example_params
     with pytest.raises(ConfigError, match="unknown key 'no_such_option'") as info:
         plan_pipeline(config_for(raw, tmp_path / "o", name, {**example, "no_such_option": 1}))
     assert "\n" not in str(info.value)
@@ -253,12 +254,13 @@ def test_a_new_stage_module_is_discovered_and_checked(synthetic_raw_images, tmp_
     folder = tmp_path / "new_stages"
     folder.mkdir()
     (folder / "scale_action.py").write_text(THROWAWAY_STAGE)
-    monkeypatch.setattr(stage_module, "_REGISTRY", dict(stage_module._REGISTRY))
+    assert "cast" in REGISTRY  # discovered: the registry has loaded shiftkit's stages
+    monkeypatch.setattr(REGISTRY, "_items", dict(REGISTRY._items))
     monkeypatch.setattr(shiftkit.transforms, "__path__", [*shiftkit.transforms.__path__, str(folder)])
     monkeypatch.delitem(sys.modules, "shiftkit.transforms.scale_action", raising=False)
-    assert "scale_action" not in registered_stages()
+    assert "scale_action" not in REGISTRY
 
-    stage_module.import_modules("shiftkit.transforms", shiftkit.transforms.__path__)
+    import_modules("shiftkit.transforms", shiftkit.transforms.__path__)  # what the stages package does
     assert "scale_action" in [case.id for case in stage_cases()]
     assert "scale_action (v1): `scale_action`: multiply the action by a factor" in stage_module.describe_stages()
     name, params, fixture = next(case.values for case in stage_cases() if case.id == "scale_action")
@@ -266,7 +268,7 @@ def test_a_new_stage_module_is_discovered_and_checked(synthetic_raw_images, tmp_
     assert_conforms(name, params, synthetic_raw_images, tmp_path / "conforms")
     assert_rejects_bad_config(name, synthetic_raw_images, tmp_path / "bad")
     # the same stage not saying that it computes the action anew: the truth checks catch it
-    monkeypatch.setattr(registered_stages()[name], "carried_features", stage_module.Stage.carried_features)
+    monkeypatch.setattr(REGISTRY.get(name), "carried_features", stage_module.Stage.carried_features)
     with pytest.raises(AssertionError, match="'action': frame 0 does not hold source frame 0's values"):
         assert_conforms(name, params, synthetic_raw_images, tmp_path / "silent")
     sys.modules.pop("shiftkit.transforms.scale_action")

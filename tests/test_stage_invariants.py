@@ -27,14 +27,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import check_episode
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources import SourceConfig, open_source
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, PipelineSource, StageSpec
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import check_episode
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.planner import build_chain
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig, open_source
-from shiftkit.pipelines.stage import registered_stages
+from shiftkit.pipelines.stage import STAGES
 from tests.lerobot_recordings import Recording, depth_metres, recording, recordings
 
 EXAMPLES = 12  # recordings per run; each is written by lerobot (about a second) and every stage runs on it
@@ -44,7 +44,7 @@ def applicable_stages(features, fps) -> dict:
     """The registered stages whose example parameters plan on a recording of `features` (the others
     need a simulator recording: multiview, force_match, replay_join)."""
     out = {}
-    for name, cls in registered_stages().items():
+    for name, cls in STAGES.items():
         try:
             build_chain([StageSpec(name, cls.example_params or {})], features, fps, name)
         except (ConfigError, DatasetError):
@@ -56,7 +56,7 @@ def applicable_stages(features, fps) -> dict:
 def test_every_stage_the_recordings_fit_is_drawn():
     """Every stage whose example runs on the synthetic recordings runs on the lerobot-written ones."""
     src = open_source(SourceConfig(path=str(recording(Recording()))))
-    synthetic = {n for n, cls in registered_stages().items() if cls.example_input == "synthetic"}
+    synthetic = {n for n, cls in STAGES.items() if cls.example_input == "synthetic"}
     assert synthetic <= set(applicable_stages(src.features, src.fps))
 
 
@@ -204,7 +204,7 @@ def test_merging_depth_of_two_units_reads_back_each_source(tmp_path, first):
     sources = json.loads((out / "meta" / "shiftkit_provenance.json").read_text())["sources"]
     assert "depth_units" not in sources[0]
     assert sources[1]["depth_units"] == {"observation.depth.front": [other, first]}
-    from shiftkit.pipelines.dataset_check import recompute_stats, validate_dataset
+    from shiftkit.datasets.check import recompute_stats, validate_dataset
 
     validate_dataset(out)
     recompute_stats(out)  # validate --deep: values possible in the declared unit

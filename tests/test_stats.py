@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from lerobot.datasets import compute_stats as lerobot_stats
 from lerobot.datasets.image_writer import write_image
 
-from shiftkit.pipelines.stats import (
+from shiftkit.datasets.stats import (
     NUM_BINS,
     QUANTILE_KEYS,
     QUANTILES,
@@ -250,7 +250,7 @@ def test_image_stats_sample_like_lerobot_without_importing_it():
     import subprocess
     import sys
 
-    from shiftkit.pipelines.stats import _image_samples
+    from shiftkit.datasets.stats import _image_samples
 
     for length in (1, 2, 99, 100, 101, 500, 1000, 5000, 20_000):
         expected = lerobot_stats.sample_indices(length)
@@ -261,7 +261,7 @@ def test_image_stats_sample_like_lerobot_without_importing_it():
         channels_first = lerobot_stats.auto_downsample_height_width(frame[0].transpose(2, 0, 1))
         np.testing.assert_array_equal(_image_samples(frame)[0].transpose(2, 0, 1), channels_first)
     code = (
-        "import sys, numpy as np; from shiftkit.pipelines.stats import image_stats, depth_stats, feature_stats; "
+        "import sys, numpy as np; from shiftkit.datasets.stats import image_stats, depth_stats, feature_stats; "
         "image_stats(np.zeros((5, 4, 4, 3), np.uint8)); depth_stats(np.ones((1, 1, 1, 1), np.float32)); "
         "feature_stats(np.zeros((1, 3))); print('torch' in sys.modules, 'lerobot' in sys.modules)"
     )

@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.sources.raw import open_raw_dataset
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.planner import plan_pipeline
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig
-from shiftkit.pipelines.sources.raw import open_raw_dataset
 from tests.helpers import tree_hashes
 
 
@@ -97,7 +97,7 @@ def test_n_per_task_is_a_seeded_sample_independent_of_workers(synthetic_raw, tmp
 
 
 def test_select_keeps_the_smallest_keys_per_task():
-    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.datasets.errors import DatasetError
     from shiftkit.pipelines.stage import StageContext
     from shiftkit.transforms.success_examples import SuccessExamples, SuccessExamplesConfig
 
@@ -159,7 +159,7 @@ def test_bad_input_and_config_are_one_line_errors(synthetic_raw, tmp_path):
     ]
     with pytest.raises(ConfigError, match="needs a per-frame bool 'next.success'"):
         plan_pipeline(_config(synthetic_raw, tmp_path / "a", stages=no_success))
-    with pytest.raises(ConfigError, match="n_per_task must be >= 1") as info:
+    with pytest.raises(ConfigError, match="n_per_task must be a positive integer") as info:
         plan_pipeline(_config(synthetic_raw, tmp_path / "b", n_per_task=0))
     assert "\n" not in str(info.value)
     with pytest.raises(ConfigError, match="states"):

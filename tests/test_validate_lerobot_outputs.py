@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from shiftkit.app.cli import main
-from shiftkit.pipelines.dataset_check import validate_dataset
-from shiftkit.pipelines.errors import DatasetError
+from shiftkit.datasets.check import validate_dataset
+from shiftkit.datasets.errors import DatasetError
 from tests.helpers import write_raw_as_lerobot
 
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from shiftkit.policies.value_penalty import MedianFilter, ValueBounds, value_penalty
+from shiftkit.policies.trainers.vpace.value_penalty import MedianFilter, ValueBounds, value_penalty
 
 
 def test_penalty_above_q_max_pushes_q_down():

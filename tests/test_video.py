@@ -10,12 +10,12 @@ import shutil
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.camera_meta import factor_cameras
+from shiftkit.datasets.camera_meta import factor_cameras
+from shiftkit.datasets.check import validate_dataset
+from shiftkit.datasets.reader import open_lerobot_dataset
+from shiftkit.datasets.sources import SourceConfig
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.dataset_check import validate_dataset
-from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
 from shiftkit.pipelines.runner import run_pipeline
-from shiftkit.pipelines.sources import SourceConfig
 from tests.helpers import SMALL_DIFFUSION, lerobot_train_two_steps
 
 SIZE = 32
@@ -163,7 +163,7 @@ def test_collect_writes_videos(tmp_path):
 
 def test_video_needs_lerobot_output(tmp_path):
     from shiftkit.app.collect import CollectConfig, collect
-    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.datasets.errors import ConfigError
 
     with pytest.raises(ConfigError, match="--video applies to LeRobot output"):
         collect(CollectConfig(task="lift", episodes=1, cameras=("front",), video=True, out=str(tmp_path / "raw")))
@@ -179,8 +179,8 @@ def test_in_memory_encoder_is_lerobots_encoder(tmp_path):
     from lerobot.datasets.image_writer import write_image
     from lerobot.datasets.video_utils import encode_video_frames
 
-    from shiftkit.pipelines.depth import VIDEO_DEFAULTS
-    from shiftkit.pipelines.video import decode_episode, dequantize_metres, encode_frames
+    from shiftkit.datasets.depth import VIDEO_DEFAULTS
+    from shiftkit.datasets.video import decode_episode, dequantize_metres, encode_frames
 
     frames = np.stack([_frame(t, 1) for t in range(12)])
     depth = np.stack([np.full((SIZE, SIZE, 1), 0.3 + 0.1 * t, np.float32) for t in range(12)])

@@ -75,7 +75,7 @@ def fire_dataset(tmp_path_factory) -> Path:
 
 
 def test_view_multiview_dataset(multiview, tmp_path, capsys):
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     out = tmp_path / "mv.rrd"
     assert main(["view", str(multiview), "--save", str(out), "--no-progress"]) == 0
@@ -125,7 +125,7 @@ def test_view_multiview_dataset(multiview, tmp_path, capsys):
 
 
 def test_view_fire_dataset(fire_dataset, tmp_path):
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     out = tmp_path / "fire.rrd"
     assert main(["view", str(fire_dataset), "--save", str(out), "--no-progress"]) == 0

@@ -13,15 +13,20 @@ import numpy as np
 import pytest
 import torch
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
-from shiftkit.policies.example_buffer import ExampleBuffer, ExampleRows, TaskExamples, load_dataset_examples
 from shiftkit.policies.replay import ReplayBuffer
-from shiftkit.policies.reward_models import DACReward, SQILReward, rce_targets
 from shiftkit.policies.run_dir import load_checkpoint
 from shiftkit.policies.sac import BatchedLinear, Intentions, NarrowProduct, polyak_update
-from shiftkit.policies.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.trainers.vpace.args import VPACEArgs
+from shiftkit.policies.trainers.vpace.example_buffer import (
+    ExampleBuffer,
+    ExampleRows,
+    TaskExamples,
+    load_dataset_examples,
+)
+from shiftkit.policies.trainers.vpace.reward_models import DACReward, SQILReward, rce_targets
+from shiftkit.policies.trainers.vpace.schedulers import HANDCRAFTED_PRESETS, QTableScheduler, WeightedRandomScheduler
 from shiftkit.policies.trainers.vpace.training import Agent, expert_transitions, make_env, train
 
 GOAL = np.array([0.5, 0.5], np.float32)
@@ -182,9 +187,9 @@ def test_config_errors(tmp_path):
         run(tiny_args(tmp_path, "h", handcrafted=["main,lift"]))
     with pytest.raises(ConfigError, match="learned scheduler needs"):
         run(tiny_args(tmp_path, "q", scheduler="learned"))  # SQIL labels give the scheduler no signal
-    with pytest.raises(ConfigError, match="unknown vp_q_max"):
+    with pytest.raises(ConfigError, match="vp_q_max must be one of mean, max, got 'median'"):
         run(tiny_args(tmp_path, "m", vp_q_max="median"))
-    with pytest.raises(ConfigError, match="unknown scheduler"):
+    with pytest.raises(ConfigError, match="scheduler must be one of wrs, learned, got 'round-robin'"):
         run(tiny_args(tmp_path, "u", scheduler="round-robin"))
     with pytest.raises(ConfigError, match="unknown env"):
         make_env("no-such-env", "reach", {})
@@ -727,15 +732,9 @@ def test_cli_train_and_plot(tmp_path, monkeypatch):
     )
     assert main(["train", "vpace", *common, "--aux-tasks", "lift", "--output", str(tmp_path / "bad2")]) == 2
 
-    import argparse
-
-    from shiftkit.policies.trainers import vpace as vpace_cli
-
-    parser = argparse.ArgumentParser()
-    vpace_cli.add_plot_arguments(parser)
     png = tmp_path / "curves.png"
     groups = [f"vpace={tmp_path / 'vpace0'},{tmp_path / 'vpace1'}", f"sqil={tmp_path / 'sqil'}"]
-    assert vpace_cli.run_plot(parser.parse_args([*groups, "--out", str(png)])) == 0
+    assert main(["plot", "curves", *groups, "--out", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -1,6 +1,7 @@
 """shiftkit.transforms: the offline stages. Importing this package imports every module in it, and
-each stage module registers its stages (`@register_stage`), so a new stage is one new module."""
+each stage module registers its stages (`@register_stage`), so a new stage is one new module. The
+application loads it (`shiftkit.app.plugins`)."""
 
-from shiftkit.pipelines.stage import import_modules
+from shiftkit.envs.registry import import_modules
 
 import_modules(__name__, __path__)

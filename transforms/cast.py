@@ -9,10 +9,10 @@ from typing import Any, Literal, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import NUMERIC_DTYPES, Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import NUMERIC_DTYPES, Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 NumericDtype = Literal["float32", "float64", "int64", "int32", "bool"]
 
@@ -26,7 +26,7 @@ class CastConfig:
 
 
 @register_stage
-class Cast(Stage):
+class Cast(FrameStage):
     """Changes the dtype of the named numeric features, in the schema and in every frame."""
 
     name = "cast"

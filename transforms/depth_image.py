@@ -1,4 +1,4 @@
-"""`depth_image`: depth features as lerobot 0.6's native depth (`pipelines/depth.py`) in one unit.
+"""`depth_image`: depth features as lerobot 0.6's native depth (`datasets/depth.py`) in one unit.
 
 The depth features older shiftkit versions wrote, 8-bit grey RGB images (decoded to metres through
 the range recorded in the camera metadata, `meta/cameras.json`) and (H, W, 1) float arrays, become
@@ -16,17 +16,10 @@ from typing import Any, Literal, override
 
 import numpy as np
 
-from shiftkit.pipelines.depth import (
-    DEFAULT_UNIT,
-    DEPTH_PREFIX,
-    as_metres,
-    depth_feature,
-    is_depth,
-    is_legacy_depth,
-)
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.depth import DEFAULT_UNIT, DEPTH_PREFIX, as_metres, depth_feature, is_depth, is_legacy_depth
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 
 @dataclass
@@ -40,7 +33,7 @@ class DepthImageConfig:
 
 
 @register_stage
-class DepthImage(Stage):
+class DepthImage(FrameStage):
     """Rewrites legacy depth features (grey RGB images, float arrays) as native (H, W, 1) depth, and every depth feature in `unit` when set."""
 
     name = "depth_image"

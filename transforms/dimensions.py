@@ -11,10 +11,10 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.features import NUMERIC_DTYPES, Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.features import NUMERIC_DTYPES, Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 
 def _names(stage: str, features: Features, key: str) -> list[str]:
@@ -63,7 +63,7 @@ class SelectConfig:
 
 
 @register_stage
-class Select(Stage):
+class Select(FrameStage):
     """Keeps the named dimensions of one vector feature, in the given order, optionally renamed."""
 
     name = "select"
@@ -118,7 +118,7 @@ class PadConfig:
 
 
 @register_stage
-class Pad(Stage):
+class Pad(FrameStage):
     """Puts one vector feature's dimensions in the given order, adding the missing ones as the constant `value`."""
 
     name = "pad"

@@ -8,10 +8,10 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 
 @dataclass
@@ -23,7 +23,7 @@ class DropConfig:
 
 
 @register_stage
-class Drop(Stage):
+class Drop(FrameStage):
     """Removes the named features from the schema and every frame."""
 
     name = "drop"

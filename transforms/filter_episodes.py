@@ -8,9 +8,9 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 
 @dataclass
@@ -38,7 +38,7 @@ class FilterConfig:
 
 
 @register_stage
-class FilterEpisodes(Stage):
+class FilterEpisodes(FrameStage):
     """Keeps or drops whole episodes by source index, task, outcome, length and a seeded draw."""
 
     name = "filter"

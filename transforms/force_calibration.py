@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from shiftkit.pipelines.errors import ConfigError, ShiftkitError
-from shiftkit.pipelines.jsonutil import dumps, read_json_file
-from shiftkit.pipelines.staging import staging_path
+from shiftkit.datasets.errors import ConfigError, ShiftkitError
+from shiftkit.datasets.jsonutil import dumps, read_json_file
+from shiftkit.datasets.staging import staging_path
 
 if TYPE_CHECKING:
     from shiftkit.envs.door_tactile.lab import PushConfig
@@ -523,8 +523,8 @@ def write_calibration_plan(
     one episode per push, `action` the commanded pose per control period (start-pose frame),
     `sample` / `move` flags, metadata with the push kind, seed and split (fit / held_out); `kinds`:
     default every kind of `PUSH_KINDS`."""
+    from shiftkit.datasets.sources.raw import RawDatasetWriter
     from shiftkit.envs.door_tactile.lab import PUSH_KINDS, PushConfig
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
     push = push or PushConfig()
     kinds = PUSH_KINDS if kinds is None else kinds
@@ -554,10 +554,10 @@ def recorded_pushes(root: str | Path, push: PushConfig | None = None) -> tuple[l
     """The fit and held-out pushes of a recorded calibration plan: per settled sample, e from the
     commanded pose (`action`) and the measured pose (`ee_pose`, the same frame) and the raw reading
     (`wrench_raw`). Returns them and the recording's `info`."""
+    from shiftkit.datasets.errors import DatasetError
+    from shiftkit.datasets.sources.raw import open_raw_dataset
     from shiftkit.envs.door_tactile.lab import PUSH_KINDS, PushConfig, pose_error
     from shiftkit.envs.geometry import quat_xyzw_to_matrix
-    from shiftkit.pipelines.errors import DatasetError
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
 
     raw = open_raw_dataset(root)
     info = raw.index.get("info", {})
@@ -616,10 +616,10 @@ def calibrate_recording(
 def execute_calibration_plan(plan: str | Path, out: str | Path, env_name: str, task: str) -> Path:
     """The simulated lab: the env's arm executes a calibration plan and its logger records the
     plan's arrays plus `ee_pose` (measured, start frame), `wrench_raw` and the simulator state."""
+    from shiftkit.datasets.errors import DatasetError
+    from shiftkit.datasets.loaders import load_array
+    from shiftkit.datasets.sources.raw import RawDatasetWriter, open_raw_dataset
     from shiftkit.envs.door_tactile.lab import PUSH_KINDS, execute_pushes
-    from shiftkit.pipelines.errors import DatasetError
-    from shiftkit.pipelines.loaders import load_array
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
 
     raw = open_raw_dataset(plan)
     info = raw.index.get("info", {})

@@ -31,10 +31,10 @@ from typing import Any, Literal, override
 
 import numpy as np
 
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import Features, vector_feature
 from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, rotation_from_vector
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import Features, vector_feature
 from shiftkit.pipelines.stage import Stage, register_stage
 from shiftkit.transforms import papers
 from shiftkit.transforms.force_calibration import WRENCH_AXES, Calibration, load_calibration, sensor_id

@@ -10,10 +10,10 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 
 @dataclass
@@ -33,7 +33,7 @@ class MapTasksConfig:
 
 
 @register_stage
-class MapTasks(Stage):
+class MapTasks(FrameStage):
     """Rewrites each episode's task strings through `mapping` (and `default`)."""
 
     name = "map_tasks"

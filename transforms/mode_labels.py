@@ -38,10 +38,10 @@ from typing import Any, Literal, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 from shiftkit.transforms import papers
 
 MODE_DIM = "sts_mode"
@@ -115,7 +115,7 @@ class ModeLabelConfig:
 
 
 @register_stage
-class ModeLabel(Stage):
+class ModeLabel(FrameStage):
     """Adds the `sts_mode` action dimension (1 tactile / 0 visual) and keeps the active mode's STS image."""
 
     name = "mode_label"
@@ -312,7 +312,8 @@ def dataset_timing_report(root: str | Path, png: str | Path | None = None) -> st
     """`timing_report` over the episodes of a LeRobot dataset written with a `mode_label` stage."""
     import json
 
-    from shiftkit.pipelines.lerobot_io import META_COLUMN, open_lerobot_dataset
+    from shiftkit.datasets.episode import META_COLUMN
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     reader = open_lerobot_dataset(root)
     if META_COLUMN not in reader.episodes:

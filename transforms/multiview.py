@@ -35,20 +35,15 @@ from typing import Any, Literal, override
 
 import numpy as np
 
+from shiftkit.datasets.depth import as_metres, clean_metres, depth_feature, depth_unit, is_depth
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import Features, image_feature
+
 # the rig and geometry load without MuJoCo; the scene is imported by the methods that render it
 from shiftkit.envs.base_pose import CAMERA_NAME, SAMPLER, BasePose
 from shiftkit.envs.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix, rotation_z
-from shiftkit.pipelines.depth import (
-    as_metres,
-    clean_metres,
-    depth_feature,
-    depth_unit,
-    is_depth,
-)
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import Features, image_feature
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.pipelines.stage import FrameStage, register_stage
 from shiftkit.transforms import papers
 
 log = logging.getLogger(__name__)
@@ -81,7 +76,7 @@ class MultiviewConfig:
     """Also emit the source episode unchanged (first), before its views."""
     depth: bool = True
     """Render depth (`observation.depth.base`) too, in metres as lerobot's native depth
-    (`pipelines.depth`; an input's own depth feature keeps its storage and unit)."""
+    (`datasets.depth`; an input's own depth feature keeps its storage and unit)."""
     render_quality: Literal["fast", "full"] = "fast"
     """"fast" (collision geometry) or "full" (visual meshes)."""
     width: int = 64
@@ -139,7 +134,7 @@ def _place(physics, qpos: np.ndarray, qvel: np.ndarray) -> None:
 
 
 @register_stage
-class Multiview(Stage):
+class Multiview(FrameStage):
     """Re-renders each episode from `num_views` sampled mobile-base poses, the arm re-solved to follow the recorded world trajectory."""
 
     name = "multiview"

@@ -12,11 +12,11 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.camera_meta import cameras_for_features, feature_entries
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.features import CAMERA_DTYPES, Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.camera_meta import cameras_for_features, feature_entries
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.features import CAMERA_DTYPES, Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 
 @dataclass
@@ -28,7 +28,7 @@ class RenameConfig:
 
 
 @register_stage
-class Rename(Stage):
+class Rename(FrameStage):
     """Renames features in the schema and every frame."""
 
     name = "rename"

@@ -23,11 +23,11 @@ from typing import Any, override
 
 import numpy as np
 
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import Features
 from shiftkit.envs.geometry import quat_xyzw_to_matrix
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.pipelines.stage import FrameStage, register_stage
 from shiftkit.transforms import papers
 from shiftkit.transforms.force_matching import PLAN_ACTION_NAMES
 
@@ -44,7 +44,7 @@ class ReplayJoinConfig:
 
 
 @register_stage
-class ReplayJoin(Stage):
+class ReplayJoin(FrameStage):
     """Replaces a recorded replay plan's sent action by the env's relative-pose action (from the measured pose) plus the mode label."""
 
     name = "replay_join"
@@ -104,10 +104,10 @@ def execute_replay_plan(plan: str | Path, out: str | Path) -> dict[str, int]:
     the demonstration's seed, hold the plan's start pose for its warmup steps, then send action t
     at step t; its logger records the sent action, the measured pose, raw wrench, state, simulator
     state and the cameras the plan asks for, in the raw format. Returns episode and success counts."""
+    from shiftkit.datasets.sources import SourceConfig, open_source
+    from shiftkit.datasets.sources.raw import RawDatasetWriter
     from shiftkit.envs import env_family, make
     from shiftkit.envs.door_tactile.lab import CAMERA_PREFIX, replay_targets
-    from shiftkit.pipelines.sources import SourceConfig, open_source
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter
 
     source = open_source(SourceConfig(path=str(plan)))
     names = list((source.features.get("action") or {}).get("names") or [])

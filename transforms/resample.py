@@ -20,25 +20,25 @@ from typing import Any, Literal, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import NUMERIC_DTYPES, Features
-from shiftkit.pipelines.frame_map import REGULAR_TOLERANCE, reindexed
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import NUMERIC_DTYPES, Features
+from shiftkit.pipelines.frame_map import REGULAR_TOLERANCE
+from shiftkit.pipelines.stage import Reindex, ReindexStage, register_stage
 
 
 @dataclass
 class ResampleConfig:
     """Parameters of `resample`."""
 
-    fps: int
+    fps: int = option(rule="positive_int")
     """Output frame rate (frames per second)."""
     method: Literal["linear", "previous"] = "linear"
     """How float features are resampled between recorded frames: linear interpolation or the
     previous sample (camera features always take the previous frame)."""
 
     def __post_init__(self) -> None:
-        if self.fps < 1:
-            raise ValueError("fps must be >= 1")
+        check_fields(self)
 
 
 def resampling_grid(timestamps: np.ndarray, fps_in: int, fps_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -59,7 +59,7 @@ def resampling_grid(timestamps: np.ndarray, fps_in: int, fps_out: int) -> tuple[
 
 
 @register_stage
-class Resample(Stage):
+class Resample(ReindexStage):
     """Puts each episode on the regular grid `k / fps`, interpolating floats and holding the rest."""
 
     name = "resample"
@@ -92,7 +92,7 @@ class Resample(Stage):
         }
 
     @override
-    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+    def reindex(self, episode: Episode, rng: np.random.Generator) -> Iterable[Reindex]:
         ts = episode.frames["timestamp"].astype(np.float64)
         grid, prev, frac = resampling_grid(ts - ts[0], self.context.fps, self.config.fps)
         between = np.flatnonzero(frac > 0)
@@ -105,7 +105,7 @@ class Resample(Stage):
             w = frac[between].reshape((-1,) + (1,) * (arr.ndim - 1))
             out[between] = (lo + (hi - lo) * w).astype(arr.dtype)
             frames[key] = out
-        yield reindexed(episode, prev, grid, frames)
+        yield Reindex(prev, grid, frames)
 
     @classmethod
     @override

@@ -18,32 +18,32 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.camera_meta import cameras_for_features, feature_entries
-from shiftkit.pipelines.depth import is_depth
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.features import CAMERA_DTYPES, Features
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.camera_meta import cameras_for_features, feature_entries
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.depth import is_depth
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.features import CAMERA_DTYPES, Features
+from shiftkit.pipelines.stage import FrameStage, register_stage
 
 
 @dataclass
 class ResizeConfig:
     """Parameters of `resize`."""
 
-    width: int
+    width: int = option(rule="positive_int")
     """Output image width in pixels."""
-    height: int
+    height: int = option(rule="positive_int")
     """Output image height in pixels."""
     features: list[str] = field(default_factory=list)
     """Camera features to resize (empty: every camera feature)."""
 
     def __post_init__(self) -> None:
-        if self.width < 1 or self.height < 1:
-            raise ValueError(f"width and height must be >= 1, got {self.width}x{self.height}")
+        check_fields(self)
 
 
 @register_stage
-class Resize(Stage):
+class Resize(FrameStage):
     """Resizes camera features (all, or the named ones) to `width` x `height` pixels."""
 
     name = "resize"

@@ -12,29 +12,30 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.frame_map import reindexed
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import Reindex, ReindexStage, register_stage
 
 
 @dataclass
 class SubsampleConfig:
     """Parameters of `subsample`."""
 
-    every: int = 2
+    every: int = option(2, rule="positive_int")
     """Keep one frame out of `every`; it must divide the input fps (LeRobot fps are integers)."""
     offset: int = 0
     """Index of the first kept frame (0 <= offset < every)."""
 
     def __post_init__(self) -> None:
-        if self.every < 1 or not 0 <= self.offset < self.every:
-            raise ValueError("need every >= 1 and 0 <= offset < every")
+        check_fields(self)
+        if not 0 <= self.offset < self.every:
+            raise ValueError(f"need 0 <= offset < every, got offset {self.offset} with every {self.every}")
 
 
 @register_stage
-class Subsample(Stage):
+class Subsample(ReindexStage):
     """Keeps every `every`-th frame from `offset`; the output fps is the input fps / `every`."""
 
     name = "subsample"
@@ -54,10 +55,10 @@ class Subsample(Stage):
         return features
 
     @override
-    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+    def reindex(self, episode: Episode, rng: np.random.Generator) -> Iterable[Reindex]:
         index = np.arange(self.config.offset, len(episode), self.config.every)
         if len(index):
-            yield reindexed(episode, index, np.arange(len(index)) / self.transform_fps(self.context.fps))
+            yield Reindex(index, np.arange(len(index)) / self.transform_fps(self.context.fps))
 
     @classmethod
     @override

@@ -21,11 +21,11 @@ from typing import Any, Literal, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import ConfigError, DatasetError
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.frame_map import reindexed
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.stage import Reindex, ReindexStage, register_stage
 from shiftkit.transforms import papers
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ SUCCESS_KEY = "next.success"
 class SuccessExamplesConfig:
     """Parameters of `success_examples`."""
 
-    n_per_task: int | None = 200
+    n_per_task: int | None = option(200, rule="positive_int")
     """Examples kept per task, a seeded uniform sample of all candidates in the dataset (thesis: 200 in
     simulation, 50 real); None keeps every candidate."""
     states: Literal["final", "success"] = "final"
@@ -48,12 +48,11 @@ class SuccessExamplesConfig:
     """Make examples only for these tasks (main and auxiliary); None: every task found."""
 
     def __post_init__(self) -> None:
-        if self.n_per_task is not None and self.n_per_task < 1:
-            raise ValueError(f"n_per_task must be >= 1 or None, got {self.n_per_task}")
+        check_fields(self)
 
 
 @register_stage
-class SuccessExamples(Stage):
+class SuccessExamples(ReindexStage):
     """Turns each success state into a one-frame candidate episode; `select` keeps a seeded `n_per_task` of them per task."""
 
     name = "success_examples"
@@ -72,7 +71,7 @@ class SuccessExamples(Stage):
         return features
 
     @override
-    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+    def reindex(self, episode: Episode, rng: np.random.Generator) -> Iterable[Reindex]:
         n = len(episode)
         success = np.asarray(episode.frames[SUCCESS_KEY]).reshape(n)
         frames: list[int] = []
@@ -90,16 +89,15 @@ class SuccessExamples(Stage):
         source = {k: v for k, v in episode.meta.items() if k not in ("segments", "cameras")}
         cameras = {"cameras": episode.meta["cameras"]} if episode.meta.get("cameras") else {}
         for frame, task, key in zip(frames, tasks, keys, strict=True):
+            meta = {"task": task, "selection_key": float(key), "source": {**source, "frame_index": int(frame)}}
             # one frame standing for itself (language rows' times move with it to 0)
-            out = reindexed(episode, np.array([frame]), np.zeros(1), cover=(frame, frame + 1))
-            out.frames["task"] = np.array([task])
-            out.meta = {
-                "task": task,
-                "selection_key": float(key),
-                "source": {**source, "frame_index": int(frame)},
-                **cameras,
-            }
-            yield out
+            yield Reindex(
+                np.array([frame]),
+                np.zeros(1),
+                frames={"task": np.array([task])},
+                cover=(frame, frame + 1),
+                meta={**meta, **cameras},
+            )
 
     @override
     def carried_features(self, features: Features) -> dict[str, str]:

@@ -12,28 +12,28 @@ from typing import Any, override
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.features import Features
-from shiftkit.pipelines.frame_map import rebased_times, reindexed
-from shiftkit.pipelines.stage import Stage, register_stage
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.features import Features
+from shiftkit.pipelines.frame_map import rebased_times
+from shiftkit.pipelines.stage import Reindex, ReindexStage, register_stage
 
 
 @dataclass
 class TrimConfig:
     """Parameters of `trim`."""
 
-    head: int = 0
+    head: int = option(0, rule="non_negative_int")
     """Frames removed from the start."""
-    tail: int = 0
+    tail: int = option(0, rule="non_negative_int")
     """Frames removed from the end."""
 
     def __post_init__(self) -> None:
-        if self.head < 0 or self.tail < 0:
-            raise ValueError("head and tail must be >= 0")
+        check_fields(self)
 
 
 @register_stage
-class Trim(Stage):
+class Trim(ReindexStage):
     """Drops `head` frames at the start and `tail` at the end of each episode; an episode of at most `head + tail` frames is dropped."""
 
     name = "trim"
@@ -46,14 +46,13 @@ class Trim(Stage):
         return features
 
     @override
-    def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
+    def reindex(self, episode: Episode, rng: np.random.Generator) -> Iterable[Reindex]:
         n = len(episode)
         start, stop = self.config.head, n - self.config.tail
         if stop <= start:
             return  # nothing left of this episode
         index = np.arange(start, stop)
-        times = rebased_times(episode.frames["timestamp"], index, self.context.fps)
-        yield reindexed(episode, index, times, cover=(start, stop))
+        yield Reindex(index, rebased_times(episode.frames["timestamp"], index, self.context.fps), cover=(start, stop))
 
     @classmethod
     @override

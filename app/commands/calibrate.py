@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = (
     "calibrate a tactile sensor: pushes (simulated, or --plan for a robot and --from its recording), "
@@ -23,7 +23,6 @@ def _options() -> DataclassOptions:
         CalibrateConfig,
         flags={"recording": "from"},
         metavars={"plan": "DIR", "recording": "RAW_DIR"},
-        rules={"pushes": "positive_int", "held_out": "non_negative_int", "seed": "non_negative_int"},
     )
 
 
@@ -35,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Fit and write the calibration (or write the push plan with `--plan`); return the exit code."""
     from shiftkit.app.calibrate import calibrate, write_plan
+    from shiftkit.datasets.staging import check_inputs_and_outputs
     from shiftkit.envs.door_tactile.lab import PUSH_KINDS
-    from shiftkit.pipelines.staging import check_inputs_and_outputs
     from shiftkit.transforms.force_calibration import WRENCH_AXES
 
     config = _options().build(args)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = "record scripted-expert episodes from a simulated env (raw episodes or a LeRobot dataset)"
 
@@ -20,10 +20,6 @@ def _options() -> DataclassOptions:
         CollectConfig,
         flags={"env_kwargs": "env-kwarg"},
         metavars={"lerobot": "REPO_ID", "out": "DIR", "root": "DIR"},
-        rules={
-            **dict.fromkeys(("episodes", "control_hz", "width", "height"), "positive_int"),
-            **dict.fromkeys(("seed", "extra_steps"), "non_negative_int"),
-        },
         required=("task",),
     )
 

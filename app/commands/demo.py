@@ -6,7 +6,8 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.dataclass_config import option
+from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = "record demo episodes, re-render them from new base poses (multiview), validate the LeRobot dataset"
 
@@ -17,17 +18,15 @@ class DemoArgs:
 
     out: str = "outputs/demo"
     """Output directory."""
-    episodes: int = 4
+    episodes: int = option(4, rule="positive_int")
     """Episodes to record."""
-    seed: int = 0
+    seed: int = option(0, rule="non_negative_int")
     """Episode i is recorded with seed `seed + i`."""
     overwrite: bool = False
     """Replace an earlier demo output."""
 
 
-OPTIONS = DataclassOptions(
-    DemoArgs, rules={"episodes": "positive_int", "seed": "non_negative_int"}, metavars={"out": "DIR"}
-)
+OPTIONS = DataclassOptions(DemoArgs, metavars={"out": "DIR"})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the demo and print the dataset's summary and where its files are; return the exit code."""
     from shiftkit.app.demo import run_demo
-    from shiftkit.pipelines.dataset_check import format_summary
+    from shiftkit.datasets.check import format_summary
 
     config = OPTIONS.build(args)
     result = run_demo(Path(config.out), config.episodes, config.seed, config.overwrite)

@@ -6,7 +6,8 @@ import argparse
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.dataclass_config import option
+from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = "evaluate a trained policy in a registered environment (success rate with a 95% interval)"
 
@@ -21,9 +22,9 @@ class EvalArgs:
     """Task, e.g. lift."""
     env: str = "panda-play"
     """Environment name."""
-    episodes: int = 50
+    episodes: int = option(50, rule="positive_int")
     """Number of episodes (with `yaw_sweep`: per yaw bin)."""
-    seed: int = 1000
+    seed: int = option(1000, rule="non_negative_int")
     """Episode i uses seed `seed + i`."""
     out: str | None = None
     """Per-episode results JSON; default: <run>/eval/<env>-<task>-seed<S>.json."""
@@ -43,7 +44,6 @@ class EvalArgs:
 OPTIONS = DataclassOptions(
     EvalArgs,
     flags={"env_kwargs": "env-kwarg"},
-    rules={"episodes": "positive_int", "seed": "non_negative_int"},
     metavars={"out": "FILE", "videos": "DIR"},
 )
 
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     """Roll out the policy (or sweep the camera yaw) and print the success rate; return the exit code."""
     from pathlib import Path
 
-    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.datasets.errors import ConfigError
     from shiftkit.policies.evaluation import (
         evaluate,
         load_policy,
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--yaw-sweep sets the base yaw of every episode, which view=fixed would keep fixed")
         if config.out and Path(config.out).suffix.lower() == ".png":
             raise ConfigError(f"--out {config.out}: the sweep's JSON goes there and its PNG beside it; give a .json")
-    from shiftkit.pipelines.staging import require_writable
+    from shiftkit.datasets.staging import require_writable
     from shiftkit.policies.run_dir import EVAL, run_folder
 
     require_writable(Path(config.out).parent if config.out else run_folder(config.policy) / EVAL, "--out")

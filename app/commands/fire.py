@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = (
     "FIRE: run a BC policy with failure prediction and simulated expert interventions; "
@@ -110,8 +110,8 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from shiftkit.app.env_kwargs import check_env_kwargs
-    from shiftkit.pipelines.hub import validate_repo_id
-    from shiftkit.pipelines.staging import DestinationLock
+    from shiftkit.datasets.hub import validate_repo_id
+    from shiftkit.datasets.staging import DestinationLock
     from shiftkit.policies.fire import run as run_fire
 
     if getattr(args, "fire_action", None) == "aggregate":

@@ -17,9 +17,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print the dataset's summary (as JSON with `--json`); return the exit code."""
-    from shiftkit.pipelines.dataset_check import format_summary, summarize
-    from shiftkit.pipelines.lerobot_io import resolve_dataset
+    from shiftkit import datasets
+    from shiftkit.datasets.check import format_summary, summarize
 
-    summary = summarize(resolve_dataset(args.dataset, revision=args.revision).root)
+    summary = summarize(datasets.open(args.dataset, revision=args.revision))
     print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
     return 0

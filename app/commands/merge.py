@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from shiftkit.pipelines.dataclass_config import field_docs
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.dataclass_config import field_docs, option
+from shiftkit.datasets.option_values import DataclassOptions
 
 if TYPE_CHECKING:
     from shiftkit.pipelines.config import PipelineConfig
@@ -31,7 +31,7 @@ class MergeArgs:
 
     sources: list[str]
     """Dataset directories or dataset IDs, in output order."""
-    fps: int
+    fps: int = option(rule="positive_int")
     """Frame rate of the merged dataset."""
     out: str
     """Output dataset directory (must not exist)."""
@@ -39,7 +39,7 @@ class MergeArgs:
     """Dataset ID of the merged dataset."""
     size: str | None = None
     """Camera size WIDTHxHEIGHT; default: the first source's."""
-    workers: int = 1
+    workers: int = option(1, rule="positive_int")
     """Worker processes."""
     dry_run: bool = False
     """Only print the pipeline."""
@@ -47,9 +47,7 @@ class MergeArgs:
     """Show a progress bar."""
 
 
-OPTIONS = DataclassOptions(
-    MergeArgs, skip=("sources",), rules={"fps": "positive_int", "workers": "positive_int"}, metavars={"out": "DIR"}
-)
+OPTIONS = DataclassOptions(MergeArgs, skip=("sources",), metavars={"out": "DIR"})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _size(text: str | None) -> tuple[int, int] | None:
-    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.datasets.errors import ConfigError
 
     if text is None:
         return None
@@ -72,10 +70,10 @@ def _size(text: str | None) -> tuple[int, int] | None:
 def merge_pipeline(refs: list[str], fps: int, out: str, repo_id: str, size: tuple[int, int] | None) -> PipelineConfig:
     """The pipeline that brings the datasets `refs` to one schema and writes them to `out`, as config
     objects (printed with `config.pipeline_toml`; never parsed back from text)."""
+    from shiftkit.datasets.errors import ConfigError
+    from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES
+    from shiftkit.datasets.sources import open_source
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, PipelineSource, StageSpec
-    from shiftkit.pipelines.errors import ConfigError
-    from shiftkit.pipelines.features import CAMERA_DTYPES, NUMERIC_DTYPES
-    from shiftkit.pipelines.sources import open_source
 
     if fps < 1:
         raise ConfigError(f"--fps must be >= 1, got {fps}")
@@ -125,10 +123,11 @@ def merge_pipeline(refs: list[str], fps: int, out: str, repo_id: str, size: tupl
 
 def run(args: argparse.Namespace) -> int:
     """Write and print the merging pipeline, then run it unless `--dry-run`; return the exit code."""
+    from shiftkit import datasets
+    from shiftkit.datasets.hub import validate_repo_id
+    from shiftkit.datasets.provenance import recorded_verdict_lines
     from shiftkit.pipelines.config import pipeline_toml
-    from shiftkit.pipelines.hub import validate_repo_id
     from shiftkit.pipelines.planner import plan_pipeline
-    from shiftkit.pipelines.provenance import recorded_verdict_lines
     from shiftkit.pipelines.runner import run_pipeline
 
     config = OPTIONS.build(args, sources=args.sources)
@@ -140,6 +139,6 @@ def run(args: argparse.Namespace) -> int:
         return 0
     path = run_pipeline(pipeline, workers=config.workers, progress=config.progress)
     print(f"wrote {path}")
-    for line in recorded_verdict_lines(path):
+    for line in recorded_verdict_lines(datasets.open(path.name, root=path).provenance):
         print(line)
     return 0

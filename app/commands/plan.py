@@ -15,8 +15,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print the plan of a pipeline config (or the registered stages with `--stages`); return the exit code."""
+    from shiftkit.datasets.errors import ConfigError
     from shiftkit.pipelines.config import load_pipeline_config
-    from shiftkit.pipelines.errors import ConfigError
     from shiftkit.pipelines.planner import format_plan, plan_pipeline
 
     if args.stages:

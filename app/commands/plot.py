@@ -1,14 +1,18 @@
-"""`shiftkit plot roc|fire RUN...`: figures of FIRE runs (PNG)."""
+"""`shiftkit plot roc|fire|curves RUN...`: figures of runs (PNG): FIRE's failure prediction and
+success, and the success curves of RL runs (VPACE, LfGP, SQIL, ...) across seeds."""
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, field
 
-from shiftkit.pipelines.dataclass_config import field_docs
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.dataclass_config import field_docs, option
+from shiftkit.datasets.option_values import DataclassOptions
 
-HELP = "plot FIRE runs: ROC curves of the failure predictors (roc) or success vs expert samples and time (fire)"
+HELP = (
+    "plot runs: ROC curves of FIRE's failure predictors (roc), FIRE's success vs expert samples and time (fire), "
+    "success curves of RL runs across seeds (curves)"
+)
 
 PREDICTOR_LABELS = {"beta": "beta rule", "gda": "GDA", "doubt": "ensemble doubt", "gda+doubt": "GDA or doubt"}
 
@@ -36,7 +40,7 @@ class FireFigure:
     runs: tuple[str, ...] = ()
     """FIRE run folders, each as [LABEL=]RUN (positional); runs given the same LABEL (e.g. seeds) are one
     line: the IQM of their success curves with a 95% bootstrap band over the runs"""
-    window: int = 10
+    window: int = option(10, rule="positive_int")
     """episodes per success estimate"""
     bc: dict[str, str] = field(default_factory=dict)
     """LABEL=RUN[,RUN...]: BC runs (each with its one eval/*.json): runs on the same training data (e.g.
@@ -47,8 +51,26 @@ class FireFigure:
     """plot title (default: the curves and points)"""
 
 
+@dataclass(frozen=True)
+class CurvesFigure:
+    """`plot curves`: evaluation success curves of RL runs across seeds, the interquartile mean with
+    stratified bootstrap 95% CIs, one curve per method."""
+
+    out: str
+    """PNG file to write"""
+    runs: tuple[str, ...] = ()
+    """a method's label and its run folders, LABEL=RUN[,RUN...] (one per seed; several tasks allowed) (positional)"""
+    title: str = ""
+    """plot title"""
+    reps: int = option(2000, rule="positive_int")
+    """bootstrap resamples"""
+    seed: int = option(0, rule="non_negative_int")
+    """bootstrap seed"""
+
+
 ROC_OPTIONS = DataclassOptions(RocFigure, skip=("runs",))
-FIRE_OPTIONS = DataclassOptions(FireFigure, skip=("runs",), rules={"window": "positive_int"})
+CURVES_OPTIONS = DataclassOptions(CurvesFigure, skip=("runs",))
+FIRE_OPTIONS = DataclassOptions(FireFigure, skip=("runs",))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -73,6 +95,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help=field_docs(FireFigure)["runs"])
     FIRE_OPTIONS.add_to(fire)
     fire.set_defaults(_plot=_run_fire, _options=FIRE_OPTIONS)
+    curves = sub.add_parser(
+        "curves",
+        help="success curves across seeds: IQM with stratified bootstrap 95%% CIs",
+        description="Plot evaluation success curves of runs: LABEL=RUN[,RUN...] per method.",
+    )
+    curves.add_argument("runs", nargs="+", metavar="LABEL=RUN[,RUN...]", help=field_docs(CurvesFigure)["runs"])
+    CURVES_OPTIONS.add_to(curves)
+    curves.set_defaults(_plot=_run_curves, _options=CURVES_OPTIONS)
 
 
 def check_figure_path(out: str, flag: str = "--out") -> None:
@@ -81,7 +111,7 @@ def check_figure_path(out: str, flag: str = "--out") -> None:
 
     from matplotlib.figure import Figure
 
-    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.datasets.errors import ConfigError
 
     formats = Figure().canvas.get_supported_filetypes()
     suffix = Path(out).suffix.lower().lstrip(".")
@@ -100,7 +130,7 @@ def _run_roc(args: RocFigure) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from shiftkit.pipelines.errors import ConfigError
+    from shiftkit.datasets.errors import ConfigError
     from shiftkit.policies.failure_predictors import roc_curve
     from shiftkit.policies.fire_aggregate import ROC_FILE, read_roc
     from shiftkit.policies.fire_runs import read_episode_lines, roc_scores
@@ -151,7 +181,7 @@ def _run_fire(args: FireFigure) -> int:
 
     import numpy as np
 
-    from shiftkit.pipelines.dataclass_config import csv_list
+    from shiftkit.datasets.dataclass_config import csv_list
     from shiftkit.policies.curves import Curve, Point, plot_curves
     from shiftkit.policies.fire_runs import bc_curve, read_episode_lines, seed_curve, success_curve
 
@@ -208,6 +238,30 @@ def _run_fire(args: FireFigure) -> int:
                 f"[{p['ci95'][0]:.0%}, {p['ci95'][1]:.0%}]"
             )
     print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def _run_curves(args: CurvesFigure) -> int:
+    from pathlib import Path
+
+    from shiftkit.datasets.dataclass_config import csv_list
+    from shiftkit.datasets.errors import ConfigError
+    from shiftkit.policies.curves import aggregate, plot_curves
+
+    check_figure_path(args.out)
+    curves = []
+    for group in args.runs:
+        label, sep, runs = group.partition("=")
+        if not sep or not label or not csv_list(runs):
+            raise ConfigError(f"expected LABEL=RUN[,RUN...], got {group!r}")
+        curves.append(aggregate(label, [Path(r) for r in csv_list(runs)], args.reps, args.seed))
+    out = plot_curves(curves, Path(args.out), args.title)
+    for c in curves:
+        print(
+            f"{c.label}: final IQM {c.iqm[-1]:.3f} [{c.low[-1]:.3f}, {c.high[-1]:.3f}] at step {c.steps[-1]} "
+            f"over {c.runs} runs"
+        )
+    print(f"wrote {out}")
     return 0
 
 

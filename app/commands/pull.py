@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Pull the dataset (or checkpoint with `--checkpoint`) and print where it went; return the exit code."""
-    from shiftkit.pipelines import hub
+    from shiftkit.datasets import hub
 
     if args.checkpoint:
         from shiftkit.policies.run_dir import check_checkpoint_files

@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Push the dataset (or checkpoint with `--checkpoint`) and print the commit; return the exit code."""
-    from shiftkit.pipelines import hub
+    from shiftkit.datasets import hub
 
     push = hub.push_checkpoint if args.checkpoint else hub.push_dataset
     result = push(args.source, args.repo_id, revision=args.revision, private=args.private)

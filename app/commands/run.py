@@ -11,8 +11,8 @@ import argparse
 import dataclasses
 from dataclasses import dataclass
 
-from shiftkit.pipelines.dataclass_config import field_docs
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.dataclass_config import field_docs, option
+from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = "run a pipeline config; re-running after an interruption resumes it"
 
@@ -23,7 +23,7 @@ class RunArgs:
 
     config: str
     """Pipeline config (.toml, .yaml or .json)."""
-    workers: int = 1
+    workers: int = option(1, rule="positive_int")
     """Worker processes."""
     executor: str = "local"
     """local (process pool), datatrove-local, ray or slurm (see docs/executors.md)."""
@@ -42,7 +42,6 @@ class RunArgs:
 OPTIONS = DataclassOptions(
     RunArgs,
     skip=("config",),
-    rules={"workers": "positive_int"},
     metavars={"push": "ORG/NAME", "push_revision": "BRANCH"},
 )
 
@@ -55,7 +54,6 @@ def _executor_options() -> tuple[DataclassOptions, ...]:
     slurm = DataclassOptions(
         SlurmSettings,
         flags={"mem_per_cpu_gb": "mem-per-cpu"},
-        rules={"cpus_per_task": "positive_int", "mem_per_cpu_gb": "positive_int"},
     )
     return ray, slurm
 
@@ -72,16 +70,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run (or resume, or submit) the pipeline and print its provenance report; return the exit code."""
+    from shiftkit import datasets
+    from shiftkit.datasets.provenance import recorded_verdict_lines, report_lines
     from shiftkit.pipelines.config import load_pipeline_config
-    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
-    from shiftkit.pipelines.loaders import load_provenance
-    from shiftkit.pipelines.provenance import recorded_verdict_lines, report_lines
     from shiftkit.pipelines.runner import run_pipeline
 
     options = OPTIONS.build(args, config=args.config)
     config = load_pipeline_config(options.config)
     if options.push:
-        from shiftkit.pipelines.hub import validate_repo_id
+        from shiftkit.datasets.hub import validate_repo_id
 
         validate_repo_id(options.push)  # fail before any work, not after it
         config.destination = dataclasses.replace(
@@ -105,8 +102,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"wrote {path}")
     # The summary's counts are the provenance's, read back from what was written.
-    for line in report_lines(load_provenance(path / PROVENANCE_PATH)):
-        print(line)
-    for line in recorded_verdict_lines(path):
+    written = datasets.open(path.name, root=path)
+    for line in [*report_lines(written.provenance), *recorded_verdict_lines(written.provenance)]:
         print(line)
     return 0

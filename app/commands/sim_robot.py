@@ -8,8 +8,8 @@ import argparse
 from dataclasses import dataclass
 
 from shiftkit.app.calibrate import CalibrateConfig
-from shiftkit.pipelines.dataclass_config import field_docs
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.dataclass_config import field_docs
+from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = "execute a calibration or replay plan on a simulated robot and record it in the raw format"
 
@@ -41,9 +41,9 @@ def run(args: argparse.Namespace) -> int:
     """Execute the plan on the simulated robot and record it in the raw format; return the exit code."""
     from pathlib import Path
 
-    from shiftkit.pipelines.errors import ConfigError
-    from shiftkit.pipelines.sources.raw import is_raw_dataset
-    from shiftkit.pipelines.staging import check_inputs_and_outputs
+    from shiftkit.datasets.errors import ConfigError
+    from shiftkit.datasets.sources.raw import is_raw_dataset
+    from shiftkit.datasets.staging import check_inputs_and_outputs
 
     config = OPTIONS.build(args, plan=args.plan)
     plan, out = Path(config.plan), Path(config.out)

@@ -7,50 +7,33 @@ The subcommands are the registered trainers (`policies/trainers/`): each brings 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 
 HELP = "train a policy (bc, vpace, lfgp, ...) from LeRobot dataset IDs"
-
-# the success-curve plot of RL runs comes with the VPACE trainer's folder when it is installed
-VPACE_CLI = "shiftkit.policies.trainers.vpace"
 
 
 def add_arguments(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> None:
     """One subcommand per trainer; only the one chosen in `argv` (the words after `train`; None:
     all) gets its options, so the others are not imported."""
-    from shiftkit.policies.trainers import trainers
+    from shiftkit.policies.trainers import TRAINERS
 
     sub = parser.add_subparsers(dest="trainer", metavar="TRAINER", required=True)
     chosen = None if argv is None else next((a for a in argv if not a.startswith("-")), "")
-    for name, trainer in trainers().items():
+    for name, trainer in TRAINERS.items():
         p = sub.add_parser(name, help=trainer.help, description=trainer.help)
         if chosen is None or chosen == name:
             cli = trainer.cli_module()
             cli.add_arguments(p, trainer)
             p.set_defaults(_train_run=cli.run)
-    if importlib.util.find_spec(VPACE_CLI) is not None:
-        plot = sub.add_parser(
-            "plot",
-            help="success curves across seeds: IQM with stratified bootstrap 95%% CIs (PNG)",
-            description="Plot evaluation success curves of runs: LABEL=RUN[,RUN...] per method.",
-        )
-        if chosen is None or chosen == "plot":
-            vpace_cli = importlib.import_module(VPACE_CLI)
-            vpace_cli.add_plot_arguments(plot)
-            plot.set_defaults(_train_run=vpace_cli.run_plot)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Train with the chosen trainer, holding its run folder against a second run (`train plot` has
-    none); return the exit code."""
+    """Train with the chosen trainer, holding its run folder against a second run; return the exit code."""
     from pathlib import Path
 
     from shiftkit.app.env_kwargs import check_env_kwargs
-    from shiftkit.pipelines.staging import DestinationLock
+    from shiftkit.datasets.staging import DestinationLock
 
     if isinstance(getattr(args, "env", None), str) and isinstance(getattr(args, "env_kwargs", None), dict):
         check_env_kwargs(args.env, args.env_kwargs)  # a trainer that runs an env (VPACE, LfGP)
-    if getattr(args, "output_dir", None) is None:  # `train plot` writes no run folder
-        return args._train_run(args)
     with DestinationLock(Path(args.output_dir)):  # a second run on the same --output is told who holds it
         return args._train_run(args)

@@ -1,5 +1,5 @@
 """`shiftkit validate DATASET`: read everything and check it; non-zero exit with the reason.
-`--quality` adds the verdict on the content (`pipelines/quality.py`)."""
+`--quality` adds the verdict on the content (`datasets/quality.py`)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ HELP = "check a dataset end to end; exits non-zero naming the first problem (--q
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `validate`."""
-    from shiftkit.pipelines.option_values import positive_int
+    from shiftkit.datasets.option_values import positive_int
 
     parser.add_argument("dataset", help="dataset directory or dataset ID")
     parser.add_argument("--revision", help="hub revision when the ID is pulled")
@@ -42,15 +42,15 @@ def run(args: argparse.Namespace) -> int:
     `--quality`) and print the result; return the exit code."""
     import json
 
-    from shiftkit.pipelines.dataset_check import validate_dataset
-    from shiftkit.pipelines.errors import DatasetError
-    from shiftkit.pipelines.lerobot_io import resolve_dataset
-    from shiftkit.pipelines.quality import CHUNK_SIZE, quality_verdict, verdict_lines
+    from shiftkit import datasets
+    from shiftkit.datasets.check import validate_dataset
+    from shiftkit.datasets.errors import DatasetError
+    from shiftkit.datasets.quality import CHUNK_SIZE, quality_verdict, verdict_lines
 
-    resolved = resolve_dataset(args.dataset, revision=args.revision)
+    dataset = datasets.open(args.dataset, revision=args.revision)
     judge = args.quality or args.strict or args.chunk_size is not None
     try:
-        counts = validate_dataset(resolved.root)
+        counts = validate_dataset(dataset)
     except DatasetError as exc:
         if not judge:
             raise
@@ -60,13 +60,13 @@ def run(args: argparse.Namespace) -> int:
     else:
         error = None
     if args.deep and counts is not None:
-        from shiftkit.pipelines.dataset_check import recompute_stats
+        from shiftkit.datasets.check import recompute_stats
 
-        counts["stats"] = recompute_stats(resolved.root)
-    verdict = quality_verdict(resolved.root, args.chunk_size or CHUNK_SIZE) if judge else None
+        counts["stats"] = recompute_stats(dataset)
+    verdict = quality_verdict(dataset.root, args.chunk_size or CHUNK_SIZE) if judge else None
     if args.json:
         failed = {"error": str(error)} if error else {}
-        print(json.dumps({"dataset": str(resolved.root), **(counts or failed), "quality": verdict}))
+        print(json.dumps({"dataset": str(dataset.root), **(counts or failed), "quality": verdict}))
     elif counts is not None:
         for warning in counts["warnings"]:
             print(f"warning: {warning}")
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             if args.deep
             else "; statistics not recomputed from the data (--deep does)"
         )
-        print(f"ok: {resolved.root} ({counts['episodes']} episodes, {counts['frames']} frames{deep})")
+        print(f"ok: {dataset.root} ({counts['episodes']} episodes, {counts['frames']} frames{deep})")
     if verdict is not None and not args.json:
         for line in verdict_lines(verdict, limit=None):
             print(line)

@@ -10,7 +10,7 @@ HELP = "look at a dataset in the Rerun viewer: cameras, depth, every numeric col
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `view`."""
-    from shiftkit.pipelines.option_values import option_type
+    from shiftkit.datasets.option_values import option_type
 
     parser.add_argument("dataset", help="dataset directory or dataset ID")
     parser.add_argument("--revision", help="hub revision when the ID is pulled")
@@ -30,12 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Send the dataset to the viewer (or the file) and print what was sent; return the exit code."""
+    from shiftkit import datasets
     from shiftkit.app.dataset_view import entity_summary, import_rerun, view_dataset
-    from shiftkit.pipelines.lerobot_io import resolve_dataset
 
     import_rerun()  # the missing extra is said before any dataset is read
-    resolved = resolve_dataset(args.dataset, revision=args.revision)
-    summary = view_dataset(resolved.root, episode=args.episode, save=args.save, progress=args.progress)
+    dataset = datasets.open(args.dataset, revision=args.revision)
+    summary = view_dataset(dataset, episode=args.episode, save=args.save, progress=args.progress)
     for line in entity_summary(summary):
         print(line)
     print(f"wrote {args.save} (open it with `rerun {args.save}`)" if args.save else "sent to the Rerun viewer")

@@ -22,16 +22,19 @@ import hashlib
 import io
 import pickle
 import re
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.features import Features, vector_feature
-from shiftkit.pipelines.sources import Importer, ImportSummary, write_imported
+from shiftkit.datasets.dataclass_config import option
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.features import Features, vector_feature
+from shiftkit.datasets.importers import Importer, register_importer
+from shiftkit.datasets.sources import groups_by_file
 
 Kind = Literal["auto", "examples", "trajectories"]
 
@@ -296,132 +299,123 @@ def _reward_names(buffers: list[VpaceBuffer]) -> list[str]:
     return [f"reward_{i}" for i in range(widths[0])]
 
 
-def import_vpace(
-    files: list[str | Path],
-    repo_id: str,
-    root: str | Path,
-    kind: Kind = "auto",
-    task: str | None = None,
-    fps: int | None = None,
-) -> ImportSummary:
-    """Write the buffers in `files` into one new LeRobot dataset at `root` (atomically)."""
-    if not files:
-        raise DatasetError("no input files given")
-    from shiftkit.pipelines.hub import validate_repo_id
+@dataclass
+class VpaceOptions:
+    """Options of the VPACE importer (`shiftkit import vpace FILE...`)."""
 
-    validate_repo_id(repo_id)  # fail before reading anything, not later at `shiftkit push`
-    if kind not in ("auto", "examples", "trajectories"):
-        raise DatasetError(f"unknown kind {kind!r} (auto, examples, trajectories)")
-    buffers = [read_vpace_buffer(f, task) for f in files]
-    dims = sorted({b.obs_dim for b in buffers})
-    if len(dims) != 1:
-        raise DatasetError(f"files mix observation widths {dims} (LfGP-era and VPACE-era data); import them separately")
-    kinds = sorted({b.kind() for b in buffers}) if kind == "auto" else [kind]
-    if len(kinds) != 1:
-        raise DatasetError("files mix example sets and trajectories; import them separately or give --kind")
-    kind_used = kinds[0]
-    if fps is not None and fps < 1:
-        raise DatasetError(f"fps must be a positive integer, got {fps}")
-    fps = fps or ERA_FPS[dims[0]]
+    files: list[str]
+    """Buffer files (all go into one dataset)."""
+    kind: Kind = "auto"
+    """Success-example sets or expert trajectories (default: detected)."""
+    task: str | None = None
+    """Task name for every file (default: from the file name, 3_lift -> lift)."""
+    fps: int | None = option(None, rule="positive_int")
+    """Frame rate (default: 20 for 60-column files, 5 for 54)."""
 
-    features = observation_features(dims[0])
-    reward_names: list[str] = []
-    if kind_used == "trajectories":
-        reward_names = _reward_names(buffers)
-        features["action"] = vector_feature("float32", list(_panda_play().action_names))
-        features["next.reward"] = vector_feature("float32", reward_names)
 
-    per_file = []
+class VpaceSource:
+    """The buffers of `files` as one pipeline source (one group per file): example rows become one-frame
+    episodes, trajectories are split into episodes."""
 
-    def episodes():
-        for b in buffers:
-            obs = _split_observations(b.observations)
-            if kind_used == "examples":
-                bounds = [(r, r + 1) for r in range(len(b.observations))]
-            else:
-                bounds = b.episode_bounds()
-            for e, (start, end) in enumerate(bounds):
-                n = end - start
-                frames = {k: v[start:end] for k, v in obs.items()}
-                frames["timestamp"] = np.arange(n, dtype=np.float64) / fps
-                frames["task"] = np.array([b.task] * n)
-                source: dict[str, Any] = {"file": b.path.name, "rows": [start, end]}
-                if kind_used == "trajectories":
-                    frames["action"] = b.actions[start:end]
-                    rewards = b.rewards[start:end]
-                    frames["next.reward"] = np.ascontiguousarray(rewards[:, :1] if len(reward_names) == 1 else rewards)
-                    # The wrapped buffer dropped the oldest rows: the first episode may lack its start.
-                    source["start_overwritten"] = bool(e == 0 and b.overwritten_rows > 0)
-                yield Episode(frames, {"task": b.task, "source": source})
-            per_file.append(
+    def __init__(self, options: VpaceOptions) -> None:
+        if not options.files:
+            raise DatasetError("no input files given")
+        self.inputs = [Path(f) for f in options.files]
+        buffers = self.buffers = [read_vpace_buffer(f, options.task) for f in options.files]
+        dims = sorted({b.obs_dim for b in buffers})
+        if len(dims) != 1:
+            raise DatasetError(
+                f"files mix observation widths {dims} (LfGP-era and VPACE-era data); import them separately"
+            )
+        kinds = sorted({b.kind() for b in buffers}) if options.kind == "auto" else [options.kind]
+        if len(kinds) != 1:
+            raise DatasetError("files mix example sets and trajectories; import them separately or give --kind")
+        self.kind, self.obs_dim = kinds[0], dims[0]
+        self.fps = options.fps or ERA_FPS[self.obs_dim]
+        self.robot_type = _panda_play().robot
+        self.features = observation_features(self.obs_dim)
+        self.reward_names: list[str] = []
+        if self.kind == "trajectories":
+            self.reward_names = _reward_names(buffers)
+            self.features["action"] = vector_feature("float32", list(_panda_play().action_names))
+            self.features["next.reward"] = vector_feature("float32", self.reward_names)
+        self.bounds = [
+            [(r, r + 1) for r in range(len(b.observations))] if self.kind == "examples" else b.episode_bounds()
+            for b in buffers
+        ]
+        self._episodes = [(f, e) for f, bounds in enumerate(self.bounds) for e in range(len(bounds))]
+        self.num_episodes = len(self._episodes)
+
+    def episode_groups(self) -> list[list[int]]:
+        """The episodes of each file."""
+        return groups_by_file([f for f, _ in self._episodes])
+
+    def iter_episodes(self, indices: list[int]) -> Iterator[Episode]:
+        """The episodes at `indices`, in that order."""
+        for i in indices:
+            f, e = self._episodes[i]
+            b = self.buffers[f]
+            start, end = self.bounds[f][e]
+            n = end - start
+            frames = {k: v[start:end] for k, v in _split_observations(b.observations).items()}
+            frames["timestamp"] = np.arange(n, dtype=np.float64) / self.fps
+            frames["task"] = np.array([b.task] * n)
+            source: dict[str, Any] = {"file": b.path.name, "rows": [start, end]}
+            if self.kind == "trajectories":
+                frames["action"] = b.actions[start:end]
+                rewards = b.rewards[start:end]
+                frames["next.reward"] = np.ascontiguousarray(rewards[:, :1] if len(self.reward_names) == 1 else rewards)
+                # The wrapped buffer dropped the oldest rows: the first episode may lack its start.
+                source["start_overwritten"] = bool(e == 0 and b.overwritten_rows > 0)
+            yield Episode(frames, {"task": b.task, "source": source, "source_episode_index": i})
+
+    def describe(self) -> dict[str, Any]:
+        """The provenance entry: every file (sha256, task, rows, episode lengths) and the import's settings."""
+        return {
+            "kind": "vpace",
+            "files": [
                 {
-                    "file": b.path.name,
+                    "path": str(b.path.resolve()),
+                    "sha256": b.sha256,
                     "task": b.task,
                     "rows": len(b.observations),
-                    "episodes": len(bounds),
+                    "overwritten_rows": b.overwritten_rows,
                     "lengths": [end - start for start, end in bounds],
+                    **({"file_name": asdict(b.reference_name)} if b.reference_name else {}),
                 }
-            )
-
-    num_episodes, num_frames = write_imported(
-        repo_id,
-        root,
-        fps,
-        features,
-        episodes(),
-        robot_type=_panda_play().robot,
-        sources=[
-            {
-                "kind": "vpace",
-                "path": str(b.path.resolve()),
-                "sha256": b.sha256,
-                "task": b.task,
-                "rows": len(b.observations),
-                "overwritten_rows": b.overwritten_rows,
-                **({"file_name": asdict(b.reference_name)} if b.reference_name else {}),
-            }
-            for b in buffers
-        ],
-        importer={
-            "name": "vpace",
-            "kind": kind_used,
-            "fps": fps,
-            "observation_dims": dims[0],
-            "dropped": "absorbing-state flag (last observation column)",
-            "gripper": "negated: published > 0 closes, shiftkit > 0 opens",
-        },
-    )
-    return ImportSummary(Path(root), kind_used, fps, num_episodes, num_frames, per_file)
+                for b, bounds in zip(self.buffers, self.bounds, strict=True)
+            ],
+            "importer": {
+                "name": "vpace",
+                "kind": self.kind,
+                "fps": self.fps,
+                "observation_dims": self.obs_dim,
+                "dropped": "absorbing-state flag (last observation column)",
+                "gripper": "negated: published > 0 closes, shiftkit > 0 opens",
+            },
+        }
 
 
-def _add_arguments(parser) -> None:
-    parser.add_argument("files", nargs="+", metavar="FILE", help="buffer files (all go into one dataset)")
-    parser.add_argument(
-        "--kind",
-        default="auto",
-        choices=("auto", "examples", "trajectories"),
-        help="success-example sets or expert trajectories (default: detected)",
-    )
-    parser.add_argument("--task", help="task name for every file (default: from the file name, 3_lift -> lift)")
-    parser.add_argument("--fps", type=int, help="frame rate (default: 20 for 60-column files, 5 for 54)")
-
-
-def _report(summary: ImportSummary) -> list[str]:
+def _report(source: dict[str, Any]) -> list[str]:
     lines = []
-    for f in summary.per_file:
+    for f in source["files"]:
+        lengths = f["lengths"]
         detail = (
             f"{f['rows']} examples"
-            if summary.kind == "examples"
-            else (f"{f['rows']} transitions in {f['episodes']} episodes (lengths {f['lengths']})")
+            if source["importer"]["kind"] == "examples"
+            else f"{f['rows']} transitions in {len(lengths)} episodes (lengths {lengths})"
         )
-        lines.append(f"{f['file']}: task {f['task']!r}, {detail}")
+        lines.append(f"{Path(f['path']).name}: task {f['task']!r}, {detail}")
     return lines
 
 
-IMPORTER = Importer(
-    name="vpace",
-    help="the VPACE/LfGP authors' published expert buffers (gzipped pickles)",
-    add_arguments=_add_arguments,
-    run=lambda args: import_vpace(args.files, args.repo_id, args.root, kind=args.kind, task=args.task, fps=args.fps),
-    report=_report,
+IMPORTER = register_importer(
+    Importer(
+        name="vpace",
+        help="the VPACE/LfGP authors' published expert buffers (gzipped pickles)",
+        Options=VpaceOptions,
+        inputs=("files",),
+        open=VpaceSource,
+        report=_report,
+    )
 )

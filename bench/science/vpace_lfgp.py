@@ -37,7 +37,7 @@ measured costs per interaction.
 Reported: per method the success curve over seeds, interquartile mean with stratified-bootstrap 95%
 CIs (`_study.iqm_ci`, rliable's convention, scipy's bootstrap, seed 0), over the evaluation steps
 every seed reached; and the final success pooled over seeds with its Wilson 95% interval
-(`_study.pool`). `shiftkit train plot VPACE=RUN,RUN,... SQIL=... --out lift.png` draws the same
+(`_study.pool`). `shiftkit plot curves VPACE=RUN,RUN,... SQIL=... --out lift.png` draws the same
 curves. Last line: the JSON result, VPACE's final success minus SQIL's on lift (or, without them,
 LfGP's minus DAC's), both gaps where they ran, the curves and every run. `--quick`: one seed, 200
 interactions per run (100 random before the first update, curve points at 100 and 200), 3 scripted

@@ -13,7 +13,7 @@ from shiftkit.envs.door_tactile.env import (
 from shiftkit.envs.door_tactile.experts import kinesthetic_rollout, replay_positions, rollout
 from shiftkit.envs.door_tactile.physics import SIM_MODEL_ID
 from shiftkit.envs.door_tactile.tasks import TASKS
-from shiftkit.envs.registry import EnvFamily, register_family
+from shiftkit.envs.family import EnvFamily, register_family
 
 FAMILY = register_family(
     EnvFamily(

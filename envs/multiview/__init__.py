@@ -7,10 +7,10 @@ and Door. One env family per task (`mv-lift`, `mv-stack`, `mv-pick-insert`, `mv-
 import numpy as np
 
 from shiftkit.envs.base_pose import CAMERA_NAME, SAMPLER
+from shiftkit.envs.family import EnvFamily, register_family
 from shiftkit.envs.multiview.experts import ExpertPolicy, rollout
 from shiftkit.envs.multiview.physics import CONTROL_HZ
 from shiftkit.envs.multiview.tasks import STATE_NAMES, TASKS
-from shiftkit.envs.registry import EnvFamily, register_family
 
 FAMILIES = {
     task.env: register_family(

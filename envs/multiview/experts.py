@@ -8,6 +8,7 @@ frame, as the env takes them.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,7 @@ from shiftkit.envs.multiview.physics import (
     MultiviewPhysics,
 )
 from shiftkit.envs.multiview.tasks import BLOCK_REST_Z, LIFT_HEIGHT, hole_centre
+from shiftkit.envs.registry import Registry
 from shiftkit.envs.rollout import Rollout, expert_rollout
 
 STEP = MAX_TCP_SPEED / 10  # metres per 10 Hz step at |action| = 1
@@ -39,6 +41,10 @@ def hand_yaw(p: MultiviewPhysics) -> float:
 def _wrap_half_turn(angle: float) -> float:
     """Angle wrapped to [-pi/2, pi/2) (the two fingers are interchangeable)."""
     return float((angle + np.pi / 2) % np.pi - np.pi / 2)
+
+
+# The scripted controller of each task: `MultiviewExpert` methods registered by task name.
+TASK_EXPERTS: Registry[Callable[[MultiviewExpert], np.ndarray]] = Registry("multiview task expert")
 
 
 class MultiviewExpert:
@@ -98,9 +104,10 @@ class MultiviewExpert:
 
     def act(self) -> np.ndarray:
         """The next action of the task's script."""
-        return getattr(self, "_" + self.task.name.replace("-", "_"))()
+        return TASK_EXPERTS.get(self.task.name)(self)
 
     # ----------------------------------------------------------------- tasks
+    @TASK_EXPERTS.named("lift")
     def _lift(self) -> np.ndarray:
         a = self._pick("block", 0.0, 0.06)
         if a is not None:
@@ -108,6 +115,7 @@ class MultiviewExpert:
         block = self.p.object_pos("block")
         return self._toward([*block[:2], BLOCK_REST_Z + LIFT_HEIGHT + 0.05], -1.0)
 
+    @TASK_EXPERTS.named("stack")
     def _stack(self) -> np.ndarray:
         p = self.p
         blue, green = p.object_pos("blue"), p.object_pos("green")
@@ -130,6 +138,7 @@ class MultiviewExpert:
             return self._toward(place + offset, -1.0, gain=0.5)
         return self._action(np.zeros(3), 1.0)
 
+    @TASK_EXPERTS.named("pick-insert")
     def _pick_insert(self) -> np.ndarray:
         p = self.p
         a = self._pick("cylinder", CYLINDER_HALF_LENGTH - 0.02, 0.06, xy_tol=0.003)
@@ -154,6 +163,7 @@ class MultiviewExpert:
         depth = hole[2] - HOLE_DEPTH + 0.003 - bottom[2]
         return self._toward(p.tcp_pos() + shift + [0.0, 0.0, depth], -1.0, max_step=0.005)
 
+    @TASK_EXPERTS.named("door")
     def _door(self) -> np.ndarray:
         p = self.p
         handle, hinge = p.handle_pos(), p.hinge_pos()

@@ -3,6 +3,7 @@ insertion slots; reset-based tasks and play episodes. Scene and physics in `phys
 predicates in `tasks`, the gymnasium env in `env`, scripted experts in `experts`, the published
 VPACE data's conventions in `vpace_compat`."""
 
+from shiftkit.envs.family import EnvFamily, register_family
 from shiftkit.envs.panda_play.experts import (
     PLAY_SEQUENCES,
     ExpertPolicy,
@@ -21,7 +22,6 @@ from shiftkit.envs.panda_play.physics import (
 )
 from shiftkit.envs.panda_play.tasks import TASKS
 from shiftkit.envs.panda_play.vpace_compat import vpace_action_to_shiftkit
-from shiftkit.envs.registry import EnvFamily, register_family
 
 FAMILY = register_family(
     EnvFamily(

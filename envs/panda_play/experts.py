@@ -10,6 +10,7 @@ labelled as a segment.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,7 @@ from shiftkit.envs.panda_play.physics import (
     ZONE_XY,
 )
 from shiftkit.envs.panda_play.tasks import INSERT_THRESHOLD, TASKS
+from shiftkit.envs.registry import Registry
 from shiftkit.envs.rollout import Rollout, RolloutRecorder, expert_rollout
 
 CARRY_Z = 0.23
@@ -43,6 +45,10 @@ PLAY_SEQUENCES: dict[str, tuple[str, ...]] = {
     "insert": ("reach", "lift", "insert", "open"),
     "lift": ("reach", "grasp", "lift", "move-object", "close"),
 }
+
+
+# The script of each task: `PandaPlayExpert` methods registered by task name.
+TASK_EXPERTS: Registry[Callable[[PandaPlayExpert], np.ndarray]] = Registry("panda-play task expert")
 
 
 class PandaPlayExpert:
@@ -146,11 +152,13 @@ class PandaPlayExpert:
     # ----------------------------------------------------------------- tasks
     def act(self) -> np.ndarray:
         """The next action of the task's script."""
-        return getattr(self, "_task_" + self.task.replace("-", "_"))()
+        return TASK_EXPERTS.get(self.task)(self)
 
+    @TASK_EXPERTS.named("open")
     def _task_open(self) -> np.ndarray:
         return self._hover_then(False)
 
+    @TASK_EXPERTS.named("close")
     def _task_close(self) -> np.ndarray:
         return self._hover_then(True)
 
@@ -164,6 +172,7 @@ class PandaPlayExpert:
             return self._act(self._toward(target), self.p.gripper_closed)
         return self._act(np.zeros(3), close)
 
+    @TASK_EXPERTS.named("reach")
     def _task_reach(self) -> np.ndarray:
         if self.phase == "start":
             self.phase = "above" if not self.p.gripper_closed else "release"
@@ -178,16 +187,19 @@ class PandaPlayExpert:
             return self._act(self._toward(target), False)
         return self._act(self._toward(block, 0.6), False)
 
+    @TASK_EXPERTS.named("grasp")
     def _task_grasp(self) -> np.ndarray:
         a = self._grasp(0)
         return a if a is not None else self._act(np.zeros(3), True)
 
+    @TASK_EXPERTS.named("lift")
     def _task_lift(self) -> np.ndarray:
         a = self._grasp(0)
         if a is not None:
             return a
         return self._act(self._toward(np.r_[self.p.desired_tcp[:2], CARRY_Z], 0.7), True)
 
+    @TASK_EXPERTS.named("move-object")
     def _task_move_object(self) -> np.ndarray:
         a = self._grasp(0)
         if a is not None:
@@ -241,6 +253,7 @@ class PandaPlayExpert:
         target = np.r_[self.p.desired_tcp[:2], min(CARRY_Z, block[2] + 0.07)]
         return self._act(self._toward(target, 0.5), False)
 
+    @TASK_EXPERTS.named("stack")
     def _task_stack(self) -> np.ndarray:
         a = self._grasp(0)
         if a is not None:
@@ -278,6 +291,7 @@ class PandaPlayExpert:
             return self._relocate_green(np.array([target_xy, self.p.block_pos(0)[:2]]))
         return None
 
+    @TASK_EXPERTS.named("unstack-stack")
     def _task_unstack_stack(self) -> np.ndarray:
         if self.phase == "start" and not self.released:
             blue, green = self.p.block_pos(0), self.p.block_pos(1)
@@ -289,6 +303,7 @@ class PandaPlayExpert:
                 return a
         return self._task_stack()
 
+    @TASK_EXPERTS.named("bring")
     def _task_bring(self) -> np.ndarray:
         a = self._clear_then(ZONE_XY[0])
         if a is not None:
@@ -298,6 +313,7 @@ class PandaPlayExpert:
             return a
         return self._place(0, ZONE_XY[0], BLOCK_REST_Z + 0.004)
 
+    @TASK_EXPERTS.named("insert")
     def _task_insert(self) -> np.ndarray:
         a = self._clear_then(ZONE_XY[0])
         if a is not None:

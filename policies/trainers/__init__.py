@@ -7,17 +7,17 @@ glue (options and run, in that `__init__.py`), the loader `shiftkit eval` uses f
 the citation its model cards carry; the folder's other modules hold the training itself. The heavy
 parts (torch) are named as `module:attribute` and imported only when used, so `shiftkit train
 --help` lists the trainers without importing any of them. `commands/train.py` builds its subcommands from `trainers()`,
-`evaluation.load_policy` loads through `trainer(name)`, `run_dir` passes the citation to the card.
+`evaluation.load_policy` loads through `TRAINERS.get(name)`, `run_dir` passes the citation to the card.
 """
 
 from __future__ import annotations
 
 import importlib
-import pkgutil
 from dataclasses import dataclass
 from typing import Any
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
+from shiftkit.envs.registry import Registry, import_modules
 
 
 @dataclass(frozen=True)
@@ -50,36 +50,11 @@ class Trainer:
         return _resolve(self.load_policy)
 
 
-_REGISTRY: dict[str, Trainer] = {}
-_DISCOVERED = False
-
-
-def register(trainer: Trainer) -> Trainer:
-    """Add `trainer` to the registry (its folder's `__init__.py` calls this once, at import)."""
-    known = _REGISTRY.get(trainer.name)
-    if known is not None and known != trainer:
-        raise ValueError(f"trainer {trainer.name!r} is registered twice")
-    _REGISTRY[trainer.name] = trainer
-    return trainer
-
-
-def trainers() -> dict[str, Trainer]:
-    """Every registered trainer by name, after importing each trainer folder of this package once."""
-    global _DISCOVERED
-    if not _DISCOVERED:
-        for info in pkgutil.iter_modules(__path__, f"{__name__}."):
-            if info.ispkg:  # a trainer is a folder
-                importlib.import_module(info.name)
-        _DISCOVERED = True
-    return dict(sorted(_REGISTRY.items()))
-
-
-def trainer(name: str) -> Trainer:
-    """The trainer called `name`; ConfigError naming the known ones otherwise."""
-    known = trainers()
-    if name not in known:
-        raise ConfigError(f"unknown trainer {name!r} (known: {', '.join(known)})")
-    return known[name]
+# Every trainer, found by importing each trainer folder of this package on the first lookup.
+TRAINERS: Registry[Trainer] = Registry(
+    "trainer", error=ConfigError, discover=[lambda: import_modules(__name__, __path__, packages_only=True)]
+)
+register = TRAINERS.register  # a trainer folder's `__init__.py` calls `register(Trainer(...))` once
 
 
 def _resolve(ref: str) -> Any:

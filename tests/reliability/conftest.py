@@ -8,7 +8,7 @@ import pytest
 
 @pytest.fixture(scope="session")
 def rel_raw(tmp_path_factory):
-    from shiftkit.pipelines.synthetic import write_synthetic_raw
+    from shiftkit.datasets.synthetic import write_synthetic_raw
 
     return write_synthetic_raw(tmp_path_factory.mktemp("rel") / "raw", episodes=4, length=10, seed=3, camera=(12, 16))
 

@@ -60,7 +60,7 @@ def readme_section() -> str:
 * {c["fuzzed"]} fuzzed files and configs (hypothesis: truncated files, garbage, wrong dtypes and
   shapes, ragged rows, NaN/inf, random JSON values) for the raw episode reader, the LeRobot
   reader and `info` / `validate` on it, the pipeline config parser and every importer
-  (robomimic, VPACE, ros2, LeRobot v2.1), every typed loader of `pipelines/loaders.py` and the
+  (robomimic, VPACE, ros2, LeRobot v2.1), every typed loader of `datasets/loaders.py` and the
   pickle-free store of checkpoints and work parts: a clean result or a one-line error, never
   another exception.
 * {c["faults"]} faults injected: SIGKILL of `shiftkit run` at seeded random points (the resumed run

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from shiftkit.app.cli import main
-from shiftkit.pipelines.errors import ShiftkitError
+from shiftkit.datasets.errors import ShiftkitError
 
 
 @dataclass

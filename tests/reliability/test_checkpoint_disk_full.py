@@ -6,7 +6,7 @@ import errno
 
 import pytest
 
-from shiftkit.pipelines.errors import ShiftkitError
+from shiftkit.datasets.errors import ShiftkitError
 from shiftkit.policies.run_dir import RunDir
 
 

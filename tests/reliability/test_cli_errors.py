@@ -1420,7 +1420,7 @@ def test_plain_validate_says_statistics_are_not_recomputed(rel_ds):
 def test_fire_aggregate_policy_trained_on_other_data(bc_run, rel_ds):
     """`fire aggregate --policy` of a policy trained in another env: same feature names, other sizes,
     is one line before any work (it used to fail deep in D's first batch)."""
-    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.datasets.errors import DatasetError
     from shiftkit.policies.bc_policy import load_policy
     from shiftkit.policies.fire_aggregate import AggregateArgs, _spec
 

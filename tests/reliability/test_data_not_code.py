@@ -128,7 +128,7 @@ def test_a_work_part_holding_a_pickle_is_refused(tmp_path):
     archive) is a one-line error and does not run."""
     import numpy as np
 
-    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.datasets.errors import DatasetError
     from shiftkit.pipelines.work import PartStore
 
     store = PartStore(tmp_path)
@@ -144,7 +144,7 @@ def test_a_work_part_holding_a_pickle_is_refused(tmp_path):
 def test_a_pulled_checkpoint_with_a_payload_is_refused(bc_run, tmp_path):
     """`pull --checkpoint` checks what it downloaded the way `eval` reads it (here on the folder
     the hub download fills: the hub itself is tested in tests/test_hub.py)."""
-    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.datasets.errors import DatasetError
     from shiftkit.policies.run_dir import check_checkpoint_files
 
     run, marker = _tampered(bc_run, tmp_path, "step-00000002.pt")

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shiftkit.pipelines.synthetic import write_synthetic_raw
+from shiftkit.datasets.synthetic import write_synthetic_raw
 from tests.helpers import dataset_bytes, finished_parts, shiftkit_process, sigkill_when, survivors
 from tests.reliability.harness import cli
 
@@ -103,7 +103,7 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
 
 
 def test_second_run_on_same_destination_is_refused(tmp_path, rel_raw):
-    from shiftkit.pipelines.staging import DestinationLock
+    from shiftkit.datasets.staging import DestinationLock
 
     config = _config(tmp_path, rel_raw, "out")
     with DestinationLock(tmp_path / "out"):
@@ -115,7 +115,7 @@ def test_second_run_on_same_destination_is_refused(tmp_path, rel_raw):
 @pytest.mark.parametrize("command", ["train bc", "train vpace", "fire"])
 def test_second_training_run_on_same_output_is_refused(tmp_path, rel_ds, command):
     """Two trainers on one --output: the second is told another run holds it (not a resume mismatch)."""
-    from shiftkit.pipelines.staging import DestinationLock
+    from shiftkit.datasets.staging import DestinationLock
 
     run = tmp_path / "run"
     argv = {
@@ -237,7 +237,7 @@ def test_sigkilled_v21_import_leftovers_go_with_the_next_import(tmp_path):
 def test_collect_beaten_to_its_destination_leaves_nothing(tmp_path, monkeypatch):
     """Two `collect --out raw` at once: the one that finishes second gets a one-line error and its
     staging folder goes (the other's dataset stays)."""
-    from shiftkit.pipelines.sources import raw as raw_module
+    from shiftkit.datasets.sources import raw as raw_module
 
     write_index = raw_module.RawDatasetWriter._write_index
 

@@ -98,9 +98,9 @@ def _copy(src: Path) -> tuple[tempfile.TemporaryDirectory, Path]:
 
 def _run_sources(source: Path, dest: Path) -> None:
     """What `shiftkit run` does with a source before writing: plan, read and transform every episode."""
+    from shiftkit.datasets.sources import SourceConfig
     from shiftkit.pipelines.config import DestinationConfig, PipelineConfig
     from shiftkit.pipelines.planner import plan_pipeline
-    from shiftkit.pipelines.sources import SourceConfig
     from shiftkit.pipelines.work import transform_episode
 
     plan = plan_pipeline(PipelineConfig([SourceConfig(path=str(source))], DestinationConfig(root=str(dest))))
@@ -125,8 +125,8 @@ def test_raw_reader_on_mutated_files(rel_raw, index, mutation, second):
 @settings(max_examples=LEROBOT_EXAMPLES, **FUZZ)
 @given(index=st.integers(0, 10_000), mutation=mutations)
 def test_lerobot_reader_on_mutated_files(rel_ds, index, mutation):
-    from shiftkit.pipelines.dataset_check import validate_dataset
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.check import validate_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     tmp, root = _copy(rel_ds)
     with tmp:
@@ -206,7 +206,7 @@ ROBOMIMIC_EXAMPLES = 12
 def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, control_freq, total):
     import h5py
 
-    from shiftkit.pipelines.sources.robomimic import import_robomimic
+    from shiftkit.app.importing import import_dataset
     from tests.test_import_robomimic import _write
 
     tmp = tmp_path_factory.mktemp("rm")
@@ -220,7 +220,7 @@ def test_robomimic_importer_on_mutated_files(tmp_path_factory, target, array, co
         f["data"].attrs["env_args"] = json.dumps(args)
         if total is not None:
             f["data"].attrs["total"] = total
-    clean_or_error(lambda: import_robomimic(path, "rm/fuzz", tmp / "out"))
+    clean_or_error(lambda: import_dataset("robomimic", {"file": str(path)}, "rm/fuzz", tmp / "out"))
 
 
 VPACE_EXAMPLES = 25
@@ -238,7 +238,7 @@ def test_vpace_importer_on_mutated_buffers(tmp_path_factory, key, value):
     import gzip
     import pickle
 
-    from shiftkit.app.importers.vpace import import_vpace
+    from shiftkit.app.importing import import_dataset
 
     tmp = tmp_path_factory.mktemp("vp")
     n = 4
@@ -259,7 +259,7 @@ def test_vpace_importer_on_mutated_buffers(tmp_path_factory, key, value):
     path = tmp / "3_lift.gz"
     with gzip.open(path, "wb") as f:
         pickle.dump(data, f)
-    clean_or_error(lambda: import_vpace([path], "vp/fuzz", tmp / "out"))
+    clean_or_error(lambda: import_dataset("vpace", {"files": [str(path)]}, "vp/fuzz", tmp / "out"))
 
 
 ROS2_EXAMPLES = 6
@@ -273,7 +273,7 @@ ROS2_EXAMPLES = 6
 )
 def test_ros2_importer_on_joint_vectors_of_changing_width(tmp_path_factory, widths, value, field):
     """Joint vectors whose width changes through the bag (cycling `widths`), holding `value`."""
-    from shiftkit.pipelines.sources.ros2 import import_ros2
+    from shiftkit.app.importing import import_dataset
     from tests import test_import_ros2 as bags
 
     tmp = tmp_path_factory.mktemp("ros")
@@ -291,7 +291,8 @@ def test_ros2_importer_on_joint_vectors_of_changing_width(tmp_path_factory, widt
     mapping = tmp / "m.toml"
     camera = '[features."observation.images.front"]\ntopic = "/camera/image_raw"\n'  # not what is fuzzed here
     mapping.write_text(bags.MAPPING.replace('field = "position"', f'field = "{field}"').replace(camera, ""))
-    clean_or_error(lambda: import_ros2([bag], mapping, "ros/fuzz", tmp / "out"))
+    options = {"bags": [str(bag)], "mapping": str(mapping)}
+    clean_or_error(lambda: import_dataset("ros2", options, "ros/fuzz", tmp / "out"))
 
 
 V21_EXAMPLES = 8
@@ -306,7 +307,7 @@ V21_EXAMPLES = 8
     value=json_values,
 )
 def test_lerobot_v21_importer_on_mutated_metadata(tmp_path_factory, target, key, value):
-    from shiftkit.pipelines.sources.lerobot_v21 import import_lerobot_v21
+    from shiftkit.app.importing import import_dataset
     from tests.test_import_lerobot_v21 import _write_v21
 
     tmp = tmp_path_factory.mktemp("v21")
@@ -320,7 +321,7 @@ def test_lerobot_v21_importer_on_mutated_metadata(tmp_path_factory, target, key,
         lines = [json.loads(line) for line in path.read_text().splitlines()]
         lines[-1][key] = value
         path.write_text("".join(json.dumps(line) + "\n" for line in lines))
-    clean_or_error(lambda: import_lerobot_v21(src, "v21/fuzz", tmp / "out"))
+    clean_or_error(lambda: import_dataset("lerobot-v2.1", {"source": str(src)}, "v21/fuzz", tmp / "out"))
 
 
 INFO_VALIDATE_EXAMPLES = 12
@@ -343,7 +344,7 @@ LOADER_EXAMPLES = 40
 
 
 def _loaders():
-    from shiftkit.pipelines import loaders
+    from shiftkit.datasets import loaders
     from shiftkit.policies.fire_runs import EPISODE_LINE
 
     return {
@@ -429,7 +430,7 @@ def test_every_loader_on_random_values(tmp_path_factory, kind, where, value, gar
 @given(array=npy_arrays, cut=st.none() | st.floats(0, 0.99))
 def test_array_loader_on_random_arrays(tmp_path_factory, array, cut):
     """`load_array` on arrays of any dtype and shape, NaN/inf, truncated: an array or one line."""
-    from shiftkit.pipelines.loaders import load_array
+    from shiftkit.datasets.loaders import load_array
 
     path = tmp_path_factory.mktemp("npy") / "a.npy"
     np.save(path, _array(array), allow_pickle=False)
@@ -444,7 +445,7 @@ def test_array_loader_on_random_arrays(tmp_path_factory, array, cut):
 def test_data_tree_round_trips_and_refuses_garbage(tmp_path_factory, value, as_tuple, key):
     """The pickle-free store of checkpoints and parts gives the same tree back (tuples, integer keys,
     arrays), and a random document in its place is one line."""
-    from shiftkit.pipelines import data_tree
+    from shiftkit.datasets import data_tree
 
     tree = {"v": (value, np.arange(3, dtype=np.int16)) if as_tuple else value, "k": {key: np.float32(1.5)}}
     path = tmp_path_factory.mktemp("tree") / "t.npz"

@@ -11,22 +11,22 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.synthetic import write_synthetic_raw
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
-from shiftkit.pipelines.episode import Episode
-from shiftkit.pipelines.errors import DatasetError
-from shiftkit.pipelines.sources import SourceConfig
-from shiftkit.pipelines.stage import StageContext, build_stage, registered_stages
-from shiftkit.pipelines.synthetic import write_synthetic_raw
+from shiftkit.pipelines.stage import STAGES, StageContext, build_stage
 from tests.helpers import tree_hashes
 from tests.reliability.harness import cli
 
 # Frame-rate-changing stages and the parameters to try, from their registration (`resampling_params`).
-RESAMPLERS = {name: cls.resampling_params for name, cls in registered_stages().items() if cls.resampling_params}
+RESAMPLERS = {name: cls.resampling_params for name, cls in STAGES.items() if cls.resampling_params}
 EVENT_EXAMPLES = 40
 
 
 def test_every_frame_rate_stage_is_covered():
-    changes_fps = {name for name, cls in registered_stages().items() if _changes_fps(name, cls.example_params)}
+    changes_fps = {name for name, cls in STAGES.items() if _changes_fps(name, cls.example_params)}
     assert {"subsample", "resample"} <= changes_fps
     assert changes_fps <= set(RESAMPLERS), f"give {changes_fps - set(RESAMPLERS)} resampling_params"
 
@@ -48,7 +48,7 @@ def test_a_frame_rate_stage_must_give_resampling_params():
 
     with pytest.raises(TypeError, match="changes the frame rate but gives no resampling_params"):
         register_stage(Halve)
-    assert "halve_fps" not in registered_stages()
+    assert "halve_fps" not in STAGES
 
 
 def _changes_fps(name: str, params: dict | None) -> bool:
@@ -99,7 +99,7 @@ def test_resampling_keeps_episode_end_events(name, length, success_from_end, dat
 def test_subsample_keeps_success_in_readme_tour(tmp_path):
     """The README tour case: scripted episodes flag success on their last frame only, and `every = 2`
     on even-length episodes dropped it (3 of 6 success episodes lost their flag)."""
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
     from shiftkit.pipelines.runner import run_pipeline
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=6, length=12, seed=4)
@@ -175,7 +175,7 @@ def test_parts_are_reused_when_the_source_is_unchanged(tmp_path, monkeypatch, ca
 def test_16_bit_png_is_refused_not_squashed(tmp_path, rel_raw):
     import cv2
 
-    from shiftkit.pipelines.sources.raw import open_raw_dataset
+    from shiftkit.datasets.sources.raw import open_raw_dataset
 
     raw = shutil.copytree(rel_raw, tmp_path / "raw")
     png = next(raw.glob("episode_000000/images/*/frame_000000.png"))
@@ -186,7 +186,7 @@ def test_16_bit_png_is_refused_not_squashed(tmp_path, rel_raw):
 
 
 def test_images_survive_a_non_utf8_folder(tmp_path):
-    from shiftkit.pipelines.sources.raw import RawDatasetWriter, open_raw_dataset
+    from shiftkit.datasets.sources.raw import RawDatasetWriter, open_raw_dataset
 
     out = tmp_path / os.fsdecode(b"raw\xfe\xff")
     frames = np.random.default_rng(0).integers(0, 255, (3, 6, 8, 3), dtype=np.uint8)
@@ -236,11 +236,11 @@ def test_train_bc_refuses_an_id_that_is_not_the_roots(tmp_path, rel_ds):
 
 
 def test_vpace_examples_must_be_an_example_set(tmp_path, rel_ds):
-    from shiftkit.policies.example_buffer import load_dataset_examples
+    from shiftkit.policies.trainers.vpace.example_buffer import load_dataset_examples
 
     with pytest.raises(DatasetError, match="success_examples"):
         load_dataset_examples([str(rel_ds)], ["reach"], require_example_set=True)
-    from shiftkit.pipelines.lerobot_io import open_lerobot_dataset
+    from shiftkit.datasets.reader import open_lerobot_dataset
 
     examples, _ = load_dataset_examples([str(rel_ds)], ["reach"], require_example_set=False)
     assert len(examples["reach"].obs) == open_lerobot_dataset(rel_ds).info["total_frames"]  # the flag: every frame

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.evaluation import _make_env
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.option_values import DataclassOptions
 from shiftkit.policies.trainers import Trainer, register
 
 TRAINER = register(
@@ -19,21 +19,7 @@ TRAINER = register(
 
 
 def options() -> DataclassOptions:
-    """`BCArgs` as options: counts and widths positive, the seed >= 0, rates positive."""
-    from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS, REGIMES
-
-    positive = (
-        "steps",
-        "max_epochs",
-        "patience",
-        "batch_size",
-        "ensemble_size",
-        "num_keypoints",
-        "hidden",
-        "checkpoint_every",
-        "log_every",
-        "threads",
-    )
+    """`BCArgs` as options (each field's rule and choices are the field's own)."""
     return DataclassOptions(
         TRAINER.args_class(),
         flags={
@@ -42,13 +28,6 @@ def options() -> DataclassOptions:
             "ensemble_size": "ensemble",
             "num_keypoints": "keypoints",
         },
-        rules={
-            **dict.fromkeys(positive, "positive_int"),
-            **dict.fromkeys(("lr", "norm_clip"), "positive_float"),
-            **dict.fromkeys(("weight_decay", "val_fraction", "norm_std_floor"), "non_negative_float"),
-            "seed": "non_negative_int",
-        },
-        choices={"regime": REGIMES, "encoder": ("cnn", "resnet18"), "output_activation": OUTPUT_ACTIVATIONS},
     )
 
 

@@ -4,10 +4,11 @@ command's options are built without importing the trainer (`training.py`)."""
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from shiftkit.pipelines.errors import ConfigError, require_positive
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.errors import ConfigError
 
 if TYPE_CHECKING:
     from shiftkit.policies.bc_policy import Normalization
@@ -27,52 +28,52 @@ class BCArgs:
     """Run folder: config, checkpoints, metrics.jsonl, model card."""
     root: str | None = None
     """Local folder of the dataset (with one dataset), else resolved by ID."""
-    regime: str = "early-stop"
+    regime: str = option("early-stop", choices=REGIMES)
     """`early-stop` (hold-out validation, patience) or `fixed` (fixed steps with weight decay)."""
-    steps: int | None = None
+    steps: int | None = option(None, rule="positive_int")
     """Gradient steps per member: required length of the `fixed` regime (default 20000); an upper
     bound in `early-stop` (default: max_epochs epochs)."""
-    max_epochs: int = 200
+    max_epochs: int = option(200, rule="positive_int")
     """early-stop: most epochs per member."""
-    patience: int = 30
+    patience: int = option(30, rule="positive_int")
     """early-stop: epochs without validation improvement before a member stops."""
-    batch_size: int = 64
+    batch_size: int = option(64, rule="positive_int")
     """Frames per gradient step and member."""
-    lr: float | None = None
+    lr: float | None = option(None, rule="positive_float")
     """Learning rate (default 1e-3 early-stop, 3e-4 fixed; fixed halves it halfway)."""
-    weight_decay: float | None = None
+    weight_decay: float | None = option(None, rule="non_negative_float")
     """Decoupled (AdamW) weight decay (default 0 early-stop, 0.1 fixed)."""
-    val_fraction: float | None = None
+    val_fraction: float | None = option(None, rule="fraction")
     """Share of episodes held out for validation (default 0.2 early-stop, 0 fixed)."""
-    ensemble_size: int = 1
+    ensemble_size: int = option(1, rule="positive_int")
     """Networks trained side by side (different shuffles and init; the policy outputs their mean):
     1 is plain BC; the thesis' ensembles have 5 (training time grows with the count)."""
     inputs: list[str] | None = None
     """Observation features to use (default: every `observation.*` feature of the dataset)."""
-    encoder: str = "cnn"
+    encoder: str = option("cnn", choices=("cnn", "resnet18"))
     """Image encoder: `cnn` (small CNN, 64x48 images) or `resnet18` (ResNet-18 trunk)."""
     encoder_weights: str | None = None
     """Local ResNet-18 state-dict file for the encoder's first layer (`cnn`) or trunk (`resnet18`)."""
-    num_keypoints: int = 32
+    num_keypoints: int = option(32, rule="positive_int")
     """Spatial soft-argmax keypoints per camera."""
-    hidden: list[int] = field(default_factory=lambda: [512, 512])
+    hidden: list[int] = option(default_factory=lambda: [512, 512], rule="positive_int")
     """Widths of the fully connected layers after the encoders."""
-    output_activation: str = "linear"
+    output_activation: str = option("linear", choices=OUTPUT_ACTIVATIONS)
     """`linear` or `tanh` (actions bounded to [-1, 1], as the policy of thesis 5.4.2)."""
-    seed: int = 0
+    seed: int = option(0, rule="non_negative_int")
     """Seed of the episode split, the shuffles and the init."""
-    checkpoint_every: int = 1000
+    checkpoint_every: int = option(1000, rule="positive_int")
     """Save a checkpoint every this many steps (and at the end)."""
-    log_every: int = 100
+    log_every: int = option(100, rule="positive_int")
     """Write mean training loss to metrics.jsonl every this many steps."""
-    norm_std_floor: float = 0.01
+    norm_std_floor: float = option(0.01, rule="non_negative_float")
     """Floor of each dimension's normalisation std, as a share of the dimension's RMS value
     (`sqrt(mean^2 + std^2)`); 0 turns the floor off (the absolute floor 1e-6 stays)."""
-    norm_clip: float | None = 10.0
+    norm_clip: float | None = option(10.0, rule="positive_float")
     """Normalised inputs are clipped to +-this many (floored) stds; None: no clipping."""
     device: str = "auto"
     """`auto` (CUDA when present), `cpu` or `cuda[:N]`."""
-    threads: int | None = 1
+    threads: int | None = option(1, rule="positive_int")
     """CPU threads for torch (None: torch's choice, one per core). One by default: a BC network's
     small matrix products gain little from more, and on a busy machine threads waiting for a core
     slow every step down (a state MLP on the shared 2-core machine: 65 steps/s on one thread, 3 on
@@ -81,9 +82,9 @@ class BCArgs:
     """Continue the run in output_dir from its last checkpoint."""
 
     def resolved(self) -> BCArgs:
-        """A copy with regime-dependent defaults filled in; raises ConfigError on bad values."""
-        if self.regime not in REGIMES:
-            raise ConfigError(f"unknown regime {self.regime!r} (choose from {', '.join(REGIMES)})")
+        """A copy with regime-dependent defaults filled in; raises ConfigError on bad values (each field's
+        rule, then what relates fields)."""
+        check_fields(self)
         fixed = self.regime == "fixed"
         out = dataclasses.replace(
             self,
@@ -94,33 +95,10 @@ class BCArgs:
             datasets=list(self.datasets),
             hidden=list(self.hidden),
         )
-        require_positive(
-            out,
-            "batch_size",
-            "ensemble_size",
-            "max_epochs",
-            "patience",
-            "checkpoint_every",
-            "log_every",
-            "num_keypoints",
-            "lr",
-        )
-        if out.output_activation not in OUTPUT_ACTIVATIONS:
-            raise ConfigError(
-                f"unknown output activation {out.output_activation!r} (choose from {', '.join(OUTPUT_ACTIVATIONS)})"
-            )
         if out.root is not None and len(out.datasets) != 1:
             raise ConfigError("--root names one dataset's folder; with several datasets give their IDs or paths")
-        if out.threads is not None and out.threads <= 0:
-            raise ConfigError(f"threads must be positive, got {out.threads}")
-        if out.steps is not None and out.steps <= 0:
-            raise ConfigError(f"steps must be positive, got {out.steps}")
-        if not 0.0 <= out.val_fraction < 1.0:
-            raise ConfigError(f"val_fraction must be in [0, 1), got {out.val_fraction}")
         if out.regime == "early-stop" and out.val_fraction == 0:
             raise ConfigError("the early-stop regime needs val_fraction > 0")
-        if out.weight_decay < 0 or any(h <= 0 for h in out.hidden):
-            raise ConfigError("weight_decay must be >= 0 and hidden widths positive")
         out.normalization()  # checks the normalisation values
         return out
 

@@ -26,13 +26,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from shiftkit.pipelines.errors import ConfigError, DatasetError
+from shiftkit.datasets.dataset import Dataset
+from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
 from shiftkit.policies.data import (
     FrameTable,
@@ -101,18 +101,15 @@ def _merged_stats(datasets: list, keys: list[str]) -> dict[str, dict[str, list]]
     return out
 
 
-def check_root_id(ref: str, root: str | None) -> None:
+def check_root_id(dataset: Dataset, root: str | None) -> None:
     """`--dataset ID --root DIR`: the folder must hold that dataset (by the ID its provenance
-    records), else the run would record an ID it did not train on."""
-    from shiftkit.pipelines.lerobot_io import PROVENANCE_PATH
-    from shiftkit.pipelines.loaders import load_provenance
-
-    path = Path(root) / PROVENANCE_PATH if root is not None else None
-    if path is None or not path.is_file():
-        return  # not made by shiftkit: nothing recorded to compare with
-    recorded = (load_provenance(path).get("output") or {}).get("repo_id")
-    if recorded is not None and recorded != ref:
-        raise ConfigError(f"--dataset {ref} but {root} holds {recorded}: give --dataset {recorded} (or omit --root)")
+    records), else the run would record an ID it did not train on. A dataset shiftkit did not make
+    records none to compare with."""
+    recorded = (dataset.provenance.get("output") or {}).get("repo_id")
+    if root is not None and recorded is not None and recorded != dataset.repo_id:
+        raise ConfigError(
+            f"--dataset {dataset.repo_id} but {root} holds {recorded}: give --dataset {recorded} (or omit --root)"
+        )
 
 
 def train(args: BCArgs, progress: bool = False) -> dict:
@@ -120,15 +117,15 @@ def train(args: BCArgs, progress: bool = False) -> dict:
     `progress` shows a bar with the training loss (its total is the step budget: early stopping
     may end sooner)."""
     args = args.resolved()
-    check_root_id(args.datasets[0], args.root)
+    # --- data: one frame table over all datasets, episodes split into train / held-out ---
+    opened = open_datasets(args.datasets, args.root)
+    check_root_id(opened[0][0], args.root)
+    refuse_example_sets(opened, "BC")
     run = RunDir(args.output_dir, args.resume)
     device = torch_device(args.device)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
 
-    # --- data: one frame table over all datasets, episodes split into train / held-out ---
-    opened = open_datasets(args.datasets, args.root)
-    refuse_example_sets(opened, "BC")
     datasets = [ds for _, ds in opened]
     inputs = _select_inputs(datasets[0].meta.features, args.inputs)
     table = FrameTable(datasets, [*inputs, "action"])

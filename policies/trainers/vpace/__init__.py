@@ -1,6 +1,6 @@
 """Trainers `vpace` and `lfgp`: scheduled auxiliary control from success examples or expert
-trajectories (`training.py`), their `shiftkit train vpace|lfgp` glue, and `shiftkit train plot`
-(success curves of RL runs, `policies/curves.py`).
+trajectories (`training.py`) and their `shiftkit train vpace|lfgp` glue (`shiftkit plot curves` draws
+their runs' success curves, `policies/curves.py`).
 
 Every hyperparameter of `VPACEArgs` is an option generated from the dataclass
 (`option_values.DataclassOptions`: `--total-steps`, `--main-rate`, ..., help from the field's
@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from shiftkit.pipelines.dataclass_config import csv_list
-from shiftkit.pipelines.option_values import DataclassOptions
+from shiftkit.datasets.option_values import DataclassOptions
 from shiftkit.policies.trainers import Trainer, register
 
 for _name, _help, _citation in (
@@ -40,53 +39,23 @@ for _name, _help, _citation in (
         )
     )
 
-_POSITIVE_INT = (
-    "examples_per_task",
-    "total_steps",
-    "batch_size",
-    "example_batch_size",
-    "n_step",
-    "hidden",
-    "vp_filter_size",
-    "num_periods",
-    "episode_steps",
-    "eval_episodes",
-    "checkpoint_every",
-    "log_every",
-    "torch_threads",
-)
-_POSITIVE_FLOAT = (
-    "gamma", "reward_scale", "lr", "actor_lr", "initial_alpha", "polyak", "max_grad_norm", "expert_sample_decay",
-)  # fmt: skip
-_NON_NEGATIVE_FLOAT = (
-    "value_penalty", "aug_factor", "weight_decay", "gradient_penalty", "main_rate", "handcraft_rate",
-    "expert_sample_rate", "final_pair_bias",
-)  # fmt: skip
-
 
 def options() -> DataclassOptions:
-    """`VPACEArgs` as options; `variant` and `handcrafted` are made by `add_arguments`, the
-    preset-only `full_trajectories` has none."""
+    """`VPACEArgs` as options (each field's rule and choices are the field's own); `variant` and
+    `handcrafted` are made by `add_arguments`, the preset-only `full_trajectories` has none."""
     from shiftkit.policies.trainers.vpace.args import VPACEArgs
 
     return DataclassOptions(
         VPACEArgs,
         skip=("variant", "handcrafted", "full_trajectories"),
         flags={"output_dir": "output", "torch_threads": "threads", "env_kwargs": "env-kwarg"},
-        rules={
-            **dict.fromkeys(_POSITIVE_INT, "positive_int"),
-            **dict.fromkeys(("seed", "buffer_warmup", "random_steps", "eval_every"), "non_negative_int"),
-            **dict.fromkeys(_POSITIVE_FLOAT, "positive_float"),
-            **dict.fromkeys(_NON_NEGATIVE_FLOAT, "non_negative_float"),
-        },
-        choices={"reward_model": ("sqil", "dac", "rce"), "vp_q_max": ("mean", "max"), "scheduler": ("wrs", "learned")},
         required=("examples", "main_task", "output_dir"),
     )
 
 
 def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
     """Options of `train vpace` and `train lfgp` (the subcommand's name is the default variant)."""
-    from shiftkit.pipelines.dataclass_config import field_docs
+    from shiftkit.datasets.dataclass_config import field_docs
     from shiftkit.policies.trainers.vpace.args import VARIANTS, VPACEArgs
 
     docs = field_docs(VPACEArgs)
@@ -125,41 +94,4 @@ def run(args: argparse.Namespace) -> int:
     metrics = train(config)
     shown = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in metrics.items())
     print(f"trained {config.variant} ({config.main_task}) in {config.output_dir}" + (f": {shown}" if shown else ""))
-    return 0
-
-
-def add_plot_arguments(parser: argparse.ArgumentParser) -> None:
-    """Flags of the success-curve plot command."""
-    parser.add_argument(
-        "groups",
-        nargs="+",
-        metavar="LABEL=RUN[,RUN...]",
-        help="a method's label and its run folders (one per seed; several tasks allowed)",
-    )
-    parser.add_argument("--out", required=True, help="PNG file to write")
-    parser.add_argument("--title", default="", help="plot title")
-    parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (default: 2000)")
-    parser.add_argument("--seed", type=int, default=0, help="bootstrap seed (default: 0)")
-
-
-def run_plot(args: argparse.Namespace) -> int:
-    """Plots the IQM success curves of the LABEL=RUN[,RUN...] groups and prints each one's final IQM; returns 0."""
-    from pathlib import Path
-
-    from shiftkit.pipelines.errors import ConfigError
-    from shiftkit.policies.curves import aggregate, plot_curves
-
-    curves = []
-    for group in args.groups:
-        label, sep, runs = group.partition("=")
-        if not sep or not label or not csv_list(runs):
-            raise ConfigError(f"expected LABEL=RUN[,RUN...], got {group!r}")
-        curves.append(aggregate(label, [Path(r) for r in csv_list(runs)], args.reps, args.seed))
-    out = plot_curves(curves, Path(args.out), args.title)
-    for c in curves:
-        print(
-            f"{c.label}: final IQM {c.iqm[-1]:.3f} [{c.low[-1]:.3f}, {c.high[-1]:.3f}] at step {c.steps[-1]} "
-            f"over {c.runs} runs"
-        )
-    print(f"wrote {out}")
     return 0

@@ -7,7 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from shiftkit.pipelines.errors import ConfigError
+from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.errors import ConfigError
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "vpace": dict(reward_model="sqil", multitask=True, value_penalty=10.0, full_trajectories=False),
@@ -54,11 +55,11 @@ class VPACEArgs:
     """Run directory: config, checkpoints, metrics.jsonl, model card."""
     variant: str = "vpace"
     """Preset of reward_model / multitask / value_penalty / full_trajectories (see module docstring)."""
-    reward_model: str = "sqil"
+    reward_model: str = option("sqil", choices=("sqil", "dac", "rce"))
     """sqil | dac | rce."""
     multitask: bool = True
     """Scheduled auxiliary intentions (ACE/LfGP) rather than the main task alone."""
-    value_penalty: float = 10.0
+    value_penalty: float = option(10.0, rule="non_negative_float")
     """VP weight lambda; 0 turns value penalization off."""
     full_trajectories: bool = False
     """LfGP: examples are expert trajectories with actions; DAC on (s, a); no per-task example rows in
@@ -68,87 +69,87 @@ class VPACEArgs:
     layers, with a small head per task; off (VPACE, thesis B.2.6): every network is its own."""
     frames_as_examples: bool = False
     """Use every frame of an `examples` dataset as a success example even if it holds trajectories."""
-    examples_per_task: int | None = None
+    examples_per_task: int | None = option(None, rule="positive_int")
     """Use at most this many examples per task (thesis: 200 in simulation); None uses all."""
-    aug_factor: float = 0.1
+    aug_factor: float = option(0.1, rule="non_negative_float")
     """Example augmentation: Gaussian noise of this many per-dimension example stds; 0 turns it off."""
-    total_steps: int = 300_000
+    total_steps: int = option(300_000, rule="positive_int")
     """Environment interactions to train for (also the replay capacity)."""
-    seed: int = 0
+    seed: int = option(0, rule="non_negative_int")
     """Seeds networks, exploration, sampling and environment resets."""
     device: str = "auto"
     """torch device; auto picks cuda when available."""
-    torch_threads: int | None = None
+    torch_threads: int | None = option(None, rule="positive_int")
     """CPU threads for torch (None keeps torch's default); 1 is fastest on a busy or small machine."""
-    gamma: float = 0.99
+    gamma: float = option(0.99, rule="positive_float")
     """Discount."""
-    reward_scale: float = 0.1
+    reward_scale: float = option(0.1, rule="positive_float")
     """Multiplies every reward."""
-    batch_size: int = 128
+    batch_size: int = option(128, rule="positive_int")
     """Replay rows per update, shared by all intentions (LfGP: expert transitions take the place of a
     share of them); also the discriminator's rows per task."""
-    example_batch_size: int = 128
+    example_batch_size: int = option(128, rule="positive_int")
     """Example rows per update for the critics, divided among the tasks (rows // tasks each, the main
     task the remainder), as the reference code's `fraction` sampling does."""
-    expert_sample_rate: float = 0.0
+    expert_sample_rate: float = option(0.0, rule="non_negative_float")
     """Full trajectories: share of the batch that is expert transitions (thesis Table A.2 "BE sampling
     proportion", 0.1), divided among the tasks, for critics and policies of every task."""
-    expert_sample_decay: float = 1.0
+    expert_sample_decay: float = option(1.0, rule="positive_float")
     """Factor on `expert_sample_rate` per update (Table A.2: 0.99999)."""
-    final_pair_bias: float = 0.0
+    final_pair_bias: float = option(0.0, rule="non_negative_float")
     """Share of the discriminator's expert rows drawn from rows that end a demonstration, the (s_T, 0)
     pairs and segments' last rows (Table A.2 "(s_T, 0) sampling bias", 0.95)."""
-    lr: float = 3e-4
+    lr: float = option(3e-4, rule="positive_float")
     """Adam(W) learning rate of critics, discriminators and temperatures."""
-    actor_lr: float = 3e-4
+    actor_lr: float = option(3e-4, rule="positive_float")
     """AdamW learning rate of the policies (LfGP, Table A.2: 1e-5)."""
-    weight_decay: float = 1e-2
+    weight_decay: float = option(1e-2, rule="non_negative_float")
     """Decoupled (AdamW) weight decay of policies, critics and discriminators. Adam's coupled L2 form must
     not be used here: where a critic's data gradients are small, Adam normalises the decay term itself to
     steps of size lr and shrinks the whole network to zero within a few thousand updates."""
-    initial_alpha: float = 1e-2
+    initial_alpha: float = option(1e-2, rule="positive_float")
     """Initial SAC temperature of every intention (target entropy is -dim(action))."""
-    polyak: float = 1e-3
+    polyak: float = option(1e-3, rule="positive_float")
     """Target critic averaging rate (LfGP, Table A.2: 1e-4)."""
-    max_grad_norm: float = 10.0
+    max_grad_norm: float = option(10.0, rule="positive_float")
     """Gradient norm clip of the policies, of the critics and of the temperatures, each one norm over
     every task's parameters (as the reference code clips)."""
-    buffer_warmup: int = 5_000
+    buffer_warmup: int = option(5_000, rule="non_negative_int")
     """Interactions before the first update."""
-    random_steps: int = 10_000
+    random_steps: int = option(10_000, rule="non_negative_int")
     """Interactions with uniform random actions at the start."""
-    n_step: int = 1
+    n_step: int = option(1, rule="positive_int")
     """n-step returns for buffer rows (1: plain TD)."""
-    hidden: tuple[int, ...] = (256, 256)
+    hidden: tuple[int, ...] = option((256, 256), rule="positive_int")
     """Hidden layer widths of every network."""
-    vp_filter_size: int = 50
+    vp_filter_size: int = option(50, rule="positive_int")
     """Median filter length for Q_max (and a learned reward's minimum)."""
-    vp_q_max: str = "mean"
+    vp_q_max: str = option("mean", choices=("mean", "max"))
     """How Q_max is read from the example batch's Q(s*, a*): mean (thesis) or max (the reference code's
     other choice, a looser bound)."""
-    gradient_penalty: float = 10.0
+    gradient_penalty: float = option(10.0, rule="non_negative_float")
     """DAC discriminator gradient penalty weight."""
-    num_periods: int = 8
+    num_periods: int = option(8, rule="positive_int")
     """Scheduler periods per episode (8 Panda, 5 others)."""
-    main_rate: float = 0.5
+    main_rate: float = option(0.5, rule="non_negative_float")
     """Weighted random scheduler probability of the main task."""
-    handcraft_rate: float = 0.5
+    handcraft_rate: float = option(0.5, rule="non_negative_float")
     """Probability that an episode follows a handcrafted sequence (when any are given)."""
     handcrafted: list[str] = field(default_factory=list)
     """Handcrafted sequences, comma-separated task names per period (`main` = main task), or the name of
     one of the thesis' sets: panda (VPACE), panda-lfgp (LfGP), reach-grasp (Sawyer/Adroit)."""
-    scheduler: str = "wrs"
+    scheduler: str = option("wrs", choices=("wrs", "learned"))
     """wrs (weighted random + handcrafted) or learned (SAC-Q's Q-table over task histories, scored by the
     main task's learned reward; needs the dac reward model)."""
-    episode_steps: int | None = None
+    episode_steps: int | None = option(None, rule="positive_int")
     """Episode length; None takes the environment's time limit."""
-    eval_every: int = 25_000
+    eval_every: int = option(25_000, rule="non_negative_int")
     """Evaluate the main intention every this many interactions (0: never)."""
-    eval_episodes: int = 50
+    eval_episodes: int = option(50, rule="positive_int")
     """Episodes per evaluation."""
-    checkpoint_every: int = 25_000
+    checkpoint_every: int = option(25_000, rule="positive_int")
     """Write a checkpoint at the first episode end after every this many interactions."""
-    log_every: int = 1_000
+    log_every: int = option(1_000, rule="positive_int")
     """Write training metrics every this many interactions."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     """Extra keyword arguments for the environment constructor."""
@@ -164,10 +165,9 @@ class VPACEArgs:
 
     def validate(self) -> None:
         """Raises ConfigError naming the first invalid or inconsistent setting."""
+        check_fields(self)
         if not self.main_task:
             raise ConfigError("--main-task is required")
-        if self.reward_model not in ("sqil", "dac", "rce"):
-            raise ConfigError(f"unknown reward model {self.reward_model!r}; choose sqil, dac or rce")
         if self.reward_model == "rce" and self.value_penalty > 0:
             raise ConfigError("RCE's classifier critic is bounded already; value penalty must be 0 with rce")
         if not 0.0 <= self.expert_sample_rate <= 1.0 or not 0.0 <= self.final_pair_bias <= 1.0:
@@ -180,10 +180,6 @@ class VPACEArgs:
             raise ConfigError("full trajectories (lfgp) need the dac reward model")
         if (self.full_trajectories or self.reward_model == "rce") and self.n_step != 1:
             raise ConfigError("n-step returns are only supported with state-only sqil/dac rewards; use n_step 1")
-        if self.vp_q_max not in ("mean", "max"):
-            raise ConfigError(f"unknown vp_q_max {self.vp_q_max!r}; choose mean or max")
-        if self.scheduler not in ("wrs", "learned"):
-            raise ConfigError(f"unknown scheduler {self.scheduler!r}; choose wrs or learned")
         if self.scheduler == "learned" and not (self.multitask and self.reward_model == "dac"):
             raise ConfigError(
                 "the learned scheduler needs several tasks and a learned reward (dac): it scores "
@@ -191,9 +187,6 @@ class VPACEArgs:
             )
         if self.multitask and self.main_task in self.aux_tasks:
             raise ConfigError(f"main task {self.main_task!r} is also listed as an auxiliary task")
-        for name in ("total_steps", "batch_size", "example_batch_size", "n_step", "num_periods", "eval_episodes"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be >= 1")
 
     @property
     def tasks(self) -> list[str]:

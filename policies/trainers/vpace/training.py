@@ -32,22 +32,22 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from shiftkit.pipelines.errors import ConfigError
-from shiftkit.pipelines.lerobot_io import ResolvedDataset
+from shiftkit.datasets.dataset import Dataset
+from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.cpu_memory import keep_freed_memory
-from shiftkit.policies.example_buffer import (
+from shiftkit.policies.replay import ReplayBuffer, ReplaySample
+from shiftkit.policies.sac import Intentions, polyak_update
+from shiftkit.policies.trainers.vpace.args import VPACEArgs
+from shiftkit.policies.trainers.vpace.example_buffer import (
     STATE_KEYS,
     ExampleBuffer,
     ExampleRows,
     TaskExamples,
     load_dataset_examples,
 )
-from shiftkit.policies.replay import ReplayBuffer, ReplaySample
-from shiftkit.policies.reward_models import DACReward, SQILReward, rce_loss, rce_targets
-from shiftkit.policies.sac import Intentions, polyak_update
-from shiftkit.policies.schedulers import QTableScheduler, WeightedRandomScheduler
-from shiftkit.policies.trainers.vpace.args import VPACEArgs
-from shiftkit.policies.value_penalty import ValueBounds, value_penalty
+from shiftkit.policies.trainers.vpace.reward_models import DACReward, SQILReward, rce_loss, rce_targets
+from shiftkit.policies.trainers.vpace.schedulers import QTableScheduler, WeightedRandomScheduler
+from shiftkit.policies.trainers.vpace.value_penalty import ValueBounds, value_penalty
 
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes never reuse a training reset seed
 
@@ -368,7 +368,7 @@ def train(
     run = RunDir(Path(args.output_dir), resume=args.resume)
 
     # Data and environments.
-    sources: list[ResolvedDataset] = []
+    sources: list[Dataset] = []
     env_factory = env_factory or (lambda task: make_env(args.env, task, args.env_kwargs))
     env, eval_env = env_factory(args.main_task), env_factory(args.main_task)
     if examples is None:
@@ -525,8 +525,8 @@ class MainIntentionPolicy:
 def load_policy(path: str | Path, device: str = "cpu") -> MainIntentionPolicy:
     """The main intention of a VPACE/LfGP run folder (its newest checkpoint) or of a checkpoint file,
     e.g. `RUN/checkpoints/best.safetensors` for the best evaluated one."""
-    from shiftkit.pipelines.dataclass_config import from_dict
-    from shiftkit.pipelines.errors import DatasetError
+    from shiftkit.datasets.dataclass_config import from_dict
+    from shiftkit.datasets.errors import DatasetError
     from shiftkit.policies.run_dir import RunDir, load_checkpoint, run_folder, torch_device
 
     path, run = Path(path), RunDir(run_folder(path), resume=True)
