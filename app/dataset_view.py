@@ -166,7 +166,7 @@ class _Sender:
     def _source_labels(self, codes: np.ndarray) -> list[str]:
         if self.source_labels is None:
             # FIRE's per-frame source codes (imported only for a dataset that has them: torch)
-            from shiftkit.policies.fire_aggregate import SOURCE_DEMO, SOURCE_EXPERT, SOURCE_POLICY
+            from shiftkit.policies.fire.aggregate import SOURCE_DEMO, SOURCE_EXPERT, SOURCE_POLICY
 
             self.source_labels = {SOURCE_DEMO: "demonstration", SOURCE_POLICY: "policy", SOURCE_EXPERT: "expert"}
         return [self.source_labels.get(int(c), f"source {int(c)}") for c in codes]

@@ -4,7 +4,7 @@ against a plain rollout of the same policy on the same seeds, in the same run. G
 
 Steps, through shiftkit's own entry points:
 1. `shiftkit collect` scripted-expert demonstrations (panda-play lift at 5 Hz);
-2. `shiftkit fire` (`policies.fire.run`) with the gda+doubt predictor and D active early, so every
+2. `shiftkit fire` (`policies.fire.loop.run`) with the gda+doubt predictor and D active early, so every
    step pays for D, the doubt, GDA and the oracle;
 3. the run's final policy rolled out plainly (`evaluation.run_episodes`) on the FIRE episodes' seeds.
 
@@ -54,9 +54,9 @@ def main() -> None:
     from shiftkit.envs import make
     from shiftkit.policies.bc_policy import load_policy
     from shiftkit.policies.evaluation import run_episodes
-    from shiftkit.policies.fire import run as run_fire
-    from shiftkit.policies.fire_config import FireArgs
-    from shiftkit.policies.fire_runs import read_episode_lines
+    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.loop import run as run_fire
+    from shiftkit.policies.fire.runs import read_episode_lines
 
     dataset, run = work / f"lift5-{demos}", work / f"fire-{episodes}"
     if not dataset.exists():

@@ -126,7 +126,7 @@ def test_no_parser_takes_abbreviations(capsys):
 
 def test_fire_options_mirror_every_field_of_its_args(tmp_path):
     from shiftkit.app.commands import fire as fire_command
-    from shiftkit.policies.fire_config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs
 
     options = fire_command._fire_options()
     parser = Parser(prog="fire")

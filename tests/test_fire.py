@@ -21,7 +21,7 @@ import pytest
 from shiftkit.app.cli import main
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.envs import families, make
-from shiftkit.policies.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
+from shiftkit.policies.fire.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
 from tests.helpers import lerobot_train_two_steps
 
 # a task per family whose tiny BC policy both fails and succeeds (families not listed: their first task)
@@ -261,7 +261,7 @@ def test_an_episode_holds_several_interventions_and_none_before_d_is_ready():
     """`run_episode`: before D is ready nothing asks, stops or takes over, whatever the predictor
     says; afterwards every agreed prediction starts a correction that ends where the expert hands
     back (here a person who hands back after two steps, too early), and the policy drives again."""
-    from shiftkit.policies.fire_episode import run_episode
+    from shiftkit.policies.fire.episode import run_episode
 
     env_name, task = EXPERT_ENVS[-1]
     env = make(env_name, task)
@@ -484,9 +484,9 @@ def test_the_expert_hands_control_back_once_the_policy_can_finish(fire_run):
 
 
 def test_protocol_check_reads_warm_up_and_hand_backs_from_metrics_and_recording(fire_run):
-    """`fire_runs.protocol_check` (the study's acceptance numbers): no intervention before D is ready
+    """`fire.runs.protocol_check` (the study's acceptance numbers): no intervention before D is ready
     and the hand-backs, counted alike from the episode lines and the DAgger recording."""
-    from shiftkit.policies.fire_runs import protocol_check
+    from shiftkit.policies.fire.runs import protocol_check
 
     run, _ = fire_run
     check = protocol_check(run)
@@ -506,7 +506,7 @@ def test_missed_failures_are_stopped_where_they_show_and_logged(fire_run, demo):
     episode's end minus the median demonstration's length; each stop is logged with its reason and
     starts an intervention ("fn")."""
     from shiftkit.datasets.reader import open_lerobot_dataset
-    from shiftkit.policies.fire_recording import load_npz
+    from shiftkit.policies.fire.recording import load_npz
 
     run, _ = fire_run
     env_name, task, root = demo
@@ -572,7 +572,7 @@ def test_execution_time_counts_the_demonstrations(fire_run, demo):
 def test_success_finals_join_the_expert_set_but_are_not_expert_samples(fire_run, demo):
     """A success's final (s_T, a_T) joins D_E (thesis 5.3.4) but no expert gave it: expert samples
     = demonstration frames + corrections."""
-    from shiftkit.policies.fire_recording import load_npz
+    from shiftkit.policies.fire.recording import load_npz
     from shiftkit.policies.run_dir import load_checkpoint
 
     run, _ = fire_run
@@ -592,7 +592,7 @@ def test_fire_policy_is_the_thesis_network_by_default(fire_run):
     """Thesis 5.4.2: one 2x256 MLP with a tanh output, FIRE's own defaults; the ensemble-doubt
     predictors keep an ensemble."""
     from shiftkit.policies.bc_policy import load_policy
-    from shiftkit.policies.fire_config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs
 
     args = FireArgs(dataset="d", env="panda-play", task="lift", output_dir="o").resolved()
     assert (args.ensemble_size, args.hidden, args.output_activation) == (1, [256, 256], "tanh")
@@ -611,8 +611,8 @@ def test_per_episode_updates_never_sample_the_retraining_hold_out():
     import torch
 
     from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
-    from shiftkit.policies.fire_config import FireArgs
-    from shiftkit.policies.fire_learning import online_update, retrain
+    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.learning import online_update, retrain
     from shiftkit.policies.frame_buffer import FrameBuffer
 
     spec = PolicySpec(
@@ -689,7 +689,7 @@ def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):
     drawn.clear()
     assert main(["plot", "fire", f"a={run}", f"a={run}", "--out", str(tmp_path / "two.png"), "--window", "2"]) == 0
     (line,) = drawn[0].axes[0].lines
-    from shiftkit.policies.fire_runs import success_curve
+    from shiftkit.policies.fire.runs import success_curve
 
     x, rate, _, _ = success_curve(lines, "expert_samples", 2)
     last = [rate[np.flatnonzero(x <= g)[-1]] for g in np.unique(x)]
@@ -711,7 +711,7 @@ def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):
 def test_seed_curve_is_the_iqm_of_the_runs_step_functions():
     """`plot fire` draws one line per method: at every x where all its runs have data, the IQM of each
     run's last windowed success at or before x, with a bootstrap band over the runs."""
-    from shiftkit.policies.fire_runs import seed_curve
+    from shiftkit.policies.fire.runs import seed_curve
 
     def lines(xs, ok):
         return [{"expert_samples": x, "policy_success": o} for x, o in zip(xs, ok, strict=True)]
@@ -731,7 +731,7 @@ def test_plot_fire_draws_bc_at_its_training_frames(demo, fire_run, tmp_path, cap
 
     from shiftkit.policies.curves import Point, draw_curves
     from shiftkit.policies.evaluation import EpisodeResult, EvalReport, record_evaluation, wilson_interval
-    from shiftkit.policies.fire_runs import bc_reference
+    from shiftkit.policies.fire.runs import bc_reference
 
     env_name, task, root = demo
     bc = tmp_path / "bc-s0"
@@ -885,9 +885,9 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
     from lerobot.processor.pipeline import DataProcessorPipeline, ProcessorStepRegistry
 
     from shiftkit.datasets.reader import open_lerobot_dataset
-    from shiftkit.policies.dagger_recording import write_recording
-    from shiftkit.policies.fire_predictor import FailurePredictor, FailurePredictorStep
-    from shiftkit.policies.fire_recording import recorded_episodes
+    from shiftkit.policies.fire.dagger_recording import write_recording
+    from shiftkit.policies.fire.predictor import FailurePredictor, FailurePredictorStep
+    from shiftkit.policies.fire.recording import recorded_episodes
 
     _, _, demo_root = demo
     run, _ = fire_run
@@ -940,8 +940,8 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
 
 def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_path, capsys):
     from shiftkit.datasets.reader import open_lerobot_dataset
-    from shiftkit.policies.dagger_recording import write_recording
-    from shiftkit.policies.fire_recording import recorded_episodes
+    from shiftkit.policies.fire.dagger_recording import write_recording
+    from shiftkit.policies.fire.recording import recorded_episodes
 
     _, _, demo_root = demo
     run, _ = fire_run

@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from shiftkit.policies.failure_predictors import (
+from shiftkit.policies.fire.failure_predictors import (
     BetaRule,
     DoubtRule,
     EpisodeTrace,
@@ -225,7 +225,7 @@ def _spec():
 
 
 def test_discriminator_tells_expert_from_policy_and_waits_for_samples():
-    from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
+    from shiftkit.policies.fire.discriminator import Discriminator, DiscriminatorConfig
     from shiftkit.policies.frame_buffer import FrameBuffer
 
     rng = np.random.default_rng(0)

@@ -40,7 +40,7 @@ WRITER_USERS = {"pipelines/assembly.py", "app/collect.py"}
 # Known exceptions, to be moved onto the one write path next: FIRE's aggregate (its dataset and the ROC
 # file beside it) and the DAgger recorder (lerobot's rollout layout, no provenance yet) write through
 # the writer themselves.
-KNOWN_EXCEPTIONS = {"policies/fire_aggregate.py", "policies/dagger_recording.py"}
+KNOWN_EXCEPTIONS = {"policies/fire/aggregate.py", "policies/fire/dagger_recording.py"}
 # A video that is no dataset file: an evaluation's rollout video in a run folder.
 OTHER_VIDEOS = {"policies/evaluation.py"}
 

@@ -58,8 +58,8 @@ _RULES = {
 
 
 def _fire_options() -> DataclassOptions:
-    from shiftkit.policies.failure_predictors import PREDICTORS
-    from shiftkit.policies.fire_config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.failure_predictors import PREDICTORS
     from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS
 
     return DataclassOptions(
@@ -72,7 +72,7 @@ def _fire_options() -> DataclassOptions:
 
 
 def _aggregate_options() -> DataclassOptions:
-    from shiftkit.policies.fire_config import RULES, AggregateArgs
+    from shiftkit.policies.fire.config import RULES, AggregateArgs
 
     return DataclassOptions(
         AggregateArgs, rules=_RULES, choices={"predictor": tuple(RULES)}, cli_defaults={"progress": True}
@@ -90,7 +90,7 @@ def add_arguments(p: argparse.ArgumentParser, argv: list[str] | None = None) -> 
 
 
 def _run_aggregate(args: argparse.Namespace) -> int:
-    from shiftkit.policies.fire_aggregate import aggregate
+    from shiftkit.policies.fire.aggregate import aggregate
 
     summary = aggregate(_aggregate_options().build(args))
     auc = ", ".join(
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     from shiftkit.app.env_kwargs import check_env_kwargs
     from shiftkit.datasets.hub import validate_repo_id
     from shiftkit.datasets.staging import DestinationLock
-    from shiftkit.policies.fire import run as run_fire
+    from shiftkit.policies.fire.loop import run as run_fire
 
     if getattr(args, "fire_action", None) == "aggregate":
         return _run_aggregate(args)

@@ -131,9 +131,9 @@ def _run_roc(args: RocFigure) -> int:
     import numpy as np
 
     from shiftkit.datasets.errors import ConfigError
-    from shiftkit.policies.failure_predictors import roc_curve
-    from shiftkit.policies.fire_aggregate import ROC_FILE, read_roc
-    from shiftkit.policies.fire_runs import read_episode_lines, roc_scores
+    from shiftkit.policies.fire.aggregate import ROC_FILE, read_roc
+    from shiftkit.policies.fire.failure_predictors import roc_curve
+    from shiftkit.policies.fire.runs import read_episode_lines, roc_scores
 
     check_figure_path(args.out)
     pooled: dict[str, list] = {}
@@ -183,7 +183,7 @@ def _run_fire(args: FireFigure) -> int:
 
     from shiftkit.datasets.dataclass_config import csv_list
     from shiftkit.policies.curves import Curve, Point, plot_curves
-    from shiftkit.policies.fire_runs import bc_curve, read_episode_lines, seed_curve, success_curve
+    from shiftkit.policies.fire.runs import bc_curve, read_episode_lines, seed_curve, success_curve
 
     check_figure_path(args.out)
     methods: dict[str, list[list[dict]]] = {}  # label -> its runs' episode lines

@@ -19,7 +19,7 @@ neither follows `train bc`'s defaults. Every policy is evaluated on the same hel
 before it runs; a rerun with the same `--workdir` reuses every finished step (resumable).
 
 Each FIRE run's entry in the JSON result holds `protocol`: its warm-up and hand-backs as its metrics
-and its DAgger-layout recording show them (`fire_runs.protocol_check`).
+and its DAgger-layout recording show them (`policies.fire.runs.protocol_check`).
 
 Prints a table and, last, the JSON result: FIRE gda's success pooled over seeds minus BC's at matched
 expert samples, with the suboptimal expert (the thesis' claim: FIRE beats BC at equal expert data,
@@ -37,7 +37,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _study import arguments, choices_of, evaluate, pool, seeds_of, shiftkit, workspace  # noqa: E402
 
-from shiftkit.policies.fire_runs import bc_reference, protocol_check, read_episode_lines  # noqa: E402
+from shiftkit.policies.fire.runs import bc_reference, protocol_check, read_episode_lines  # noqa: E402
 
 NETWORK = ["--ensemble", "1", "--hidden", "256,256", "--output-activation", "tanh"]
 EXPERTS = ("scripted", "suboptimal")

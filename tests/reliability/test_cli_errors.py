@@ -1422,7 +1422,7 @@ def test_fire_aggregate_policy_trained_on_other_data(bc_run, rel_ds):
     is one line before any work (it used to fail deep in D's first batch)."""
     from shiftkit.datasets.errors import DatasetError
     from shiftkit.policies.bc_policy import load_policy
-    from shiftkit.policies.fire_aggregate import AggregateArgs, _spec
+    from shiftkit.policies.fire.aggregate import AggregateArgs, _spec
 
     spec = load_policy(bc_run).spec
     recorded = {**spec.features, "action": spec.action}

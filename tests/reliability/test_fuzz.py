@@ -345,7 +345,7 @@ LOADER_EXAMPLES = 40
 
 def _loaders():
     from shiftkit.datasets import loaders
-    from shiftkit.policies.fire_runs import EPISODE_LINE
+    from shiftkit.policies.fire.runs import EPISODE_LINE
 
     return {
         "info": loaders.load_info,

@@ -96,7 +96,7 @@ def roc_scores(lines: list[dict]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     of gda and doubt) and the labels (the policy's uninterrupted run failed) of the episodes after D
     started."""
     from shiftkit.datasets.errors import ShiftkitError
-    from shiftkit.policies.failure_predictors import quantile_or
+    from shiftkit.policies.fire.failure_predictors import quantile_or
 
     ready = [x for x in lines if x["d_ready"]]
     missing = {name for x in ready for name in ("beta", "gda") if name not in x["scores"]}

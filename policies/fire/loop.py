@@ -25,7 +25,7 @@ Run folder (`run_dir.RunDir` layout, trainer "fire"):
     rollouts/ (at the end: the executed episodes as lerobot's DAgger strategy records them,
     `dagger_recording`).
 The aggregated LeRobot dataset is then made from the demonstrations and rollouts/ by offline FIRE
-(`fire_aggregate`), the code `shiftkit fire aggregate` runs on a robot's recordings, with this run's
+(`fire.aggregate`), the code `shiftkit fire aggregate` runs on a robot's recordings, with this run's
 seed and settings: the same bytes either way.
 """
 
@@ -47,19 +47,19 @@ from shiftkit.datasets.ids import lerobot_home
 from shiftkit.datasets.provenance import recorded_envs
 from shiftkit.datasets.reader import open_lerobot_dataset
 from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt, load_policy
-from shiftkit.policies.dagger_recording import rollout_repo_id, write_recording
 from shiftkit.policies.data import FrameTable, open_datasets, refuse_example_sets
-from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.evaluation import ObservationMap, run_episodes, wilson_interval
-from shiftkit.policies.failure_predictors import BetaRule, GDARule, OrRule, make_predictor
-from shiftkit.policies.fire_aggregate import SOURCE_EXPERT, aggregate
-from shiftkit.policies.fire_config import FireArgs
-from shiftkit.policies.fire_episode import Agent, EpisodeResult, recordable_features, run_episode
-from shiftkit.policies.fire_learning import online_update, retrain
-from shiftkit.policies.fire_recording import aggregate_args, recorded_episodes, save_npz
-from shiftkit.policies.fire_runs import summary as run_summary
+from shiftkit.policies.fire.aggregate import SOURCE_EXPERT, aggregate
+from shiftkit.policies.fire.config import FireArgs
+from shiftkit.policies.fire.dagger_recording import rollout_repo_id, write_recording
+from shiftkit.policies.fire.discriminator import Discriminator, DiscriminatorConfig
+from shiftkit.policies.fire.episode import Agent, EpisodeResult, recordable_features, run_episode
+from shiftkit.policies.fire.failure_predictors import BetaRule, GDARule, OrRule, make_predictor
+from shiftkit.policies.fire.learning import online_update, retrain
+from shiftkit.policies.fire.oracle import SimulatedOracle, scripted_expert
+from shiftkit.policies.fire.recording import aggregate_args, recorded_episodes, save_npz
+from shiftkit.policies.fire.runs import summary as run_summary
 from shiftkit.policies.frame_buffer import FrameBuffer
-from shiftkit.policies.oracle import SimulatedOracle, scripted_expert
 from shiftkit.policies.run_dir import RunDir, dataset_records, torch_device, versions
 from shiftkit.policies.trainers.bc.args import BCArgs
 from shiftkit.policies.trainers.bc.training import train as train_bc

@@ -33,9 +33,9 @@ from lerobot.processor.pipeline import ProcessorStep, ProcessorStepRegistry
 
 from shiftkit.datasets.errors import DatasetError
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature
-from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
-from shiftkit.policies.failure_predictors import BetaRule, GDARule
-from shiftkit.policies.fire_config import RULES
+from shiftkit.policies.fire.config import RULES
+from shiftkit.policies.fire.discriminator import Discriminator, DiscriminatorConfig
+from shiftkit.policies.fire.failure_predictors import BetaRule, GDARule
 
 FORMAT = "shiftkit-failure-predictor"
 VERSION = 2  # 2: GDA keeps executed segments (smoothing, ROC-derived threshold)

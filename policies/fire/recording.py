@@ -1,6 +1,6 @@
 """What a simulated FIRE run writes of its episodes: one npz file per executed episode, read back as
 the DAgger recording lerobot's strategy makes (`dagger_recording`), which offline FIRE
-(`fire_aggregate`) turns into the aggregated dataset with the run's settings.
+(`fire.aggregate`) turns into the aggregated dataset with the run's settings.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from shiftkit.datasets.episode import Episode
-from shiftkit.policies.fire_aggregate import AggregateArgs
-from shiftkit.policies.fire_config import FireArgs
-from shiftkit.policies.fire_predictor import RULES
+from shiftkit.policies.fire.aggregate import AggregateArgs
+from shiftkit.policies.fire.config import FireArgs
+from shiftkit.policies.fire.predictor import RULES
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:

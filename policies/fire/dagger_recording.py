@@ -8,7 +8,7 @@ teleoperator). Its two layouts:
   operator's corrections (True) in one stream, rotated into episodes by time;
 * `record_autonomous=false`: only the corrections; each one (start to stop) is its own episode.
 
-Frames recorded while paused do not exist in either layout. Offline FIRE (`fire_aggregate`) reads
+Frames recorded while paused do not exist in either layout. Offline FIRE (`fire.aggregate`) reads
 both, and the simulated FIRE loop writes its rollouts in the first so that every path a lab with a
 real robot takes can be run here.
 """

@@ -14,12 +14,12 @@ import torch
 
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt
-from shiftkit.policies.dagger_recording import runs
-from shiftkit.policies.discriminator import Discriminator
 from shiftkit.policies.evaluation import ObservationMap
-from shiftkit.policies.failure_predictors import EpisodeTrace, Segment
-from shiftkit.policies.fire_aggregate import SOURCE_EXPERT, SOURCE_POLICY
-from shiftkit.policies.oracle import SimulatedOracle
+from shiftkit.policies.fire.aggregate import SOURCE_EXPERT, SOURCE_POLICY
+from shiftkit.policies.fire.dagger_recording import runs
+from shiftkit.policies.fire.discriminator import Discriminator
+from shiftkit.policies.fire.failure_predictors import EpisodeTrace, Segment
+from shiftkit.policies.fire.oracle import SimulatedOracle
 
 
 class Agent:

@@ -20,7 +20,7 @@ Then, with the code of the simulated loop (`discriminator`, `failure_predictors`
 3. the aggregated LeRobot dataset: the demonstrations and every recorded episode, with per-frame
    `intervention` (as lerobot writes it), `source`, `discriminator_score` (final D) and
    `intervention_request` (where the chosen rule, as fitted up to then, asked); beside it, in
-   `meta/`, the predictor file (`fire_predictor`) and each rule's ROC scores (`fire_roc.json`,
+   `meta/`, the predictor file (`fire.predictor`) and each rule's ROC scores (`fire_roc.json`,
    drawn by `shiftkit plot roc`).
 
 D is scored on the recordings it trained on, so its ROC is in-sample for D (not for the rules'
@@ -47,11 +47,11 @@ from shiftkit.datasets.reader import open_lerobot_dataset
 from shiftkit.datasets.staging import check_inputs_and_outputs
 from shiftkit.datasets.writer import DatasetWriter
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
-from shiftkit.policies.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
-from shiftkit.policies.discriminator import Discriminator, DiscriminatorConfig
-from shiftkit.policies.failure_predictors import BetaRule, EpisodeTrace, GDARule, Segment, roc_curve
-from shiftkit.policies.fire_config import AggregateArgs
-from shiftkit.policies.fire_predictor import FailurePredictor
+from shiftkit.policies.fire.config import AggregateArgs
+from shiftkit.policies.fire.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
+from shiftkit.policies.fire.discriminator import Discriminator, DiscriminatorConfig
+from shiftkit.policies.fire.failure_predictors import BetaRule, EpisodeTrace, GDARule, Segment, roc_curve
+from shiftkit.policies.fire.predictor import FailurePredictor
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.run_dir import run_folder, torch_device
 from shiftkit.policies.trainers.bc.args import BCArgs

@@ -11,7 +11,7 @@ import torch
 
 from shiftkit.policies.bc_policy import BCPolicy
 from shiftkit.policies.data import epoch_batches
-from shiftkit.policies.fire_config import FireArgs
+from shiftkit.policies.fire.config import FireArgs
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.trainers.bc.training import update_members
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from shiftkit.datasets.errors import ConfigError, require_positive
-from shiftkit.policies.failure_predictors import PREDICTORS
+from shiftkit.policies.fire.failure_predictors import PREDICTORS
 from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS
 
 
@@ -164,7 +164,7 @@ class FireArgs:
         )
 
 
-# The rules a failure predictor file holds (`policies/fire_predictor.py`); here so that `fire aggregate
+# The rules a failure predictor file holds (`policies/fire/predictor.py`); here so that `fire aggregate
 # --help` imports no torch.
 RULES = ("beta", "gda")
 
