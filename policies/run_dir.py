@@ -98,7 +98,9 @@ def checkpoint_bytes(state: dict) -> bytes:
             tensor = tensor.clone()
         storages.add(tensor.untyped_storage().data_ptr())
         tensors[name] = tensor
-    return save(tensors, metadata={"format": "pt", STATE_KEY: data_tree.dumps(doc)})
+    # One metadata entry: safetensors writes its metadata map in hash order, which differs from process to
+    # process, so a second key (such as transformers' "format") would make the same checkpoint other bytes.
+    return save(tensors, metadata={STATE_KEY: data_tree.dumps(doc)})
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:

@@ -348,6 +348,23 @@ def test_resume_after_kill_equals_uninterrupted_run(state_ds, tmp_path):
     assert strip(metric_lines(killed, "train")) == strip(metric_lines(clean, "train"))
 
 
+def test_same_seed_same_checkpoint_bytes_in_fresh_processes(state_ds, tmp_path):
+    """Each checkpoint holds the global torch generator, which a fresh process starts from a random seed:
+    two processes with the same seed must still write the same bytes."""
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for run in runs:
+        subprocess.run(
+            [sys.executable, "-m", "shiftkit.app.cli", "train", "bc", "--dataset", str(state_ds), "--output",
+             str(run), "--regime", "fixed", "--steps", "60", "--hidden", "16,16", "--checkpoint-every", "30",
+             "--device", "cpu", "--seed", "3", "--no-progress"],
+            check=True, capture_output=True,
+        )  # fmt: skip
+    names = sorted(p.name for p in (runs[0] / "checkpoints").glob("*.safetensors"))
+    assert names == sorted(p.name for p in (runs[1] / "checkpoints").glob("*.safetensors")) and len(names) >= 2
+    for name in names:
+        assert (runs[0] / "checkpoints" / name).read_bytes() == (runs[1] / "checkpoints" / name).read_bytes(), name
+
+
 # ------------------------------------------------------------------------------ normalisation
 
 

@@ -234,6 +234,7 @@ def _learner(
         stall_tolerance=args.stall_tolerance,
     )
     rng = np.random.default_rng([args.seed, 0xF12E])
+    torch.manual_seed(args.seed)  # the global generator is checkpointed: its bytes follow the seed
     counters = {
         "episode": 0,
         "corrections": 0,

@@ -143,6 +143,9 @@ def train(args: BCArgs, progress: bool = False) -> dict:
         output_activation=args.output_activation,
     )
 
+    # The global generator is saved with every checkpoint (and restored on resume); torch starts it from a
+    # random seed, so seed it: a checkpoint's bytes are then a function of the seed.
+    torch.manual_seed(args.seed)
     # --- model and optimisers: one AdamW per member ---
     policy = BCPolicy(spec, args.encoder_weights, seed=args.seed).to(device)
     members = policy.members
