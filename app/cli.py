@@ -125,5 +125,27 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def entry() -> typing.NoReturn:
+    """The `shiftkit` console script: `main`, then the process ends without Python's finalization.
+
+    Before Python 3.14 finalization stops daemon threads with `pthread_exit`; one stopped inside C++
+    code (a torch op, a library's worker waiting to take the interpreter back) aborts the whole process
+    with "terminate called without an active exception" (exit 134) after the command has succeeded.
+    So the exit does what finalization would do for the command's results (non-daemon threads joined,
+    atexit handlers such as temporary-folder cleanup and log flushing run, streams flushed) and then
+    leaves with the command's code."""
+    import atexit
+    import contextlib
+    import threading
+
+    code = main()
+    getattr(threading, "_shutdown", lambda: None)()  # joins non-daemon threads, as finalization does
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a closed pipe or stream has nothing left to write
+            stream.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -95,6 +95,11 @@ def check_fields(obj: Any) -> None:
             raise ConfigError(problem)
 
 
+def field_help(cls: type, name: str) -> str:
+    """Field `name`'s docstring as argparse help text (its `%` signs escaped: argparse %-formats help)."""
+    return field_docs(cls).get(name, "").replace("%", "%%")
+
+
 def field_docs(cls: type) -> dict[str, str]:
     """Per-field docstrings (the string literal right after each field), for help and cards."""
     import ast

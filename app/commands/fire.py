@@ -18,65 +18,22 @@ AGGREGATE_HELP = (
     "offline FIRE over lerobot DAgger recordings: label frames, train D, fit the beta and GDA rules, "
     "write the aggregated dataset with a failure predictor file and ROC scores"
 )
-# numbers of both loops: counts and widths are positive, seeds and "0: never/none" settings >= 0
-_RULES = {
-    **dict.fromkeys(
-        (
-            "budget_expert_samples",
-            "max_episodes",
-            "bc_steps",
-            "ensemble_size",
-            "hidden",
-            "batch_size",
-            "retrain_every",
-            "retrain_max_epochs",
-            "retrain_patience",
-            "d_hidden",
-            "d_steps",
-            "beta",
-            "eval_episodes",
-            "threads",
-        ),
-        "positive_int",
-    ),
-    **dict.fromkeys(("seed", "env_seed", "d_start", "fp_cooldown", "expert_margin", "eval_every"), "non_negative_int"),
-    **dict.fromkeys(
-        (
-            "online_lr",
-            "retrain_lr",
-            "d_lr",
-            "doubt_threshold",
-            "gamma",
-            "stall_seconds",
-            "stall_tolerance",
-            "val_fraction",
-        ),
-        "positive_float",
-    ),
-    "grad_penalty": "non_negative_float",
-}
 
 
 def _fire_options() -> DataclassOptions:
     from shiftkit.policies.fire.config import FireArgs
-    from shiftkit.policies.fire.failure_predictors import PREDICTORS
-    from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS
 
     return DataclassOptions(
         FireArgs,
         flags={"output_dir": "output", "ensemble_size": "ensemble", "env_kwargs": "env-kwarg"},
-        rules=_RULES,
-        choices={"predictor": tuple(PREDICTORS), "output_activation": OUTPUT_ACTIVATIONS},
         cli_defaults={"progress": True},
     )
 
 
 def _aggregate_options() -> DataclassOptions:
-    from shiftkit.policies.fire.config import RULES, AggregateArgs
+    from shiftkit.policies.fire.config import AggregateArgs
 
-    return DataclassOptions(
-        AggregateArgs, rules=_RULES, choices={"predictor": tuple(RULES)}, cli_defaults={"progress": True}
-    )
+    return DataclassOptions(AggregateArgs, cli_defaults={"progress": True})
 
 
 def add_arguments(p: argparse.ArgumentParser, argv: list[str] | None = None) -> None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from shiftkit.datasets.dataclass_config import field_docs, option
+from shiftkit.datasets.dataclass_config import field_help, option
 from shiftkit.datasets.option_values import DataclassOptions
 
 if TYPE_CHECKING:
@@ -52,7 +52,7 @@ OPTIONS = DataclassOptions(MergeArgs, skip=("sources",), metavars={"out": "DIR"}
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `merge`."""
-    parser.add_argument("sources", nargs="+", help=field_docs(MergeArgs)["sources"])
+    parser.add_argument("sources", nargs="+", help=field_help(MergeArgs, "sources"))
     OPTIONS.add_to(parser)
 
 

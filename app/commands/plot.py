@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 
-from shiftkit.datasets.dataclass_config import field_docs, option
+from shiftkit.datasets.dataclass_config import field_help, option
 from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = (
@@ -82,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         description="ROC curves of beta rule, GDA, ensemble doubt and GDA-or-doubt, pooled over the runs' "
         "episodes after D started; label: whether the policy's uninterrupted run failed.",
     )
-    roc.add_argument("runs", nargs="+", metavar="RUN", help=field_docs(RocFigure)["runs"])
+    roc.add_argument("runs", nargs="+", metavar="RUN", help=field_help(RocFigure, "runs"))
     ROC_OPTIONS.add_to(roc)
     roc.set_defaults(_plot=_run_roc, _options=ROC_OPTIONS)
     fire = sub.add_parser(
@@ -92,7 +92,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "expert samples and against the total execution time, with BC runs as points at their training "
         "frames; writes OUT-expert.png and OUT-time.png.",
     )
-    fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help=field_docs(FireFigure)["runs"])
+    fire.add_argument("runs", nargs="+", metavar="[LABEL=]RUN", help=field_help(FireFigure, "runs"))
     FIRE_OPTIONS.add_to(fire)
     fire.set_defaults(_plot=_run_fire, _options=FIRE_OPTIONS)
     curves = sub.add_parser(
@@ -100,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="success curves across seeds: IQM with stratified bootstrap 95%% CIs",
         description="Plot evaluation success curves of runs: LABEL=RUN[,RUN...] per method.",
     )
-    curves.add_argument("runs", nargs="+", metavar="LABEL=RUN[,RUN...]", help=field_docs(CurvesFigure)["runs"])
+    curves.add_argument("runs", nargs="+", metavar="LABEL=RUN[,RUN...]", help=field_help(CurvesFigure, "runs"))
     CURVES_OPTIONS.add_to(curves)
     curves.set_defaults(_plot=_run_curves, _options=CURVES_OPTIONS)
 

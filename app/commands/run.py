@@ -11,7 +11,7 @@ import argparse
 import dataclasses
 from dataclasses import dataclass
 
-from shiftkit.datasets.dataclass_config import field_docs, option
+from shiftkit.datasets.dataclass_config import field_help, option
 from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = "run a pipeline config; re-running after an interruption resumes it"
@@ -60,7 +60,7 @@ def _executor_options() -> tuple[DataclassOptions, ...]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `run`."""
-    parser.add_argument("config", help=field_docs(RunArgs)["config"])
+    parser.add_argument("config", help=field_help(RunArgs, "config"))
     OPTIONS.add_to(parser)
     ray, slurm = _executor_options()
     ray.add_to(parser)

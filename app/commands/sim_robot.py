@@ -8,7 +8,7 @@ import argparse
 from dataclasses import dataclass
 
 from shiftkit.app.calibrate import CalibrateConfig
-from shiftkit.datasets.dataclass_config import field_docs
+from shiftkit.datasets.dataclass_config import field_help
 from shiftkit.datasets.option_values import DataclassOptions
 
 HELP = "execute a calibration or replay plan on a simulated robot and record it in the raw format"
@@ -33,7 +33,7 @@ OPTIONS = DataclassOptions(SimRobotArgs, skip=("plan",), metavars={"out": "DIR"}
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of `sim-robot`."""
-    parser.add_argument("plan", help=field_docs(SimRobotArgs)["plan"])
+    parser.add_argument("plan", help=field_help(SimRobotArgs, "plan"))
     OPTIONS.add_to(parser)
 
 

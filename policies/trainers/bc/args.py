@@ -5,13 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from shiftkit.datasets.dataclass_config import check_fields, option
 from shiftkit.datasets.errors import ConfigError
-
-if TYPE_CHECKING:
-    from shiftkit.policies.bc_policy import Normalization
 
 REGIMES = ("early-stop", "fixed")
 OUTPUT_ACTIVATIONS = ("linear", "tanh")
@@ -66,7 +62,7 @@ class BCArgs:
     """Save a checkpoint every this many steps (and at the end)."""
     log_every: int = option(100, rule="positive_int")
     """Write mean training loss to metrics.jsonl every this many steps."""
-    norm_std_floor: float = option(0.01, rule="non_negative_float")
+    norm_std_floor: float = option(0.01, rule="fraction")
     """Floor of each dimension's normalisation std, as a share of the dimension's RMS value
     (`sqrt(mean^2 + std^2)`); 0 turns the floor off (the absolute floor 1e-6 stays)."""
     norm_clip: float | None = option(10.0, rule="positive_float")
@@ -99,11 +95,4 @@ class BCArgs:
             raise ConfigError("--root names one dataset's folder; with several datasets give their IDs or paths")
         if out.regime == "early-stop" and out.val_fraction == 0:
             raise ConfigError("the early-stop regime needs val_fraction > 0")
-        out.normalization()  # checks the normalisation values
         return out
-
-    def normalization(self) -> Normalization:
-        """The input normalisation these arguments ask for."""
-        from shiftkit.policies.bc_policy import Normalization
-
-        return Normalization(std_floor=self.norm_std_floor, clip=self.norm_clip)

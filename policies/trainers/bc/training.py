@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from shiftkit.datasets.dataset import Dataset
 from shiftkit.datasets.errors import ConfigError, DatasetError
-from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
+from shiftkit.policies.bc_policy import BCPolicy, Normalization, PolicySpec
 from shiftkit.policies.data import (
     FrameTable,
     Prefetcher,
@@ -139,7 +139,7 @@ def train(args: BCArgs, progress: bool = False) -> dict:
         num_keypoints=args.num_keypoints,
         hidden=args.hidden,
         ensemble_size=args.ensemble_size,
-        normalization=args.normalization(),
+        normalization=Normalization(std_floor=args.norm_std_floor, clip=args.norm_clip),
         output_activation=args.output_activation,
     )
 

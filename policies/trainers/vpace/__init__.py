@@ -55,23 +55,22 @@ def options() -> DataclassOptions:
 
 def add_arguments(parser: argparse.ArgumentParser, trainer: Trainer) -> None:
     """Options of `train vpace` and `train lfgp` (the subcommand's name is the default variant)."""
-    from shiftkit.datasets.dataclass_config import field_docs
+    from shiftkit.datasets.dataclass_config import field_help
     from shiftkit.policies.trainers.vpace.args import VARIANTS, VPACEArgs
 
-    docs = field_docs(VPACEArgs)
     options().add_to(parser)
     parser.add_argument(
         "--variant",
         choices=list(VARIANTS),
         default=trainer.name,
-        help=f"{docs['variant']} (default: {trainer.name})",
+        help=f"{field_help(VPACEArgs, 'variant')} (default: {trainer.name})",
     )
     parser.add_argument(
         "--handcrafted",
         action="append",
         default=argparse.SUPPRESS,
         metavar="T1,T2,...",
-        help=docs["handcrafted"] + " Repeatable, e.g. --handcrafted panda or "
+        help=field_help(VPACEArgs, "handcrafted") + " Repeatable, e.g. --handcrafted panda or "
         "--handcrafted reach,lift,main,open,reach,lift,main,open",
     )
 
