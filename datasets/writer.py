@@ -14,7 +14,8 @@ lerobot would embed), per-value Python conversion (numeric columns go to Arrow f
 buffers), and rewriting info.json and re-aggregating all statistics after every episode.
 Statistics come from `shiftkit.datasets.stats` (lerobot's values, vectorised), computed by the
 worker that produced the episode. Cameras are `image` (PNG; depth: TIFF, `images.py`, `depth.py`) or
-`video` (lerobot's encoder settings, `video.py`).
+`video` (lerobot's encoder settings, `video.py`; a source's frames that pass unchanged are copied
+packet for packet instead, `video_copy.py`).
 
 lerobot's private names still used, because its public API has no per-episode equivalent without
 those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one):
@@ -49,6 +50,7 @@ from shiftkit.datasets.provenance import PROVENANCE_PATH, write_provenance
 from shiftkit.datasets.staging import publish, remove_dead_staging, staging_path
 from shiftkit.datasets.stats import POSITION_KEYS, RunningStats, episode_columns, episode_stats, numeric_stats
 from shiftkit.datasets.video import encode_frames
+from shiftkit.datasets.video_copy import VideoFileCopier, VideoRef
 
 
 def preload_writer() -> None:
@@ -126,6 +128,9 @@ class DatasetWriter:
         self.num_frames = 0
         self._cameras: dict[int, camera_meta.Cameras] = {}  # episode index -> its camera metadata
         self._closed = False
+        self.video_modes: dict[str, str] = {}
+        """Per video feature, whether its frames were "copied" from the source's video or "encoded"."""
+        self._copiers: dict[str, VideoFileCopier] = {}
 
     def __enter__(self) -> DatasetWriter:
         return self
@@ -229,13 +234,18 @@ class DatasetWriter:
         self.num_frames += n
 
     def _save_videos(self, videos: dict[str, np.ndarray]) -> dict[str, Any]:
-        """Encode this episode's video features with lerobot's encoder settings (RGB, or depth
-        through its quantiser) and append them to the dataset's video files as lerobot's writer
-        does; returns the `videos/KEY/...` episode metadata."""
+        """Append this episode's video features to the dataset's video files as lerobot's writer
+        does: copied from the source's video where they are its unchanged frames (`_copies`), else
+        encoded with lerobot's encoder settings (RGB, or depth through its quantiser); returns the
+        `videos/KEY/...` episode metadata."""
         import tempfile
 
         metadata: dict[str, Any] = {}
         for key, frames in videos.items():
+            if self._copies(key, frames):
+                metadata.update(self._copiers[key].add(frames))
+                continue
+            frames = np.asarray(frames)  # a source's frames not copied are decoded here
             is_depth = depth.is_depth(self.features[key])
             encoder = self._encoders["depth" if is_depth else "rgb"]
             if is_depth:  # lerobot encodes depth from its stored unit (float32 m or uint16 mm)
@@ -246,6 +256,25 @@ class DatasetWriter:
             metadata.update(self._lerobot._save_episode_video(key, self.num_episodes, temp_path=path))
         metadata.pop("episode_index", None)
         return metadata
+
+    def _copies(self, key: str, frames: Any) -> bool:
+        """Whether this episode's `key` frames are copied from their source video (`VideoRef`): then
+        all of that feature's are (one file takes packets of one stream or an encoder's, not both),
+        decided on its first episode; the feature's `info` is the source's (`video.*`, its codec
+        settings). A reference in an encoded feature is decoded."""
+        mode = self.video_modes.get(key)
+        if mode is None:
+            source = frames.feature if isinstance(frames, VideoRef) else None
+            copyable = source is not None and _copyable(source, self.features[key], self.fps)
+            mode = self.video_modes[key] = "copied" if copyable else "encoded"
+            if copyable:
+                self._meta.info.features[key]["info"] = dict(source.get("info") or {})
+                self._copiers[key] = VideoFileCopier(
+                    self.tmp, key, self._meta.video_path, self._meta.chunks_size, self._meta.video_files_size_in_mb
+                )
+        if mode == "copied" and not isinstance(frames, VideoRef):
+            raise DatasetError(f"{key}: decoded frames after copied ones; a video file cannot hold both")
+        return mode == "copied"
 
     def _take_cameras(self, meta: dict[str, Any], where: str) -> dict[str, Any]:
         """Keep the episode's camera metadata for meta/cameras.json; the rest of `meta` is returned
@@ -292,6 +321,8 @@ class DatasetWriter:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+        for copier in self._copiers.values():
+            copier.close()
         self._lerobot.finalize()  # lerobot's: flushes the episodes table, closes its files
         shutil.rmtree(self.tmp / "images", ignore_errors=True)  # the video encoder's input frames
         self._write_info_and_stats()
@@ -319,6 +350,8 @@ class DatasetWriter:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+        for copier in self._copiers.values():
+            copier.close()
         # Drop the buffered episode rows first: finalizing would write them into the folder
         # about to be removed (and re-create it).
         self._meta._metadata_buffer.clear()
@@ -366,6 +399,18 @@ def carry_source_metadata(dest: Path, sources: list[Path]) -> None:
         info = load_info(dest)
         info.tools = tools
         write_info(info, dest)
+
+
+def _copyable(source: dict[str, Any], out: dict[str, Any], fps: int) -> bool:
+    """Whether frames of the source video feature `source` can be copied into the output feature
+    `out`: RGB (depth is decoded: its quantiser is not carried), the same shape, the output's fps."""
+    info = source.get("info") or {}
+    return (
+        not depth.is_depth(source)
+        and not depth.is_depth(out)
+        and tuple(source["shape"]) == tuple(out["shape"])
+        and int(info.get("video.fps", fps)) == fps
+    )
 
 
 def _numeric_arrow_array(values: Any, arrow_type: Any) -> Any:

@@ -1,0 +1,234 @@
+"""Video frames that pass a pipeline unchanged are copied, not decoded and encoded again.
+
+A pipeline whose stages keep a camera's frames one for one (filter, rename, drop, map_tasks,
+labels: `Plan.video_copies`) does not need that camera's pixels. The reader then hands the stages a
+`VideoRef` instead of decoded frames: where the episode's frames lie in the source's video file
+(`from_timestamp` / `to_timestamp`), its frame times and the statistics lerobot recorded for it.
+It has the frames' shape and dtype, so schema checks pass; a stage that reads the pixels anyway
+gets them decoded (`np.asarray`). The writer copies the episode's encoded packets (a remux: no
+decode, no encode) into lerobot's video files (`VideoFileCopier`): several episodes per file, each
+at the `from_timestamp` lerobot's writer would give it, a new file when the current one would pass
+`video_files_size_in_mb`, the source's codec and settings (its stream is copied) and the source's
+`video.*` info. What lerobot's `merge_datasets` does with whole files (`aggregate_videos`,
+`concatenate_video_files`: a concat-demuxer remux), done per episode, so that an episode a stage
+drops is never read.
+
+Copying needs every episode of a camera to come from streams that concatenate: same codec, size,
+pixel format, time base and codec parameters (`stream_signature`); a merge of differently encoded
+sources encodes instead. Depth videos are decoded (their quantiser is not carried yet).
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shiftkit.datasets.errors import DatasetError
+
+
+class VideoRef:
+    """One camera's frames of one source episode, still encoded (see the module docstring)."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        start: float,
+        stop: float,
+        timestamps: np.ndarray,
+        feature: dict[str, Any],
+        stats: dict[str, np.ndarray] | None,
+    ) -> None:
+        self.path = Path(path)
+        """The source video file that holds the episode."""
+        self.start = float(start)
+        """The episode's `from_timestamp` in that file (seconds)."""
+        self.stop = float(stop)
+        """Its `to_timestamp`."""
+        self.timestamps = np.asarray(timestamps, dtype=np.float64)
+        """Its frames' times from the episode's start."""
+        self.feature = feature
+        """The source's feature entry (shape, `video.*` info)."""
+        self.stats = stats
+        """lerobot's statistics of these frames, as the source recorded them (None: not recorded)."""
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """(frames, height, width, channels), as the decoded frames'."""
+        return (len(self.timestamps), *(int(d) for d in self.feature["shape"]))
+
+    @property
+    def dtype(self) -> np.dtype:
+        """uint8: RGB frames."""
+        return np.dtype(np.uint8)
+
+    @property
+    def ndim(self) -> int:
+        """4."""
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        from shiftkit.datasets.images import decode_video
+
+        frames = decode_video(self.path, self.start, self.timestamps, str(self.path), self.feature)
+        return frames if dtype is None else frames.astype(dtype)
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return np.asarray(self)[index]
+
+    def __iter__(self):
+        return iter(np.asarray(self))
+
+    def state(self) -> dict[str, Any]:
+        """What `data_tree` stores of it (a run's parts hold the reference, not the pixels)."""
+        return {
+            "path": str(self.path),
+            "start": self.start,
+            "stop": self.stop,
+            "timestamps": self.timestamps,
+            "feature": self.feature,
+            "stats": self.stats,
+        }
+
+
+def stream_signature(path: Path) -> tuple:
+    """What must be equal for two video files' packets to share one file: codec, size, pixel format,
+    time base, frame rate and the codec's parameters (extradata)."""
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            s = container.streams.video[0]
+            ctx = s.codec_context
+            return (
+                ctx.name,
+                ctx.width,
+                ctx.height,
+                ctx.pix_fmt,
+                s.time_base,
+                s.average_rate,
+                bytes(ctx.extradata or b""),
+            )
+    except (av.error.FFmpegError, OSError, IndexError) as exc:
+        raise DatasetError(f"cannot read the video stream of {path} ({type(exc).__name__}: {exc})") from None
+
+
+class VideoFileCopier:
+    """Appends episodes' encoded packets (`VideoRef`s) to one camera's video files in lerobot's layout,
+    as lerobot's writer appends its encoded episodes (module docstring)."""
+
+    def __init__(self, root: Path, key: str, video_path: str, chunks_size: int, max_mb: float) -> None:
+        self.root, self.key, self.video_path = root, key, video_path
+        self.chunks_size, self.max_bytes = chunks_size, max_mb * 1024 * 1024
+        self.chunk_file: tuple[int, int] | None = None
+        self._out: Any = None  # the open output container and stream of the current file
+        self._stream: Any = None
+        self._bytes = 0
+        self._duration = 0.0  # the current file's to_timestamp so far
+        self._source: tuple[str, Any] | None = None  # the open source container (path, container)
+        self.signature: tuple | None = None
+
+    def add(self, ref: VideoRef) -> dict[str, Any]:
+        """Copy one episode's packets; returns its `videos/KEY/...` episode metadata."""
+        from lerobot.datasets.utils import update_chunk_file_indices
+
+        signature = stream_signature_cached(ref.path)
+        if self.signature is not None and signature != self.signature:
+            raise DatasetError(f"{ref.path}: its {self.key} stream is encoded otherwise than the episodes before it")
+        self.signature = signature
+        packets, stream = self._packets(ref)
+        size = sum(p.size for p in packets)
+        if self._out is None or self._bytes + size >= self.max_bytes:
+            self._close_file()
+            self.chunk_file = (
+                (0, 0) if self.chunk_file is None else update_chunk_file_indices(*self.chunk_file, self.chunks_size)
+            )
+            self._open_file(stream)
+        tb = stream.time_base
+        shift = round(self._duration / tb) - round(ref.start / tb)
+        for packet in packets:
+            packet.pts = None if packet.pts is None else packet.pts + shift
+            packet.dts = None if packet.dts is None else packet.dts + shift
+            packet.stream = self._stream
+            self._out.mux(packet)
+        start = self._duration
+        self._duration = start + (ref.stop - ref.start)
+        self._bytes += size
+        return {
+            f"videos/{self.key}/chunk_index": self.chunk_file[0],
+            f"videos/{self.key}/file_index": self.chunk_file[1],
+            f"videos/{self.key}/from_timestamp": start,
+            f"videos/{self.key}/to_timestamp": self._duration,
+        }
+
+    def _packets(self, ref: VideoRef) -> tuple[list[Any], Any]:
+        """The episode's packets (pts in [start, stop) of the source file), demuxed without decoding."""
+        import av
+
+        if self._source is None or self._source[0] != str(ref.path):
+            self.close_source()
+            self._source = (str(ref.path), av.open(str(ref.path)))
+        container = self._source[1]
+        stream = container.streams.video[0]
+        tb = stream.time_base
+        lo, hi = round(ref.start / tb), round(ref.stop / tb)
+        container.seek(lo, stream=stream, backward=True)
+        packets = []
+        for packet in container.demux(stream):
+            if packet.dts is None:  # the demuxer's flush packet
+                continue
+            if packet.dts >= hi:
+                break
+            if packet.pts is not None and lo <= packet.pts < hi:
+                packets.append(packet)
+        if len(packets) != len(ref) or not packets[0].is_keyframe:
+            raise DatasetError(
+                f"{ref.path}: the episode at {ref.start:.4f}-{ref.stop:.4f} s has {len(packets)} packets "
+                f"for {len(ref)} frames{'' if not packets or packets[0].is_keyframe else ', not starting on a keyframe'}"
+            )
+        return packets, stream
+
+    def _open_file(self, template: Any) -> None:
+        import av
+
+        path = self.root / self.video_path.format(
+            video_key=self.key, chunk_index=self.chunk_file[0], file_index=self.chunk_file[1]
+        )
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # lerobot's concatenate_video_files: faststart, the stream copied from its template
+        self._out = av.open(str(path), mode="w", options={"movflags": "faststart"})
+        self._stream = self._out.add_stream_from_template(template=template, opaque=True)
+        self._stream.time_base = template.time_base
+        self._bytes, self._duration = 0, 0.0
+
+    def _close_file(self) -> None:
+        if self._out is not None:
+            self._out.close()
+            self._out = self._stream = None
+
+    def close_source(self) -> None:
+        """Close the open source file."""
+        if self._source is not None:
+            self._source[1].close()
+            self._source = None
+
+    def close(self) -> None:
+        """Finish the current file and close the source."""
+        self._close_file()
+        self.close_source()
+
+
+def stream_signature_cached(path: Path) -> tuple:
+    """`stream_signature`, read once per file and version of it (size, modification time)."""
+    st = Path(path).stat()
+    return _signature(str(path), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=256)
+def _signature(path: str, size: int, mtime_ns: int) -> tuple:
+    return stream_signature(Path(path))
