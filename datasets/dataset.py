@@ -92,6 +92,11 @@ class Dataset:
         `video_refs` not decoded (`video_copy.VideoRef`)."""
         return self.reader.iter_episodes(indices, video_refs)
 
+    def video_copy_signature(self, key: str) -> tuple | None:
+        """What must match for video feature `key`'s packets to be copied into one stream with
+        another's; None when they cannot be copied (`video_copy.copy_signature`)."""
+        return self.reader.video_copy_signature(key)
+
     def describe(self) -> dict[str, Any]:
         """The dataset as a pipeline's provenance records its source (ID, path, revision, fingerprint,
         episodes)."""

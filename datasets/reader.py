@@ -21,7 +21,7 @@ from shiftkit.datasets.episode import META_COLUMN, Episode
 from shiftkit.datasets.errors import DatasetError
 from shiftkit.datasets.features import Features, object_column, user_features
 from shiftkit.datasets.images import decode_image, decode_video, image_form
-from shiftkit.datasets.video_copy import VideoRef
+from shiftkit.datasets.video_copy import VideoRef, copy_signature
 
 _EPISODES_PER_READ = 64  # a reader holds at most this many episodes' rows of one data file
 
@@ -174,6 +174,14 @@ class LeRobotDatasetReader:
         offset = float(row[f"videos/{key}/from_timestamp"])
         where = f"{self.root} episode {int(row['episode_index'])} {key}"
         return decode_video(self._video_file(key, row), offset, timestamps, where, self._features[key])
+
+    def video_copy_signature(self, key: str) -> tuple | None:
+        """The stream signature of video feature `key` if its episodes can be copied packet for packet
+        (`video_copy.copy_signature`), else None."""
+        files: dict[Path, list[float]] = {}
+        for row in self._rows:
+            files.setdefault(self._video_file(key, row), []).append(float(row[f"videos/{key}/from_timestamp"]))
+        return copy_signature(files)
 
     def _video_ref(self, key: str, row: Any, timestamps: np.ndarray) -> VideoRef:
         i = int(row["episode_index"])

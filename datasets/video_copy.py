@@ -96,6 +96,43 @@ class VideoRef:
         }
 
 
+def copy_signature(files: dict[Path, list[float]]) -> tuple | None:
+    """The stream signature (`stream_signature`) shared by a camera's video `files`, each given with
+    the `from_timestamp`s of its episodes, if every episode starts on a keyframe (a copy starts
+    there); None when the files' streams differ or an episode starts between keyframes (lerobot's
+    `delete_episodes` re-encodes kept segments as one stream, so with its `g=2` an episode after one
+    of odd length does)."""
+    signatures = set()
+    for path, starts in files.items():
+        signature, keyframes = _file_facts(path)
+        time_base = signature[4]
+        if any(round(start / time_base) not in keyframes for start in starts):
+            return None
+        signatures.add(signature)
+    return signatures.pop() if len(signatures) == 1 else None
+
+
+def _file_facts(path: Path) -> tuple[tuple, frozenset[int]]:
+    """(stream signature, keyframe pts) of a video file, read once per version of it."""
+    st = Path(path).stat()
+    return _facts(str(path), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=256)
+def _facts(path: str, size: int, mtime_ns: int) -> tuple[tuple, frozenset[int]]:
+    import av
+
+    signature = stream_signature(Path(path))
+    try:
+        with av.open(path) as container:
+            keyframes = frozenset(
+                p.pts for p in container.demux(container.streams.video[0]) if p.is_keyframe and p.pts is not None
+            )
+    except (av.error.FFmpegError, OSError) as exc:
+        raise DatasetError(f"cannot read the video stream of {path} ({type(exc).__name__}: {exc})") from None
+    return signature, keyframes
+
+
 def stream_signature(path: Path) -> tuple:
     """What must be equal for two video files' packets to share one file: codec, size, pixel format,
     time base, frame rate and the codec's parameters (extradata)."""
@@ -225,10 +262,4 @@ class VideoFileCopier:
 
 def stream_signature_cached(path: Path) -> tuple:
     """`stream_signature`, read once per file and version of it (size, modification time)."""
-    st = Path(path).stat()
-    return _signature(str(path), st.st_size, st.st_mtime_ns)
-
-
-@functools.lru_cache(maxsize=256)
-def _signature(path: str, size: int, mtime_ns: int) -> tuple:
-    return stream_signature(Path(path))
+    return _file_facts(path)[0]

@@ -118,14 +118,14 @@ class Plan:
     def video_copies(self) -> dict[str, list[str]]:
         """Output video feature -> per source, the source video feature whose encoded frames it copies
         (`datasets/video_copy.py`): the frames pass unchanged from every source, as RGB video whose
-        streams concatenate (same codec, size, pixel format, time base, codec parameters: each
-        source's first file of it compared). The other video features are encoded."""
+        streams concatenate (same codec, size, pixel format, time base, codec parameters) with every
+        episode starting on a keyframe (`video_copy.copy_signature`). The others are encoded."""
         copies = {}
         for key, ft in self.features.items():
             if ft["dtype"] != "video" or is_depth(ft) or not self.frames_pass_unchanged(key):
                 continue
             names = [self.kept_source(key, s) for s in range(len(self.sources))]
-            signatures = {_first_stream(source, name) for source, name in zip(self.sources, names, strict=True)}
+            signatures = {_copy_signature(source, name) for source, name in zip(self.sources, names, strict=True)}
             if None not in signatures and len(signatures) == 1:
                 copies[key] = names
         return copies
@@ -217,15 +217,10 @@ def check_sources_and_destination(config: PipelineConfig, sources: list[Any], de
         check_inputs_and_outputs(inputs, [("destination", destination)], content_key=dataset_fingerprint)
 
 
-def _first_stream(source: Source, key: str) -> tuple | None:
-    """The stream signature of a LeRobot source's first video file of `key` (None for other sources)."""
-    from shiftkit.datasets.video_copy import stream_signature_cached
-
-    info, root = getattr(source, "info", None), getattr(source, "root", None)
-    if not isinstance(info, dict) or root is None or "video_path" not in info:
-        return None
-    path = Path(root) / str(info["video_path"]).format(video_key=key, chunk_index=0, file_index=0)
-    return stream_signature_cached(path) if path.is_file() else None
+def _copy_signature(source: Source, key: str) -> tuple | None:
+    """A LeRobot source's `video_copy_signature` of `key` (None for other sources)."""
+    signature = getattr(source, "video_copy_signature", None)
+    return signature(key) if signature is not None else None
 
 
 def _stored_alike(source: dict[str, Any] | None, out: dict[str, Any]) -> bool:

@@ -184,3 +184,26 @@ def test_a_pixel_changing_stage_still_encodes(tmp_path, monkeypatch):
     assert _packets(out, CAMERAS[1]) == _packets(source, CAMERAS[1])
     assert len(_lerobot_frames(out, CAMERAS[0])) == sum(SMALL.lengths)
     _validate_deep(out, monkeypatch)
+
+
+def test_a_copy_starts_only_on_a_keyframe(tmp_path, monkeypatch):
+    """lerobot encodes each episode on its own (a keyframe first), but a stream re-encoded as a whole
+    (lerobot's `delete_episodes` does that with the kept episodes of a file) may have an episode start
+    between keyframes (with `g=2`, after one of odd length, unless the encoder cuts at the scene
+    change): no copy can start there. `copy_signature` says so, and such a camera is encoded."""
+    from shiftkit.datasets import Dataset
+    from shiftkit.datasets.video_copy import copy_signature
+
+    source = recording(SMALL)
+    path = source / "videos" / CAMERAS[0] / "chunk-000" / "file-000.mp4"
+    fps = SMALL.fps
+    assert copy_signature({path: [0.0, 8 / fps, 16 / fps]}) is not None  # lerobot's episode starts
+    assert copy_signature({path: [0.0, 8 / fps, 17 / fps]}) is None  # frame 17: between keyframes (g=2)
+
+    monkeypatch.setattr(Dataset, "video_copy_signature", lambda self, key: None if key == CAMERAS[0] else ("same",))
+    out = _run([source], tmp_path / "out", FILTER_RENAME)
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == {CAMERAS[0]: "encoded", CAMERAS[1]: "copied"}
+    got, src = _lerobot_frames(out, CAMERAS[0]), _frames_of(_lerobot_frames(source, CAMERAS[0]), SMALL.lengths, [0, 2])
+    assert len(got) == len(src) == 16
+    assert max(float(np.abs(a - b).mean()) for a, b in zip(got, src, strict=True)) < 0.05  # encoded again: lossy
