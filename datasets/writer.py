@@ -14,8 +14,9 @@ lerobot would embed), per-value Python conversion (numeric columns go to Arrow f
 buffers), and rewriting info.json and re-aggregating all statistics after every episode.
 Statistics come from `shiftkit.datasets.stats` (lerobot's values, vectorised), computed by the
 worker that produced the episode. Cameras are `image` (PNG; depth: TIFF, `images.py`, `depth.py`) or
-`video` (lerobot's encoder settings, `video.py`; a source's frames that pass unchanged are copied
-packet for packet instead, `video_copy.py`).
+`video` (`video.py`: encoded with the source's settings recorded in the feature's `info`, else
+lerobot's defaults; a source's frames that pass unchanged are copied packet for packet instead,
+`video_copy.py`).
 
 lerobot's private names still used, because its public API has no per-episode equivalent without
 those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one):
@@ -33,6 +34,7 @@ those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from collections.abc import Iterable
 from pathlib import Path
@@ -131,6 +133,7 @@ class DatasetWriter:
         self.video_modes: dict[str, str] = {}
         """Per video feature, whether its frames were "copied" from the source's video or "encoded"."""
         self._copiers: dict[str, VideoFileCopier] = {}
+        self._source_encoders: dict[str, Any] = {}  # the encoders of the sources' recorded settings
 
     def __enter__(self) -> DatasetWriter:
         return self
@@ -247,15 +250,39 @@ class DatasetWriter:
                 continue
             frames = np.asarray(frames)  # a source's frames not copied are decoded here
             is_depth = depth.is_depth(self.features[key])
-            encoder = self._encoders["depth" if is_depth else "rgb"]
+            encoder = self._encoder(key)
             if is_depth:  # lerobot encodes depth from its stored unit (float32 m or uint16 mm)
                 frames = depth.to_stored(frames, depth.depth_unit(self.features[key]))
             # lerobot's layout: a temporary folder in the dataset root, removed by _save_episode_video.
             path = Path(tempfile.mkdtemp(dir=self.tmp)) / f"{key}_{self.num_episodes:03d}.mp4"
             encode_frames(frames, path, self.fps, encoder)
             metadata.update(self._lerobot._save_episode_video(key, self.num_episodes, temp_path=path))
+            if self.num_episodes == 0 and encoder is not self._encoders["depth" if is_depth else "rgb"]:
+                # lerobot recorded its writer's encoder settings in the feature's info: these instead
+                self._meta.update_video_info(key, video_encoder=encoder)
         metadata.pop("episode_index", None)
         return metadata
+
+    def _encoder(self, key: str) -> Any:
+        """The encoder of video feature `key`: for RGB, the settings its source recorded in the
+        feature's `info` (codec, pixel format, g, crf, preset: lerobot's `encoder_config_from_video_info`,
+        as its `delete_episodes` re-encodes), so an edit keeps the source's codec; lerobot's defaults
+        for a feature without them (a camera that was no video, or resized), for a codec this machine
+        cannot encode (a warning says so) and for depth."""
+        ft = self.features[key]
+        info = ft.get("info") or {}
+        if depth.is_depth(ft) or "video.codec" not in info:
+            return self._encoders["depth" if depth.is_depth(ft) else "rgb"]
+        settings = dumps({k: v for k, v in info.items() if k.startswith("video.")})
+        if settings not in self._source_encoders:  # one per settings: lerobot's config probes PyAV's codecs
+            from lerobot.configs.video import encoder_config_from_video_info
+
+            try:
+                self._source_encoders[settings] = encoder_config_from_video_info(info)
+            except ValueError as exc:  # e.g. a hardware encoder this machine lacks: lerobot's defaults
+                logging.getLogger(__name__).warning("%s: encoding with lerobot's defaults (%s)", key, exc)
+                self._source_encoders[settings] = self._encoders["rgb"]
+        return self._source_encoders[settings]
 
     def _copies(self, key: str, frames: Any) -> bool:
         """Whether this episode's `key` frames are copied from their source video (`VideoRef`): then

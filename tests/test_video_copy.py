@@ -207,3 +207,59 @@ def test_a_copy_starts_only_on_a_keyframe(tmp_path, monkeypatch):
     got, src = _lerobot_frames(out, CAMERAS[0]), _frames_of(_lerobot_frames(source, CAMERAS[0]), SMALL.lengths, [0, 2])
     assert len(got) == len(src) == 16
     assert max(float(np.abs(a - b).mean()) for a, b in zip(got, src, strict=True)) < 0.05  # encoded again: lossy
+
+
+@pytest.fixture(scope="module")
+def h264_source(tmp_path_factory):
+    """A two-camera dataset that lerobot's writer encoded as H.264 yuv444p, crf 23, g 30 (B-frames: the
+    packets' decode order is not their display order)."""
+    from lerobot.configs import RGBEncoderConfig
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from tests.lerobot_recordings import episode_frames, features
+
+    rec = Recording(video=True, cameras=("front", "wrist"), depth=(), size=(32, 48), lengths=(8, 8, 8), language=False)
+    root = tmp_path_factory.mktemp("h264") / "src"
+    encoder = RGBEncoderConfig(vcodec="h264", pix_fmt="yuv444p", crf=23, g=30)
+    ds = LeRobotDataset.create("test/h264", rec.fps, features(rec), root=root, use_videos=True, rgb_encoder=encoder)
+    for e in range(len(rec.lengths)):
+        values = episode_frames(rec, e)
+        for t in range(rec.lengths[e]):
+            ds.add_frame({**{k: v[t] for k, v in values.columns.items()}, "task": values.tasks[t]})
+        ds.save_episode()
+    ds.finalize()
+    return root
+
+
+def test_an_h264_source_is_copied(h264_source, tmp_path):
+    """Packets whose decode order differs from their display order (H.264 B-frames) are copied too."""
+    out = _run([h264_source], tmp_path / "out", FILTER_RENAME)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "copied")
+    for key in CAMERAS:
+        kept = _episode_packets(h264_source, key)
+        assert _episode_packets(out, key) == [kept[0], kept[2]]
+        expected = _frames_of(_lerobot_frames(h264_source, key), (8, 8, 8), [0, 2])
+        for a, b in zip(_lerobot_frames(out, key), expected, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_a_re_encoded_camera_keeps_the_source_codec_settings(h264_source, tmp_path):
+    """`trim` re-indexes frames, so its cameras are encoded: with the source's codec, pixel format,
+    g and crf (H.264 yuv444p crf 23 g 30), not lerobot's AV1 yuv420p defaults; the frames stay close."""
+    out = _run([h264_source], tmp_path / "out", [StageSpec("trim", {"head": 1})])
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == dict.fromkeys(CAMERAS, "encoded")
+    for key in CAMERAS:
+        info = json.loads((out / "meta/info.json").read_text())["features"][key]["info"]
+        assert (info["video.codec"], info["video.pix_fmt"], info["video.g"], info["video.crf"]) == (
+            "h264",
+            "yuv444p",
+            30,
+            23,
+        )
+        src = _lerobot_frames(h264_source, key)
+        expected = [src[t] for e in range(3) for t in range(8 * e + 1, 8 * e + 8)]
+        got = _lerobot_frames(out, key)
+        assert len(got) == len(expected)
+        mse = np.mean([np.mean((a - b) ** 2) for a, b in zip(got, expected, strict=True)])
+        assert 10 * np.log10(1 / mse) > 30  # PSNR in dB (frames in [0, 1]): 36 dB here, noisy pictures
