@@ -21,6 +21,9 @@ sources encodes instead. Depth videos are decoded (their quantiser is not carrie
 from __future__ import annotations
 
 import functools
+import shutil
+from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -104,33 +107,62 @@ def copy_signature(files: dict[Path, list[float]]) -> tuple | None:
     of odd length does)."""
     signatures = set()
     for path, starts in files.items():
-        signature, keyframes = _file_facts(path)
-        time_base = signature[4]
-        if any(round(start / time_base) not in keyframes for start in starts):
+        signature, facts = _file_facts(path)
+        if any(round(start / facts.time_base) not in facts.keyframes for start in starts):
             return None
         signatures.add(signature)
     return signatures.pop() if len(signatures) == 1 else None
 
 
-def _file_facts(path: Path) -> tuple[tuple, frozenset[int]]:
-    """(stream signature, keyframe pts) of a video file, read once per version of it."""
+@dataclass(frozen=True)
+class FileFacts:
+    """What the copier needs of a source video file, read by one demux (no decoding)."""
+
+    time_base: Fraction
+    keyframes: frozenset[int]
+    """The pts of its keyframes."""
+    pts: np.ndarray
+    """Every packet's pts, ascending."""
+    sizes: np.ndarray
+    """Bytes of the packets up to each pts (cumulative, in `pts` order)."""
+
+    @property
+    def packets(self) -> int:
+        """How many packets (frames) the file holds."""
+        return len(self.pts)
+
+    def bytes_between(self, start: float, stop: float) -> int:
+        """Bytes of the packets shown in [start, stop) seconds."""
+        lo, hi = np.searchsorted(self.pts, [round(start / self.time_base), round(stop / self.time_base)])
+        return int((self.sizes[hi - 1] if hi else 0) - (self.sizes[lo - 1] if lo else 0))
+
+
+def _file_facts(path: Path) -> tuple[tuple, FileFacts]:
+    """(stream signature, `FileFacts`) of a video file, read once per version of it."""
     st = Path(path).stat()
     return _facts(str(path), st.st_size, st.st_mtime_ns)
 
 
 @functools.lru_cache(maxsize=256)
-def _facts(path: str, size: int, mtime_ns: int) -> tuple[tuple, frozenset[int]]:
+def _facts(path: str, size: int, mtime_ns: int) -> tuple[tuple, FileFacts]:
     import av
 
     signature = stream_signature(Path(path))
     try:
         with av.open(path) as container:
-            keyframes = frozenset(
-                p.pts for p in container.demux(container.streams.video[0]) if p.is_keyframe and p.pts is not None
-            )
+            stream = container.streams.video[0]
+            rows = [(p.pts, p.size, p.is_keyframe) for p in container.demux(stream) if p.pts is not None]
+            time_base = stream.time_base
     except (av.error.FFmpegError, OSError) as exc:
         raise DatasetError(f"cannot read the video stream of {path} ({type(exc).__name__}: {exc})") from None
-    return signature, keyframes
+    rows.sort()
+    facts = FileFacts(
+        time_base,
+        frozenset(pts for pts, _, key in rows if key),
+        np.array([pts for pts, _, _ in rows], dtype=np.int64),
+        np.cumsum([size for _, size, _ in rows], dtype=np.int64),
+    )
+    return signature, facts
 
 
 def stream_signature(path: Path) -> tuple:
@@ -157,42 +189,37 @@ def stream_signature(path: Path) -> tuple:
 
 class VideoFileCopier:
     """Appends episodes' encoded packets (`VideoRef`s) to one camera's video files in lerobot's layout,
-    as lerobot's writer appends its encoded episodes (module docstring)."""
+    as lerobot's writer appends its encoded episodes (module docstring). A file's episodes are
+    written when it is complete (the next would pass the size limit, or `close`): a file that holds
+    exactly one source file's episodes, all of them in order (a pass-through, rename, drop or merge),
+    is that file copied; any other is remuxed packet by packet."""
 
     def __init__(self, root: Path, key: str, video_path: str, chunks_size: int, max_mb: float) -> None:
         self.root, self.key, self.video_path = root, key, video_path
         self.chunks_size, self.max_bytes = chunks_size, max_mb * 1024 * 1024
         self.chunk_file: tuple[int, int] | None = None
-        self._out: Any = None  # the open output container and stream of the current file
-        self._stream: Any = None
+        self._pending: list[VideoRef] = []  # the current file's episodes, written by `_flush`
         self._bytes = 0
         self._duration = 0.0  # the current file's to_timestamp so far
         self._source: tuple[str, Any] | None = None  # the open source container (path, container)
         self.signature: tuple | None = None
 
     def add(self, ref: VideoRef) -> dict[str, Any]:
-        """Copy one episode's packets; returns its `videos/KEY/...` episode metadata."""
+        """Take one episode; returns its `videos/KEY/...` episode metadata."""
         from lerobot.datasets.utils import update_chunk_file_indices
 
-        signature = stream_signature_cached(ref.path)
+        signature, facts = _file_facts(ref.path)
         if self.signature is not None and signature != self.signature:
             raise DatasetError(f"{ref.path}: its {self.key} stream is encoded otherwise than the episodes before it")
         self.signature = signature
-        packets, stream = self._packets(ref)
-        size = sum(p.size for p in packets)
-        if self._out is None or self._bytes + size >= self.max_bytes:
-            self._close_file()
+        size = facts.bytes_between(ref.start, ref.stop)
+        if self.chunk_file is None or self._bytes + size >= self.max_bytes:  # lerobot's rollover rule
+            self._flush()
             self.chunk_file = (
                 (0, 0) if self.chunk_file is None else update_chunk_file_indices(*self.chunk_file, self.chunks_size)
             )
-            self._open_file(stream)
-        tb = stream.time_base
-        shift = round(self._duration / tb) - round(ref.start / tb)
-        for packet in packets:
-            packet.pts = None if packet.pts is None else packet.pts + shift
-            packet.dts = None if packet.dts is None else packet.dts + shift
-            packet.stream = self._stream
-            self._out.mux(packet)
+            self._bytes, self._duration = 0, 0.0
+        self._pending.append(ref)
         start = self._duration
         self._duration = start + (ref.stop - ref.start)
         self._bytes += size
@@ -202,6 +229,47 @@ class VideoFileCopier:
             f"videos/{self.key}/from_timestamp": start,
             f"videos/{self.key}/to_timestamp": self._duration,
         }
+
+    def _flush(self) -> None:
+        """Write the current file from its pending episodes."""
+        refs, self._pending = self._pending, []
+        if not refs:
+            return
+        path = self.root / self.video_path.format(
+            video_key=self.key, chunk_index=self.chunk_file[0], file_index=self.chunk_file[1]
+        )
+        path.parent.mkdir(parents=True, exist_ok=True)
+        source = refs[0].path
+        whole = (
+            all(r.path == source for r in refs)
+            and refs[0].start == 0.0
+            and all(a.stop == b.start for a, b in zip(refs, refs[1:], strict=False))
+            and sum(len(r) for r in refs) == _file_facts(source)[1].packets
+        )
+        if whole:
+            shutil.copyfile(source, path)
+            return
+        self._remux(refs, path)
+
+    def _remux(self, refs: list[VideoRef], path: Path) -> None:
+        import av
+
+        # lerobot's concatenate_video_files: faststart, the stream copied from its template
+        with av.open(str(path), mode="w", options={"movflags": "faststart"}) as out:
+            stream, duration = None, 0.0
+            for ref in refs:
+                packets, template = self._packets(ref)
+                if stream is None:
+                    stream = out.add_stream_from_template(template=template, opaque=True)
+                    stream.time_base = template.time_base
+                tb = template.time_base
+                shift = round(duration / tb) - round(ref.start / tb)
+                for packet in packets:
+                    packet.pts = None if packet.pts is None else packet.pts + shift
+                    packet.dts = None if packet.dts is None else packet.dts + shift
+                    packet.stream = stream
+                    out.mux(packet)
+                duration += ref.stop - ref.start
 
     def _packets(self, ref: VideoRef) -> tuple[list[Any], Any]:
         """The episode's packets (pts in [start, stop) of the source file), demuxed without decoding."""
@@ -230,24 +298,6 @@ class VideoFileCopier:
             )
         return packets, stream
 
-    def _open_file(self, template: Any) -> None:
-        import av
-
-        path = self.root / self.video_path.format(
-            video_key=self.key, chunk_index=self.chunk_file[0], file_index=self.chunk_file[1]
-        )
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # lerobot's concatenate_video_files: faststart, the stream copied from its template
-        self._out = av.open(str(path), mode="w", options={"movflags": "faststart"})
-        self._stream = self._out.add_stream_from_template(template=template, opaque=True)
-        self._stream.time_base = template.time_base
-        self._bytes, self._duration = 0, 0.0
-
-    def _close_file(self) -> None:
-        if self._out is not None:
-            self._out.close()
-            self._out = self._stream = None
-
     def close_source(self) -> None:
         """Close the open source file."""
         if self._source is not None:
@@ -255,11 +305,6 @@ class VideoFileCopier:
             self._source = None
 
     def close(self) -> None:
-        """Finish the current file and close the source."""
-        self._close_file()
+        """Write the last file and close the source."""
+        self._flush()
         self.close_source()
-
-
-def stream_signature_cached(path: Path) -> tuple:
-    """`stream_signature`, read once per file and version of it (size, modification time)."""
-    return _file_facts(path)[0]

@@ -378,7 +378,7 @@ class DatasetWriter:
             self._writer.close()
             self._writer = None
         for copier in self._copiers.values():
-            copier.close()
+            copier.close_source()
         # Drop the buffered episode rows first: finalizing would write them into the folder
         # about to be removed (and re-create it).
         self._meta._metadata_buffer.clear()
