@@ -14,8 +14,9 @@ at the `from_timestamp` lerobot's writer would give it, a new file when the curr
 drops is never read.
 
 Copying needs every episode of a camera to come from streams that concatenate: same codec, size,
-pixel format, time base and codec parameters (`stream_signature`); a merge of differently encoded
-sources encodes instead. Depth videos are decoded (their quantiser is not carried yet).
+pixel format, time base and codec parameters (`stream_signature`), each episode starting on a
+keyframe (`copy_signature`); a merge of differently encoded sources encodes instead. Depth videos
+(lerobot's 12-bit HEVC) are copied alike, their quantiser parameters with the source's `info`.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.datasets.depth import is_depth
 from shiftkit.datasets.errors import DatasetError
 
 
@@ -64,8 +66,8 @@ class VideoRef:
 
     @property
     def dtype(self) -> np.dtype:
-        """uint8: RGB frames."""
-        return np.dtype(np.uint8)
+        """uint8 for RGB frames, float32 (metres) for depth, as the decoded frames'."""
+        return np.dtype(np.float32 if is_depth(self.feature) else np.uint8)
 
     @property
     def ndim(self) -> int:

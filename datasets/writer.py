@@ -430,11 +430,12 @@ def carry_source_metadata(dest: Path, sources: list[Path]) -> None:
 
 def _copyable(source: dict[str, Any], out: dict[str, Any], fps: int) -> bool:
     """Whether frames of the source video feature `source` can be copied into the output feature
-    `out`: RGB (depth is decoded: its quantiser is not carried), the same shape, the output's fps."""
+    `out`: both RGB or both depth in one unit (whose quantiser, in the source's `info`, comes along),
+    the same shape, the output's fps."""
     info = source.get("info") or {}
     return (
-        not depth.is_depth(source)
-        and not depth.is_depth(out)
+        depth.is_depth(source) == depth.is_depth(out)
+        and (not depth.is_depth(out) or depth.depth_unit(source) == depth.depth_unit(out))
         and tuple(source["shape"]) == tuple(out["shape"])
         and int(info.get("video.fps", fps)) == fps
     )

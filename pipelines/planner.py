@@ -117,12 +117,13 @@ class Plan:
     @functools.cached_property
     def video_copies(self) -> dict[str, list[str]]:
         """Output video feature -> per source, the source video feature whose encoded frames it copies
-        (`datasets/video_copy.py`): the frames pass unchanged from every source, as RGB video whose
+        (`datasets/video_copy.py`): the frames pass unchanged from every source (RGB, or depth in
+        the same unit), as video whose
         streams concatenate (same codec, size, pixel format, time base, codec parameters) with every
         episode starting on a keyframe (`video_copy.copy_signature`). The others are encoded."""
         copies = {}
         for key, ft in self.features.items():
-            if ft["dtype"] != "video" or is_depth(ft) or not self.frames_pass_unchanged(key):
+            if ft["dtype"] != "video" or not self.frames_pass_unchanged(key):
                 continue
             names = [self.kept_source(key, s) for s in range(len(self.sources))]
             signatures = {_copy_signature(source, name) for source, name in zip(self.sources, names, strict=True)}
@@ -132,12 +133,12 @@ class Plan:
 
     def video_refs(self, source: int) -> frozenset[str]:
         """The video features of source `source` its reader leaves encoded (`VideoRef`): those the
-        output copies, and RGB cameras that stages pass on unchanged until one drops them unread
+        output copies, and cameras that stages pass on unchanged until one drops them unread
         (`Stage.dropped_unread`)."""
         copied = {names[source] for names in self.video_copies.values()}
         chain, inputs = self.chain(source), self._stage_inputs(source)
         for key, ft in self.sources[source].features.items():
-            if ft["dtype"] != "video" or is_depth(ft) or key in copied:
+            if ft["dtype"] != "video" or key in copied:
                 continue
             name = key
             for stage, stage_input in zip(chain, inputs, strict=True):

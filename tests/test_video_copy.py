@@ -263,3 +263,26 @@ def test_a_re_encoded_camera_keeps_the_source_codec_settings(h264_source, tmp_pa
         assert len(got) == len(expected)
         mse = np.mean([np.mean((a - b) ** 2) for a, b in zip(got, expected, strict=True)])
         assert 10 * np.log10(1 / mse) > 30  # PSNR in dB (frames in [0, 1]): 36 dB here, noisy pictures
+
+
+@pytest.mark.parametrize("unit", ["m", "mm"])
+def test_depth_video_is_copied_with_its_quantiser(unit, tmp_path, monkeypatch, no_decoding):
+    """lerobot's 12-bit HEVC depth video passes `filter` + `rename` as its packets: nothing decoded,
+    the quantiser parameters (`video.depth_min`, ...) and unit kept in `info.json`, lerobot's loader
+    gives the source's depth, in metres and millimetres alike."""
+    rec = Recording(
+        video=True, cameras=(), depth=("front",), depth_unit=unit, size=(32, 48), lengths=(8, 8, 8), language=False
+    )
+    source = recording(rec)
+    key = "observation.depth.front"
+    out = _run([source], tmp_path / "out", FILTER_RENAME)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == {key: "copied"}
+    src_info, out_info = (json.loads((r / "meta/info.json").read_text())["features"][key] for r in (source, out))
+    assert out_info == src_info and out_info["info"]["is_depth_map"]
+    kept = _episode_packets(source, key)
+    assert _episode_packets(out, key) == [kept[0], kept[2]]
+    for a, b in zip(
+        _lerobot_frames(out, key), _frames_of(_lerobot_frames(source, key), rec.lengths, [0, 2]), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    _validate_deep(out, monkeypatch)
