@@ -24,13 +24,15 @@ import numpy as np
 
 from shiftkit.datasets.encoded_frames import EncodedFrames, source_bytes
 from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.video_copy import VideoRef
 
 TAG = "$shiftkit"
 
 
 def split(tree: Any, tensor_types: tuple[type, ...] = ()) -> tuple[Any, dict[str, Any]]:
     """(the JSON document, the arrays it names): numpy arrays, numpy scalars (as 0-d arrays), bytes
-    (uint8), `EncodedFrames` (pixels + their source bytes) and instances of `tensor_types` as they are."""
+    (uint8), `EncodedFrames` (pixels + their source bytes), `VideoRef`s (where the frames are) and
+    instances of `tensor_types` as they are."""
     arrays: dict[str, Any] = {}
 
     def add(value: Any) -> str:
@@ -54,6 +56,8 @@ def split(tree: Any, tensor_types: tuple[type, ...] = ()) -> tuple[Any, dict[str
                 "k": add(np.asarray(value)),
                 "b": [None if b is None else add(np.frombuffer(b, np.uint8)) for b in blobs],
             }
+        if isinstance(value, VideoRef):  # encoded frames left where they are (video_copy.py)
+            return {TAG: "video", "v": walk(value.state(), where)}
         if isinstance(value, np.ndarray):
             if value.dtype == object:
                 if all(isinstance(v, str) for v in value.flat):
@@ -141,6 +145,11 @@ def join(doc: Any, arrays: dict[str, Any], where: str, tensor: Any = None) -> An
             frames = EncodedFrames.wrap(pixels, [b or b"" for b in blobs])
             frames.encoded = {k: v for k, v in frames.encoded.items() if v[1]}
             return frames
+        if kind == "video" and isinstance(value.get("v"), dict):
+            try:
+                return VideoRef(**walk(value["v"]))
+            except TypeError:
+                raise DatasetError(f"{where}: a stored video reference lacks its fields") from None
         raise DatasetError(f"{where}: unknown stored value {str(kind)[:40]!r}")
 
     return walk(doc)

@@ -85,9 +85,17 @@ class Dataset:
         """Episode indices grouped by data file (read together)."""
         return self.reader.episode_groups()
 
-    def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:
-        """The episodes at `indices` (default: all), streamed in that order."""
-        return self.reader.iter_episodes(indices)
+    def iter_episodes(
+        self, indices: list[int] | None = None, video_refs: frozenset[str] = frozenset()
+    ) -> Iterator[Episode]:
+        """The episodes at `indices` (default: all), streamed in that order; the video features in
+        `video_refs` not decoded (`video_copy.VideoRef`)."""
+        return self.reader.iter_episodes(indices, video_refs)
+
+    def video_copy_signature(self, key: str) -> tuple | None:
+        """What must match for video feature `key`'s packets to be copied into one stream with
+        another's; None when they cannot be copied (`video_copy.copy_signature`)."""
+        return self.reader.video_copy_signature(key)
 
     def describe(self) -> dict[str, Any]:
         """The dataset as a pipeline's provenance records its source (ID, path, revision, fingerprint,

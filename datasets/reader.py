@@ -21,6 +21,7 @@ from shiftkit.datasets.episode import META_COLUMN, Episode
 from shiftkit.datasets.errors import DatasetError
 from shiftkit.datasets.features import Features, object_column, user_features
 from shiftkit.datasets.images import decode_image, decode_video, image_form
+from shiftkit.datasets.video_copy import VideoRef, copy_signature
 
 _EPISODES_PER_READ = 64  # a reader holds at most this many episodes' rows of one data file
 
@@ -42,6 +43,7 @@ class LeRobotDatasetReader:
         self._features = user_features(self.info["features"])  # `features` hands out copies
         self._rows = self.episodes.to_dict("records")  # a pandas row lookup costs ~1 ms
         self._footers: dict[tuple[int, int], Any] = {}  # parsed parquet metadata per data file
+        self._stats: dict[str, list[dict[str, np.ndarray] | None]] = {}  # recorded statistics per feature
 
     @property
     def fps(self) -> int:
@@ -70,9 +72,12 @@ class LeRobotDatasetReader:
             groups.setdefault((row.chunk, row.file), []).append(i)
         return list(groups.values())
 
-    def iter_episodes(self, indices: list[int] | None = None) -> Iterator[Episode]:
+    def iter_episodes(
+        self, indices: list[int] | None = None, video_refs: frozenset[str] = frozenset()
+    ) -> Iterator[Episode]:
         """The episodes at `indices`, in that order. Consecutive episodes of one data file (a work
-        unit's) share one read of just the row groups that hold them."""
+        unit's) share one read of just the row groups that hold them. The video features in
+        `video_refs` are not decoded: they come as `VideoRef`s (`video_copy.py`)."""
         indices = list(range(self.num_episodes)) if indices is None else list(indices)
         k = 0
         while k < len(indices):
@@ -90,7 +95,7 @@ class LeRobotDatasetReader:
             )
             for i, row in run:
                 start, stop = int(row["dataset_from_index"]), int(row["dataset_to_index"])
-                yield self._episode_from_table(i, table.slice(start - table_start, stop - start), row)
+                yield self._episode_from_table(i, table.slice(start - table_start, stop - start), row, video_refs)
             k += len(run)
 
     def _row(self, i: int) -> Any:
@@ -124,7 +129,7 @@ class LeRobotDatasetReader:
         except Exception as exc:  # pyarrow raises several types for corrupt files
             raise DatasetError(f"{path}: unreadable parquet file ({type(exc).__name__}: {exc})") from None
 
-    def _episode_from_table(self, i: int, part: Any, row: Any) -> Episode:
+    def _episode_from_table(self, i: int, part: Any, row: Any, video_refs: frozenset[str] = frozenset()) -> Episode:
         where = f"{self.root} episode {i}"
         n = part.num_rows
         if n != int(row["length"]) or n == 0:
@@ -134,6 +139,9 @@ class LeRobotDatasetReader:
             raise DatasetError(f"{where}: data rows belong to another episode (corrupt index)")
         frames: dict[str, np.ndarray] = {"timestamp": part.column("timestamp").to_numpy().astype(np.float64)}
         for key, ft in self._features.items():
+            if ft["dtype"] == "video" and key in video_refs:
+                frames[key] = self._video_ref(key, row, frames["timestamp"])
+                continue
             if ft["dtype"] == "video":
                 frames[key] = self._decode_video(key, row, frames["timestamp"])
                 continue
@@ -158,12 +166,52 @@ class LeRobotDatasetReader:
             meta["cameras"] = cameras
         return Episode(frames, meta)
 
-    def _decode_video(self, key: str, row: Any, timestamps: np.ndarray) -> np.ndarray:
+    def _video_file(self, key: str, row: Any) -> Path:
         chunk, file = int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])
-        path = self.root / self.info["video_path"].format(video_key=key, chunk_index=chunk, file_index=file)
+        return self.root / self.info["video_path"].format(video_key=key, chunk_index=chunk, file_index=file)
+
+    def _decode_video(self, key: str, row: Any, timestamps: np.ndarray) -> np.ndarray:
         offset = float(row[f"videos/{key}/from_timestamp"])
         where = f"{self.root} episode {int(row['episode_index'])} {key}"
-        return decode_video(path, offset, timestamps, where, self._features[key])
+        return decode_video(self._video_file(key, row), offset, timestamps, where, self._features[key])
+
+    def video_copy_signature(self, key: str) -> tuple | None:
+        """The stream signature of video feature `key` if its episodes can be copied packet for packet
+        (`video_copy.copy_signature`), else None."""
+        files: dict[Path, list[float]] = {}
+        for row in self._rows:
+            files.setdefault(self._video_file(key, row), []).append(float(row[f"videos/{key}/from_timestamp"]))
+        return copy_signature(files)
+
+    def _video_ref(self, key: str, row: Any, timestamps: np.ndarray) -> VideoRef:
+        i = int(row["episode_index"])
+        return VideoRef(
+            self._video_file(key, row),
+            float(row[f"videos/{key}/from_timestamp"]),
+            float(row[f"videos/{key}/to_timestamp"]),
+            timestamps,
+            self._features[key],
+            self._recorded_stats(key)[i],
+        )
+
+    def _recorded_stats(self, key: str) -> list[dict[str, np.ndarray] | None]:
+        """Per episode, the statistics of feature `key` recorded in meta/episodes (lerobot's
+        `stats/KEY/...` columns; None where an episode has none), read once."""
+        if key not in self._stats:
+            self._stats[key] = self._read_stats(key)
+        return self._stats[key]
+
+    def _read_stats(self, key: str) -> list[dict[str, np.ndarray] | None]:
+        import pyarrow.parquet as pq
+
+        prefix = f"stats/{key}/"
+        by_episode: dict[int, dict[str, np.ndarray]] = {}
+        for path in sorted((self.root / "meta" / "episodes").glob("*/*.parquet")):
+            names = [c for c in pq.read_schema(path).names if c.startswith(prefix)]
+            table = pq.read_table(path, columns=["episode_index", *names]).to_pydict()
+            for k, e in enumerate(table["episode_index"]):
+                by_episode[int(e)] = {c[len(prefix) :]: np.array(table[c][k]) for c in names}
+        return [by_episode.get(e) or None for e in range(self.num_episodes)]
 
 
 def require_utf8_path(path: Path, what: str, verb: str) -> None:

@@ -374,11 +374,17 @@ def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, n
     # Camera features, image or video: lerobot computes both from the frames before encoding
     # (EncodedFrames carry decoded pixels: statistics read a plain array). Depth statistics are
     # in the stored unit, not scaled to [0, 1].
-    cameras = {k: np.asarray(columns.pop(k)) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
+    # A camera copied from a source video (`VideoRef`) keeps the statistics its source recorded for
+    # these frames, as lerobot's merge keeps a source's.
+    cameras = {k: columns.pop(k) for k, ft in features.items() if ft["dtype"] in CAMERA_DTYPES}
     stats = numeric_stats(
         {k: v for k, v in columns.items() if k not in features or features[k]["dtype"] not in TEXT_DTYPES}
     )
     for key, frames in cameras.items():
+        if getattr(frames, "stats", None) is not None:
+            stats[key] = frames.stats
+            continue
+        frames = np.asarray(frames)
         ft = features[key]
         if depth.is_depth(ft):
             stats[key] = image_stats(depth.to_stored(frames, depth.depth_unit(ft)), depth=True)

@@ -14,7 +14,9 @@ lerobot would embed), per-value Python conversion (numeric columns go to Arrow f
 buffers), and rewriting info.json and re-aggregating all statistics after every episode.
 Statistics come from `shiftkit.datasets.stats` (lerobot's values, vectorised), computed by the
 worker that produced the episode. Cameras are `image` (PNG; depth: TIFF, `images.py`, `depth.py`) or
-`video` (lerobot's encoder settings, `video.py`).
+`video` (`video.py`: encoded with the source's settings recorded in the feature's `info`, else
+lerobot's defaults; a source's frames that pass unchanged are copied packet for packet instead,
+`video_copy.py`).
 
 lerobot's private names still used, because its public API has no per-episode equivalent without
 those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one):
@@ -32,6 +34,7 @@ those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from collections.abc import Iterable
 from pathlib import Path
@@ -49,6 +52,7 @@ from shiftkit.datasets.provenance import PROVENANCE_PATH, write_provenance
 from shiftkit.datasets.staging import publish, remove_dead_staging, staging_path
 from shiftkit.datasets.stats import POSITION_KEYS, RunningStats, episode_columns, episode_stats, numeric_stats
 from shiftkit.datasets.video import encode_frames
+from shiftkit.datasets.video_copy import VideoFileCopier, VideoRef
 
 
 def preload_writer() -> None:
@@ -126,6 +130,10 @@ class DatasetWriter:
         self.num_frames = 0
         self._cameras: dict[int, camera_meta.Cameras] = {}  # episode index -> its camera metadata
         self._closed = False
+        self.video_modes: dict[str, str] = {}
+        """Per video feature, whether its frames were "copied" from the source's video or "encoded"."""
+        self._copiers: dict[str, VideoFileCopier] = {}
+        self._source_encoders: dict[str, Any] = {}  # the encoders of the sources' recorded settings
 
     def __enter__(self) -> DatasetWriter:
         return self
@@ -229,23 +237,71 @@ class DatasetWriter:
         self.num_frames += n
 
     def _save_videos(self, videos: dict[str, np.ndarray]) -> dict[str, Any]:
-        """Encode this episode's video features with lerobot's encoder settings (RGB, or depth
-        through its quantiser) and append them to the dataset's video files as lerobot's writer
-        does; returns the `videos/KEY/...` episode metadata."""
+        """Append this episode's video features to the dataset's video files as lerobot's writer
+        does: copied from the source's video where they are its unchanged frames (`_copies`), else
+        encoded with lerobot's encoder settings (RGB, or depth through its quantiser); returns the
+        `videos/KEY/...` episode metadata."""
         import tempfile
 
         metadata: dict[str, Any] = {}
         for key, frames in videos.items():
+            if self._copies(key, frames):
+                metadata.update(self._copiers[key].add(frames))
+                continue
+            frames = np.asarray(frames)  # a source's frames not copied are decoded here
             is_depth = depth.is_depth(self.features[key])
-            encoder = self._encoders["depth" if is_depth else "rgb"]
+            encoder = self._encoder(key)
             if is_depth:  # lerobot encodes depth from its stored unit (float32 m or uint16 mm)
                 frames = depth.to_stored(frames, depth.depth_unit(self.features[key]))
             # lerobot's layout: a temporary folder in the dataset root, removed by _save_episode_video.
             path = Path(tempfile.mkdtemp(dir=self.tmp)) / f"{key}_{self.num_episodes:03d}.mp4"
             encode_frames(frames, path, self.fps, encoder)
             metadata.update(self._lerobot._save_episode_video(key, self.num_episodes, temp_path=path))
+            if self.num_episodes == 0 and encoder is not self._encoders["depth" if is_depth else "rgb"]:
+                # lerobot recorded its writer's encoder settings in the feature's info: these instead
+                self._meta.update_video_info(key, video_encoder=encoder)
         metadata.pop("episode_index", None)
         return metadata
+
+    def _encoder(self, key: str) -> Any:
+        """The encoder of video feature `key`: for RGB, the settings its source recorded in the
+        feature's `info` (codec, pixel format, g, crf, preset: lerobot's `encoder_config_from_video_info`,
+        as its `delete_episodes` re-encodes), so an edit keeps the source's codec; lerobot's defaults
+        for a feature without them (a camera that was no video, or resized), for a codec this machine
+        cannot encode (a warning says so) and for depth."""
+        ft = self.features[key]
+        info = ft.get("info") or {}
+        if depth.is_depth(ft) or "video.codec" not in info:
+            return self._encoders["depth" if depth.is_depth(ft) else "rgb"]
+        settings = dumps({k: v for k, v in info.items() if k.startswith("video.")})
+        if settings not in self._source_encoders:  # one per settings: lerobot's config probes PyAV's codecs
+            from lerobot.configs.video import encoder_config_from_video_info
+
+            try:
+                self._source_encoders[settings] = encoder_config_from_video_info(info)
+            except ValueError as exc:  # e.g. a hardware encoder this machine lacks: lerobot's defaults
+                logging.getLogger(__name__).warning("%s: encoding with lerobot's defaults (%s)", key, exc)
+                self._source_encoders[settings] = self._encoders["rgb"]
+        return self._source_encoders[settings]
+
+    def _copies(self, key: str, frames: Any) -> bool:
+        """Whether this episode's `key` frames are copied from their source video (`VideoRef`): then
+        all of that feature's are (one file takes packets of one stream or an encoder's, not both),
+        decided on its first episode; the feature's `info` is the source's (`video.*`, its codec
+        settings). A reference in an encoded feature is decoded."""
+        mode = self.video_modes.get(key)
+        if mode is None:
+            source = frames.feature if isinstance(frames, VideoRef) else None
+            copyable = source is not None and _copyable(source, self.features[key], self.fps)
+            mode = self.video_modes[key] = "copied" if copyable else "encoded"
+            if copyable:
+                self._meta.info.features[key]["info"] = dict(source.get("info") or {})
+                self._copiers[key] = VideoFileCopier(
+                    self.tmp, key, self._meta.video_path, self._meta.chunks_size, self._meta.video_files_size_in_mb
+                )
+        if mode == "copied" and not isinstance(frames, VideoRef):
+            raise DatasetError(f"{key}: decoded frames after copied ones; a video file cannot hold both")
+        return mode == "copied"
 
     def _take_cameras(self, meta: dict[str, Any], where: str) -> dict[str, Any]:
         """Keep the episode's camera metadata for meta/cameras.json; the rest of `meta` is returned
@@ -292,6 +348,8 @@ class DatasetWriter:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+        for copier in self._copiers.values():
+            copier.close()
         self._lerobot.finalize()  # lerobot's: flushes the episodes table, closes its files
         shutil.rmtree(self.tmp / "images", ignore_errors=True)  # the video encoder's input frames
         self._write_info_and_stats()
@@ -319,6 +377,8 @@ class DatasetWriter:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+        for copier in self._copiers.values():
+            copier.close_source()
         # Drop the buffered episode rows first: finalizing would write them into the folder
         # about to be removed (and re-create it).
         self._meta._metadata_buffer.clear()
@@ -366,6 +426,19 @@ def carry_source_metadata(dest: Path, sources: list[Path]) -> None:
         info = load_info(dest)
         info.tools = tools
         write_info(info, dest)
+
+
+def _copyable(source: dict[str, Any], out: dict[str, Any], fps: int) -> bool:
+    """Whether frames of the source video feature `source` can be copied into the output feature
+    `out`: both RGB or both depth in one unit (whose quantiser, in the source's `info`, comes along),
+    the same shape, the output's fps."""
+    info = source.get("info") or {}
+    return (
+        depth.is_depth(source) == depth.is_depth(out)
+        and (not depth.is_depth(out) or depth.depth_unit(source) == depth.depth_unit(out))
+        and tuple(source["shape"]) == tuple(out["shape"])
+        and int(info.get("video.fps", fps)) == fps
+    )
 
 
 def _numeric_arrow_array(values: Any, arrow_type: Any) -> Any:

@@ -88,6 +88,8 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
         provenance = build_provenance(
             plan, executor_info, writer.num_episodes, writer.num_frames, run_report(plan, parts, keep)
         )
+        if writer.video_modes:  # per video feature: "copied" from the source's packets or "encoded"
+            provenance["video"] = dict(sorted(writer.video_modes.items()))
         writer.close(provenance=provenance, carry_from=lerobot_roots(plan.sources))
     return plan.destination
 

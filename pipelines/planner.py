@@ -14,6 +14,7 @@ each source's conversion (`depth_units`). Any other declared unit (a feature `in
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,30 @@ class Plan:
         """Every stage an episode of `source` goes through: its own, then the common ones."""
         return [*self.source_stages[source], *self.stages]
 
+    def _stage_inputs(self, source: int) -> list[Features]:
+        """The input schema of each stage of `source`'s chain."""
+        inputs, features = [], self.sources[source].features
+        for stage in self.source_stages[source]:
+            inputs.append(features)
+            features = stage.transform_features(features)
+        features = self.input_features  # the common stages start from sources[0]'s schema (units)
+        for stage in self.stages:
+            inputs.append(features)
+            features = stage.transform_features(features)
+        return inputs
+
+    def kept_source(self, feature: str, source: int) -> str | None:
+        """The camera of source `source` whose frames the output camera `feature` holds unchanged,
+        one for one, through every stage of its chain (`Stage.kept_frames`, following renames), or
+        None."""
+        inputs = self._stage_inputs(source)
+        name: str | None = feature
+        for stage, stage_input in zip(reversed(self.chain(source)), reversed(inputs), strict=True):
+            name = stage.kept_frames(stage_input).get(name)
+            if name is None:
+                return None
+        return name
+
     def frames_pass_unchanged(self, feature: str) -> bool:
         """Whether every frame of the output camera `feature`, from every source, is its source
         frame's pixels, stored alike: each stage of each chain keeps that camera's frames one for one
@@ -84,22 +109,47 @@ class Plan:
         if out is None or out["dtype"] not in CAMERA_DTYPES:
             return False
         for s, source in enumerate(self.sources):
-            inputs, features = [], source.features
-            for stage in self.source_stages[s]:
-                inputs.append(features)
-                features = stage.transform_features(features)
-            features = self.input_features  # the common stages start from sources[0]'s schema (units)
-            for stage in self.stages:
-                inputs.append(features)
-                features = stage.transform_features(features)
-            name: str | None = feature
-            for stage, stage_input in zip(reversed(self.chain(s)), reversed(inputs), strict=True):
-                name = stage.kept_frames(stage_input).get(name)
-                if name is None:
-                    return False
-            if source.fps != self.fps or not _stored_alike(source.features.get(name), out):
+            name = self.kept_source(feature, s)
+            if name is None or source.fps != self.fps or not _stored_alike(source.features.get(name), out):
                 return False
         return True
+
+    @functools.cached_property
+    def video_copies(self) -> dict[str, list[str]]:
+        """Output video feature -> per source, the source video feature whose encoded frames it copies
+        (`datasets/video_copy.py`): the frames pass unchanged from every source (RGB, or depth in
+        the same unit), as video whose
+        streams concatenate (same codec, size, pixel format, time base, codec parameters) with every
+        episode starting on a keyframe (`video_copy.copy_signature`). The others are encoded."""
+        copies = {}
+        for key, ft in self.features.items():
+            if ft["dtype"] != "video" or not self.frames_pass_unchanged(key):
+                continue
+            names = [self.kept_source(key, s) for s in range(len(self.sources))]
+            signatures = {_copy_signature(source, name) for source, name in zip(self.sources, names, strict=True)}
+            if None not in signatures and len(signatures) == 1:
+                copies[key] = names
+        return copies
+
+    def video_refs(self, source: int) -> frozenset[str]:
+        """The video features of source `source` its reader leaves encoded (`VideoRef`): those the
+        output copies, and cameras that stages pass on unchanged until one drops them unread
+        (`Stage.dropped_unread`)."""
+        copied = {names[source] for names in self.video_copies.values()}
+        chain, inputs = self.chain(source), self._stage_inputs(source)
+        for key, ft in self.sources[source].features.items():
+            if ft["dtype"] != "video" or key in copied:
+                continue
+            name = key
+            for stage, stage_input in zip(chain, inputs, strict=True):
+                if name in stage.dropped_unread(stage_input):
+                    copied.add(key)
+                    break
+                kept = [out for out, src in stage.kept_frames(stage_input).items() if src == name]
+                if len(kept) != 1:
+                    break
+                name = kept[0]
+        return frozenset(copied)
 
 
 def build_chain(specs: list[StageSpec], features: Features, fps: int, where: str) -> tuple[list[Stage], Features, int]:
@@ -166,6 +216,12 @@ def check_sources_and_destination(config: PipelineConfig, sources: list[Any], de
             groups.setdefault(repr(spec.stages), []).append((_source_name(config, i), path))
     for inputs in groups.values():
         check_inputs_and_outputs(inputs, [("destination", destination)], content_key=dataset_fingerprint)
+
+
+def _copy_signature(source: Source, key: str) -> tuple | None:
+    """A LeRobot source's `video_copy_signature` of `key` (None for other sources)."""
+    signature = getattr(source, "video_copy_signature", None)
+    return signature(key) if signature is not None else None
 
 
 def _stored_alike(source: dict[str, Any] | None, out: dict[str, Any]) -> bool:

@@ -144,6 +144,11 @@ class Stage(ABC):
         keep frames (`Stage`, `ReindexStage`) keeps none; `FrameStage` keeps what it carries."""
         return {}
 
+    def dropped_unread(self, features: Features) -> set[str]:
+        """Input features this stage removes without reading their values (for an input schema
+        `features`): a camera only dropped is never decoded (`Plan.video_refs`). Default: none."""
+        return set()
+
     def describe(self) -> dict[str, Any]:
         """The stage as the provenance records it (the dataset card cites `citation`)."""
         entry = {"name": self.name, "version": self.version, "params": to_dict(self.config)}

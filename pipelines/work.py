@@ -231,7 +231,9 @@ def process_unit(unit: WorkUnit) -> int:
     plan: Plan = _WORKER["plan"]
     parts: PartStore = _WORKER["parts"]
     todo = [i for i in unit.episodes if not parts.done(unit.source, i)]
-    for episode in plan.sources[unit.source].iter_episodes(todo):
+    refs = plan.video_refs(unit.source)  # cameras copied, not decoded (datasets/video_copy.py)
+    episodes = plan.sources[unit.source].iter_episodes(todo, **({"video_refs": refs} if refs else {}))
+    for episode in episodes:
         index = int(episode.meta["source_episode_index"])
         outputs, report = transform_episode(plan, unit.source, episode)
         parts.write(unit.source, index, outputs, plan.features, report)

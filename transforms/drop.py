@@ -42,6 +42,10 @@ class Drop(FrameStage):
         return out
 
     @override
+    def dropped_unread(self, features: Features) -> set[str]:
+        return set(self.config.features)
+
+    @override
     def process(self, episode: Episode, rng: np.random.Generator) -> Iterable[Episode]:
         drop = set(self.config.features)
         yield Episode({k: v for k, v in episode.frames.items() if k not in drop}, dict(episode.meta))

@@ -1,0 +1,312 @@
+"""Video frames that pass a pipeline unchanged are copied, not decoded and encoded again.
+
+A pipeline whose stages keep a camera's frames one for one (filter, rename, drop, map_tasks,
+labels: `Plan.video_copies`) does not need that camera's pixels. The reader then hands the stages a
+`VideoRef` instead of decoded frames: where the episode's frames lie in the source's video file
+(`from_timestamp` / `to_timestamp`), its frame times and the statistics lerobot recorded for it.
+It has the frames' shape and dtype, so schema checks pass; a stage that reads the pixels anyway
+gets them decoded (`np.asarray`). The writer copies the episode's encoded packets (a remux: no
+decode, no encode) into lerobot's video files (`VideoFileCopier`): several episodes per file, each
+at the `from_timestamp` lerobot's writer would give it, a new file when the current one would pass
+`video_files_size_in_mb`, the source's codec and settings (its stream is copied) and the source's
+`video.*` info. What lerobot's `merge_datasets` does with whole files (`aggregate_videos`,
+`concatenate_video_files`: a concat-demuxer remux), done per episode, so that an episode a stage
+drops is never read.
+
+Copying needs every episode of a camera to come from streams that concatenate: same codec, size,
+pixel format, time base and codec parameters (`stream_signature`), each episode starting on a
+keyframe (`copy_signature`); a merge of differently encoded sources encodes instead. Depth videos
+(lerobot's 12-bit HEVC) are copied alike, their quantiser parameters with the source's `info`.
+"""
+
+from __future__ import annotations
+
+import functools
+import shutil
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shiftkit.datasets.depth import is_depth
+from shiftkit.datasets.errors import DatasetError
+
+
+class VideoRef:
+    """One camera's frames of one source episode, still encoded (see the module docstring)."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        start: float,
+        stop: float,
+        timestamps: np.ndarray,
+        feature: dict[str, Any],
+        stats: dict[str, np.ndarray] | None,
+    ) -> None:
+        self.path = Path(path)
+        """The source video file that holds the episode."""
+        self.start = float(start)
+        """The episode's `from_timestamp` in that file (seconds)."""
+        self.stop = float(stop)
+        """Its `to_timestamp`."""
+        self.timestamps = np.asarray(timestamps, dtype=np.float64)
+        """Its frames' times from the episode's start."""
+        self.feature = feature
+        """The source's feature entry (shape, `video.*` info)."""
+        self.stats = stats
+        """lerobot's statistics of these frames, as the source recorded them (None: not recorded)."""
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """(frames, height, width, channels), as the decoded frames'."""
+        return (len(self.timestamps), *(int(d) for d in self.feature["shape"]))
+
+    @property
+    def dtype(self) -> np.dtype:
+        """uint8 for RGB frames, float32 (metres) for depth, as the decoded frames'."""
+        return np.dtype(np.float32 if is_depth(self.feature) else np.uint8)
+
+    @property
+    def ndim(self) -> int:
+        """4."""
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        from shiftkit.datasets.images import decode_video
+
+        frames = decode_video(self.path, self.start, self.timestamps, str(self.path), self.feature)
+        return frames if dtype is None else frames.astype(dtype)
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return np.asarray(self)[index]
+
+    def __iter__(self):
+        return iter(np.asarray(self))
+
+    def state(self) -> dict[str, Any]:
+        """What `data_tree` stores of it (a run's parts hold the reference, not the pixels)."""
+        return {
+            "path": str(self.path),
+            "start": self.start,
+            "stop": self.stop,
+            "timestamps": self.timestamps,
+            "feature": self.feature,
+            "stats": self.stats,
+        }
+
+
+def copy_signature(files: dict[Path, list[float]]) -> tuple | None:
+    """The stream signature (`stream_signature`) shared by a camera's video `files`, each given with
+    the `from_timestamp`s of its episodes, if every episode starts on a keyframe (a copy starts
+    there); None when the files' streams differ or an episode starts between keyframes (lerobot's
+    `delete_episodes` re-encodes kept segments as one stream, so with its `g=2` an episode after one
+    of odd length does)."""
+    signatures = set()
+    for path, starts in files.items():
+        signature, facts = _file_facts(path)
+        if any(round(start / facts.time_base) not in facts.keyframes for start in starts):
+            return None
+        signatures.add(signature)
+    return signatures.pop() if len(signatures) == 1 else None
+
+
+@dataclass(frozen=True)
+class FileFacts:
+    """What the copier needs of a source video file, read by one demux (no decoding)."""
+
+    time_base: Fraction
+    keyframes: frozenset[int]
+    """The pts of its keyframes."""
+    pts: np.ndarray
+    """Every packet's pts, ascending."""
+    sizes: np.ndarray
+    """Bytes of the packets up to each pts (cumulative, in `pts` order)."""
+
+    @property
+    def packets(self) -> int:
+        """How many packets (frames) the file holds."""
+        return len(self.pts)
+
+    def bytes_between(self, start: float, stop: float) -> int:
+        """Bytes of the packets shown in [start, stop) seconds."""
+        lo, hi = np.searchsorted(self.pts, [round(start / self.time_base), round(stop / self.time_base)])
+        return int((self.sizes[hi - 1] if hi else 0) - (self.sizes[lo - 1] if lo else 0))
+
+
+def _file_facts(path: Path) -> tuple[tuple, FileFacts]:
+    """(stream signature, `FileFacts`) of a video file, read once per version of it."""
+    st = Path(path).stat()
+    return _facts(str(path), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=256)
+def _facts(path: str, size: int, mtime_ns: int) -> tuple[tuple, FileFacts]:
+    import av
+
+    signature = stream_signature(Path(path))
+    try:
+        with av.open(path) as container:
+            stream = container.streams.video[0]
+            rows = [(p.pts, p.size, p.is_keyframe) for p in container.demux(stream) if p.pts is not None]
+            time_base = stream.time_base
+    except (av.error.FFmpegError, OSError) as exc:
+        raise DatasetError(f"cannot read the video stream of {path} ({type(exc).__name__}: {exc})") from None
+    rows.sort()
+    facts = FileFacts(
+        time_base,
+        frozenset(pts for pts, _, key in rows if key),
+        np.array([pts for pts, _, _ in rows], dtype=np.int64),
+        np.cumsum([size for _, size, _ in rows], dtype=np.int64),
+    )
+    return signature, facts
+
+
+def stream_signature(path: Path) -> tuple:
+    """What must be equal for two video files' packets to share one file: codec, size, pixel format,
+    time base, frame rate and the codec's parameters (extradata)."""
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            s = container.streams.video[0]
+            ctx = s.codec_context
+            return (
+                ctx.name,
+                ctx.width,
+                ctx.height,
+                ctx.pix_fmt,
+                s.time_base,
+                s.average_rate,
+                bytes(ctx.extradata or b""),
+            )
+    except (av.error.FFmpegError, OSError, IndexError) as exc:
+        raise DatasetError(f"cannot read the video stream of {path} ({type(exc).__name__}: {exc})") from None
+
+
+class VideoFileCopier:
+    """Appends episodes' encoded packets (`VideoRef`s) to one camera's video files in lerobot's layout,
+    as lerobot's writer appends its encoded episodes (module docstring). A file's episodes are
+    written when it is complete (the next would pass the size limit, or `close`): a file that holds
+    exactly one source file's episodes, all of them in order (a pass-through, rename, drop or merge),
+    is that file copied; any other is remuxed packet by packet."""
+
+    def __init__(self, root: Path, key: str, video_path: str, chunks_size: int, max_mb: float) -> None:
+        self.root, self.key, self.video_path = root, key, video_path
+        self.chunks_size, self.max_bytes = chunks_size, max_mb * 1024 * 1024
+        self.chunk_file: tuple[int, int] | None = None
+        self._pending: list[VideoRef] = []  # the current file's episodes, written by `_flush`
+        self._bytes = 0
+        self._duration = 0.0  # the current file's to_timestamp so far
+        self._source: tuple[str, Any] | None = None  # the open source container (path, container)
+        self.signature: tuple | None = None
+
+    def add(self, ref: VideoRef) -> dict[str, Any]:
+        """Take one episode; returns its `videos/KEY/...` episode metadata."""
+        from lerobot.datasets.utils import update_chunk_file_indices
+
+        signature, facts = _file_facts(ref.path)
+        if self.signature is not None and signature != self.signature:
+            raise DatasetError(f"{ref.path}: its {self.key} stream is encoded otherwise than the episodes before it")
+        self.signature = signature
+        size = facts.bytes_between(ref.start, ref.stop)
+        if self.chunk_file is None or self._bytes + size >= self.max_bytes:  # lerobot's rollover rule
+            self._flush()
+            self.chunk_file = (
+                (0, 0) if self.chunk_file is None else update_chunk_file_indices(*self.chunk_file, self.chunks_size)
+            )
+            self._bytes, self._duration = 0, 0.0
+        self._pending.append(ref)
+        start = self._duration
+        self._duration = start + (ref.stop - ref.start)
+        self._bytes += size
+        return {
+            f"videos/{self.key}/chunk_index": self.chunk_file[0],
+            f"videos/{self.key}/file_index": self.chunk_file[1],
+            f"videos/{self.key}/from_timestamp": start,
+            f"videos/{self.key}/to_timestamp": self._duration,
+        }
+
+    def _flush(self) -> None:
+        """Write the current file from its pending episodes."""
+        refs, self._pending = self._pending, []
+        if not refs:
+            return
+        path = self.root / self.video_path.format(
+            video_key=self.key, chunk_index=self.chunk_file[0], file_index=self.chunk_file[1]
+        )
+        path.parent.mkdir(parents=True, exist_ok=True)
+        source = refs[0].path
+        whole = (
+            all(r.path == source for r in refs)
+            and refs[0].start == 0.0
+            and all(a.stop == b.start for a, b in zip(refs, refs[1:], strict=False))
+            and sum(len(r) for r in refs) == _file_facts(source)[1].packets
+        )
+        if whole:
+            shutil.copyfile(source, path)
+            return
+        self._remux(refs, path)
+
+    def _remux(self, refs: list[VideoRef], path: Path) -> None:
+        import av
+
+        # lerobot's concatenate_video_files: faststart, the stream copied from its template
+        with av.open(str(path), mode="w", options={"movflags": "faststart"}) as out:
+            stream, duration = None, 0.0
+            for ref in refs:
+                packets, template = self._packets(ref)
+                if stream is None:
+                    stream = out.add_stream_from_template(template=template, opaque=True)
+                    stream.time_base = template.time_base
+                tb = template.time_base
+                shift = round(duration / tb) - round(ref.start / tb)
+                for packet in packets:
+                    packet.pts = None if packet.pts is None else packet.pts + shift
+                    packet.dts = None if packet.dts is None else packet.dts + shift
+                    packet.stream = stream
+                    out.mux(packet)
+                duration += ref.stop - ref.start
+
+    def _packets(self, ref: VideoRef) -> tuple[list[Any], Any]:
+        """The episode's packets (pts in [start, stop) of the source file), demuxed without decoding."""
+        import av
+
+        if self._source is None or self._source[0] != str(ref.path):
+            self.close_source()
+            self._source = (str(ref.path), av.open(str(ref.path)))
+        container = self._source[1]
+        stream = container.streams.video[0]
+        tb = stream.time_base
+        lo, hi = round(ref.start / tb), round(ref.stop / tb)
+        container.seek(lo, stream=stream, backward=True)
+        packets = []
+        for packet in container.demux(stream):
+            if packet.dts is None:  # the demuxer's flush packet
+                continue
+            if packet.dts >= hi:
+                break
+            if packet.pts is not None and lo <= packet.pts < hi:
+                packets.append(packet)
+        if len(packets) != len(ref) or not packets[0].is_keyframe:
+            raise DatasetError(
+                f"{ref.path}: the episode at {ref.start:.4f}-{ref.stop:.4f} s has {len(packets)} packets "
+                f"for {len(ref)} frames{'' if not packets or packets[0].is_keyframe else ', not starting on a keyframe'}"
+            )
+        return packets, stream
+
+    def close_source(self) -> None:
+        """Close the open source file."""
+        if self._source is not None:
+            self._source[1].close()
+            self._source = None
+
+    def close(self) -> None:
+        """Write the last file and close the source."""
+        self._flush()
+        self.close_source()

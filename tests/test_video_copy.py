@@ -1,0 +1,288 @@
+"""Video frames that pass a pipeline unchanged are copied packet for packet (datasets/video_copy.py),
+checked against the truth: datasets written by lerobot 0.6.1's own writer (two AV1 cameras), the
+output's frames as lerobot's loader decodes them equal to the source's, its packets (PyAV demux) the
+source's bytes, the output loading in lerobot and passing `shiftkit validate --deep`, and nothing
+decoded on the way. A stage that changes pixels still encodes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shiftkit.app.cli import main
+from shiftkit.datasets.sources import SourceConfig
+from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
+from shiftkit.pipelines.runner import run_pipeline
+from tests.lerobot_recordings import Recording, recording
+
+CAMERAS = ("observation.images.front", "observation.images.wrist")
+SMALL = Recording(video=True, cameras=("front", "wrist"), depth=(), size=(32, 48), lengths=(8, 8, 8), language=False)
+# the same settings, other pictures: a second dataset to merge with the first
+OTHER = Recording(
+    video=True, cameras=("front", "wrist"), depth=(), size=(32, 48), lengths=(8, 6), language=False, seed=1
+)
+LARGE = Recording(video=True, cameras=("front", "wrist"), depth=(), size=(480, 640), lengths=(4, 4, 4), language=False)
+FILTER_RENAME = [
+    StageSpec("filter", {"indices": [0, 2]}),
+    StageSpec("rename", {"mapping": {"observation.mode": "observation.phase"}}),
+]
+
+
+def _run(sources: list[Path], out: Path, stages: list[StageSpec], workers: int = 1) -> Path:
+    config = PipelineConfig(
+        sources=[SourceConfig(path=str(s)) for s in sources],
+        destination=DestinationConfig(root=str(out)),
+        stages=stages,
+    )
+    return run_pipeline(config, workers=workers, progress=False)
+
+
+def _packets(root: Path, key: str) -> list[bytes]:
+    """Every video packet of `key` in `root`, file after file (PyAV demux, no decoding)."""
+    import av
+
+    out = []
+    for path in sorted((root / "videos" / key).glob("chunk-*/file-*.mp4")):
+        with av.open(str(path)) as container:
+            out += [bytes(p) for p in container.demux(container.streams.video[0]) if p.dts is not None]
+    return out
+
+
+def _episode_packets(root: Path, key: str) -> list[list[bytes]]:
+    """Per episode, its packets of `key` (by the episodes' `from_timestamp` / `to_timestamp`)."""
+    import av
+    import pandas as pd
+
+    episodes = pd.concat(pd.read_parquet(p) for p in sorted((root / "meta/episodes").glob("*/*.parquet")))
+    out = []
+    for _, row in episodes.sort_values("episode_index").iterrows():
+        chunk, file = int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])
+        with av.open(str(root / f"videos/{key}/chunk-{chunk:03d}/file-{file:03d}.mp4")) as container:
+            stream = container.streams.video[0]
+            lo, hi = (round(row[f"videos/{key}/{b}_timestamp"] / stream.time_base) for b in ("from", "to"))
+            out.append([bytes(p) for p in container.demux(stream) if p.pts is not None and lo <= p.pts < hi])
+    return out
+
+
+def _lerobot_frames(root: Path, key: str) -> list[np.ndarray]:
+    """Every frame of `key` as lerobot 0.6.1's `LeRobotDataset` decodes it, in dataset order."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    dataset = LeRobotDataset("test/loaded", root=root, video_backend="pyav")
+    return [dataset[i][key].numpy() for i in range(len(dataset))]
+
+
+def _frames_of(frames: list[np.ndarray], lengths: tuple[int, ...], episodes: list[int]) -> list[np.ndarray]:
+    starts = np.cumsum((0, *lengths))
+    return [frames[t] for e in episodes for t in range(starts[e], starts[e + 1])]
+
+
+def _validate_deep(root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`shiftkit validate --deep` (which decodes: `no_decoding` lifted first)."""
+    monkeypatch.undo()
+    assert main(["validate", "--deep", str(root)]) == 0
+
+
+@pytest.fixture
+def no_decoding(monkeypatch):
+    """Fail any decode of a video frame by shiftkit's reader (the pipeline runs in this process)."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a video was decoded")
+
+    monkeypatch.setattr("shiftkit.datasets.images.decode_episode", refuse)
+
+
+@pytest.mark.parametrize("rec", [SMALL, LARGE], ids=["32x48", "480x640"])
+def test_filter_and_rename_copy_the_source_packets(rec, tmp_path, monkeypatch, no_decoding):
+    """`filter` + `rename` of a non-camera feature on a two-camera AV1 dataset: no frame decoded (not
+    even of the dropped episode), the kept episodes' packets are the source's bytes, lerobot's loader
+    decodes the source's frames from the output, the episodes share one file per camera, `info.json`
+    keeps the source's `video.*` and the provenance says each camera was copied."""
+    source = recording(rec)
+    out = _run([source], tmp_path / "out", FILTER_RENAME)
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == dict.fromkeys(CAMERAS, "copied")
+    src_info, out_info = (json.loads((r / "meta/info.json").read_text())["features"] for r in (source, out))
+    assert "observation.phase" in out_info and "observation.mode" not in out_info
+    for key in CAMERAS:
+        assert out_info[key] == src_info[key]  # codec, pix_fmt, g, crf: the source's stream
+        kept = _episode_packets(source, key)
+        assert _episode_packets(out, key) == [kept[0], kept[2]]
+        assert _packets(out, key) == kept[0] + kept[2]  # one file, nothing else in it
+        assert sorted(p.name for p in (out / "videos" / key).rglob("*.mp4")) == ["file-000.mp4"]
+    for key in CAMERAS:
+        got, src = _lerobot_frames(out, key), _lerobot_frames(source, key)
+        expected = _frames_of(src, rec.lengths, [0, 2])
+        assert len(got) == len(expected)
+        for a, b in zip(got, expected, strict=True):
+            np.testing.assert_array_equal(a, b)
+    stats = json.loads((out / "meta/stats.json").read_text())
+    assert np.asarray(stats[CAMERAS[0]]["mean"]).shape == (3, 1, 1)
+    _validate_deep(out, monkeypatch)
+
+
+def test_merge_copies_both_sources(tmp_path, monkeypatch, no_decoding):
+    """A merge of two lerobot-written datasets encoded alike copies every packet of both, in order."""
+    a, b = recording(SMALL), recording(OTHER)
+    out = _run([a, b], tmp_path / "merged", [])
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "copied")
+    for key in CAMERAS:
+        assert _packets(out, key) == _packets(a, key) + _packets(b, key)
+        got = _lerobot_frames(out, key)
+        expected = _lerobot_frames(a, key) + _lerobot_frames(b, key)
+        for x, y in zip(got, expected, strict=True):
+            np.testing.assert_array_equal(x, y)
+        assert len(got) == len(expected)
+    _validate_deep(out, monkeypatch)
+
+
+def test_copied_episodes_roll_over_to_new_files(tmp_path, monkeypatch, no_decoding):
+    """With lerobot's file size limit reached after each episode, every episode starts a new file
+    (lerobot's rule: a file that would pass `video_files_size_in_mb` is not appended to), each from
+    timestamp 0, and lerobot still loads the source's frames."""
+    from shiftkit.datasets import writer
+
+    class Tiny(writer.VideoFileCopier):
+        def __init__(self, root, key, video_path, chunks_size, max_mb):
+            super().__init__(root, key, video_path, chunks_size, 1e-6)
+
+    monkeypatch.setattr(writer, "VideoFileCopier", Tiny)
+    source = recording(SMALL)
+    out = _run([source], tmp_path / "out", [StageSpec("filter", {"indices": [0, 1, 2]})])
+    key = CAMERAS[0]
+    assert sorted(p.name for p in (out / "videos" / key).rglob("*.mp4")) == [f"file-{i:03d}.mp4" for i in range(3)]
+    assert _episode_packets(out, key) == _episode_packets(source, key)
+    import pandas as pd
+
+    episodes = pd.read_parquet(out / "meta/episodes/chunk-000/file-000.parquet")
+    assert episodes[f"videos/{key}/from_timestamp"].tolist() == [0.0, 0.0, 0.0]
+    for x, y in zip(_lerobot_frames(out, key), _lerobot_frames(source, key), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_dropping_a_camera_copies_the_other(tmp_path, no_decoding):
+    """Dropping a camera needs no pixels: the other camera is copied, nothing is decoded."""
+    source = recording(SMALL)
+    out = _run([source], tmp_path / "out", [StageSpec("drop", {"features": [CAMERAS[1]]})])
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == {CAMERAS[0]: "copied"}
+    assert not (out / "videos" / CAMERAS[1]).exists()
+    assert _packets(out, CAMERAS[0]) == _packets(source, CAMERAS[0])
+
+
+def test_a_pixel_changing_stage_still_encodes(tmp_path, monkeypatch):
+    """`resize` changes one camera's pixels: that camera is encoded anew (new size), the other copied."""
+    source = recording(SMALL)
+    out = _run([source], tmp_path / "out", [StageSpec("resize", {"width": 32, "height": 16, "features": [CAMERAS[0]]})])
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == {CAMERAS[0]: "encoded", CAMERAS[1]: "copied"}
+    info = json.loads((out / "meta/info.json").read_text())["features"][CAMERAS[0]]["info"]
+    assert (info["video.height"], info["video.width"]) == (16, 32)
+    assert _packets(out, CAMERAS[1]) == _packets(source, CAMERAS[1])
+    assert len(_lerobot_frames(out, CAMERAS[0])) == sum(SMALL.lengths)
+    _validate_deep(out, monkeypatch)
+
+
+def test_a_copy_starts_only_on_a_keyframe(tmp_path, monkeypatch):
+    """lerobot encodes each episode on its own (a keyframe first), but a stream re-encoded as a whole
+    (lerobot's `delete_episodes` does that with the kept episodes of a file) may have an episode start
+    between keyframes (with `g=2`, after one of odd length, unless the encoder cuts at the scene
+    change): no copy can start there. `copy_signature` says so, and such a camera is encoded."""
+    from shiftkit.datasets import Dataset
+    from shiftkit.datasets.video_copy import copy_signature
+
+    source = recording(SMALL)
+    path = source / "videos" / CAMERAS[0] / "chunk-000" / "file-000.mp4"
+    fps = SMALL.fps
+    assert copy_signature({path: [0.0, 8 / fps, 16 / fps]}) is not None  # lerobot's episode starts
+    assert copy_signature({path: [0.0, 8 / fps, 17 / fps]}) is None  # frame 17: between keyframes (g=2)
+
+    monkeypatch.setattr(Dataset, "video_copy_signature", lambda self, key: None if key == CAMERAS[0] else ("same",))
+    out = _run([source], tmp_path / "out", FILTER_RENAME)
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == {CAMERAS[0]: "encoded", CAMERAS[1]: "copied"}
+    got, src = _lerobot_frames(out, CAMERAS[0]), _frames_of(_lerobot_frames(source, CAMERAS[0]), SMALL.lengths, [0, 2])
+    assert len(got) == len(src) == 16
+    assert max(float(np.abs(a - b).mean()) for a, b in zip(got, src, strict=True)) < 0.05  # encoded again: lossy
+
+
+@pytest.fixture(scope="module")
+def h264_source(tmp_path_factory):
+    """A two-camera dataset that lerobot's writer encoded as H.264 yuv444p, crf 23, g 30 (B-frames: the
+    packets' decode order is not their display order)."""
+    from lerobot.configs import RGBEncoderConfig
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from tests.lerobot_recordings import episode_frames, features
+
+    rec = Recording(video=True, cameras=("front", "wrist"), depth=(), size=(32, 48), lengths=(8, 8, 8), language=False)
+    root = tmp_path_factory.mktemp("h264") / "src"
+    encoder = RGBEncoderConfig(vcodec="h264", pix_fmt="yuv444p", crf=23, g=30)
+    ds = LeRobotDataset.create("test/h264", rec.fps, features(rec), root=root, use_videos=True, rgb_encoder=encoder)
+    for e in range(len(rec.lengths)):
+        values = episode_frames(rec, e)
+        for t in range(rec.lengths[e]):
+            ds.add_frame({**{k: v[t] for k, v in values.columns.items()}, "task": values.tasks[t]})
+        ds.save_episode()
+    ds.finalize()
+    return root
+
+
+def test_an_h264_source_is_copied(h264_source, tmp_path):
+    """Packets whose decode order differs from their display order (H.264 B-frames) are copied too."""
+    out = _run([h264_source], tmp_path / "out", FILTER_RENAME)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "copied")
+    for key in CAMERAS:
+        kept = _episode_packets(h264_source, key)
+        assert _episode_packets(out, key) == [kept[0], kept[2]]
+        expected = _frames_of(_lerobot_frames(h264_source, key), (8, 8, 8), [0, 2])
+        for a, b in zip(_lerobot_frames(out, key), expected, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_a_re_encoded_camera_keeps_the_source_codec_settings(h264_source, tmp_path):
+    """`trim` re-indexes frames, so its cameras are encoded: with the source's codec, pixel format,
+    g and crf (H.264 yuv444p crf 23 g 30), not lerobot's AV1 yuv420p defaults; the frames stay close."""
+    out = _run([h264_source], tmp_path / "out", [StageSpec("trim", {"head": 1})])
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == dict.fromkeys(CAMERAS, "encoded")
+    for key in CAMERAS:
+        info = json.loads((out / "meta/info.json").read_text())["features"][key]["info"]
+        assert (info["video.codec"], info["video.pix_fmt"], info["video.g"], info["video.crf"]) == (
+            "h264",
+            "yuv444p",
+            30,
+            23,
+        )
+        src = _lerobot_frames(h264_source, key)
+        expected = [src[t] for e in range(3) for t in range(8 * e + 1, 8 * e + 8)]
+        got = _lerobot_frames(out, key)
+        assert len(got) == len(expected)
+        mse = np.mean([np.mean((a - b) ** 2) for a, b in zip(got, expected, strict=True)])
+        assert 10 * np.log10(1 / mse) > 30  # PSNR in dB (frames in [0, 1]): 36 dB here, noisy pictures
+
+
+@pytest.mark.parametrize("unit", ["m", "mm"])
+def test_depth_video_is_copied_with_its_quantiser(unit, tmp_path, monkeypatch, no_decoding):
+    """lerobot's 12-bit HEVC depth video passes `filter` + `rename` as its packets: nothing decoded,
+    the quantiser parameters (`video.depth_min`, ...) and unit kept in `info.json`, lerobot's loader
+    gives the source's depth, in metres and millimetres alike."""
+    rec = Recording(
+        video=True, cameras=(), depth=("front",), depth_unit=unit, size=(32, 48), lengths=(8, 8, 8), language=False
+    )
+    source = recording(rec)
+    key = "observation.depth.front"
+    out = _run([source], tmp_path / "out", FILTER_RENAME)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == {key: "copied"}
+    src_info, out_info = (json.loads((r / "meta/info.json").read_text())["features"][key] for r in (source, out))
+    assert out_info == src_info and out_info["info"]["is_depth_map"]
+    kept = _episode_packets(source, key)
+    assert _episode_packets(out, key) == [kept[0], kept[2]]
+    for a, b in zip(
+        _lerobot_frames(out, key), _frames_of(_lerobot_frames(source, key), rec.lengths, [0, 2]), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    _validate_deep(out, monkeypatch)
