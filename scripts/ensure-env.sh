@@ -78,6 +78,9 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.shiftkit-deps" 2>/dev/null)" 
     echo "$deps" >"$venv/.shiftkit-deps"
     rm -f "$venv/.shiftkit-install"
 fi
+# An older install's `shiftkit.egg-info` in the checkout shadows the venv's package metadata for any
+# command run from the checkout (its entry points, e.g. the stage plug-ins, go stale): never keep one.
+rm -rf "$here/shiftkit.egg-info"
 # The editable install of this checkout, redone when the packaging or the set of packages changed.
 stamp="$(cd "$here" && { cat pyproject.toml setup.py; find . -path ./.venv -prune -o -path ./.git -prune -o -name __init__.py -print | sort; } | sha256sum | cut -c1-16)"
 if [ "$(cat "$venv/.shiftkit-install" 2>/dev/null)" != "$stamp" ]; then

@@ -87,8 +87,22 @@ def test_two_clones_at_different_commits_each_run_their_own_code(tmp_path):
     (b / "data" / "lift.toml").write_text("seed = 0\n")
     assert probe(venv_b)["shiftkit_dirty"] is False
 
+    # an older install's egg-info in the clone would shadow the venv's entry points (the stage plug-ins)
+    # for commands run from the clone; setting up again removes it
+    stale = a / "shiftkit.egg-info"
+    stale.mkdir()
+    (stale / "PKG-INFO").write_text("Metadata-Version: 2.1\nName: shiftkit\nVersion: 0.0.1\n")
+    (stale / "entry_points.txt").write_text("[console_scripts]\nshiftkit = shiftkit.app.cli:main\n")
+    plugins = "from importlib import metadata; print(len(metadata.entry_points(group='shiftkit.plugins')))"
+
+    def plugin_groups() -> str:
+        run = [str(venv_a / "bin" / "python"), "-c", plugins]
+        return subprocess.run(run, cwd=a, capture_output=True, text=True, timeout=120).stdout.strip()
+
+    assert plugin_groups() == "0"
     # setting up a again does not move b, and deleting b leaves a working
     ensure_env(a)
+    assert not stale.exists() and plugin_groups() == "1"
     assert probe(venv_b)["mark"] == "b"
     shutil.rmtree(b)
     assert Path(probe(venv_a)["file"]).is_relative_to(a)
