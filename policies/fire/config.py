@@ -126,9 +126,10 @@ class FireArgs:
             raise ConfigError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
         if not self.gamma < 1.0:
             raise ConfigError(f"gamma must be in (0, 1), got {self.gamma}")
+        from shiftkit.datasets.hub import validate_repo_id
+
         repo_id = self.repo_id or f"local/{Path(self.output_dir).name}"
-        if repo_id.count("/") != 1 or not all(repo_id.split("/")):
-            raise ConfigError(f"repo_id must look like ORG/NAME, got {repo_id!r}")
+        validate_repo_id(repo_id)
         members = self.ensemble_size or (5 if "doubt" in self.predictor else 1)
         return dataclasses.replace(
             self, repo_id=repo_id, ensemble_size=members, hidden=list(self.hidden), d_hidden=list(self.d_hidden)
