@@ -1,7 +1,8 @@
 """The SLURM executor on a real (single-node) SLURM cluster started on this machine: munged,
 slurmctld and slurmd with 2 CPUs, a job array submitted by `shiftkit run --executor slurm` through
 real `sbatch`. The dataset equals the local executor's bytes, and a job cancelled mid-run
-(`scancel`) is resubmitted by the next run and ends with the same bytes.
+(`scancel`, while a third-party stage plugin holds it) is resubmitted by the next run and ends with
+the same bytes.
 
 `.ci/run` installs Debian's `slurm-wlm` and `munge`; without their binaries the test skips."""
 
@@ -194,9 +195,9 @@ def _until_job_ends(slurm: Slurm, job: str, timeout: float = 240) -> None:
     _wait(f"SLURM job {job}", ended, timeout, slurm.logs)
 
 
-def _run_slurm(slurm: Slurm, config: Path, dest: Path) -> subprocess.CompletedProcess:
+def _run_slurm(env: dict[str, str], config: Path, dest: Path) -> subprocess.CompletedProcess:
     return shiftkit(
-        slurm.env, "run", str(config), "--executor", "slurm", "--workers", "2", "--partition", "debug",
+        env, "run", str(config), "--executor", "slurm", "--workers", "2", "--partition", "debug",
         "--time", "00:10:00", "--mem-per-cpu", "1", "--no-progress",
     )  # fmt: skip
 
@@ -206,39 +207,94 @@ def test_slurm_job_array_writes_the_local_executors_bytes(slurm, raw, tmp_path):
     assert local.returncode == 0
     dest = tmp_path / "slurm"
     config = _config(tmp_path, raw, "slurm")
-    submitted = _run_slurm(slurm, config, dest)
+    submitted = _run_slurm(slurm.env, config, dest)
     assert "submitted SLURM job" in submitted.stderr and not dest.exists()
     job = _job_id(dest)
     _until_job_ends(slurm, job)
-    _run_slurm(slurm, config, dest)
+    _run_slurm(slurm.env, config, dest)
     assert_same_dataset(tmp_path / "local", dest)
 
 
-def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, tmp_path):
-    from shiftkit.datasets.synthetic import write_synthetic_raw
+# A third-party stage, installed the way a lab's own package is (a module and its `shiftkit.plugins`
+# entry point on the path): it holds each process after its first episode until a file exists, so the
+# test cancels a job that is certainly mid-run, however fast or loaded the machine is.
+GATE_MODULE = '''"""`gate`: passes episodes unchanged; after `free` of them in a process it waits for `path`."""
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from shiftkit.pipelines.stage import FrameStage, register_stage
+
+
+@dataclass
+class GateConfig:
+    """Parameters of `gate`."""
+
+    path: str = ""
+    """The file whose existence opens the gate."""
+    free: int = 1
+    """Episodes a process transforms before the gate holds it."""
+
+
+_transformed = 0
+
+
+@register_stage
+class Gate(FrameStage):
+    name = "gate"
+    version = 1
+    Config = GateConfig
+
+    def transform_features(self, features):
+        return features
+
+    def process(self, episode, rng):
+        global _transformed
+        _transformed += 1
+        while _transformed > self.config.free and not Path(self.config.path).exists():
+            time.sleep(0.05)
+        yield episode
+'''
+
+
+def _install_gate_plugin(root: Path) -> Path:
+    root.mkdir()
+    (root / "shiftkit_gate.py").write_text(GATE_MODULE)
+    info = root / "shiftkit_gate-0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: shiftkit-gate\nVersion: 0\n")
+    (info / "entry_points.txt").write_text("[shiftkit.plugins]\ngate = shiftkit_gate\n")
+    return root
+
+
+def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, raw, tmp_path):
     from shiftkit.pipelines.work import work_dir_for
 
-    # Enough work that the job is still running when the first part appears: 24 small episodes
-    # finished between that moment and the suspend on an idle machine, and 240 of them under load.
-    episodes = 240
-    raw = write_synthetic_raw(tmp_path / "raw", episodes=episodes, length=24, seed=4, camera=(64, 80))
-    shiftkit(slurm.env, "run", str(_config(tmp_path, raw, "local")), "--no-progress")
+    gate = tmp_path / "gate-open"
+    env = {**slurm.env, "PYTHONPATH": str(_install_gate_plugin(tmp_path / "plugin"))}
+    stages = f"""[[stages]]
+name = "gate"
+params = {{ path = "{gate}" }}
+
+{FILTER}"""
+    gate.touch()
+    shiftkit(env, "run", str(write_config(tmp_path, raw, "local", stages)), "--no-progress")
+    gate.unlink()
     dest = tmp_path / "slurm"
-    config = _config(tmp_path, raw, "slurm")
-    _run_slurm(slurm, config, dest)
+    config = write_config(tmp_path, raw, "slurm", stages)
+    _run_slurm(env, config, dest)
     job = _job_id(dest)
     parts = work_dir_for(dest) / "parts"
-    _wait("a first part", lambda: parts.is_dir() and any(parts.glob("*.npz")), 240, slurm.logs, period=0.05)
-    # Stopped (SIGSTOP) as soon as the first episode is done, so the job is caught mid-run, then killed.
-    assert slurm.cmd("scontrol", "suspend", job).returncode == 0
+    _wait("a first part", lambda: parts.is_dir() and any(parts.glob("*.npz")), 240, slurm.logs)
     assert slurm.cmd("scancel", job).returncode == 0
     _until_job_ends(slurm, job)
     done = len(list(parts.glob("*.npz")))
-    assert 1 <= done < episodes
-    resumed = _run_slurm(slurm, config, dest)
+    assert 1 <= done <= 2 < EPISODES  # one episode per array task, then held at the gate
+    gate.touch()
+    resumed = _run_slurm(env, config, dest)
     assert "submitted again" in resumed.stderr, resumed.stderr
     new = _job_id(dest)
     assert new != job
     _until_job_ends(slurm, new)
-    _run_slurm(slurm, config, dest)
+    _run_slurm(env, config, dest)
     assert_same_dataset(tmp_path / "local", dest)
