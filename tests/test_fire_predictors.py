@@ -168,8 +168,15 @@ def test_gda_needs_both_outcomes_and_is_blamed_only_when_watching():
     # segments without D values (D not trained yet) hold their place; `rescore` fills them in
     gda.add_segment(Segment(0, False, payload={"x": np.array([0.9, 0.8])}))
     assert gda.posterior(0, 0.5) is None
-    gda.rescore(lambda frames: frames["x"])
+    # a checkpoint taken now (before D) restores: with frames the segment is kept, without it is dropped
+    with_frames, without = GDARule(min_count=1), GDARule(min_count=1)
+    with_frames.load_state_dict(gda.state_dict(payloads=True))
+    without.load_state_dict(gda.state_dict())
+    assert len(with_frames.segments) == 2 and len(without.segments) == 1
+    for rule in (gda, with_frames):
+        rule.rescore(lambda frames: frames["x"])
     assert gda.posterior(0, 0.5) is not None
+    assert with_frames.posterior(0, 0.5) == gda.posterior(0, 0.5)
 
 
 def test_gda_with_beta_needs_consecutive_steps():

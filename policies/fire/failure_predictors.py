@@ -308,7 +308,9 @@ class GDARule:
         return max(self.score_segment(start, episode.d), 0.0)
 
     def state_dict(self, payloads: bool = False) -> dict[str, Any]:
-        """Gamma, its step, the stored segments (their frames with `payloads`), the outcomes and beta."""
+        """Gamma, its step, the stored segments (their frames with `payloads`), the outcomes and beta.
+        Without `payloads`, a segment not yet scored by D is left out: with neither D values nor
+        frames it says nothing."""
         return {
             "gamma": self.gamma,
             "delta": self.delta,
@@ -321,6 +323,7 @@ class GDARule:
                     **({"payload": s.payload} if payloads else {}),
                 }
                 for s in self.segments
+                if payloads or s.d is not None
             ],
             "outcomes": list(self.outcomes),
             "beta": self.beta.state_dict() if self.beta is not None else None,
