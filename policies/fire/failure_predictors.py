@@ -308,9 +308,7 @@ class GDARule:
         return max(self.score_segment(start, episode.d), 0.0)
 
     def state_dict(self, payloads: bool = False) -> dict[str, Any]:
-        """Gamma, its step, the stored segments (their frames with `payloads`), the outcomes and beta.
-        Without `payloads`, a segment not yet scored by D is left out: with neither D values nor
-        frames it says nothing."""
+        """Gamma, its step, the stored segments (their frames with `payloads`), the outcomes and beta."""
         return {
             "gamma": self.gamma,
             "delta": self.delta,
@@ -323,14 +321,14 @@ class GDARule:
                     **({"payload": s.payload} if payloads else {}),
                 }
                 for s in self.segments
-                if payloads or s.d is not None
             ],
             "outcomes": list(self.outcomes),
             "beta": self.beta.state_dict() if self.beta is not None else None,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restores what `state_dict` returned and refits the class statistics (gamma as saved)."""
+        """Restores what `state_dict` returned and refits the class statistics (gamma as saved). A
+        segment saved before D scored it and without its frames is left out: it says nothing."""
         if self.beta is not None:
             self.beta.load_state_dict(state["beta"])
         self.outcomes = deque((bool(x) for x in state["outcomes"]), maxlen=self.prior_window)
@@ -343,6 +341,7 @@ class GDARule:
                 s.get("payload"),
             )
             for s in state["segments"]
+            if s["d"] is not None or s.get("payload") is not None
         ]
         self._fit()
         self.gamma, self.delta = float(state["gamma"]), float(state["delta"])
