@@ -36,7 +36,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -356,7 +356,7 @@ class DatasetWriter:
         carry_source_metadata(self.tmp, carry_from)
         cameras = camera_meta.provenance_entry(camera_meta.write_cameras_file(self.tmp, self._cameras))
         self._closed = True
-        if provenance is None:  # only the DAgger recorder, in lerobot's rollout layout (tests/test_write_path.py)
+        if provenance is None:  # test fixtures and benchmark sources: shiftkit's commands always record it
             publish(self.tmp, self.root)
             return self.root
         return finish(self.tmp, self.root, {**provenance, "cameras": cameras} if cameras else provenance)
@@ -477,11 +477,14 @@ def write_episodes(
     robot_type: str | None,
     sources: list[dict[str, Any]],
     seed: int | None = None,
+    files: Mapping[str, Callable[[Path], None]] | None = None,
     **extra: Any,
 ) -> tuple[int, int]:
     """A stream of episodes (a recorder's, whose number is not known before it ends) into a new
     dataset at `root`: repo id checked before anything is read, written atomically, provenance naming
-    the sources and `extra` entries. Returns (episodes, frames)."""
+    the sources and `extra` entries. `files`: the producer's own files in the dataset folder (path
+    relative to it -> a function writing that path), published with the dataset or not at all.
+    Returns (episodes, frames)."""
     from shiftkit.datasets.hub import validate_repo_id
     from shiftkit.datasets.provenance import make_provenance
 
@@ -489,6 +492,8 @@ def write_episodes(
     with DatasetWriter(repo_id, root, fps, features, robot_type=robot_type) as writer:
         for episode in episodes:
             writer.add_episode(episode)
+        for name, write in (files or {}).items():
+            write(writer.tmp / name)
         provenance = make_provenance(
             repo_id=repo_id,
             fps=fps,

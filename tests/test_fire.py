@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from shiftkit.app.cli import main
-from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.episode import Episode
+from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.envs import families, make
 from shiftkit.policies.fire.oracle import SimulatedOracle, fork_env, scripted_expert, sim_state
 from tests.helpers import lerobot_train_two_steps
@@ -895,12 +896,36 @@ def test_fire_aggregate_reads_both_dagger_layouts_and_its_predictor_runs_in_a_ro
     corrections = tmp_path / "rollout_corrections"  # record_autonomous=false: each correction one episode
     features = {k: v for k, v in continuous.features.items() if k != "intervention"}
     episodes = recorded_episodes(run / "episodes", continuous.fps, continuous.tasks[0])
+    sources = [{"kind": "fire-run", "path": str(run)}]
     write_recording(
-        corrections, "local/rollout_corrections", continuous.fps, features, episodes, record_autonomous=False
+        corrections,
+        "local/rollout_corrections",
+        continuous.fps,
+        features,
+        episodes,
+        sources=sources,
+        record_autonomous=False,
     )
     windows = open_lerobot_dataset(corrections)
     lines = _episode_lines(run)
     assert windows.num_episodes == sum(len(x["interventions"]) for x in lines)
+    # both layouts carry the provenance every shiftkit dataset does
+    for recording, autonomous in ((run / "rollouts", True), (corrections, False)):
+        provenance = json.loads((recording / "meta" / "shiftkit_provenance.json").read_text())
+        assert provenance["dagger"] == {"record_autonomous": autonomous}
+        assert provenance["output"]["episodes"] == open_lerobot_dataset(recording).num_episodes
+    assert provenance["sources"] == sources
+    # rollouts without a correction make no corrections-only recording, and leave nothing behind
+    calm = (
+        Episode({**e.frames, "intervention": np.zeros_like(e.frames["intervention"])})
+        for e in recorded_episodes(run / "episodes", continuous.fps, continuous.tasks[0])
+    )
+    with pytest.raises(DatasetError, match="no corrections"):
+        write_recording(
+            tmp_path / "calm", "local/rollout_calm", continuous.fps, features, calm, sources=sources,
+            record_autonomous=False,
+        )  # fmt: skip
+    assert not (tmp_path / "calm").exists() and not list(tmp_path.glob(".calm*"))
 
     out = tmp_path / "agg"
     assert main(_aggregate_cli(demo_root, [run / "rollouts", corrections], out, "--d-steps", "64")) == 0
@@ -947,10 +972,10 @@ def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_p
     run, _ = fire_run
     rec = open_lerobot_dataset(run / "rollouts")
     features = {k: v for k, v in rec.features.items() if k != "intervention"}
+    sources = [{"kind": "fire-run", "path": str(run)}]
     other_fps = tmp_path / "rollout_fps"
-    write_recording(
-        other_fps, "local/rollout_fps", rec.fps * 2, features, recorded_episodes(run / "episodes", rec.fps * 2, "t")
-    )
+    episodes = recorded_episodes(run / "episodes", rec.fps * 2, "t")
+    write_recording(other_fps, "local/rollout_fps", rec.fps * 2, features, episodes, sources=sources)
     only_corrections = tmp_path / "rollout_corr"
     write_recording(
         only_corrections,
@@ -958,6 +983,7 @@ def test_fire_aggregate_refuses_recordings_that_do_not_fit(demo, fire_run, tmp_p
         rec.fps,
         features,
         recorded_episodes(run / "episodes", rec.fps, "t"),
+        sources=sources,
         record_autonomous=False,
     )
     cases = [

@@ -29,6 +29,7 @@ statistics). A recording's episodes rotated mid-task by time count their last st
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,10 +43,9 @@ from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.datasets.features import numpy_dtype, vector_feature
 from shiftkit.datasets.ids import dataset_fingerprint
 from shiftkit.datasets.jsonutil import dumps, read_json_file
-from shiftkit.datasets.provenance import make_provenance
 from shiftkit.datasets.reader import open_lerobot_dataset
 from shiftkit.datasets.staging import check_inputs_and_outputs
-from shiftkit.datasets.writer import DatasetWriter
+from shiftkit.datasets.writer import write_episodes
 from shiftkit.policies.bc_policy import PolicySpec, is_image_feature, load_policy
 from shiftkit.policies.fire.config import AggregateArgs
 from shiftkit.policies.fire.dagger_recording import INTERVENTION, INTERVENTION_FEATURE, open_recordings, runs
@@ -271,9 +271,21 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
     for p, r in zip(policy_parts, requests, strict=True):
         asked[p.episode][p.start : p.end] = r
 
+    # --- the predictor file and the ROC of the policy stretches, written into the dataset folder
+    predictor = FailurePredictor(disc, spec, rules, args.predictor, expert.fps)
+    labels = [p.failed for p in policy_parts]
+    aucs = {}
+    for name, values in roc.items():
+        try:
+            aucs[name] = roc_curve(np.array(values), np.array(labels))[2]
+        except ValueError:
+            aucs[name] = None
+    roc_text = dumps({"failed": labels, "scores": roc, "auc": aucs, "stretches": len(policy_parts)}) + "\n"
+
     # --- the aggregated dataset, streamed episode by episode
     schema = {**features, **FIRE_FEATURES}
-    with DatasetWriter(args.repo_id, out, expert.fps, schema, robot_type=expert.robot_type) as writer:
+
+    def episodes() -> Iterator[Episode]:
         for demo in expert.iter_episodes():
             n = len(demo)
             frames = {k: demo.frames[k] for k in [*features, "timestamp", "task"]}
@@ -285,7 +297,7 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
                     "intervention_request": np.zeros((n, 1), dtype=bool),
                 }
             )
-            writer.add_episode(Episode(frames, {"fire": {"source": "demonstration"}}))
+            yield Episode(frames, {"fire": {"source": "demonstration"}})
         index = 0
         for rec in recordings:
             for ep in rec.reader.iter_episodes():
@@ -309,52 +321,42 @@ def aggregate(args: AggregateArgs) -> dict[str, Any]:
                         "episode": int(ep.meta.get("source_episode_index", 0)),
                     }
                 }
-                writer.add_episode(Episode(frames, meta))
+                yield Episode(frames, meta)
                 index += 1
-        predictor = FailurePredictor(disc, spec, rules, args.predictor, expert.fps)
-        predictor.save(writer.tmp / PREDICTOR_FILE)
-        labels = [p.failed for p in policy_parts]
-        aucs = {}
-        for name, values in roc.items():
-            try:
-                aucs[name] = roc_curve(np.array(values), np.array(labels))[2]
-            except ValueError:
-                aucs[name] = None
-        (writer.tmp / ROC_FILE).write_text(
-            dumps({"failed": labels, "scores": roc, "auc": aucs, "stretches": len(policy_parts)}) + "\n"
-        )
-        writer.close(
-            provenance=make_provenance(
-                repo_id=args.repo_id,
-                fps=expert.fps,
-                num_episodes=writer.num_episodes,
-                num_frames=writer.num_frames,
-                sources=[
-                    {"kind": "lerobot", "path": str(expert_resolved.root), "num_episodes": expert.num_episodes},
-                    *(
-                        {
-                            "kind": "dagger",
-                            "path": str(r.resolved.root),
-                            "layout": layout,
-                            "num_episodes": r.reader.num_episodes,
-                        }
-                        for r, layout in zip(recordings, layouts, strict=True)
-                    ),
-                ],
-                seed=args.seed,
-                fire={
-                    "predictor": args.predictor,
-                    "d_steps": steps,
-                    "policy": args.policy,
-                    # D's policy samples: the recorded policy frames, or the policy's own actions
-                    # at the corrected states when only corrections were recorded
-                    "d_policy_samples": "policy actions at corrected states" if own_actions else "recorded",
-                },
-            )
-        )
+
+    written, _ = write_episodes(
+        args.repo_id,
+        out,
+        expert.fps,
+        schema,
+        episodes(),
+        robot_type=expert.robot_type,
+        sources=[
+            {"kind": "lerobot", "path": str(expert_resolved.root), "num_episodes": expert.num_episodes},
+            *(
+                {
+                    "kind": "dagger",
+                    "path": str(r.resolved.root),
+                    "layout": layout,
+                    "num_episodes": r.reader.num_episodes,
+                }
+                for r, layout in zip(recordings, layouts, strict=True)
+            ),
+        ],
+        seed=args.seed,
+        files={PREDICTOR_FILE: predictor.save, ROC_FILE: lambda path: path.write_text(roc_text)},
+        fire={
+            "predictor": args.predictor,
+            "d_steps": steps,
+            "policy": args.policy,
+            # D's policy samples: the recorded policy frames, or the policy's own actions
+            # at the corrected states when only corrections were recorded
+            "d_policy_samples": "policy actions at corrected states" if own_actions else "recorded",
+        },
+    )
     return {
         "dataset": str(out),
-        "episodes": expert.num_episodes + index,
+        "episodes": written,
         "stretches": len(policy_parts),
         "failed_stretches": int(sum(labels)),
         "corrections": corrections,

@@ -15,7 +15,7 @@ real robot takes can be run here.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +28,7 @@ from shiftkit.datasets.episode import Episode
 from shiftkit.datasets.errors import DatasetError
 from shiftkit.datasets.features import Features, user_features
 from shiftkit.datasets.reader import LeRobotDatasetReader, open_lerobot_dataset
-from shiftkit.datasets.writer import DatasetWriter
+from shiftkit.datasets.writer import write_episodes
 
 INTERVENTION = "intervention"
 # exactly as lerobot's rollout context declares it (rollout/context.py)
@@ -59,14 +59,19 @@ def write_recording(
     fps: int,
     features: Features,
     episodes: Iterable[Episode],
+    *,
+    sources: list[dict[str, Any]],
     robot_type: str | None = None,
     record_autonomous: bool = True,
 ) -> Path:
     """Write rollouts in lerobot's DAgger layout. `features`: the robot's observation features and
     `action`; each episode holds them, `intervention` ((n, 1) bool), `timestamp` and `task`. With
-    `record_autonomous` False only the corrections are kept, each its own episode (timestamps from 0)."""
+    `record_autonomous` False only the corrections are kept, each its own episode (timestamps from 0).
+    `sources`: where the rollouts come from, for the provenance every shiftkit dataset carries."""
     schema = {**{k: v for k, v in features.items() if k != INTERVENTION}, INTERVENTION: INTERVENTION_FEATURE}
-    with DatasetWriter(repo_id, root, fps, schema, robot_type=robot_type) as writer:
+
+    def recorded() -> Iterator[Episode]:
+        written = 0
         for episode in episodes:
             frames = {k: episode.frames[k] for k in [*schema, "task"]}
             flags = np.asarray(frames[INTERVENTION], dtype=bool).reshape(-1)
@@ -75,11 +80,22 @@ def write_recording(
                 part = {k: v[start:end] for k, v in frames.items()}
                 part[INTERVENTION] = flags[start:end, None]
                 part["timestamp"] = (np.arange(end - start) / fps).astype(np.float32)
-                writer.add_episode(Episode(part))
-        if writer.num_episodes == 0:
-            writer.abort()
+                written += 1
+                yield Episode(part)
+        if written == 0:
             raise DatasetError(f"no frames to record in {root}: the rollouts hold no corrections")
-        return writer.close()
+
+    write_episodes(
+        repo_id,
+        root,
+        fps,
+        schema,
+        recorded(),
+        robot_type=robot_type,
+        sources=sources,
+        dagger={"record_autonomous": record_autonomous},
+    )
+    return Path(root)
 
 
 @dataclass

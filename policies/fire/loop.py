@@ -470,6 +470,16 @@ def run(args: FireArgs) -> dict:
                 {**observed, "action": features["action"]},
                 recorded_episodes(episodes_dir, fps, task),
                 robot_type=ds.meta.robot_type,
+                sources=[
+                    {
+                        "kind": "simulator",
+                        "env": args.env,
+                        "task": args.task,
+                        "fire_run": str(run_dir.path),
+                        "episodes": counters["episode"],
+                        "env_seed": args.env_seed,
+                    }
+                ],
             )
         aggregate(aggregate_args(args, [str(rollouts)], str(bc_dir), dataset_root))
     summary["dataset"] = str(dataset_root)
