@@ -16,6 +16,7 @@ from shiftkit.app.cli import main
 from shiftkit.datasets.sources import SourceConfig
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
 from shiftkit.pipelines.runner import run_pipeline
+from tests.helpers import lerobot_train_two_steps
 from tests.lerobot_recordings import Recording, recording
 
 CAMERAS = ("observation.images.front", "observation.images.wrist")
@@ -286,3 +287,10 @@ def test_depth_video_is_copied_with_its_quantiser(unit, tmp_path, monkeypatch, n
     ):
         np.testing.assert_array_equal(a, b)
     _validate_deep(out, monkeypatch)
+
+
+def test_lerobot_trains_on_a_copied_output(tmp_path, no_decoding):
+    """lerobot's own trainer (ACT, 2 steps) reads the copied videos of a filter + rename output."""
+    out = _run([recording(SMALL)], tmp_path / "out", FILTER_RENAME)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "copied")
+    lerobot_train_two_steps("test/out", out, tmp_path / "train")
