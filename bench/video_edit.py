@@ -17,7 +17,7 @@ many of the output's video packets are the source's own bytes (copied or encoded
 lerobot's tools are called as functions with output folders (their CLI renames the source). Both
 tools run in this process after a warm-up, so neither pays its imports. The frame-preserving
 operations' goal: >= 10x faster than lerobot's tool for the same edit (the JSON `value` is the
-smallest speed-up), bit-exact. `--quick`: 4 episodes x 20 frames, merged with one of 2 x 20 (still
+smallest speed-up), bit-exact. `--quick`: 4 episodes x 8 frames, merged with one of 2 x 8 (still
 480x640); full: 12 x 150, twice. The last line printed is the JSON result.
 """
 
@@ -176,12 +176,12 @@ def load() -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--quick", action="store_true", help="4 episodes x 20 frames, merged with 2 x 20 (full: 12 x 150, twice)"
+        "--quick", action="store_true", help="4 episodes x 8 frames, merged with 2 x 8 (full: 12 x 150, twice)"
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     args = parser.parse_args()
-    episodes, length = (4, 20) if args.quick else (12, 150)
+    episodes, length = (4, 8) if args.quick else (12, 150)
     other = 2 if args.quick else episodes  # the second dataset, merged with the first
     work = Path(tempfile.mkdtemp(prefix="video-edit-", dir=args.work))
     load_start = load()
