@@ -24,6 +24,7 @@ import numpy as np
 
 from shiftkit.datasets.encoded_frames import EncodedFrames, source_bytes
 from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.video import EncodedVideo
 from shiftkit.datasets.video_copy import VideoRef
 
 TAG = "$shiftkit"
@@ -31,8 +32,8 @@ TAG = "$shiftkit"
 
 def split(tree: Any, tensor_types: tuple[type, ...] = ()) -> tuple[Any, dict[str, Any]]:
     """(the JSON document, the arrays it names): numpy arrays, numpy scalars (as 0-d arrays), bytes
-    (uint8), `EncodedFrames` (pixels + their source bytes), `VideoRef`s (where the frames are) and
-    instances of `tensor_types` as they are."""
+    (uint8), `EncodedFrames` (pixels + their source bytes), `VideoRef`s (where the frames are),
+    `EncodedVideo`s (the file a worker encoded them into) and instances of `tensor_types` as they are."""
     arrays: dict[str, Any] = {}
 
     def add(value: Any) -> str:
@@ -58,6 +59,8 @@ def split(tree: Any, tensor_types: tuple[type, ...] = ()) -> tuple[Any, dict[str
             }
         if isinstance(value, VideoRef):  # encoded frames left where they are (video_copy.py)
             return {TAG: "video", "v": walk(value.state(), where)}
+        if isinstance(value, EncodedVideo):  # frames a worker encoded into a file (video.py)
+            return {TAG: "encoded_video", "v": walk(value.state(), where)}
         if isinstance(value, np.ndarray):
             if value.dtype == object:
                 if all(isinstance(v, str) for v in value.flat):
@@ -150,6 +153,11 @@ def join(doc: Any, arrays: dict[str, Any], where: str, tensor: Any = None) -> An
                 return VideoRef(**walk(value["v"]))
             except TypeError:
                 raise DatasetError(f"{where}: a stored video reference lacks its fields") from None
+        if kind == "encoded_video" and isinstance(value.get("v"), dict):
+            try:
+                return EncodedVideo(**walk(value["v"]))
+            except TypeError:
+                raise DatasetError(f"{where}: a stored encoded video lacks its fields") from None
         raise DatasetError(f"{where}: unknown stored value {str(kind)[:40]!r}")
 
     return walk(doc)

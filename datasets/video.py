@@ -12,20 +12,28 @@ pipeline workers need not import torch (lerobot's `dequantize_depth` does; a tes
 Encoding: `encode_frames` is lerobot's `encode_video_frames` (an `RGBEncoderConfig` or a
 `DepthEncoderConfig`: codec, options, pixel format, lerobot's `quantize_depth`) fed from memory
 instead of from PNG / TIFF files; lerobot's writer then appends the episode to the current video
-file and fills the feature's `info` from the first episode (`writer.DatasetWriter`).
+file and fills the feature's `info` from the first episode (`writer.DatasetWriter`). `encoder_for`
+picks the encoder of a feature (the source's recorded settings, else lerobot's defaults) for the
+writer and for pipeline workers alike: a worker encodes each episode's cameras into a file of its
+own (`encode_episode_video` -> `EncodedVideo`), so encoding runs in parallel across workers and a
+run's work folder holds encoded video rather than pixels; the writer appends those files.
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from shiftkit.datasets import depth
 from shiftkit.datasets.depth import VIDEO_DEFAULTS
 from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.jsonutil import dumps
 
 TOLERANCE_S = 1e-4  # lerobot's default tolerance between a frame's timestamp and the query
 
@@ -155,3 +163,79 @@ def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encode
                 output.mux(packet)
     finally:
         av.logging.restore_default_callback()
+
+
+@functools.cache
+def default_encoders() -> dict[str, Any]:
+    """lerobot's default encoders: "rgb" and "depth" (one object each per process)."""
+    from lerobot.configs import depth_encoder_defaults, rgb_encoder_defaults
+
+    return {"rgb": rgb_encoder_defaults(), "depth": depth_encoder_defaults()}
+
+
+def encoder_for(ft: dict[str, Any]) -> Any:
+    """The encoder of a video feature: for RGB, the settings its source recorded in the feature's
+    `info` (codec, pixel format, g, crf, preset: lerobot's `encoder_config_from_video_info`, as its
+    `delete_episodes` re-encodes), so an edit keeps the source's codec; lerobot's defaults for a
+    feature without them (a camera that was no video, or resized), for a codec this machine cannot
+    encode (a warning says so) and for depth."""
+    info = ft.get("info") or {}
+    if depth.is_depth(ft) or "video.codec" not in info:
+        return default_encoders()["depth" if depth.is_depth(ft) else "rgb"]
+    return _recorded_encoder(dumps({k: v for k, v in info.items() if k.startswith("video.")}))
+
+
+@functools.cache
+def _recorded_encoder(settings: str) -> Any:
+    """One encoder per recorded settings: lerobot's config probes PyAV's codecs."""
+    import json
+
+    from lerobot.configs.video import encoder_config_from_video_info
+
+    try:
+        return encoder_config_from_video_info(json.loads(settings))
+    except ValueError as exc:  # e.g. a hardware encoder this machine lacks: lerobot's defaults
+        logging.getLogger(__name__).warning("encoding with lerobot's defaults instead of %s (%s)", settings, exc)
+        return default_encoders()["rgb"]
+
+
+class EncodedVideo:
+    """One camera's frames of one output episode, encoded into a file of their own by a pipeline
+    worker with the encoder the writer would use (`encoder_for`); the writer appends the file to the
+    dataset's video as lerobot's writer appends its own encodes."""
+
+    def __init__(self, path: str | Path, shape: tuple[int, ...] | list[int], dtype: str) -> None:
+        self.path = Path(path)
+        """The episode's video file (in the run's work folder)."""
+        self.shape = tuple(int(d) for d in shape)
+        """(frames, height, width, channels) of the frames it holds, as decoded."""
+        self.dtype = np.dtype(dtype)
+        """Their dtype, as decoded (uint8 RGB, float32 depth in metres)."""
+
+    @property
+    def ndim(self) -> int:
+        """4."""
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def state(self) -> dict[str, Any]:
+        """What `data_tree` stores of it (a run's parts hold the file's name, not the pixels)."""
+        return {"path": str(self.path), "shape": list(self.shape), "dtype": self.dtype.name}
+
+
+def encode_episode_video(frames: np.ndarray, ft: dict[str, Any], fps: int, path: Path) -> EncodedVideo:
+    """`frames` of video feature `ft` (RGB uint8, or depth float32 metres) encoded into `path` with
+    the writer's encoder for it, written under another name and renamed (a killed worker leaves no
+    partial file under `path`)."""
+    frames = np.asarray(frames)
+    stored = depth.to_stored(frames, depth.depth_unit(ft)) if depth.is_depth(ft) else frames
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}-{os.getpid()}{path.suffix}")  # PyAV picks the muxer by suffix
+    try:
+        encode_frames(stored, tmp, fps, encoder_for(ft))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return EncodedVideo(path, frames.shape, frames.dtype.name)

@@ -34,7 +34,6 @@ those costs (tests/test_lerobot_internals.py fails loudly when lerobot moves one
 from __future__ import annotations
 
 import json
-import logging
 import shutil
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -51,7 +50,7 @@ from shiftkit.datasets.jsonutil import dumps
 from shiftkit.datasets.provenance import PROVENANCE_PATH, write_provenance
 from shiftkit.datasets.staging import publish, remove_dead_staging, staging_path
 from shiftkit.datasets.stats import POSITION_KEYS, RunningStats, episode_columns, episode_stats, numeric_stats
-from shiftkit.datasets.video import encode_frames
+from shiftkit.datasets.video import EncodedVideo, default_encoders, encode_episode_video, encoder_for
 from shiftkit.datasets.video_copy import VideoFileCopier, VideoRef
 
 
@@ -84,7 +83,6 @@ class DatasetWriter:
         features: Features,
         robot_type: str | None = None,
     ) -> None:
-        from lerobot.configs import depth_encoder_defaults, rgb_encoder_defaults
         from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
         from lerobot.datasets.dataset_writer import DatasetWriter as LeRobotWriter
         from lerobot.datasets.feature_utils import get_hf_features_from_features
@@ -108,12 +106,11 @@ class DatasetWriter:
         self._meta = LeRobotDatasetMetadata.create(
             repo_id, self.fps, dict(self.features), robot_type=robot_type, root=self.tmp, use_videos=bool(video_keys)
         )
-        self._encoders = {"rgb": rgb_encoder_defaults(), "depth": depth_encoder_defaults()}
         self._lerobot = LeRobotWriter(
             self._meta,
             self.tmp,
-            rgb_encoder=self._encoders["rgb"],
-            depth_encoder=self._encoders["depth"],
+            rgb_encoder=default_encoders()["rgb"],
+            depth_encoder=default_encoders()["depth"],
             encoder_threads=None,
             batch_encoding_size=1,
         )
@@ -133,7 +130,6 @@ class DatasetWriter:
         self.video_modes: dict[str, str] = {}
         """Per video feature, whether its frames were "copied" from the source's video or "encoded"."""
         self._copiers: dict[str, VideoFileCopier] = {}
-        self._source_encoders: dict[str, Any] = {}  # the encoders of the sources' recorded settings
 
     def __enter__(self) -> DatasetWriter:
         return self
@@ -239,8 +235,8 @@ class DatasetWriter:
     def _save_videos(self, videos: dict[str, np.ndarray]) -> dict[str, Any]:
         """Append this episode's video features to the dataset's video files as lerobot's writer
         does: copied from the source's video where they are its unchanged frames (`_copies`), else
-        encoded with lerobot's encoder settings (RGB, or depth through its quantiser); returns the
-        `videos/KEY/...` episode metadata."""
+        encoded with `video.encoder_for`'s settings (RGB, or depth through its quantiser), here or
+        already by a pipeline worker (`EncodedVideo`); returns the `videos/KEY/...` episode metadata."""
         import tempfile
 
         metadata: dict[str, Any] = {}
@@ -248,41 +244,22 @@ class DatasetWriter:
             if self._copies(key, frames):
                 metadata.update(self._copiers[key].add(frames))
                 continue
-            frames = np.asarray(frames)  # a source's frames not copied are decoded here
-            is_depth = depth.is_depth(self.features[key])
-            encoder = self._encoder(key)
-            if is_depth:  # lerobot encodes depth from its stored unit (float32 m or uint16 mm)
-                frames = depth.to_stored(frames, depth.depth_unit(self.features[key]))
+            encoder = encoder_for(self.features[key])
             # lerobot's layout: a temporary folder in the dataset root, removed by _save_episode_video.
             path = Path(tempfile.mkdtemp(dir=self.tmp)) / f"{key}_{self.num_episodes:03d}.mp4"
-            encode_frames(frames, path, self.fps, encoder)
+            if isinstance(frames, EncodedVideo):
+                shutil.copyfile(frames.path, path)  # the worker's file stays until the run ends
+            else:  # frames, or a source's frames not copied (decoded here)
+                encode_episode_video(frames, self.features[key], self.fps, path)
             metadata.update(self._lerobot._save_episode_video(key, self.num_episodes, temp_path=path))
-            if self.num_episodes == 0 and encoder is not self._encoders["depth" if is_depth else "rgb"]:
+            if self.num_episodes == 0 and encoder is not self._lerobot_encoder(key):
                 # lerobot recorded its writer's encoder settings in the feature's info: these instead
                 self._meta.update_video_info(key, video_encoder=encoder)
         metadata.pop("episode_index", None)
         return metadata
 
-    def _encoder(self, key: str) -> Any:
-        """The encoder of video feature `key`: for RGB, the settings its source recorded in the
-        feature's `info` (codec, pixel format, g, crf, preset: lerobot's `encoder_config_from_video_info`,
-        as its `delete_episodes` re-encodes), so an edit keeps the source's codec; lerobot's defaults
-        for a feature without them (a camera that was no video, or resized), for a codec this machine
-        cannot encode (a warning says so) and for depth."""
-        ft = self.features[key]
-        info = ft.get("info") or {}
-        if depth.is_depth(ft) or "video.codec" not in info:
-            return self._encoders["depth" if depth.is_depth(ft) else "rgb"]
-        settings = dumps({k: v for k, v in info.items() if k.startswith("video.")})
-        if settings not in self._source_encoders:  # one per settings: lerobot's config probes PyAV's codecs
-            from lerobot.configs.video import encoder_config_from_video_info
-
-            try:
-                self._source_encoders[settings] = encoder_config_from_video_info(info)
-            except ValueError as exc:  # e.g. a hardware encoder this machine lacks: lerobot's defaults
-                logging.getLogger(__name__).warning("%s: encoding with lerobot's defaults (%s)", key, exc)
-                self._source_encoders[settings] = self._encoders["rgb"]
-        return self._source_encoders[settings]
+    def _lerobot_encoder(self, key: str) -> Any:
+        return default_encoders()["depth" if depth.is_depth(self.features[key]) else "rgb"]
 
     def _copies(self, key: str, frames: Any) -> bool:
         """Whether this episode's `key` frames are copied from their source video (`VideoRef`): then

@@ -60,7 +60,7 @@ class PartStore:
     stages' event counts for that episode (`Stage.report`; kept even when it has no outputs).
     """
 
-    FORMAT = 3  # of the files; part of `run_key`, so a work dir in another format is not resumed
+    FORMAT = 4  # of the files; part of `run_key`, so a work dir in another format is not resumed
 
     def __init__(self, work_dir: Path) -> None:
         self.dir = work_dir / "parts"
@@ -74,20 +74,48 @@ class PartStore:
         return self.path(source, episode).is_file()
 
     def write(
-        self, source: int, episode: int, outputs: list[Episode], features: dict, report: list[dict[str, int]]
+        self,
+        source: int,
+        episode: int,
+        outputs: list[Episode],
+        features: dict,
+        fps: int,
+        report: list[dict[str, int]],
     ) -> None:
-        """Store one source episode's outputs (images encoded, with their statistics) and the stages'
-        event counts, the metas first; the part file appears last, marking it done."""
+        """Store one source episode's outputs (images and videos encoded, with their statistics) and
+        the stages' event counts, the metas first; the part file appears last, marking it done."""
         from shiftkit.datasets.images import encode_images
         from shiftkit.datasets.stats import episode_stats
 
-        records = [(encode_images(ep, features).frames, ep.meta, episode_stats(ep, features)) for ep in outputs]
+        records = []
+        for i, ep in enumerate(outputs):
+            stats = episode_stats(ep, features)  # from the frames, before they are encoded
+            videos = self._encode_videos(ep, features, fps, self.videos_dir(source, episode) / str(i))
+            records.append((encode_images(ep, features).with_frames(**videos).frames, ep.meta, stats))
         for folder in (self.dir, self.meta_path(source, episode).parent):
             folder.mkdir(parents=True, exist_ok=True)
         # The metas alone first: a dataset-level `select` reads them without loading frames, and the
         # part file (whose presence marks the episode done) only appears once both are complete.
         _atomic_save(self.meta_path(source, episode), {"metas": [ep.meta for ep in outputs], "report": report})
         _atomic_save(self.path(source, episode), records)
+
+    def videos_dir(self, source: int, episode: int) -> Path:
+        """The folder of that source episode's outputs' encoded video files."""
+        return self.dir.parent / "videos" / self.path(source, episode).stem
+
+    @staticmethod
+    def _encode_videos(ep: Episode, features: dict, fps: int, folder: Path) -> dict[str, Any]:
+        """The episode's video cameras that are frames (not references to a source's packets, which
+        the writer copies), each encoded into a file in `folder`: encoding runs in the workers, and
+        the part holds the file's name instead of the pixels."""
+        from shiftkit.datasets.video import encode_episode_video
+        from shiftkit.datasets.video_copy import VideoRef
+
+        return {
+            key: encode_episode_video(ep.frames[key], ft, fps, folder / f"{key}.mp4")
+            for key, ft in features.items()
+            if ft["dtype"] == "video" and not isinstance(ep.frames[key], VideoRef)
+        }
 
     def meta_path(self, source: int, episode: int) -> Path:
         """The small file with that source episode's metas and event counts."""
@@ -236,7 +264,7 @@ def process_unit(unit: WorkUnit) -> int:
     for episode in episodes:
         index = int(episode.meta["source_episode_index"])
         outputs, report = transform_episode(plan, unit.source, episode)
-        parts.write(unit.source, index, outputs, plan.features, report)
+        parts.write(unit.source, index, outputs, plan.features, plan.fps, report)
     return len(todo)
 
 
