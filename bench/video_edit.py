@@ -204,10 +204,13 @@ def main() -> None:
     parser.add_argument(
         "--quick", action="store_true", help="4 episodes x 8 frames, merged with 2 x 8 (full: 12 x 150, twice)"
     )
+    parser.add_argument("--episodes", type=int, default=None, help="episodes per dataset (overrides the size)")
+    parser.add_argument("--length", type=int, default=None, help="frames per episode (overrides the size)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     args = parser.parse_args()
     episodes, length = (4, 8) if args.quick else (12, 150)
+    episodes, length = args.episodes or episodes, args.length or length
     other = 2 if args.quick else episodes  # the second dataset, merged with the first
     work = Path(tempfile.mkdtemp(prefix="video-edit-", dir=args.work))
     load_start = load()
