@@ -155,14 +155,23 @@ def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encode
                     )
                 else:
                     video_frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
-                packet = stream.encode(video_frame)
-                if packet:
-                    output.mux(packet)
-            packet = stream.encode()
-            if packet:
-                output.mux(packet)
+                for packet in stream.encode(video_frame):
+                    output.mux(_with_sane_dts(packet, len(frames)))
+            for packet in stream.encode():
+                output.mux(_with_sane_dts(packet, len(frames)))
     finally:
         av.logging.restore_default_callback()
+
+
+def _with_sane_dts(packet: Any, frames: int) -> Any:
+    """`packet` with a decode time the muxer takes: libx265 (through PyAV) leaves it unset or
+    uninitialised (e.g. -1.4e14) on the packet of a one-frame stream, which the MP4 muxer refuses
+    ("Not yet implemented in FFmpeg"), so that lerobot's writer fails on most one-frame depth
+    episodes (a success example is one). A decode time can only lie up to the stream's frame count
+    before the presentation time, and never after it; outside that it is the presentation time."""
+    if packet.pts is not None and (packet.dts is None or not packet.pts - frames <= packet.dts <= packet.pts):
+        packet.dts = packet.pts
+    return packet
 
 
 @functools.cache

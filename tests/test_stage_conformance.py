@@ -151,15 +151,7 @@ LEROBOT_RECORDING = dict(
 
 
 def _lerobot_recording_cases() -> list:
-    # PyAV's libx265 now and then hands out a packet with an unset decode timestamp on streams of
-    # one or two frames, and muxing it fails ("Not yet implemented in FFmpeg"; lerobot's own writer
-    # fails the same way on such episodes): success_examples writes one-frame episodes.
-    flaky = pytest.mark.xfail(reason="libx265 via PyAV on 1-frame depth videos", strict=False)
-    return [
-        pytest.param(n, id=n, marks=[flaky] if n == "success_examples" else [])
-        for n, cls in sorted(shipped_stages().items())
-        if cls.example_input == "synthetic"
-    ]
+    return [pytest.param(n, id=n) for n, cls in sorted(shipped_stages().items()) if cls.example_input == "synthetic"]
 
 
 @pytest.mark.parametrize("name", _lerobot_recording_cases())
