@@ -294,3 +294,29 @@ def test_lerobot_trains_on_a_copied_output(tmp_path, no_decoding):
     out = _run([recording(SMALL)], tmp_path / "out", FILTER_RENAME)
     assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "copied")
     lerobot_train_two_steps("test/out", out, tmp_path / "train")
+
+
+def test_lerobot_dataset_tools_edit_a_copied_output(tmp_path, monkeypatch, no_decoding):
+    """lerobot's own dataset tools take a pipeline output whose videos were copied: `delete_episodes`
+    (re-encodes), `remove_feature` and `merge_datasets` (copy) give datasets that lerobot loads,
+    `shiftkit validate --deep` accepts, with the frames of the episodes they kept."""
+    from lerobot.datasets import dataset_tools as tools
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    out = _run([recording(SMALL)], tmp_path / "out", FILTER_RENAME)
+    monkeypatch.undo()  # lerobot's tools and the checks below decode
+    ds = LeRobotDataset("test/out", root=out, video_backend="pyav")
+    edited = {
+        "delete": tools.delete_episodes(ds, [0], output_dir=tmp_path / "del", repo_id="test/del").root,
+        "remove": tools.remove_feature(ds, CAMERAS[1], output_dir=tmp_path / "rm", repo_id="test/rm").root,
+        "merge": tools.merge_datasets([ds, ds], "test/merged", output_dir=tmp_path / "merged").root,
+    }
+    lengths = {"delete": SMALL.lengths[2], "remove": SMALL.lengths[0] + SMALL.lengths[2]}
+    lengths["merge"] = 2 * lengths["remove"]
+    for name, root in edited.items():
+        loaded = LeRobotDataset(f"test/{name}", root=root, video_backend="pyav")
+        assert len(loaded) == lengths[name], name
+        _validate_deep(root, monkeypatch)
+    kept = _lerobot_frames(out, CAMERAS[0])
+    for a, b in zip(_lerobot_frames(edited["remove"], CAMERAS[0]), kept, strict=True):
+        np.testing.assert_array_equal(a, b)
