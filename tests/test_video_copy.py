@@ -286,3 +286,38 @@ def test_depth_video_is_copied_with_its_quantiser(unit, tmp_path, monkeypatch, n
     ):
         np.testing.assert_array_equal(a, b)
     _validate_deep(out, monkeypatch)
+
+
+def _stream(root: Path, key: str) -> dict:
+    """The output stream of `key` as PyAV reads it: codec, pixel format, size, and per file the
+    positions (display order) of its keyframes."""
+    import av
+
+    out: dict = {"keyframes": []}
+    for path in sorted((root / "videos" / key).glob("chunk-*/file-*.mp4")):
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            ctx = stream.codec_context
+            out.update(codec=stream.codec.canonical_name, pix_fmt=ctx.pix_fmt, size=(ctx.height, ctx.width))
+            packets = sorted((p for p in container.demux(stream) if p.pts is not None), key=lambda p: p.pts)
+            out["keyframes"].append([i for i, p in enumerate(packets) if p.is_keyframe])
+    return out
+
+
+def test_a_resized_camera_keeps_the_source_codec_settings(h264_source, tmp_path, monkeypatch):
+    """`resize` changes a camera's size only: it is encoded with the source's codec, pixel format, g
+    and crf (H.264 yuv444p crf 23 g 30), not lerobot's AV1 yuv420p g 2 defaults; `info.json` says so
+    and records the new size; the other camera is copied; the output passes `validate --deep`."""
+    key = CAMERAS[0]
+    out = _run([h264_source], tmp_path / "out", [StageSpec("resize", {"width": 32, "height": 16, "features": [key]})])
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == {key: "encoded", CAMERAS[1]: "copied"}
+    stream = _stream(out, key)
+    assert (stream["codec"], stream["pix_fmt"], stream["size"]) == ("h264", "yuv444p", (16, 32))
+    assert stream["keyframes"] == [[0, 8, 16]]  # one per episode: g 30 > 8 frames (lerobot's g 2: every other)
+    info = json.loads((out / "meta/info.json").read_text())["features"][key]["info"]
+    assert (info["video.codec"], info["video.pix_fmt"], info["video.g"], info["video.crf"]) == ("h264", "yuv444p", 30, 23)
+    assert (info["video.height"], info["video.width"]) == (16, 32)
+    frames = _lerobot_frames(out, key)
+    assert len(frames) == 24 and frames[0].shape == (3, 16, 32)
+    _validate_deep(out, monkeypatch)
