@@ -47,7 +47,8 @@ class Resize(FrameStage):
     """Resizes camera features (all, or the named ones) to `width` x `height` pixels."""
 
     name = "resize"
-    version = 3  # v2: intrinsics scaled per feature (a camera's RGB and depth apart); v3: video keeps its codec settings
+    # v2: intrinsics scaled per feature (a camera's RGB and depth apart); v3: video keeps its codec settings
+    version = 3
     example_params = {"width": 32, "height": 24}
     Config = ResizeConfig
 
