@@ -38,8 +38,10 @@ def rgb_encoder(info: dict[str, Any] | None, settings: dict[str, Any]) -> Any:
     if not settings:
         return base
     changes = dict(settings)
-    vcodec = VIDEO_CODECS_ALIASES.get(settings.get("vcodec", base.vcodec), settings.get("vcodec", base.vcodec))
-    if vcodec != base.vcodec:  # another encoder: its own defaults for what is specific to one
+    vcodec = settings.get("vcodec", base.vcodec)
+    if (
+        VIDEO_CODECS_ALIASES.get(vcodec, vcodec) != base.vcodec
+    ):  # another encoder: its own defaults for what is specific to one
         defaults = {f.name: f for f in dataclasses.fields(RGBEncoderConfig)}
         for name in _CODEC_SPECIFIC:
             if name not in changes:
