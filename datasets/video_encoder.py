@@ -52,6 +52,18 @@ def rgb_encoder(info: dict[str, Any] | None, settings: dict[str, Any]) -> Any:
     return dataclasses.replace(base, **changes)
 
 
+def encoded_info(info: dict[str, Any] | None, settings: dict[str, Any]) -> dict[str, Any]:
+    """A camera's feature `info` with the encoder settings it is encoded with (`rgb_encoder`) as its
+    `video.*` keys, which the writer reads back (lerobot's `encoder_config_from_video_info`), then
+    overwrites with what it probes from the written stream."""
+    from lerobot.configs.video import VIDEO_ENCODER_INFO_FIELD_NAMES
+
+    config = rgb_encoder(info, settings)
+    recorded = {"video.codec": config.vcodec, "video.pix_fmt": config.pix_fmt}
+    recorded |= {f"video.{name}": getattr(config, name) for name in sorted(VIDEO_ENCODER_INFO_FIELD_NAMES)}
+    return {**(info or {}), **recorded}
+
+
 def check_rgb_encoder(key: str, feature: dict[str, Any], settings: dict[str, Any]) -> None:
     """ConfigError, in one line, when camera `key` (its `feature`) cannot be encoded with the
     destination's `settings`: lerobot's checks, a crf past the codec's range, and what only the encoder

@@ -53,7 +53,6 @@ from shiftkit.datasets.staging import publish, remove_dead_staging, staging_path
 from shiftkit.datasets.stats import POSITION_KEYS, RunningStats, episode_columns, episode_stats, numeric_stats
 from shiftkit.datasets.video import encode_frames
 from shiftkit.datasets.video_copy import VideoFileCopier, VideoRef
-from shiftkit.datasets.video_encoder import rgb_encoder
 
 
 def preload_writer() -> None:
@@ -84,10 +83,7 @@ class DatasetWriter:
         fps: int,
         features: Features,
         robot_type: str | None = None,
-        encoder_settings: dict[str, Any] | None = None,
     ) -> None:
-        """`encoder_settings`: the destination's settings of encoded RGB video (`video_encoder.ENCODER_SETTINGS`
-        by lerobot's names), over those each source recorded."""
         from lerobot.configs import depth_encoder_defaults, rgb_encoder_defaults
         from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
         from lerobot.datasets.dataset_writer import DatasetWriter as LeRobotWriter
@@ -138,7 +134,6 @@ class DatasetWriter:
         """Per video feature, whether its frames were "copied" from the source's video or "encoded"."""
         self._copiers: dict[str, VideoFileCopier] = {}
         self._source_encoders: dict[str, Any] = {}  # the encoders of the sources' recorded settings
-        self._encoder_settings = dict(encoder_settings or {})
 
     def __enter__(self) -> DatasetWriter:
         return self
@@ -269,23 +264,22 @@ class DatasetWriter:
         return metadata
 
     def _encoder(self, key: str) -> Any:
-        """The encoder of video feature `key`: for RGB, the destination's encoder settings where given,
-        else those its source recorded in the feature's `info` (codec, pixel format, g, crf, preset:
-        lerobot's `encoder_config_from_video_info`, as its `delete_episodes` re-encodes), so an edit
-        keeps the source's codec (`video_encoder.rgb_encoder`); lerobot's defaults for a feature
-        without them (a camera that was no video), for a source's codec this machine cannot encode (a
-        warning says so) and for depth."""
+        """The encoder of video feature `key`: for RGB, the settings its source recorded in the
+        feature's `info` (codec, pixel format, g, crf, preset: lerobot's `encoder_config_from_video_info`,
+        as its `delete_episodes` re-encodes), so an edit keeps the source's codec; lerobot's defaults
+        for a feature without them (a camera that was no video, or resized), for a codec this machine
+        cannot encode (a warning says so) and for depth."""
         ft = self.features[key]
         info = ft.get("info") or {}
-        if depth.is_depth(ft) or ("video.codec" not in info and not self._encoder_settings):
+        if depth.is_depth(ft) or "video.codec" not in info:
             return self._encoders["depth" if depth.is_depth(ft) else "rgb"]
         settings = dumps({k: v for k, v in info.items() if k.startswith("video.")})
         if settings not in self._source_encoders:  # one per settings: lerobot's config probes PyAV's codecs
+            from lerobot.configs.video import encoder_config_from_video_info
+
             try:
-                self._source_encoders[settings] = rgb_encoder(info, self._encoder_settings)
+                self._source_encoders[settings] = encoder_config_from_video_info(info)
             except ValueError as exc:  # e.g. a hardware encoder this machine lacks: lerobot's defaults
-                if self._encoder_settings:  # the destination's: checked when the pipeline was planned
-                    raise DatasetError(f"{key}: cannot encode with the destination's settings: {exc}") from None
                 logging.getLogger(__name__).warning("%s: encoding with lerobot's defaults (%s)", key, exc)
                 self._source_encoders[settings] = self._encoders["rgb"]
         return self._source_encoders[settings]

@@ -80,14 +80,7 @@ def write_dataset(plan: Plan, parts: PartStore, executor_info: dict[str, Any], b
                 bar.update(1)
 
     keep = selection(plan, parts)
-    writer = DatasetWriter(
-        plan.repo_id,
-        plan.destination,
-        plan.fps,
-        plan.features,
-        robot_type=plan.robot_type,
-        encoder_settings=plan.config.destination.encoder_settings(),
-    )
+    writer = DatasetWriter(plan.repo_id, plan.destination, plan.fps, plan.features, robot_type=plan.robot_type)
     with writer:
         for k, (episode, stats) in enumerate(outputs()):
             if keep is None or keep[k]:

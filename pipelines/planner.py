@@ -23,7 +23,7 @@ from shiftkit.datasets.depth import depth_unit, is_depth
 from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES, Features, check_features, plain_camera_features
 from shiftkit.datasets.sources import Source, input_paths, open_source
-from shiftkit.datasets.video_encoder import check_rgb_encoder, stream_matches
+from shiftkit.datasets.video_encoder import check_rgb_encoder, encoded_info, stream_matches
 from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
 from shiftkit.pipelines.stage import Stage, StageContext, build_stage, selecting_stages
 
@@ -209,6 +209,12 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
         sources[0].robot_type,
         [own for own, _, _ in chains],
     )
+    settings = config.destination.encoder_settings()
+    if settings:  # the RGB video cameras that are encoded: with the destination's settings, which the writer reads
+        plan.features = {
+            k: {**ft, "info": encoded_info(ft.get("info"), settings)} if _encoded_rgb(plan, k) else ft
+            for k, ft in plan.features.items()
+        }
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
     check_sources_and_destination(config, sources, plan.destination)
@@ -227,6 +233,12 @@ def check_sources_and_destination(config: PipelineConfig, sources: list[Any], de
             groups.setdefault(repr(spec.stages), []).append((_source_name(config, i), path))
     for inputs in groups.values():
         check_inputs_and_outputs(inputs, [("destination", destination)], content_key=dataset_fingerprint)
+
+
+def _encoded_rgb(plan: Plan, key: str) -> bool:
+    """Whether output feature `key` is RGB video that the writer encodes (not copies)."""
+    ft = plan.features[key]
+    return ft["dtype"] == "video" and not is_depth(ft) and key not in plan.video_copies
 
 
 def _copy_signature(source: Source, key: str) -> tuple | None:
