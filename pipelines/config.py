@@ -15,6 +15,7 @@ params = { head = 2 }
 [destination]
 root = "out/lift"            # relative paths are relative to this file
 repo_id = "local/lift"
+vcodec = "h264"              # optional encoder settings of re-encoded RGB video (also pix_fmt, g, crf, preset)
 
 seed = 0                     # top-level keys must come before the first table in TOML
 """
@@ -29,6 +30,7 @@ from typing import Any
 from shiftkit.datasets.dataclass_config import check_fields, from_dict, option, read_config_file
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.datasets.sources import SourceConfig
+from shiftkit.datasets.video_encoder import ENCODER_SETTINGS
 
 
 @dataclass
@@ -70,6 +72,30 @@ class DestinationConfig:
     """Camera features as lerobot videos (true: RGB with lerobot's AV1 settings, depth with its
     12-bit depth encoder) or images (false: PNG, depth lossless TIFF); unset: as the source has
     them (docs/video_depth.md)."""
+    vcodec: str | None = None
+    """Codec of the RGB video cameras that are encoded (lerobot's names: "libsvtav1" or "av1", "h264",
+    "hevc", "libaom-av1"); unset: the source's, else lerobot's AV1. A camera whose source stream
+    already has every setting given here is still copied; one that differs is encoded."""
+    pix_fmt: str | None = None
+    """Pixel format of the encoded RGB cameras (e.g. "yuv420p", "yuv444p"); unset: the source's,
+    else lerobot's yuv420p."""
+    g: int | None = option(None, rule="positive_int")
+    """GOP size (a keyframe every `g` frames) of the encoded RGB cameras; unset: the source's, else
+    lerobot's 2."""
+    crf: int | float | None = option(None, rule="non_negative_float")
+    """Quality of the encoded RGB cameras (lower: better and larger; the codec's range: AV1 0-63,
+    H.264 / HEVC 0-51); unset: the source's, else lerobot's 30."""
+    preset: int | str | None = None
+    """Speed/quality preset of the encoded RGB cameras (codec-specific: libsvtav1 0-13, H.264 / HEVC
+    "ultrafast" ... "veryslow"); unset: the source's when the codec is the source's, else the codec's
+    default."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+    def encoder_settings(self) -> dict[str, Any]:
+        """The encoder settings given (`datasets.video_encoder.ENCODER_SETTINGS`), by lerobot's names."""
+        return {k: getattr(self, k) for k in ENCODER_SETTINGS if getattr(self, k) is not None}
 
 
 @dataclass

@@ -23,6 +23,7 @@ from shiftkit.datasets.depth import depth_unit, is_depth
 from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES, Features, check_features, plain_camera_features
 from shiftkit.datasets.sources import Source, input_paths, open_source
+from shiftkit.datasets.video_encoder import check_rgb_encoder, encoded_info, stream_matches
 from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
 from shiftkit.pipelines.stage import Stage, StageContext, build_stage, selecting_stages
 
@@ -120,12 +121,19 @@ class Plan:
         (`datasets/video_copy.py`): the frames pass unchanged from every source (RGB, or depth in
         the same unit), as video whose
         streams concatenate (same codec, size, pixel format, time base, codec parameters) with every
-        episode starting on a keyframe (`video_copy.copy_signature`). The others are encoded."""
+        episode starting on a keyframe (`video_copy.copy_signature`), and for RGB already encoded as
+        the destination's encoder settings ask (`video_encoder.stream_matches`). The others are encoded."""
         copies = {}
+        settings = self.config.destination.encoder_settings()
         for key, ft in self.features.items():
             if ft["dtype"] != "video" or not self.frames_pass_unchanged(key):
                 continue
             names = [self.kept_source(key, s) for s in range(len(self.sources))]
+            if not is_depth(ft) and not all(
+                stream_matches(source.features[name].get("info"), settings)
+                for source, name in zip(self.sources, names, strict=True)
+            ):
+                continue  # the user asked for another stream than the source's
             signatures = {_copy_signature(source, name) for source, name in zip(self.sources, names, strict=True)}
             if None not in signatures and len(signatures) == 1:
                 copies[key] = names
@@ -187,6 +195,9 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     if config.destination.video is not None:
         features = plain_camera_features(features, "video" if config.destination.video else "image")
     features = {k: _video_at(ft, fps) for k, ft in features.items()}
+    for key, ft in features.items():  # the destination's encoder settings, checked before anything runs
+        if ft["dtype"] == "video" and not is_depth(ft):
+            check_rgb_encoder(key, ft, config.destination.encoder_settings())
     plan = Plan(
         config,
         sources,
@@ -198,6 +209,12 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
         sources[0].robot_type,
         [own for own, _, _ in chains],
     )
+    settings = config.destination.encoder_settings()
+    if settings:  # the RGB video cameras that are encoded: with the destination's settings, which the writer reads
+        plan.features = {
+            k: {**ft, "info": encoded_info(ft.get("info"), settings)} if _encoded_rgb(plan, k) else ft
+            for k, ft in plan.features.items()
+        }
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
     check_sources_and_destination(config, sources, plan.destination)
@@ -216,6 +233,12 @@ def check_sources_and_destination(config: PipelineConfig, sources: list[Any], de
             groups.setdefault(repr(spec.stages), []).append((_source_name(config, i), path))
     for inputs in groups.values():
         check_inputs_and_outputs(inputs, [("destination", destination)], content_key=dataset_fingerprint)
+
+
+def _encoded_rgb(plan: Plan, key: str) -> bool:
+    """Whether output feature `key` is RGB video that the writer encodes (not copies)."""
+    ft = plan.features[key]
+    return ft["dtype"] == "video" and not is_depth(ft) and key not in plan.video_copies
 
 
 def _copy_signature(source: Source, key: str) -> tuple | None:

@@ -150,7 +150,7 @@ def test_merged_dataset_equals_each_chain_alone(two_sources, tmp_path):
     assert _episodes(merged) == alone
 
     info = _cli("info", str(merged))
-    assert "output episodes 2..3 (2)" in info.stdout and "own stage: resize v2" in info.stdout
+    assert "output episodes 2..3 (2)" in info.stdout and "own stage: resize v3" in info.stdout
     lerobot_train_two_steps("test/merged", merged, tmp_path / "train")
 
 

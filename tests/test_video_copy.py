@@ -32,10 +32,11 @@ FILTER_RENAME = [
 ]
 
 
-def _run(sources: list[Path], out: Path, stages: list[StageSpec], workers: int = 1) -> Path:
+def _run(sources: list[Path], out: Path, stages: list[StageSpec], workers: int = 1, **destination) -> Path:
+    """Run `stages` on `sources` into `out`; `destination`: more `[destination]` fields (encoder settings)."""
     config = PipelineConfig(
         sources=[SourceConfig(path=str(s)) for s in sources],
-        destination=DestinationConfig(root=str(out)),
+        destination=DestinationConfig(root=str(out), **destination),
         stages=stages,
     )
     return run_pipeline(config, workers=workers, progress=False)
@@ -320,3 +321,121 @@ def test_lerobot_dataset_tools_edit_a_copied_output(tmp_path, monkeypatch, no_de
     kept = _lerobot_frames(out, CAMERAS[0])
     for a, b in zip(_lerobot_frames(edited["remove"], CAMERAS[0]), kept, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def _stream(root: Path, key: str) -> dict:
+    """The output stream of `key` as PyAV reads it: codec, pixel format, size, and per file the
+    positions (display order) of its keyframes."""
+    import av
+
+    out: dict = {"keyframes": []}
+    for path in sorted((root / "videos" / key).glob("chunk-*/file-*.mp4")):
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            ctx = stream.codec_context
+            out.update(codec=stream.codec.canonical_name, pix_fmt=ctx.pix_fmt, size=(ctx.height, ctx.width))
+            packets = sorted((p for p in container.demux(stream) if p.pts is not None), key=lambda p: p.pts)
+            out["keyframes"].append([i for i, p in enumerate(packets) if p.is_keyframe])
+    return out
+
+
+def _assert_encoded_as(root: Path, key: str, codec: str, pix_fmt: str, g: int, crf: int) -> dict:
+    """The output stream of `key` and its `info.json` entry say `codec`, `pix_fmt`, `g`, `crf`, and
+    `info` the stream's size; returns the stream (`_stream`)."""
+    stream = _stream(root, key)
+    assert (stream["codec"], stream["pix_fmt"]) == (codec, pix_fmt)
+    info = json.loads((root / "meta/info.json").read_text())["features"][key]["info"]
+    assert (info["video.codec"], info["video.pix_fmt"], info["video.g"], info["video.crf"]) == (codec, pix_fmt, g, crf)
+    assert (info["video.height"], info["video.width"]) == stream["size"]
+    return stream
+
+
+def test_a_resized_camera_keeps_the_source_codec_settings(h264_source, tmp_path, monkeypatch):
+    """`resize` changes a camera's size only: it is encoded with the source's codec, pixel format, g
+    and crf (H.264 yuv444p crf 23 g 30), not lerobot's AV1 yuv420p g 2 defaults; `info.json` says so
+    and records the new size; the other camera is copied; the output passes `validate --deep`."""
+    key = CAMERAS[0]
+    out = _run([h264_source], tmp_path / "out", [StageSpec("resize", {"width": 32, "height": 16, "features": [key]})])
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    assert provenance["video"] == {key: "encoded", CAMERAS[1]: "copied"}
+    stream = _assert_encoded_as(out, key, "h264", "yuv444p", 30, 23)
+    assert stream["size"] == (16, 32)
+    assert stream["keyframes"] == [[0, 8, 16]]  # one per episode: g 30 > 8 frames (lerobot's g 2: every other)
+    frames = _lerobot_frames(out, key)
+    assert len(frames) == 24 and frames[0].shape == (3, 16, 32)
+    _validate_deep(out, monkeypatch)
+
+
+def _psnr_of_encoded(got: list[np.ndarray], source: list[np.ndarray], frames: list[int]) -> float:
+    """Encoded frames `got` (lerobot's loader's, in [0, 1]) against the source frames `frames`: each is
+    nearer its own source frame than any other (none lost, none out of order); their PSNR in dB."""
+    assert len(got) == len(frames)
+    assert [int(np.argmin([np.mean((a - s) ** 2) for s in source])) for a in got] == frames
+    mse = np.mean([np.mean((a - source[t]) ** 2) for a, t in zip(got, frames, strict=True)])
+    return float(10 * np.log10(1 / mse))
+
+
+KEPT = [*range(0, 8), *range(16, 24)]  # the source frames of episodes 0 and 2 (FILTER_RENAME)
+
+
+@pytest.mark.parametrize(
+    ("source", "destination", "encoded_as", "min_psnr"),
+    [
+        # lerobot's AV1 recording (yuv420p, g 2, crf 30): H.264 as asked, at 4:4:4, its own g and crf;
+        # its pictures are noise, which crf 30 keeps only roughly (24 dB as yuv420p)
+        ("av1", {"vcodec": "h264", "pix_fmt": "yuv444p"}, ("h264", "yuv444p", 2, 30), 20),
+        # the H.264 yuv444p crf 23 g 30 source: g and crf as asked, its codec and pixel format
+        ("h264", {"g": 4, "crf": 18}, ("h264", "yuv444p", 4, 18), 30),
+    ],
+    ids=["av1-to-h264", "h264-g4-crf18"],
+)
+def test_destination_encoder_settings_over_the_source_ones(
+    source, destination, encoded_as, min_psnr, h264_source, tmp_path, monkeypatch
+):
+    """`[destination]` encoder settings: frames that would be copied are encoded (the user asked for
+    another stream), with each given setting, the source's for the others; the stream read back with
+    PyAV (codec, pixel format, a keyframe every `g` frames), `info.json` and the provenance say so,
+    lerobot loads the source's frames from it (lossy) and `validate --deep` passes."""
+    src = recording(SMALL) if source == "av1" else h264_source
+    out = _run([src], tmp_path / "out", FILTER_RENAME, **destination)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "encoded")
+    for key in CAMERAS:
+        stream = _assert_encoded_as(out, key, *encoded_as)
+        assert stream["keyframes"] == [list(range(0, 16, encoded_as[2]))] and stream["size"] == (32, 48)
+        assert _psnr_of_encoded(_lerobot_frames(out, key), _lerobot_frames(src, key), KEPT) > min_psnr
+    _validate_deep(out, monkeypatch)
+
+
+def test_a_destination_the_source_already_is_still_copies(h264_source, tmp_path, no_decoding):
+    """Settings the source stream already has (its codec named as lerobot's encoder is, "h264") ask
+    for nothing new: both cameras are copied, packet for packet, nothing decoded."""
+    out = _run([h264_source], tmp_path / "out", FILTER_RENAME, vcodec="h264", pix_fmt="yuv444p", g=30, crf=23)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "copied")
+    for key in CAMERAS:
+        kept = _episode_packets(h264_source, key)
+        assert _episode_packets(out, key) == [kept[0], kept[2]]
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ('vcodec = "nosuch"', "Invalid vcodec 'nosuch'"),
+        ("crf = 52", "crf 52 is out of h264's range 0-51"),  # x264 would clamp it: its FFmpeg option allows it
+        ('vcodec = "av1"\npix_fmt = "yuv420p"\ncrf = 64', "out of range for codec 'libsvtav1'"),
+        ("crf = -1", "crf must be a finite number >= 0, got -1"),
+        ("g = 0", "g must be a positive integer, got 0"),
+        ('pix_fmt = "nosuch"', "nosuch"),
+        ('vcodec = "h264"\npreset = "nosuch"', "the libx264 encoder refuses these settings"),
+    ],
+    ids=["codec", "crf-h264", "crf-av1", "crf-negative", "g", "pix_fmt", "preset"],
+)
+def test_bad_destination_encoder_settings_are_one_line_errors(setting, message, h264_source, tmp_path, capfd):
+    """A bad encoder setting fails `shiftkit run` before anything is written: exit 2, one line (on
+    the file descriptor: nothing the encoder library prints itself)."""
+    config = tmp_path / "pipeline.toml"
+    config.write_text(f'[[sources]]\npath = "{h264_source}"\n\n[destination]\nroot = "{tmp_path / "out"}"\n{setting}\n')
+    code = main(["run", str(config), "--no-progress"])
+    err = capfd.readouterr().err.strip()
+    assert code == 2, err
+    assert err.startswith("shiftkit run: error: ") and message in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))

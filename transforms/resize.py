@@ -47,7 +47,8 @@ class Resize(FrameStage):
     """Resizes camera features (all, or the named ones) to `width` x `height` pixels."""
 
     name = "resize"
-    version = 2  # v2: intrinsics scaled per feature (a camera's RGB and depth apart)
+    # v2: intrinsics scaled per feature (a camera's RGB and depth apart); v3: video keeps its codec settings
+    version = 3
     example_params = {"width": 32, "height": 24}
     Config = ResizeConfig
 
@@ -64,10 +65,10 @@ class Resize(FrameStage):
         for key in self._keys:
             ft = out[key]
             ft["shape"] = (self.config.height, self.config.width, tuple(ft["shape"])[-1])
-            if ft.get("info"):
-                # a video's recorded size and encoder settings no longer describe it; lerobot's
-                # writer records them again
-                ft["info"] = {k: v for k, v in ft["info"].items() if not k.startswith("video.")}
+            if "video.height" in (ft.get("info") or {}):
+                # only the size changes: the source's codec settings (`video.codec`, `video.pix_fmt`,
+                # `video.g`, `video.crf`, ...) stay, and the writer encodes the resized frames with them
+                ft["info"] = {**ft["info"], "video.height": self.config.height, "video.width": self.config.width}
         return out
 
     @override
