@@ -132,6 +132,7 @@ def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encode
     import av
     from lerobot.configs import DepthEncoderConfig
 
+    check_frame_size(encoder.vcodec, *frames.shape[1:3])
     is_depth = isinstance(encoder, DepthEncoderConfig)
     if is_depth:
         from lerobot.datasets.depth_utils import quantize_depth
@@ -161,6 +162,20 @@ def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encode
                 output.mux(_with_sane_dts(packet, len(frames)))
     finally:
         av.logging.restore_default_callback()
+
+
+# SVT-AV1 3.0 (lerobot's default codec, through PyAV) stops the whole process with a floating-point
+# exception on frames narrower than this (measured: 24 px and less crash, 25 px and more encode).
+SVT_AV1_MIN_WIDTH = 25
+
+
+def check_frame_size(vcodec: str, height: int, width: int) -> None:
+    """DatasetError, in one line, for a frame size the encoder would crash on instead of refusing."""
+    if vcodec in ("libsvtav1", "av1") and width < SVT_AV1_MIN_WIDTH:
+        raise DatasetError(
+            f"{vcodec} cannot encode frames {width} px wide (SVT-AV1 needs at least {SVT_AV1_MIN_WIDTH}): "
+            'store this camera as images, make it wider, or encode it with another codec (vcodec = "h264")'
+        )
 
 
 def _with_sane_dts(packet: Any, frames: int) -> Any:

@@ -14,7 +14,8 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-from shiftkit.datasets.errors import ConfigError
+from shiftkit.datasets.errors import ConfigError, DatasetError
+from shiftkit.datasets.video import check_frame_size
 
 ENCODER_SETTINGS = ("vcodec", "pix_fmt", "g", "crf", "preset")
 """The encoder settings a destination may give, by lerobot's `VideoEncoderConfig` field names."""
@@ -76,8 +77,9 @@ def check_rgb_encoder(key: str, feature: dict[str, Any], settings: dict[str, Any
     try:
         config = rgb_encoder(feature.get("info"), settings)
         height, width = tuple(feature["shape"])[:2]
+        check_frame_size(config.vcodec, height, width)  # before the encoder opens: it would crash
         _open_encoder(config, height, width)
-    except (ValueError, av.error.FFmpegError) as exc:
+    except (ValueError, av.error.FFmpegError, DatasetError) as exc:
         reason = " ".join(str(exc).split())
         raise ConfigError(f"[destination] {given}: cannot encode {key} on this machine: {reason}") from None
 

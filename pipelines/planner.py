@@ -23,6 +23,7 @@ from shiftkit.datasets.depth import depth_unit, is_depth
 from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES, Features, check_features, plain_camera_features
 from shiftkit.datasets.sources import Source, input_paths, open_source
+from shiftkit.datasets.video import check_frame_size, encoder_for
 from shiftkit.datasets.video_encoder import check_rgb_encoder, encoded_info, stream_matches
 from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
 from shiftkit.pipelines.stage import Stage, StageContext, build_stage, selecting_stages
@@ -215,6 +216,12 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
             k: {**ft, "info": encoded_info(ft.get("info"), settings)} if _encoded_rgb(plan, k) else ft
             for k, ft in plan.features.items()
         }
+    for key, ft in plan.features.items():  # a size the encoder would crash on, said before anything runs
+        if ft["dtype"] == "video" and key not in plan.video_copies:
+            try:
+                check_frame_size(encoder_for(ft).vcodec, *tuple(ft["shape"])[:2])
+            except DatasetError as exc:
+                raise ConfigError(f"{key}: {exc}") from None
     if check_destination and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
     check_sources_and_destination(config, sources, plan.destination)

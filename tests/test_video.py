@@ -258,3 +258,27 @@ def test_one_and_two_frame_depth_episodes_encode(length, tmp_path):
         decoded = decode_episode(path, 0.0, np.arange(length) / 10, str(path), info)
         assert decoded.shape == metres.shape
         np.testing.assert_allclose(decoded, metres, rtol=0.01)
+
+
+def test_a_camera_too_narrow_for_svt_av1_is_refused_before_anything_runs(lerobot_video, tmp_path, capsys):
+    """SVT-AV1 (lerobot's default codec) kills the process with a floating-point exception on frames
+    24 px wide or less: a pipeline that would encode such a camera stops at planning, in one line."""
+    import subprocess
+    import sys
+
+    from shiftkit.datasets.errors import DatasetError
+    from shiftkit.datasets.video import default_encoders, encode_frames
+
+    config = tmp_path / "narrow.toml"
+    config.write_text(
+        f'[[sources]]\npath = "{lerobot_video}"\n[destination]\nroot = "{tmp_path / "out"}"\n'
+        '[[stages]]\nname = "resize"\nparams = { width = 24, height = 16 }\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "shiftkit.app.cli", "run", str(config)], capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and not (tmp_path / "out").exists()
+    err = [line for line in proc.stderr.splitlines() if line.startswith("shiftkit")]
+    assert len(err) == 1 and "24 px wide" in err[0], proc.stderr[-2000:]
+    with pytest.raises(DatasetError, match="24 px wide"):  # and the encoder itself never gets such frames
+        encode_frames(np.zeros((2, 16, 24, 3), np.uint8), tmp_path / "x.mp4", 10, default_encoders()["rgb"])
