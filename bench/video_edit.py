@@ -13,8 +13,8 @@ many of the output's video packets are the source's own bytes (copied or encoded
 * merge two datasets (the second written the same way, another seed): shiftkit's two-source
   pipeline vs lerobot's `merge_datasets`;
 * trim a frame at each end (re-indexes, so every camera is encoded) with 2 workers: camera images
-  encoded per second against lerobot's rate in its `delete_episodes` (goal 1.5x), and the largest
-  size the run's work folder reaches against the output's size;
+  encoded per second against lerobot's rate in its `delete_episodes` (goal 1.5x), the largest
+  size the run's work folder reaches against the output's size, and a worker's peak memory;
 * the floors: `cp -r`, and decoding every frame of the source once (PyAV).
 
 lerobot's tools are called as functions with output folders (their CLI renames the source). Both
@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import tempfile
@@ -325,6 +326,8 @@ def main() -> None:
             "lerobot_encoded_images_per_s": lerobot_rate,
             "encode_rate_vs_lerobot": images / wall / lerobot_rate,
             "scratch_peak_bytes": watch.stop(),
+            # the largest resident set of a finished child process: the two workers (`cp` is tiny)
+            "worker_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
         }
         ops["trim 1+1 frames (encodes, 2 workers)"]["scratch_vs_output"] = ops["trim 1+1 frames (encodes, 2 workers)"][
             "scratch_peak_bytes"
@@ -353,6 +356,8 @@ def main() -> None:
         "encode_rate_vs_lerobot": round(trim["encode_rate_vs_lerobot"], 2),
         "encode_rate_goal": 1.5,
         "scratch_vs_output": round(trim["scratch_vs_output"], 2),
+        "worker_peak_rss_mb": round(trim["worker_peak_rss_mb"]),
+        "output_mb": round(trim["shiftkit_bytes"] / 1e6, 1),
         "cp_s": round(ops["cp -r"]["wall_s"], 3),
         "decode_all_s": round(ops["decode-all floor (PyAV)"]["wall_s"], 3),
         "dataset": f"{episodes}x{length} frames, 2 cameras {HEIGHT}x{WIDTH} AV1 at {FPS} fps, "
