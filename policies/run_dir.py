@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -240,15 +241,23 @@ class RunDir:
         path = self.path / CONFIG
         return loaders.load_run_config(path) if path.exists() else None
 
-    def write_config(self, config: dict, ignore_on_resume: tuple[str, ...] = ("resume",)) -> None:
+    def write_config(
+        self,
+        config: dict,
+        ignore_on_resume: tuple[str, ...] = ("resume",),
+        stored_args: Callable[[dict], dict] | None = None,
+    ) -> None:
         """Store the run's config; on resume it must match the stored one's `args` (apart from the
-        keys in `ignore_on_resume`), since a checkpoint only continues the run that made it."""
+        keys in `ignore_on_resume`), since a checkpoint only continues the run that made it.
+        `stored_args` reads the stored `args` the way the trainer spells them now (a config written
+        by an earlier version)."""
         config = _jsonable(config)
         old = self.read_config()
         if old is not None and not self.resume:  # it appeared after __init__: another run started there
             raise ShiftkitError(f"output folder {self.path} now holds another run's config; choose another --output")
         if old is not None:
             old_args, new_args = old.get("args", {}), config.get("args", {})
+            old_args = stored_args(old_args) if stored_args else old_args
             for key in sorted(set(old_args) | set(new_args)):
                 if key not in ignore_on_resume and old_args.get(key) != new_args.get(key):
                     raise ConfigError(

@@ -714,6 +714,30 @@ def test_fire_resumes_after_sigkill_as_if_never_stopped(demo, fire_run, tmp_path
     assert main([*args, "--resume", "--bc.hidden", "16,16"]) == 2  # only the run that made it
 
 
+def test_a_run_stored_with_flat_bc_settings_resumes(demo, fire_run, tmp_path):
+    """Before `FireArgs.bc`, a FIRE run stored BC's settings flat (`bc_regime`, `hidden`, ...,
+    `val_fraction` 0.2 by default): it resumes with today's options, and only with the same settings
+    (a refused resume leaves its config as it was)."""
+    import shutil
+
+    env_name, task, root = demo
+    reference, ds_root = fire_run
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    for path in (run / "config.json", run / "policy" / "config.json"):
+        config = json.loads(path.read_text())
+        bc, args = config["args"].pop("bc"), config["args"]
+        args.update(bc_regime=bc["regime"], bc_steps=bc["steps"], val_fraction=0.2, output_dir=str(run))
+        args.update({k: bc[k] for k in ("ensemble_size", "hidden", "output_activation", "batch_size")})
+        path.write_text(json.dumps(config))
+    stored = (run / "config.json").read_bytes()
+    args = [*_fire_cli(env_name, task, root, run, "--repo-id", "test/fire-agg", "--dataset-root", str(ds_root))]
+    args += ["--predictor", "gda+doubt", "--resume"]
+    assert main([*args, "--bc.hidden", "16,16"]) == 2 and (run / "config.json").read_bytes() == stored
+    assert main(args) == 0
+    assert json.loads((run / "config.json").read_text())["args"]["bc"]["hidden"] == [32, 32]
+
+
 def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):
     from matplotlib.figure import Figure
 

@@ -141,6 +141,32 @@ class FireArgs:
         return EARLY_STOP_VAL_FRACTION if self.bc.val_fraction is None else self.bc.val_fraction
 
 
+# FIRE's arguments before `FireArgs.bc` held BC's settings flat, under these names
+FLAT_BC = {
+    "bc_regime": "regime",
+    "bc_steps": "steps",
+    "ensemble_size": "ensemble_size",
+    "hidden": "hidden",
+    "output_activation": "output_activation",
+    "val_fraction": "val_fraction",
+    "batch_size": "batch_size",
+}
+
+
+def nest_bc_settings(args: dict[str, Any]) -> dict[str, Any]:
+    """A FIRE run's stored arguments with BC's settings nested (`bc`), as a run stored them before
+    `FireArgs.bc` (such a run resumes); today's arguments unchanged. Its default share of 0.2 becomes
+    the unset `bc.val_fraction` that means the same (then an early-stop initial BC held out 0.2, a
+    fixed one nothing, as now)."""
+    if "bc" in args or "bc_regime" not in args:
+        return args
+    flat = {new: args[old] for old, new in FLAT_BC.items() if old in args}
+    if flat.get("val_fraction") == EARLY_STOP_VAL_FRACTION:
+        flat["val_fraction"] = None
+    rest = {k: v for k, v in args.items() if k not in FLAT_BC}
+    return {**rest, "bc": {**dataclasses.asdict(FireBC()), **flat}}
+
+
 # The rules a failure predictor file holds (`policies/fire/predictor.py`); here so that `fire aggregate
 # --help` imports no torch.
 RULES = ("beta", "gda")

@@ -50,7 +50,7 @@ from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt, load_policy
 from shiftkit.policies.data import FrameTable, open_datasets, refuse_example_sets
 from shiftkit.policies.evaluation import ObservationMap, run_episodes, wilson_interval
 from shiftkit.policies.fire.aggregate import SOURCE_EXPERT, aggregate
-from shiftkit.policies.fire.config import FireArgs
+from shiftkit.policies.fire.config import FireArgs, nest_bc_settings
 from shiftkit.policies.fire.dagger_recording import rollout_repo_id, write_recording
 from shiftkit.policies.fire.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.fire.episode import Agent, EpisodeResult, recordable_features, run_episode
@@ -357,6 +357,7 @@ def run(args: FireArgs) -> dict:
             "versions": versions(),
         },
         ignore_on_resume=("resume", "progress"),
+        stored_args=nest_bc_settings,
     )
     state = run_dir.load_latest() if args.resume else None
     if state is not None and state["final"]:
@@ -377,6 +378,7 @@ def run(args: FireArgs) -> dict:
             "versions": versions(),
         },
         ignore_on_resume=("resume", "progress"),
+        stored_args=nest_bc_settings,
     )
     if state is not None:
         learner.load_state_dict(state)
