@@ -205,6 +205,18 @@ def _atomic_write(path: Path, write) -> None:
     os.replace(tmp, path)
 
 
+def _dotted(args: dict, prefix: str = "") -> dict:
+    """`args` with each nested table's entries under dotted keys (`bc.hidden`), so that a refused
+    resume names the one setting that differs."""
+    out = {}
+    for key, value in args.items():
+        if isinstance(value, dict) and value:
+            out.update(_dotted(value, f"{prefix}{key}."))
+        else:
+            out[prefix + key] = value
+    return out
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
@@ -257,7 +269,8 @@ class RunDir:
             raise ShiftkitError(f"output folder {self.path} now holds another run's config; choose another --output")
         if old is not None:
             old_args, new_args = old.get("args", {}), config.get("args", {})
-            old_args = stored_args(old_args) if stored_args else old_args
+            old_args = _dotted(stored_args(old_args) if stored_args else old_args)
+            new_args = _dotted(new_args)
             for key in sorted(set(old_args) | set(new_args)):
                 if key not in ignore_on_resume and old_args.get(key) != new_args.get(key):
                     raise ConfigError(

@@ -714,7 +714,7 @@ def test_fire_resumes_after_sigkill_as_if_never_stopped(demo, fire_run, tmp_path
     assert main([*args, "--resume", "--bc.hidden", "16,16"]) == 2  # only the run that made it
 
 
-def test_a_run_stored_with_flat_bc_settings_resumes(demo, fire_run, tmp_path):
+def test_a_run_stored_with_flat_bc_settings_resumes(demo, fire_run, tmp_path, capsys):
     """Before `FireArgs.bc`, a FIRE run stored BC's settings flat (`bc_regime`, `hidden`, ...,
     `val_fraction` 0.2 by default): it resumes with today's options, and only with the same settings
     (a refused resume leaves its config as it was)."""
@@ -734,6 +734,7 @@ def test_a_run_stored_with_flat_bc_settings_resumes(demo, fire_run, tmp_path):
     args = [*_fire_cli(env_name, task, root, run, "--repo-id", "test/fire-agg", "--dataset-root", str(ds_root))]
     args += ["--predictor", "gda+doubt", "--resume"]
     assert main([*args, "--bc.hidden", "16,16"]) == 2 and (run / "config.json").read_bytes() == stored
+    assert "--resume with a different 'bc.hidden' ([32, 32] in" in capsys.readouterr().err
     assert main(args) == 0
     assert json.loads((run / "config.json").read_text())["args"]["bc"]["hidden"] == [32, 32]
 

@@ -142,7 +142,7 @@ class FireArgs:
 
 
 # FIRE's arguments before `FireArgs.bc` held BC's settings flat, under these names
-FLAT_BC = {
+_FLAT_BC = {
     "bc_regime": "regime",
     "bc_steps": "steps",
     "ensemble_size": "ensemble_size",
@@ -160,10 +160,10 @@ def nest_bc_settings(args: dict[str, Any]) -> dict[str, Any]:
     fixed one nothing, as now)."""
     if "bc" in args or "bc_regime" not in args:
         return args
-    flat = {new: args[old] for old, new in FLAT_BC.items() if old in args}
+    flat = {new: args[old] for old, new in _FLAT_BC.items() if old in args}
     if flat.get("val_fraction") == EARLY_STOP_VAL_FRACTION:
         flat["val_fraction"] = None
-    rest = {k: v for k, v in args.items() if k not in FLAT_BC}
+    rest = {k: v for k, v in args.items() if k not in _FLAT_BC}
     return {**rest, "bc": {**dataclasses.asdict(FireBC()), **flat}}
 
 
