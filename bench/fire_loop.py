@@ -54,7 +54,7 @@ def main() -> None:
     from shiftkit.envs import make
     from shiftkit.policies.bc_policy import load_policy
     from shiftkit.policies.evaluation import run_episodes
-    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs, FireBC
     from shiftkit.policies.fire.loop import run as run_fire
     from shiftkit.policies.fire.runs import read_episode_lines
 
@@ -74,8 +74,7 @@ def main() -> None:
         max_episodes=episodes,
         budget_expert_samples=10**9,
         dataset_root=str(work / f"aggregated-{episodes}"),
-        bc_regime="fixed",
-        bc_steps=500 if args.quick else 2000,
+        bc=FireBC(regime="fixed", steps=500 if args.quick else 2000),
         d_start=50,
         threads=args.threads,
         device="cpu",

@@ -71,8 +71,20 @@ def option(
     return dataclasses.field(default=default, default_factory=default_factory, metadata=metadata)
 
 
-def field_problem(f: dataclasses.Field, value: Any) -> str | None:
-    """What is wrong with `value` for field `f` by its metadata's rule or choices, None when nothing."""
+def option_of(
+    cls: type, name: str, default: Any = dataclasses.MISSING, *, default_factory: Any = dataclasses.MISSING
+) -> Any:
+    """Field `name` of dataclass `cls` with another default, its rule and choices kept: a subclass's
+    own default for an inherited field (its docstring, when the subclass gives none, stays the base
+    class's: `field_docs`)."""
+    base = {f.name: f for f in dataclasses.fields(cls)}[name]
+    return dataclasses.field(default=default, default_factory=default_factory, metadata=base.metadata)
+
+
+def field_problem(f: dataclasses.Field, value: Any, name: str | None = None) -> str | None:
+    """What is wrong with `value` for field `f` by its metadata's rule or choices, None when nothing
+    (the message names the field `name`, default its own)."""
+    name = name or f.name
     if value is None:
         return None
     rule, choices = f.metadata.get("rule"), f.metadata.get("choices")
@@ -80,17 +92,22 @@ def field_problem(f: dataclasses.Field, value: Any) -> str | None:
     if rule is not None:
         bad = next((v for v in values if not meets(rule, v)), None)
         if bad is not None:
-            return rule_error(f.name, rule, bad)
+            return rule_error(name, rule, bad)
     if choices is not None and value not in choices:
-        return f"{f.name} must be one of {', '.join(map(str, choices))}, got {value!r}"
+        return f"{name} must be one of {', '.join(map(str, choices))}, got {value!r}"
     return None
 
 
-def check_fields(obj: Any) -> None:
-    """Check every field of the dataclass `obj` against its metadata's rule (`option`); ConfigError
-    with the first broken rule's message."""
+def check_fields(obj: Any, prefix: str = "") -> None:
+    """Check every field of the dataclass `obj`, and of the dataclasses it nests, against its
+    metadata's rule (`option`); ConfigError with the first broken rule's message (a nested field
+    named by its dotted path, `bc.hidden`)."""
     for f in dataclasses.fields(obj):
-        problem = field_problem(f, getattr(obj, f.name))
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            check_fields(value, f"{prefix}{f.name}.")
+            continue
+        problem = field_problem(f, value, prefix + f.name)
         if problem:
             raise ConfigError(problem)
 
@@ -101,7 +118,17 @@ def field_help(cls: type, name: str) -> str:
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """Per-field docstrings (the string literal right after each field), for help and cards."""
+    """Per-field docstrings (the string literal right after each field), for help and cards; an
+    inherited field's from the nearest class that documents it."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(klass):
+            docs.update(_own_field_docs(klass))
+    return docs
+
+
+def _own_field_docs(cls: type) -> dict[str, str]:
+    """The field docstrings written in the body of `cls` itself."""
     import ast
     import inspect
     import textwrap

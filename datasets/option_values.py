@@ -92,6 +92,11 @@ class DataclassOptions[T]:
     positional: tuple[str, ...] = ()
     """Fields given as positional arguments, in order (an importer's input files: one or more for a
     list field)."""
+    nested: dict[str, DataclassOptions] = dataclasses.field(default_factory=dict)
+    """Field -> the generator of a field that is itself a config dataclass, where plain
+    `DataclassOptions(its type)` would not do (its own `flags`, ...). Such a field's fields become
+    `--FIELD.FLAG` options (draccus' dotted spelling, `--bc.hidden`), in a help group of their own,
+    with the nested default's values as defaults; `build` replaces the options given in it."""
 
     def fields(self) -> list[dataclasses.Field]:
         """The dataclass fields that get an option (init fields not in `skip`)."""
@@ -107,11 +112,37 @@ class DataclassOptions[T]:
         return tuple(f.name for f in self.fields() if _default(f) is dataclasses.MISSING)
 
     def add_to(self, parser: argparse.ArgumentParser) -> None:
-        """Add one option per field to `parser`."""
+        """Add one option per field to `parser` (a nested dataclass field's in a group of their own)."""
+        self._add(parser, parser, "", None)
+
+    def _nested_fields(self) -> dict[str, DataclassOptions]:
+        """The generators of the fields that are config dataclasses themselves."""
+        hints = typing.get_type_hints(self.cls)
+        return {
+            f.name: self.nested.get(f.name) or DataclassOptions(hints[f.name])
+            for f in self.fields()
+            if dataclasses.is_dataclass(hints[f.name])
+        }
+
+    def _default(self, f: dataclasses.Field, defaults: Any) -> Any:
+        """Field `f`'s default on the command line: the command's, else that of the nested default
+        `defaults` holding the field (None at the top), else the dataclass's."""
+        if f.name in self.cli_defaults:
+            return self.cli_defaults[f.name]
+        return _default(f) if defaults is None else getattr(defaults, f.name)
+
+    def _add(self, parser: argparse.ArgumentParser, target: Any, prefix: str, defaults: Any) -> None:
+        """Add the options to `target` (`parser` or one of its groups), each flag and dest after
+        `prefix` (`bc.` in a nested field)."""
         hints = typing.get_type_hints(self.cls)
         docs = field_docs(self.cls)
+        nested = self._nested_fields()
         for f in self.fields():
-            default = self.cli_defaults.get(f.name, _default(f))
+            default = self._default(f, defaults)
+            if f.name in nested:
+                group = parser.add_argument_group(f"{prefix}{f.name} options", docs.get(f.name, "").replace("%", "%%"))
+                nested[f.name]._add(parser, group, f"{prefix}{f.name}.", default)
+                continue
             settings = self._settings(f, hints[f.name])
             numeric = settings.pop("numeric", False)
             named = self.flag(f.name)[2:].upper().replace("-", "_")
@@ -125,15 +156,19 @@ class DataclassOptions[T]:
                 settings.pop("action", None)  # one or more values as argparse collects them (no csv splitting)
                 settings["type"] = str
                 settings["metavar"] = self.metavars.get(f.name, f.name.upper())
-                parser.add_argument(f.name, help=docs.get(f.name, "").replace("%", "%%"), **settings)
+                target.add_argument(f.name, help=docs.get(f.name, "").replace("%", "%%"), **settings)
                 continue
             required = f.name in self._required()  # a dataclass default the command does not use is not shown
             shown = "" if required else _shown(default)
             text = (
                 docs.get(f.name, "") + (f" (default: {shown})" if shown else "") + (" (required)" if required else "")
             )
-            parser.add_argument(
-                self.flag(f.name), dest=f.name, default=argparse.SUPPRESS, help=text.replace("%", "%%"), **settings
+            target.add_argument(
+                "--" + prefix + self.flag(f.name)[2:],
+                dest=prefix + f.name,
+                default=argparse.SUPPRESS,
+                help=text.replace("%", "%%"),
+                **settings,
             )
 
     def _settings(self, f: dataclasses.Field, tp: Any) -> dict[str, Any]:
@@ -165,25 +200,37 @@ class DataclassOptions[T]:
         return {"type": base}
 
     def values(self, args: argparse.Namespace, **values: Any) -> dict[str, Any]:
-        """The fields given in `args` (as the dataclass takes them: pairs -> dict, list -> tuple),
-        the command's `cli_defaults` and `values` it sets; a missing required option is a
-        ConfigError naming its flag."""
-        hints = typing.get_type_hints(self.cls)
-        given = {**self.cli_defaults}
-        for f in self.fields():
-            if hasattr(args, f.name):
-                given[f.name] = getattr(args, f.name)
-        given.update(values)
+        """The fields given in `args` (as the dataclass takes them: pairs -> dict, list -> tuple, a
+        nested field's options -> its default with them replaced), the command's `cli_defaults` and
+        `values` it sets; a missing required option is a ConfigError naming its flag."""
+        given = self._given(args, "", None, values)
         missing = [self.flag(n) for n in self._required() if n not in given]
         if missing:
             raise ConfigError(f"the following arguments are required: {', '.join(missing)}")
+        return given
+
+    def _given(self, args: argparse.Namespace, prefix: str, defaults: Any, values: dict[str, Any]) -> dict[str, Any]:
+        """The fields given in `args` under dests after `prefix`, the `cli_defaults` and `values`, as
+        the dataclass takes them (`defaults`: the nested default holding them, None at the top)."""
+        hints = typing.get_type_hints(self.cls)
+        nested = self._nested_fields()
+        given = {**self.cli_defaults}
+        for f in self.fields():
+            if f.name in nested:
+                inner = self._default(f, defaults)
+                changes = nested[f.name]._given(args, f"{prefix}{f.name}.", inner, {})
+                if changes:
+                    given[f.name] = dataclasses.replace(inner, **changes)
+            elif hasattr(args, prefix + f.name):
+                given[f.name] = getattr(args, prefix + f.name)
+        given.update(values)
         for name, value in given.items():
             origin = get_origin(hints.get(name))
             if origin is dict and isinstance(value, list):
                 keys = [key for key, _ in value]
                 twice = next((key for key in keys if keys.count(key) > 1), None)
                 if twice is not None:  # a later KEY=VALUE would silently replace the earlier one
-                    raise ConfigError(f"{self.flag(name)} {twice}=...: {twice!r} is given twice")
+                    raise ConfigError(f"--{prefix}{self.flag(name)[2:]} {twice}=...: {twice!r} is given twice")
                 given[name] = dict(value)
             elif origin is tuple and isinstance(value, list):
                 given[name] = tuple(value)

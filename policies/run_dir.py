@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -204,6 +205,18 @@ def _atomic_write(path: Path, write) -> None:
     os.replace(tmp, path)
 
 
+def _dotted(args: dict, prefix: str = "") -> dict:
+    """`args` with each nested table's entries under dotted keys (`bc.hidden`), so that a refused
+    resume names the one setting that differs."""
+    out = {}
+    for key, value in args.items():
+        if isinstance(value, dict) and value:
+            out.update(_dotted(value, f"{prefix}{key}."))
+        else:
+            out[prefix + key] = value
+    return out
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
@@ -240,15 +253,24 @@ class RunDir:
         path = self.path / CONFIG
         return loaders.load_run_config(path) if path.exists() else None
 
-    def write_config(self, config: dict, ignore_on_resume: tuple[str, ...] = ("resume",)) -> None:
+    def write_config(
+        self,
+        config: dict,
+        ignore_on_resume: tuple[str, ...] = ("resume",),
+        stored_args: Callable[[dict], dict] | None = None,
+    ) -> None:
         """Store the run's config; on resume it must match the stored one's `args` (apart from the
-        keys in `ignore_on_resume`), since a checkpoint only continues the run that made it."""
+        keys in `ignore_on_resume`), since a checkpoint only continues the run that made it.
+        `stored_args` reads the stored `args` the way the trainer spells them now (a config written
+        by an earlier version)."""
         config = _jsonable(config)
         old = self.read_config()
         if old is not None and not self.resume:  # it appeared after __init__: another run started there
             raise ShiftkitError(f"output folder {self.path} now holds another run's config; choose another --output")
         if old is not None:
             old_args, new_args = old.get("args", {}), config.get("args", {})
+            old_args = _dotted(stored_args(old_args) if stored_args else old_args)
+            new_args = _dotted(new_args)
             for key in sorted(set(old_args) | set(new_args)):
                 if key not in ignore_on_resume and old_args.get(key) != new_args.get(key):
                     raise ConfigError(

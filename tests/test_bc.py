@@ -466,6 +466,21 @@ def test_default_is_one_network_and_ensemble_is_an_option(state_ds, tmp_path):
     assert len(load_policy(tmp_path / "five").members) == 5
 
 
+def test_bc_args_are_the_shared_settings_and_the_runs_inputs_and_outputs():
+    """`BCArgs` adds the run's fields to `BCSettings` (what FIRE nests): every option keeps its help,
+    the inherited ones too."""
+    import dataclasses
+
+    from shiftkit.datasets.dataclass_config import field_docs
+    from shiftkit.policies.trainers.bc.args import BCSettings
+
+    settings = [f.name for f in dataclasses.fields(BCSettings)]
+    names = [f.name for f in dataclasses.fields(BCArgs)]
+    assert names[: len(settings)] == settings and {"datasets", "output_dir", "seed", "resume"} <= set(names)
+    docs = field_docs(BCArgs)
+    assert all(docs.get(name) for name in names) and docs["hidden"].startswith("Widths of the fully connected")
+
+
 def test_train_prints_no_video_backend_traceback(state_ds, tmp_path):
     """lerobot's reader, left to choose its video backend, tries torchcodec and logs its loader's
     traceback (~40 lines) where torchcodec cannot load FFmpeg: `train` chooses up front."""

@@ -14,6 +14,7 @@ from typing import Any, Literal
 import pytest
 
 from shiftkit.app.cli import Parser, build_parser, main
+from shiftkit.datasets.dataclass_config import check_fields, option, option_of
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.datasets.option_values import DataclassOptions
 
@@ -86,6 +87,84 @@ def test_out_of_range_values_are_refused_with_the_rule_message(argv, message, ca
     assert exc.value.code == 2 and len(errors) == 1 and message in errors[0], errors
 
 
+@dataclass
+class Inner:
+    """A nested config (the base of `Outer.inner`'s type)."""
+
+    size: int = option(3, rule="positive_int")
+    """Size."""
+    mode: str = option("a", choices=("a", "b"))
+    """Mode."""
+    sizes: list[int] = option(default_factory=lambda: [1], rule="positive_int")
+    """Sizes."""
+
+
+@dataclass
+class OwnInner(Inner):
+    """`Inner` with its own default for one field, rule and docstring inherited."""
+
+    size: int = option_of(Inner, "size", 5)
+
+
+@dataclass
+class Outer:
+    """A config nesting another."""
+
+    name: str
+    """Required name."""
+    inner: OwnInner = field(default_factory=lambda: OwnInner(mode="b"))
+    """The nested settings."""
+
+
+def _outer(argv: list[str]) -> tuple[Outer, argparse.ArgumentParser]:
+    options = DataclassOptions(Outer, nested={"inner": DataclassOptions(OwnInner, flags={"sizes": "many"})})
+    parser = Parser(prog="t")
+    options.add_to(parser)
+    return options.build(parser.parse_args(["--name", "x", *argv])), parser
+
+
+def test_a_nested_dataclass_field_gets_dotted_options_in_a_group_of_its_own():
+    """`--inner.size` (draccus' spelling, the generator's dashes and flag names), the nested
+    default's values as defaults, the rule of the base class's field."""
+    built, parser = _outer([])
+    assert built == Outer("x") and built.inner == OwnInner(size=5, mode="b")
+    built, _ = _outer(["--inner.size", "7", "--inner.many", "2,4"])
+    assert built.inner == OwnInner(size=7, mode="b", sizes=[2, 4])  # the options not given keep the nested default
+    (group,) = [g for g in parser._action_groups if g.title == "inner options"]
+    assert group.description == "The nested settings."
+    text = " ".join(parser.format_help().split())
+    assert "--inner.size N Size. (default: 5)" in text and "--inner.mode {a,b} Mode. (default: b)" in text
+    assert "--inner.many N [N ...] Sizes. (default: 1)" in text
+    for argv, message in (
+        (["--inner.size", "0"], "argument --inner.size: must be a positive integer, got '0'"),
+        (["--inner.many", "2,-1"], "argument --inner.many: must be a positive integer, got '-1'"),
+        (["--inner.mode", "c"], "argument --inner.mode: invalid choice"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            _outer(argv)
+        assert exc.value.code == 2, message
+    # a nested dataclass built in code is checked with its dotted name
+    with pytest.raises(ConfigError, match="inner.size must be a positive integer, got 0"):
+        check_fields(Outer("x", OwnInner(size=0)))
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--bc.hidden", "64,0"], "argument --bc.hidden: must be a positive integer, got '0'"),
+        (["--bc.output-activation", "relu"], "argument --bc.output-activation: invalid choice: 'relu'"),
+        (["--bc.ensemble", "0"], "argument --bc.ensemble: must be a positive integer or none, got '0'"),
+        (["--bc.val-fraction", "1"], "argument --bc.val-fraction: must be a number in [0, 1) or none, got '1'"),
+        (["--hidden", "64"], "unrecognized arguments: --hidden"),
+    ],
+)
+def test_fire_refuses_a_bad_bc_setting_in_one_line(argv, message, capsys):
+    base = ["fire", "--dataset", "d", "--env", "panda-play", "--task", "lift", "--output", "o"]
+    assert main([*base, *argv]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 1 and message in errors[0], errors
+
+
 def test_numeric_choices_are_parsed_before_they_are_compared():
     # `eval --control-hz 5` is the int 5 the env takes, and 7 is refused as no allowed rate
     from shiftkit.app.commands import eval as eval_command
@@ -126,7 +205,7 @@ def test_no_parser_takes_abbreviations(capsys):
 
 def test_fire_options_mirror_every_field_of_its_args(tmp_path):
     from shiftkit.app.commands import fire as fire_command
-    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs, FireBC
 
     options = fire_command._fire_options()
     parser = Parser(prog="fire")
@@ -136,7 +215,11 @@ def test_fire_options_mirror_every_field_of_its_args(tmp_path):
     expected = FireArgs(dataset="d", env="panda-play", task="lift", output_dir=str(tmp_path), progress=True)
     assert built == expected
     flags = {a.dest for a in parser._actions}
-    assert {f.name for f in dataclasses.fields(FireArgs)} <= flags
+    fields = {f.name for f in dataclasses.fields(FireArgs)} - {"bc"}
+    assert fields | {f"bc.{f.name}" for f in dataclasses.fields(FireBC)} <= flags
+    # `--bc.X` is `train bc --X` (same flag names), its values FIRE's
+    given = parser.parse_args([*required, "--bc.ensemble", "3", "--bc.keypoints", "8", "--bc.regime", "fixed"])
+    assert options.build(given).bc == FireBC(ensemble_size=3, num_keypoints=8, regime="fixed")
 
 
 def command_paths(parser: argparse.ArgumentParser | None = None, prefix: tuple[str, ...] = ()) -> list[list[str]]:

@@ -6,6 +6,7 @@ Environments come from the registry: every family whose scripted expert acts fro
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -321,13 +322,13 @@ def _fire_cli(env_name: str, task: str, demo: Path, out: Path, *extra: str) -> l
         "4",
         "--budget-expert-samples",
         "100000",
-        "--bc-regime",
+        "--bc.regime",
         "fixed",
-        "--bc-steps",
+        "--bc.steps",
         "150",
-        "--ensemble",
+        "--bc.ensemble",
         "2",
-        "--hidden",
+        "--bc.hidden",
         "32,32",
         "--d-hidden",
         "16,16",
@@ -426,6 +427,11 @@ def test_fire_writes_the_aggregated_dataset(demo, fire_run):
     assert main(["info", str(ds_root)]) == 0 and main(["validate", str(ds_root)]) == 0
     # the current policy is a BC run folder that `shiftkit eval` understands
     assert (run / "policy" / "config.json").is_file() and (run / "policy" / "checkpoints" / "last.txt").is_file()
+    # the run records its BC settings nested, as the initial BC got them
+    bc = json.loads((run / "config.json").read_text())["args"]["bc"]
+    initial = json.loads((run / "bc-init" / "config.json").read_text())["args"]
+    assert (bc["regime"], bc["steps"], bc["ensemble_size"], bc["hidden"]) == ("fixed", 150, 2, [32, 32])
+    assert all(initial[k] == v for k, v in bc.items() if v is not None)
     # ... and a finished one (eval does not warn of an unfinished run), with its model card
     assert (run / "policy" / "card.json").is_file() and (run / "policy" / "README.md").is_file()
 
@@ -593,17 +599,52 @@ def test_fire_policy_is_the_thesis_network_by_default(fire_run):
     """Thesis 5.4.2: one 2x256 MLP with a tanh output, FIRE's own defaults; the ensemble-doubt
     predictors keep an ensemble."""
     from shiftkit.policies.bc_policy import load_policy
-    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs, FireBC
 
     args = FireArgs(dataset="d", env="panda-play", task="lift", output_dir="o").resolved()
-    assert (args.ensemble_size, args.hidden, args.output_activation) == (1, [256, 256], "tanh")
-    assert FireArgs("d", "panda-play", "lift", "o", predictor="gda+doubt").resolved().ensemble_size == 5
+    assert (args.bc.ensemble_size, args.bc.hidden, args.bc.output_activation) == (1, [256, 256], "tanh")
+    assert FireArgs("d", "panda-play", "lift", "o", predictor="gda+doubt").resolved().bc.ensemble_size == 5
     with pytest.raises(ConfigError, match="needs an ensemble"):
-        FireArgs("d", "panda-play", "lift", "o", predictor="doubt", ensemble_size=1).resolved()
+        FireArgs("d", "panda-play", "lift", "o", predictor="doubt", bc=FireBC(ensemble_size=1)).resolved()
+    # FIRE's defaults hold for settings built in code too, beside the ones given
+    assert (FireBC(batch_size=8).hidden, FireBC(batch_size=8).output_activation) == ([256, 256], "tanh")
     run, _ = fire_run
     policy = load_policy(run / "policy")
     assert policy.spec.output_activation == "tanh" and len(policy.members) == 2  # the fixture's --ensemble 2
     assert policy.act({k: np.zeros(ft["shape"], np.float32) for k, ft in policy.features.items()}).max() <= 1.0
+
+
+def test_every_bc_setting_of_fire_reaches_its_initial_bc(monkeypatch, tmp_path):
+    """`FireArgs.bc` is BC's settings (`BCSettings`), handed to `shiftkit train bc` whole: each one,
+    set to a value no default has, arrives in the initial BC's arguments unchanged."""
+    import torch
+
+    from shiftkit.policies.fire import loop
+    from shiftkit.policies.fire.config import FireArgs, FireBC
+    from shiftkit.policies.trainers.bc.args import BCArgs, BCSettings
+
+    changed = dict(
+        regime="fixed", steps=7, max_epochs=3, patience=2, batch_size=5, lr=0.5, weight_decay=0.25,
+        val_fraction=0.3, ensemble_size=3, inputs=["observation.state"], encoder="resnet18",
+        encoder_weights="w.pt", num_keypoints=6, hidden=[9, 9], output_activation="linear",
+        norm_std_floor=0.05, norm_clip=4.0,
+    )  # fmt: skip
+    assert set(changed) == {f.name for f in dataclasses.fields(BCSettings)}  # a new setting joins this test
+    assert all(changed[f.name] != getattr(FireBC(), f.name) for f in dataclasses.fields(FireBC))
+    seen = []
+    monkeypatch.setattr(loop, "train_bc", seen.append)
+    monkeypatch.setattr(loop, "load_policy", lambda *a, **k: None)
+    args = FireArgs("d", "panda-play", "lift", str(tmp_path), bc=FireBC(**changed), seed=4).resolved()
+    loop._initial_bc(args, tmp_path / "bc-init", torch.device("cpu"))
+    (bc,) = seen
+    assert isinstance(bc, BCArgs) and {name: getattr(bc, name) for name in changed} == changed
+    assert (bc.datasets, bc.output_dir, bc.seed) == (["d"], str(tmp_path / "bc-init"), 4)
+    # the retrainings' hold-out share is the nested one; unset, 0.2 in either regime
+    assert args.hold_out_share == 0.3 and FireArgs("d", "e", "t", "o", bc=FireBC(regime="fixed")).hold_out_share == 0.2
+    with pytest.raises(ConfigError, match=r"bc.val_fraction must be in \(0, 1\), got 0"):
+        FireArgs("d", "panda-play", "lift", "o", bc=FireBC(val_fraction=0.0)).resolved()
+    with pytest.raises(ConfigError, match="bc.hidden must be a positive integer, got 0"):
+        FireArgs("d", "panda-play", "lift", "o", bc=FireBC(hidden=[4, 0])).resolved()
 
 
 def test_per_episode_updates_never_sample_the_retraining_hold_out():
@@ -612,7 +653,7 @@ def test_per_episode_updates_never_sample_the_retraining_hold_out():
     import torch
 
     from shiftkit.policies.bc_policy import BCPolicy, PolicySpec
-    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs, FireBC
     from shiftkit.policies.fire.learning import online_update, retrain
     from shiftkit.policies.frame_buffer import FrameBuffer
 
@@ -632,7 +673,7 @@ def test_per_episode_updates_never_sample_the_retraining_hold_out():
     expert.gather = lambda rows, device="cpu": (drawn.append(np.asarray(rows)), gather(rows, device))[1]
     policy = BCPolicy(spec)
     opts = [torch.optim.Adam(policy.members[0].parameters())]
-    args = FireArgs("d", "panda-play", "lift", "o", batch_size=8, retrain_max_epochs=3)
+    args = FireArgs("d", "panda-play", "lift", "o", bc=FireBC(batch_size=8), retrain_max_epochs=3)
     online_update(policy, opts, expert, np.flatnonzero(~held), 20, args, rng, "cpu")
     assert drawn and not held[np.concatenate(drawn)].any()
     drawn.clear()
@@ -671,6 +712,32 @@ def test_fire_resumes_after_sigkill_as_if_never_stopped(demo, fire_run, tmp_path
     assert main([*args, "--resume"]) == 0
     assert _comparable(_episode_lines(out)) == _comparable(_episode_lines(reference))
     assert main([*args, "--resume"]) == 0  # a finished run resumes to its summary
+    assert main([*args, "--resume", "--bc.hidden", "16,16"]) == 2  # only the run that made it
+
+
+def test_a_run_stored_with_flat_bc_settings_resumes(demo, fire_run, tmp_path, capsys):
+    """Before `FireArgs.bc`, a FIRE run stored BC's settings flat (`bc_regime`, `hidden`, ...,
+    `val_fraction` 0.2 by default): it resumes with today's options, and only with the same settings
+    (a refused resume leaves its config as it was)."""
+    import shutil
+
+    env_name, task, root = demo
+    reference, ds_root = fire_run
+    run = tmp_path / "run"
+    shutil.copytree(reference, run)
+    for path in (run / "config.json", run / "policy" / "config.json"):
+        config = json.loads(path.read_text())
+        bc, args = config["args"].pop("bc"), config["args"]
+        args.update(bc_regime=bc["regime"], bc_steps=bc["steps"], val_fraction=0.2, output_dir=str(run))
+        args.update({k: bc[k] for k in ("ensemble_size", "hidden", "output_activation", "batch_size")})
+        path.write_text(json.dumps(config))
+    stored = (run / "config.json").read_bytes()
+    args = [*_fire_cli(env_name, task, root, run, "--repo-id", "test/fire-agg", "--dataset-root", str(ds_root))]
+    args += ["--predictor", "gda+doubt", "--resume"]
+    assert main([*args, "--bc.hidden", "16,16"]) == 2 and (run / "config.json").read_bytes() == stored
+    assert "--resume with a different 'bc.hidden' ([32, 32] in" in capsys.readouterr().err
+    assert main(args) == 0
+    assert json.loads((run / "config.json").read_text())["args"]["bc"]["hidden"] == [32, 32]
 
 
 def test_plots_of_a_fire_run(fire_run, tmp_path, capsys, monkeypatch):

@@ -21,12 +21,14 @@ AGGREGATE_HELP = (
 
 
 def _fire_options() -> DataclassOptions:
-    from shiftkit.policies.fire.config import FireArgs
+    from shiftkit.policies.fire.config import FireArgs, FireBC
+    from shiftkit.policies.trainers.bc.args import FLAGS
 
     return DataclassOptions(
         FireArgs,
-        flags={"output_dir": "output", "ensemble_size": "ensemble", "env_kwargs": "env-kwarg"},
+        flags={"output_dir": "output", "env_kwargs": "env-kwarg"},
         cli_defaults={"progress": True},
+        nested={"bc": DataclassOptions(FireBC, flags=FLAGS)},  # `--bc.ensemble` as `train bc --ensemble`
     )
 
 

@@ -40,6 +40,7 @@ from _study import arguments, choices_of, evaluate, pool, seeds_of, shiftkit, wo
 from shiftkit.policies.fire.runs import bc_reference, protocol_check, read_episode_lines  # noqa: E402
 
 NETWORK = ["--ensemble", "1", "--hidden", "256,256", "--output-activation", "tanh"]
+FIRE_NETWORK = [f"--bc.{a[2:]}" if a.startswith("--") else a for a in NETWORK]  # FIRE nests BC's options
 EXPERTS = ("scripted", "suboptimal")
 
 
@@ -113,7 +114,7 @@ def main() -> None:
                     if not (run / "policy" / "eval" / "lift-held-out.json").exists():
                         shiftkit(
                             "fire", "--dataset", demos(expert, start), "--env", "panda-play", "--task", "lift",
-                            "--expert-policy", expert, "--predictor", predictor, *fire_opts, *NETWORK,
+                            "--expert-policy", expert, "--predictor", predictor, *fire_opts, *FIRE_NETWORK,
                             "--env-seed", str(10000 + 1000 * seed), "--output", str(run),
                             "--repo-id", f"local/fire-{expert}-{predictor}-s{seed}", "--seed", str(seed),
                             "--threads", "1", "--device", "cpu", "--no-progress",

@@ -54,7 +54,7 @@ from shiftkit.policies.fire.failure_predictors import BetaRule, EpisodeTrace, GD
 from shiftkit.policies.fire.predictor import FailurePredictor
 from shiftkit.policies.frame_buffer import FrameBuffer
 from shiftkit.policies.run_dir import run_folder, torch_device
-from shiftkit.policies.trainers.bc.args import BCArgs
+from shiftkit.policies.trainers.bc.args import BCSettings
 
 SOURCE_DEMO, SOURCE_POLICY, SOURCE_EXPERT = 0, 1, 2
 # per-frame features of the aggregated dataset besides the recordings' own
@@ -92,7 +92,7 @@ def _spec(args: AggregateArgs, expert_root: Path, features: dict[str, dict]) -> 
     lacking = [k for k in [*keys, "action"] if "mean" not in stats.get(k, {}) or "std" not in stats.get(k, {})]
     if lacking:
         raise DatasetError(f"{stats_path} lacks mean/std of {lacking[0]!r}")
-    defaults = BCArgs(datasets=[], output_dir="")
+    defaults = BCSettings()
     pick = lambda ft: {f: ft.get(f) for f in ("dtype", "shape", "names")}  # noqa: E731
     return PolicySpec(
         features={k: pick(features[k]) for k in keys},

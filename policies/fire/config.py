@@ -7,10 +7,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shiftkit.datasets.dataclass_config import check_fields, option
+from shiftkit.datasets.dataclass_config import check_fields, option, option_of
 from shiftkit.datasets.errors import ConfigError
 from shiftkit.policies.fire.failure_predictors import PREDICTORS
-from shiftkit.policies.trainers.bc.args import OUTPUT_ACTIVATIONS, REGIMES
+from shiftkit.policies.trainers.bc.args import EARLY_STOP_VAL_FRACTION, BCSettings
+
+
+@dataclass
+class FireBC(BCSettings):
+    """BC's settings with the policy of thesis 5.4.2 as defaults (one 2x256 MLP with a tanh output),
+    whatever `shiftkit train bc` defaults to; a `FireBC` built in code keeps them too."""
+
+    ensemble_size: int | None = option_of(BCSettings, "ensemble_size", None)
+    """BC members (their mean acts, their spread is the doubt); default 1 (thesis 5.4.2), 5 for the
+    doubt and gda+doubt predictors (ensemble doubt needs an ensemble)."""
+    hidden: list[int] = option_of(BCSettings, "hidden", default_factory=lambda: [256, 256])
+    output_activation: str = option_of(BCSettings, "output_activation", "tanh")
 
 
 @dataclass
@@ -47,25 +59,12 @@ class FireArgs:
     """The env's expert that corrects the policy: `scripted` or another of the family's experts that
     acts from any state (panda-play: `suboptimal`, a person's variance), as `shiftkit collect --expert`
     names them; record the demonstrations with the same one."""
-    # --- BC (the policy of thesis 5.4.2: one 2x256 MLP, tanh output; FIRE's own settings, whatever
-    # `shiftkit train bc` defaults to)
-    bc_regime: str = option("early-stop", choices=REGIMES)
-    """Initial BC regime (`shiftkit train bc --regime`)."""
-    bc_steps: int | None = option(None, rule="positive_int")
-    """Initial BC steps (fixed regime; a bound for early-stop)."""
-    ensemble_size: int | None = option(None, rule="positive_int")
-    """BC members (their mean acts, their spread is the doubt); default 1 (thesis 5.4.2), 5 for the
-    doubt and gda+doubt predictors (ensemble doubt needs an ensemble)."""
-    hidden: list[int] = option(default_factory=lambda: [256, 256], rule="positive_int")
-    """BC hidden widths."""
-    output_activation: str = option("tanh", choices=OUTPUT_ACTIVATIONS)
-    """BC output: `tanh` (actions bounded to [-1, 1], thesis 5.4.2) or `linear`."""
-    val_fraction: float = option(0.2, rule="positive_float")
-    """Share of the demonstrations' episodes (those the initial early-stop BC held out) and of the
-    correction stretches kept for the full retraining's validation: the per-episode updates never
-    sample them."""
-    batch_size: int = option(64, rule="positive_int")
-    """BC batch per member (initial training, updates, retraining)."""
+    bc: FireBC = field(default_factory=FireBC)
+    """The initial BC policy and its training, as `shiftkit train bc` takes them (`--bc.hidden` is
+    its `--hidden`), with the policy of thesis 5.4.2 as defaults whatever `train bc` defaults to: one
+    2x256 MLP with a tanh output. `val_fraction` is also the share of the demonstrations' episodes
+    and of the correction stretches kept for the full retraining's validation (default 0.2 in either
+    regime), `batch_size` also the batch per member of the per-episode updates and the retraining."""
     online_lr: float = option(1e-4, rule="positive_float")
     """Learning rate of the per-episode BC updates."""
     retrain_every: int = option(500, rule="positive_int")
@@ -120,20 +119,52 @@ class FireArgs:
         """A checked copy (each field's rule and choices, then what relates fields); raises ConfigError
         on bad values."""
         check_fields(self)
-        if "doubt" in self.predictor and self.ensemble_size == 1:
-            raise ConfigError(f"the {self.predictor} predictor needs an ensemble (ensemble_size >= 2) for its doubt")
-        if not self.val_fraction < 1.0:
-            raise ConfigError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
+        if "doubt" in self.predictor and self.bc.ensemble_size == 1:
+            raise ConfigError(f"the {self.predictor} predictor needs an ensemble (bc.ensemble_size >= 2) for its doubt")
+        if not self.hold_out_share > 0:  # the retrainings validate on it whatever the initial regime
+            raise ConfigError(f"bc.val_fraction must be in (0, 1), got {self.bc.val_fraction}")
         if not self.gamma < 1.0:
             raise ConfigError(f"gamma must be in (0, 1), got {self.gamma}")
         from shiftkit.datasets.hub import validate_repo_id
 
         repo_id = self.repo_id or f"local/{Path(self.output_dir).name}"
         validate_repo_id(repo_id)
-        members = self.ensemble_size or (5 if "doubt" in self.predictor else 1)
-        return dataclasses.replace(
-            self, repo_id=repo_id, ensemble_size=members, hidden=list(self.hidden), d_hidden=list(self.d_hidden)
-        )
+        members = self.bc.ensemble_size or (5 if "doubt" in self.predictor else 1)
+        bc = dataclasses.replace(self.bc, ensemble_size=members, hidden=list(self.bc.hidden))
+        return dataclasses.replace(self, repo_id=repo_id, bc=bc, d_hidden=list(self.d_hidden))
+
+    @property
+    def hold_out_share(self) -> float:
+        """Share of the demonstrations' episodes (those an early-stop initial BC held out) and of the
+        correction stretches kept for the full retraining's validation: the per-episode updates
+        never sample them."""
+        return EARLY_STOP_VAL_FRACTION if self.bc.val_fraction is None else self.bc.val_fraction
+
+
+# FIRE's arguments before `FireArgs.bc` held BC's settings flat, under these names
+_FLAT_BC = {
+    "bc_regime": "regime",
+    "bc_steps": "steps",
+    "ensemble_size": "ensemble_size",
+    "hidden": "hidden",
+    "output_activation": "output_activation",
+    "val_fraction": "val_fraction",
+    "batch_size": "batch_size",
+}
+
+
+def nest_bc_settings(args: dict[str, Any]) -> dict[str, Any]:
+    """A FIRE run's stored arguments with BC's settings nested (`bc`), as a run stored them before
+    `FireArgs.bc` (such a run resumes); today's arguments unchanged. Its default share of 0.2 becomes
+    the unset `bc.val_fraction` that means the same (then an early-stop initial BC held out 0.2, a
+    fixed one nothing, as now)."""
+    if "bc" in args or "bc_regime" not in args:
+        return args
+    flat = {new: args[old] for old, new in _FLAT_BC.items() if old in args}
+    if flat.get("val_fraction") == EARLY_STOP_VAL_FRACTION:
+        flat["val_fraction"] = None
+    rest = {k: v for k, v in args.items() if k not in _FLAT_BC}
+    return {**rest, "bc": {**dataclasses.asdict(FireBC()), **flat}}
 
 
 # The rules a failure predictor file holds (`policies/fire/predictor.py`); here so that `fire aggregate

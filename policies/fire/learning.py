@@ -21,7 +21,7 @@ def online_update(
 ) -> float | None:
     """Algorithm 2 line 36: `steps` gradient steps of every member on batches drawn from the expert
     set's `rows` (those not held out)."""
-    m, b = len(policy.members), args.batch_size
+    m, b = len(policy.members), args.bc.batch_size
     policy.train()
     losses = []
     for _ in range(steps):
@@ -39,7 +39,7 @@ def retrain(
     without improvement."""
     val, train_rows = np.flatnonzero(held_out), np.flatnonzero(~held_out)
     m = len(policy.members)
-    b = min(args.batch_size, len(train_rows))
+    b = min(args.bc.batch_size, len(train_rows))
     val_batch = expert.gather(val, device)
 
     @torch.no_grad()

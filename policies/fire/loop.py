@@ -50,7 +50,7 @@ from shiftkit.policies.bc_policy import BCPolicy, ensemble_doubt, load_policy
 from shiftkit.policies.data import FrameTable, open_datasets, refuse_example_sets
 from shiftkit.policies.evaluation import ObservationMap, run_episodes, wilson_interval
 from shiftkit.policies.fire.aggregate import SOURCE_EXPERT, aggregate
-from shiftkit.policies.fire.config import FireArgs
+from shiftkit.policies.fire.config import FireArgs, nest_bc_settings
 from shiftkit.policies.fire.dagger_recording import rollout_repo_id, write_recording
 from shiftkit.policies.fire.discriminator import Discriminator, DiscriminatorConfig
 from shiftkit.policies.fire.episode import Agent, EpisodeResult, recordable_features, run_episode
@@ -169,19 +169,13 @@ def _open_env(args: FireArgs, fps: int, dataset: Path, name: str) -> Any:
 
 def _initial_bc(args: FireArgs, bc_dir: Path, device: torch.device) -> BCPolicy:
     """BC initialised from the demonstrations (its own run folder, resumable too), with FIRE's own
-    network settings (`FireArgs`), not `shiftkit train bc`'s defaults."""
+    BC settings (`FireArgs.bc`), not `shiftkit train bc`'s defaults."""
     train_bc(
         BCArgs(
+            **dataclasses.asdict(args.bc),
             datasets=[args.dataset],
             root=args.root,
             output_dir=str(bc_dir),
-            regime=args.bc_regime,
-            steps=args.bc_steps,
-            val_fraction=args.val_fraction if args.bc_regime == "early-stop" else None,
-            ensemble_size=args.ensemble_size,
-            hidden=args.hidden,
-            output_activation=args.output_activation,
-            batch_size=args.batch_size,
             seed=args.seed,
             device=args.device,
             threads=args.threads,
@@ -202,7 +196,7 @@ def _learner(
     expert_set, policy_set = FrameBuffer(keys), FrameBuffer(keys)
     expert_set.add(demo_frames.gather(np.arange(demo_frames.num_frames)))
     held_out = np.zeros(demo_frames.num_frames, dtype=bool)
-    held_out[demo_frames.split_episodes(args.val_fraction, args.seed)[1]] = True
+    held_out[demo_frames.split_episodes(args.hold_out_share, args.seed)[1]] = True
     demo_lengths = [end - start for start, end in demo_frames.episodes]
     optimizers = [torch.optim.Adam(net.parameters(), lr=args.online_lr) for net in policy.members]
     disc = Discriminator(
@@ -260,7 +254,7 @@ def _learn(learner: Learner, ep: EpisodeResult, args: FireArgs, active: bool, de
     by_expert = ep.frames["source"][:, 0] == SOURCE_EXPERT
     keep = {k: ep.frames[k] for k in learner.expert_set.keys}
     # each correction joins D_E, a seeded share of the corrections held out for the retraining
-    held = [learner.rng.random() < args.val_fraction for s in ep.segments if s.expert]
+    held = [learner.rng.random() < args.hold_out_share for s in ep.segments if s.expert]
     stretch_held = np.zeros(n, dtype=bool)
     for segment, h in zip((s for s in ep.segments if s.expert), held, strict=True):
         stretch_held[slice(*segment.payload)] = h
@@ -363,6 +357,7 @@ def run(args: FireArgs) -> dict:
             "versions": versions(),
         },
         ignore_on_resume=("resume", "progress"),
+        stored_args=nest_bc_settings,
     )
     state = run_dir.load_latest() if args.resume else None
     if state is not None and state["final"]:
@@ -383,6 +378,7 @@ def run(args: FireArgs) -> dict:
             "versions": versions(),
         },
         ignore_on_resume=("resume", "progress"),
+        stored_args=nest_bc_settings,
     )
     if state is not None:
         learner.load_state_dict(state)

@@ -6,6 +6,7 @@ import argparse
 
 from shiftkit.datasets.option_values import DataclassOptions
 from shiftkit.policies.trainers import Trainer, register
+from shiftkit.policies.trainers.bc.args import FLAGS
 
 TRAINER = register(
     Trainer(
@@ -22,12 +23,7 @@ def options() -> DataclassOptions:
     """`BCArgs` as options (each field's rule and choices are the field's own)."""
     return DataclassOptions(
         TRAINER.args_class(),
-        flags={
-            "datasets": "dataset",
-            "output_dir": "output",
-            "ensemble_size": "ensemble",
-            "num_keypoints": "keypoints",
-        },
+        flags={"datasets": "dataset", "output_dir": "output", **FLAGS},
     )
 
 
