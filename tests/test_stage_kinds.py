@@ -46,7 +46,7 @@ def _plan(stages, tmp_path, video=None, own=()):
         ([], None, {FRONT, WRIST, DEPTH}),
         ([("rename", {"mapping": {FRONT: "observation.images.top"}}), ("drop", {"features": [WRIST]})], None,
          {"observation.images.top", DEPTH}),
-        ([("resize", {"width": 16, "height": 8, "features": [WRIST]})], None, {FRONT, DEPTH}),
+        ([("resize", {"width": 32, "height": 8, "features": [WRIST]})], None, {FRONT, DEPTH}),
         ([("depth_image", {"unit": "m"})], None, {FRONT, WRIST}),  # depth stored in another unit
         ([("filter", {"min_length": 6})], None, {FRONT, WRIST, DEPTH}),  # whole episodes dropped
         ([("trim", {"head": 1})], None, set()),  # frames re-indexed
@@ -71,7 +71,7 @@ def test_the_plan_says_which_cameras_pass_unchanged(tmp_path, stages, video, unc
 
 
 def test_a_source_s_own_stages_count_too(tmp_path):
-    plan = _plan([], tmp_path, own=[("resize", {"width": 16, "height": 8, "features": [FRONT]})])
+    plan = _plan([], tmp_path, own=[("resize", {"width": 32, "height": 8, "features": [FRONT]})])
     assert not plan.frames_pass_unchanged(FRONT) and plan.frames_pass_unchanged(WRIST)
 
 
