@@ -252,14 +252,12 @@ class DatasetWriter:
             else:  # frames, or a source's frames not copied (decoded here)
                 encode_episode_video(frames, self.features[key], self.fps, path)
             metadata.update(self._lerobot._save_episode_video(key, self.num_episodes, temp_path=path))
-            if self.num_episodes == 0 and encoder is not self._lerobot_encoder(key):
+            lerobots = default_encoders()["depth" if depth.is_depth(self.features[key]) else "rgb"]
+            if self.num_episodes == 0 and encoder != lerobots:
                 # lerobot recorded its writer's encoder settings in the feature's info: these instead
                 self._meta.update_video_info(key, video_encoder=encoder)
         metadata.pop("episode_index", None)
         return metadata
-
-    def _lerobot_encoder(self, key: str) -> Any:
-        return default_encoders()["depth" if depth.is_depth(self.features[key]) else "rgb"]
 
     def _copies(self, key: str, frames: Any) -> bool:
         """Whether this episode's `key` frames are copied from their source video (`VideoRef`): then

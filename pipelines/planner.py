@@ -196,9 +196,10 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     if config.destination.video is not None:
         features = plain_camera_features(features, "video" if config.destination.video else "image")
     features = {k: _video_at(ft, fps) for k, ft in features.items()}
+    settings = config.destination.encoder_settings()
     for key, ft in features.items():  # the destination's encoder settings, checked before anything runs
         if ft["dtype"] == "video" and not is_depth(ft):
-            check_rgb_encoder(key, ft, config.destination.encoder_settings())
+            check_rgb_encoder(key, ft, settings)
     plan = Plan(
         config,
         sources,
@@ -210,7 +211,6 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
         sources[0].robot_type,
         [own for own, _, _ in chains],
     )
-    settings = config.destination.encoder_settings()
     if settings:  # the RGB video cameras that are encoded: with the destination's settings, which the writer reads
         plan.features = {
             k: {**ft, "info": encoded_info(ft.get("info"), settings)} if _encoded_rgb(plan, k) else ft
