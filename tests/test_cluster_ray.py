@@ -68,10 +68,16 @@ class RayCluster:
         )
 
     def nodes(self) -> int:
+        """The cluster's live nodes, or 0 while it cannot be reached."""
         probe = "import ray; ray.init(address=%r, logging_level='ERROR'); print(len([n for n in ray.nodes() if n['Alive']]))"
-        proc = subprocess.run(
-            [sys.executable, "-c", probe % self.address], env=self.env, capture_output=True, text=True, timeout=60
-        )
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-c", probe % self.address], env=self.env, capture_output=True, text=True, timeout=60
+            )
+        except subprocess.TimeoutExpired:
+            # A driver that connects while the head's GCS is still starting can wait out the
+            # GCS reconnect timeout; that is "not ready yet", asked again by the caller.
+            return 0
         return int(proc.stdout.strip().splitlines()[-1]) if proc.returncode == 0 and proc.stdout.strip() else 0
 
     def start(self) -> None:
@@ -83,9 +89,9 @@ class RayCluster:
             21000,
         )  # fmt: skip
         logs = (self.root / "head.log", self.root / "node.log")
-        _wait("the Ray head", lambda: self.nodes() == 1, 120, logs, period=1)
+        _wait("the Ray head", lambda: self.nodes() == 1, 300, logs, period=1)
         self._start("node", [f"--address={self.address}"], 21200)
-        _wait("the second Ray node", lambda: self.nodes() == 2, 120, logs, period=1)
+        _wait("the second Ray node", lambda: self.nodes() == 2, 300, logs, period=1)
 
     def stop(self) -> None:
         for proc in reversed(self.procs):
