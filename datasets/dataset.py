@@ -97,6 +97,10 @@ class Dataset:
         another's; None when they cannot be copied (`video_copy.copy_signature`)."""
         return self.reader.video_copy_signature(key)
 
+    def video_cuttable(self, key: str) -> bool:
+        """Whether video feature `key`'s episodes can be cut between keyframes (`video_copy.cuttable`)."""
+        return self.reader.video_cuttable(key)
+
     def describe(self) -> dict[str, Any]:
         """The dataset as a pipeline's provenance records its source (ID, path, revision, fingerprint,
         episodes)."""

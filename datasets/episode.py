@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from shiftkit.datasets.video_copy import VideoRef
+
 # Columns the LeRobot writer derives itself; an Episode never carries them.
 DERIVED_KEYS = ("frame_index", "episode_index", "index", "task_index")
 META_COLUMN = "shiftkit/meta"  # where a dataset stores `Episode.meta` (JSON): a column of meta/episodes/*.parquet
@@ -47,9 +49,13 @@ class Episode:
     def select(self, index: np.ndarray | slice | list[int]) -> Episode:
         """A new episode made of the frames picked by `index` (arrays are copied, meta too); its frame
         map follows the picked frames."""
-        # subok: camera frames read from PNG keep their source bytes (datasets/encoded_frames.py)
+        # subok: camera frames read from PNG keep their source bytes (datasets/encoded_frames.py);
+        # `take`: a video still encoded stays so where it can (datasets/video_copy.py)
         return Episode(
-            {k: np.array(v[index], subok=True) for k, v in self.frames.items()},
+            {
+                k: v.take(index) if isinstance(v, VideoRef) else np.array(v[index], subok=True)
+                for k, v in self.frames.items()
+            },
             dict(self.meta),
             self.origin()[index],
         )

@@ -21,7 +21,7 @@ from shiftkit.datasets.episode import META_COLUMN, Episode
 from shiftkit.datasets.errors import DatasetError
 from shiftkit.datasets.features import Features, object_column, user_features
 from shiftkit.datasets.images import decode_image, decode_video, image_form
-from shiftkit.datasets.video_copy import VideoRef, copy_signature
+from shiftkit.datasets.video_copy import VideoRef, copy_signature, cuttable
 
 _EPISODES_PER_READ = 64  # a reader holds at most this many episodes' rows of one data file
 
@@ -182,6 +182,10 @@ class LeRobotDatasetReader:
         for row in self._rows:
             files.setdefault(self._video_file(key, row), []).append(float(row[f"videos/{key}/from_timestamp"]))
         return copy_signature(files)
+
+    def video_cuttable(self, key: str) -> bool:
+        """Whether episodes of video feature `key` can be cut between keyframes (`video_copy.cuttable`)."""
+        return cuttable(list(dict.fromkeys(self._video_file(key, row) for row in self._rows)))
 
     def _video_ref(self, key: str, row: Any, timestamps: np.ndarray) -> VideoRef:
         i = int(row["episode_index"])

@@ -21,10 +21,12 @@ run's work folder holds encoded video rather than pixels; the writer appends tho
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +124,25 @@ def dequantize_metres(codes: np.ndarray, info: dict[str, Any] | None) -> np.ndar
     return buf
 
 
+@contextlib.contextmanager
+def scheduling_kept() -> Iterator[None]:
+    """The calling thread's scheduling policy as it was before the block, after it. SVT-AV1
+    (lerobot's default encoder), run as root, makes the thread that opens it real-time (SCHED_FIFO,
+    priority 99; measured here through PyAV), and every process that thread starts inherits that:
+    a pipeline's workers, a trainer, a cluster node. On a small machine a busy real-time process
+    starves the others, its parent's timeouts included. Wrapped around every encoder shiftkit opens."""
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    except (AttributeError, OSError):  # not Linux: no such policy change to undo
+        yield
+        return
+    try:
+        yield
+    finally:
+        if os.sched_getscheduler(0) != policy:
+            os.sched_setscheduler(0, policy, param)
+
+
 def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encoder_threads: int | None = None) -> None:
     """lerobot's `encode_video_frames` (same codec, options, pixel format and muxing; depth through
     its `quantize_depth`) fed from memory: it reads the PNG / TIFF files a recorder wrote, which a
@@ -139,7 +160,7 @@ def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encode
     options = encoder.get_codec_options(encoder_threads, as_strings=True)
     logging.getLogger("libav").setLevel(av.logging.WARNING)
     try:
-        with av.open(str(path), "w") as output:
+        with scheduling_kept(), av.open(str(path), "w") as output:
             stream = output.add_stream(encoder.vcodec, fps, options=options)
             stream.pix_fmt = encoder.pix_fmt
             stream.height, stream.width = frames.shape[1:3]

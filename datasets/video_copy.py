@@ -13,6 +13,15 @@ at the `from_timestamp` lerobot's writer would give it, a new file when the curr
 `concatenate_video_files`: a concat-demuxer remux), done per episode, so that an episode a stage
 drops is never read.
 
+A stage that keeps one contiguous run of an episode's frames (`trim`) hands on a reference to that
+run (`VideoRef.take`). Where the run starts between keyframes, the copier cuts smartly: it decodes
+from the keyframe before, encodes the frames up to the next keyframe with the source's recorded
+settings (`video.encoder_for`), from the decoder's own pixel format, and copies the packets from
+that keyframe on: one or a few frames encoded per episode instead of all. This needs a stream whose
+keyframes carry their own sequence header and whose packets come in presentation order (AV1, as
+lerobot writes it: `cuttable`), so that the encoded frames need no parameters of the source's
+stream and no copied frame refers to one left out; other streams are encoded whole.
+
 Copying needs every episode of a camera to come from streams that concatenate: same codec, size,
 pixel format, time base and codec parameters (`stream_signature`), each episode starting on a
 keyframe (`copy_signature`); a merge of differently encoded sources encodes instead. Depth videos
@@ -86,6 +95,20 @@ class VideoRef:
     def __getitem__(self, index: Any) -> np.ndarray:
         return np.asarray(self)[index]
 
+    def take(self, index: np.ndarray | slice | list[int]) -> VideoRef | np.ndarray:
+        """The frames at `index`: still a reference when they are one contiguous run of this
+        episode's frames (what `trim` keeps; `Episode.select`), else decoded."""
+        picked = np.arange(len(self))[index]
+        if picked.ndim != 1 or not len(picked) or np.any(np.diff(picked) != 1):
+            return np.asarray(self)[index]
+        a, b = int(picked[0]), int(picked[-1]) + 1
+        if (a, b) == (0, len(self)):
+            return self
+        ts = self.timestamps
+        stop = self.start + ts[b] if b < len(self) else self.stop
+        # the run's statistics are not the episode's: computed from its frames (`stats.episode_stats`)
+        return VideoRef(self.path, self.start + ts[a], stop, ts[a:b] - ts[a], self.feature, None)
+
     def __iter__(self):
         return iter(np.asarray(self))
 
@@ -99,6 +122,12 @@ class VideoRef:
             "feature": self.feature,
             "stats": self.stats,
         }
+
+
+def cuttable(files: list[Path]) -> bool:
+    """Whether episodes of these video files can be cut between keyframes (module docstring): AV1,
+    every packet in presentation order."""
+    return all(facts.codec == "av1" and facts.in_order for facts in (_file_facts(f)[1] for f in files))
 
 
 def copy_signature(files: dict[Path, list[float]]) -> tuple | None:
@@ -127,6 +156,10 @@ class FileFacts:
     """Every packet's pts, ascending."""
     sizes: np.ndarray
     """Bytes of the packets up to each pts (cumulative, in `pts` order)."""
+    codec: str
+    """The codec's canonical name (`av1`, `h264`, `hevc`)."""
+    in_order: bool
+    """Whether the packets come in presentation order (no frame refers to a later one)."""
 
     @property
     def packets(self) -> int:
@@ -154,15 +187,18 @@ def _facts(path: str, size: int, mtime_ns: int) -> tuple[tuple, FileFacts]:
         with av.open(path) as container:
             stream = container.streams.video[0]
             rows = [(p.pts, p.size, p.is_keyframe) for p in container.demux(stream) if p.pts is not None]
-            time_base = stream.time_base
+            time_base, codec = stream.time_base, stream.codec_context.codec.canonical_name
     except (av.error.FFmpegError, OSError) as exc:
         raise DatasetError(f"cannot read the video stream of {path} ({type(exc).__name__}: {exc})") from None
+    in_order = all(a[0] < b[0] for a, b in zip(rows, rows[1:], strict=False))
     rows.sort()
     facts = FileFacts(
         time_base,
         frozenset(pts for pts, _, key in rows if key),
         np.array([pts for pts, _, _ in rows], dtype=np.int64),
         np.cumsum([size for _, size, _ in rows], dtype=np.int64),
+        codec,
+        in_order,
     )
     return signature, facts
 
@@ -205,6 +241,8 @@ class VideoFileCopier:
         self._duration = 0.0  # the current file's to_timestamp so far
         self._source: tuple[str, Any] | None = None  # the open source container (path, container)
         self.signature: tuple | None = None
+        self.encoded_frames = 0
+        """Frames encoded at smart cuts (the rest are the source's packets)."""
 
     def add(self, ref: VideoRef) -> dict[str, Any]:
         """Take one episode; returns its `videos/KEY/...` episode metadata."""
@@ -285,20 +323,59 @@ class VideoFileCopier:
         tb = stream.time_base
         lo, hi = round(ref.start / tb), round(ref.stop / tb)
         container.seek(lo, stream=stream, backward=True)
-        packets = []
+        lead, packets = [], []  # from the keyframe at or before `lo`; the episode's
         for packet in container.demux(stream):
             if packet.dts is None:  # the demuxer's flush packet
                 continue
             if packet.dts >= hi:
                 break
-            if packet.pts is not None and lo <= packet.pts < hi:
+            if packet.pts is not None and packet.pts < lo:
+                lead.append(packet)
+            elif packet.pts is not None and lo <= packet.pts < hi:
                 packets.append(packet)
-        if len(packets) != len(ref) or not packets[0].is_keyframe:
+        if len(packets) != len(ref):
             raise DatasetError(
                 f"{ref.path}: the episode at {ref.start:.4f}-{ref.stop:.4f} s has {len(packets)} packets "
-                f"for {len(ref)} frames{'' if not packets or packets[0].is_keyframe else ', not starting on a keyframe'}"
+                f"for {len(ref)} frames"
             )
+        if not packets[0].is_keyframe:
+            if not cuttable([ref.path]):
+                raise DatasetError(f"{ref.path}: the episode at {ref.start:.4f} s does not start on a keyframe")
+            k = next((i for i, p in enumerate(packets) if p.is_keyframe), len(packets))
+            packets = self._encoded(ref, stream, lead + packets[:k], lo) + packets[k:]
         return packets, stream
+
+    def _encoded(self, ref: VideoRef, stream: Any, packets: list[Any], lo: int) -> list[Any]:
+        """The frames from pts `lo` on that `packets` (from a keyframe on) decode to, encoded as a
+        stream of their own that starts on a keyframe: the smart cut's head (module docstring)."""
+        import av
+
+        from shiftkit.datasets.video import encoder_for, scheduling_kept
+
+        source = stream.codec_context
+        frames = [f for p in packets for f in p.decode() if f.pts is not None and f.pts >= lo]
+        frames += [f for f in source.decode(None) if f.pts is not None and f.pts >= lo]  # the decoder's delay
+        source.flush_buffers()
+        encoder = encoder_for(ref.feature)
+        ctx = av.CodecContext.create(encoder.vcodec, "w")
+        # the decoder's own pixel format, size and clock: no RGB round trip, the copied packets' times
+        ctx.width, ctx.height, ctx.pix_fmt = source.width, source.height, source.pix_fmt
+        ctx.time_base, ctx.framerate = stream.time_base, stream.average_rate
+        ctx.options = encoder.get_codec_options(None, as_strings=True)
+        out = []
+        with scheduling_kept():
+            for frame in frames:
+                frame.pict_type = av.video.frame.PictureType.NONE  # the encoder decides (a keyframe first)
+                out += ctx.encode(frame)
+            out += ctx.encode(None)
+        if len(out) != len(frames) or not out[0].is_keyframe:
+            raise DatasetError(
+                f"{ref.path}: cutting at {ref.start:.4f} s encoded {len(frames)} frames into {len(out)} packets"
+            )
+        for packet in out:
+            packet.dts = packet.pts  # in presentation order (`cuttable`)
+        self.encoded_frames += len(out)
+        return out
 
     def close_source(self) -> None:
         """Close the open source file."""

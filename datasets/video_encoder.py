@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from shiftkit.datasets.errors import ConfigError, DatasetError
-from shiftkit.datasets.video import check_frame_size
+from shiftkit.datasets.video import check_frame_size, scheduling_kept
 
 ENCODER_SETTINGS = ("vcodec", "pix_fmt", "g", "crf", "preset")
 """The encoder settings a destination may give, by lerobot's `VideoEncoderConfig` field names."""
@@ -99,7 +99,7 @@ def _open_encoder(config: Any, height: int, width: int) -> None:
     ctx.options = config.get_codec_options(as_strings=True)
     # its refusal goes into the error, not to stderr: FFmpeg's log and the encoder library's own
     # (x264 prints an unknown preset there itself)
-    with _stderr_silenced():
+    with _stderr_silenced(), scheduling_kept():
         try:
             ctx.open()
         except av.error.FFmpegError as exc:

@@ -325,6 +325,9 @@ class DatasetWriter:
             self._writer = None
         for copier in self._copiers.values():
             copier.close()
+        cut = {k: c.encoded_frames for k, c in sorted(self._copiers.items()) if c.encoded_frames}
+        if cut and provenance is not None:  # frames encoded where a copied camera was cut between keyframes
+            provenance = {**provenance, "video_encoded_at_cuts": cut}
         self._lerobot.finalize()  # lerobot's: flushes the episodes table, closes its files
         shutil.rmtree(self.tmp / "images", ignore_errors=True)  # the video encoder's input frames
         self._write_info_and_stats()

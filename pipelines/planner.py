@@ -26,7 +26,7 @@ from shiftkit.datasets.sources import Source, input_paths, open_source
 from shiftkit.datasets.video import check_frame_size, encoder_for
 from shiftkit.datasets.video_encoder import check_rgb_encoder, encoded_info, stream_matches
 from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
-from shiftkit.pipelines.stage import Stage, StageContext, build_stage, selecting_stages
+from shiftkit.pipelines.stage import ReindexStage, Stage, StageContext, build_stage, selecting_stages
 
 
 @dataclass
@@ -90,9 +90,8 @@ class Plan:
         return inputs
 
     def kept_source(self, feature: str, source: int) -> str | None:
-        """The camera of source `source` whose frames the output camera `feature` holds unchanged,
-        one for one, through every stage of its chain (`Stage.kept_frames`, following renames), or
-        None."""
+        """The camera of source `source` whose frames the output camera `feature` holds unchanged
+        through every stage of its chain (`Stage.kept_frames`, following renames), or None."""
         inputs = self._stage_inputs(source)
         name: str | None = feature
         for stage, stage_input in zip(reversed(self.chain(source)), reversed(inputs), strict=True):
@@ -103,8 +102,9 @@ class Plan:
 
     def frames_pass_unchanged(self, feature: str) -> bool:
         """Whether every frame of the output camera `feature`, from every source, is its source
-        frame's pixels, stored alike: each stage of each chain keeps that camera's frames one for one
-        (`Stage.kept_frames`, following renames back to the source's feature), and the source stores it
+        frame's pixels, stored alike: each stage of each chain keeps that camera's frames, one for one
+        or as a contiguous run (`Stage.kept_frames`, following renames back to the source's feature),
+        and the source stores it
         as the output does (image or video, shape, depth unit, fps). What the writer needs to know to
         copy a source's encoded frames (a video's) instead of decoding and encoding them again."""
         out = self.features.get(feature)
@@ -123,7 +123,9 @@ class Plan:
         the same unit), as video whose
         streams concatenate (same codec, size, pixel format, time base, codec parameters) with every
         episode starting on a keyframe (`video_copy.copy_signature`), and for RGB already encoded as
-        the destination's encoder settings ask (`video_encoder.stream_matches`). The others are encoded."""
+        the destination's encoder settings ask (`video_encoder.stream_matches`); where a stage keeps a
+        run of an episode's frames (`trim`), streams that can be cut between keyframes
+        (`video_copy.cuttable`). The others are encoded."""
         copies = {}
         settings = self.config.destination.encoder_settings()
         for key, ft in self.features.items():
@@ -136,7 +138,13 @@ class Plan:
             ):
                 continue  # the user asked for another stream than the source's
             signatures = {_copy_signature(source, name) for source, name in zip(self.sources, names, strict=True)}
-            if None not in signatures and len(signatures) == 1:
+            if None in signatures or len(signatures) != 1:
+                continue
+            if all(
+                source.video_cuttable(name)
+                for s, (source, name) in enumerate(zip(self.sources, names, strict=True))
+                if any(isinstance(stage, ReindexStage) for stage in self.chain(s))
+            ):
                 copies[key] = names
         return copies
 

@@ -139,10 +139,20 @@ class Stage(ABC):
         return {**same, "task": "task"}
 
     def kept_frames(self, features: Features) -> dict[str, str]:
-        """Output camera feature -> the input camera whose frames it holds unchanged, one for one
-        (same pixels, stored alike), for an input schema `features`. A stage that is not known to
-        keep frames (`Stage`, `ReindexStage`) keeps none; `FrameStage` keeps what it carries."""
+        """Output camera feature -> the input camera whose frames it holds unchanged (same pixels,
+        stored alike): one for one, or each output episode one contiguous run of its input's frames
+        (`trim`), for an input schema `features`. A stage that is not known to keep frames (`Stage`,
+        `ReindexStage`) keeps none; `FrameStage` keeps what it carries (`carried_cameras`)."""
         return {}
+
+    def carried_cameras(self, features: Features) -> dict[str, str]:
+        """The cameras this stage carries (`carried_features`) under an unchanged feature entry."""
+        out = self.transform_features(features)
+        return {
+            key: source
+            for key, source in self.carried_features(features).items()
+            if key in out and out[key]["dtype"] in CAMERA_DTYPES and out[key] == features.get(source)
+        }
 
     def dropped_unread(self, features: Features) -> set[str]:
         """Input features this stage removes without reading their values (for an input schema
@@ -164,12 +174,7 @@ class FrameStage(Stage):
 
     @override
     def kept_frames(self, features: Features) -> dict[str, str]:
-        out = self.transform_features(features)
-        return {
-            key: source
-            for key, source in self.carried_features(features).items()
-            if key in out and out[key]["dtype"] in CAMERA_DTYPES and out[key] == features.get(source)
-        }
+        return self.carried_cameras(features)
 
 
 @dataclass

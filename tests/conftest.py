@@ -34,6 +34,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip)
 
 
+_SCHEDULING = (os.sched_getscheduler(0), os.sched_getparam(0))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    # lerobot's own encoder (SVT-AV1), run as root in this process by a fixture (lerobot-written
+    # recordings), makes this thread real-time, and every process a test starts would inherit it
+    # (datasets/video.py `scheduling_kept`): each test body starts at the session's policy.
+    if os.sched_getscheduler(0) != _SCHEDULING[0]:
+        os.sched_setscheduler(0, *_SCHEDULING)
+    yield
+
+
 @pytest.fixture
 def synthetic_raw(tmp_path):
     """A small synthetic raw dataset (5 episodes, state + action + success)."""

@@ -212,9 +212,13 @@ _CACHE: dict[Recording, Path] = {}
 
 
 def recording(rec: Recording) -> Path:
-    """`rec` written once per test session (in a temporary folder); treat it as read-only."""
+    """`rec` written once per test session (in a temporary folder); treat it as read-only. lerobot's
+    encoder leaves this thread real-time where it runs as root (`video.scheduling_kept` undoes it)."""
+    from shiftkit.datasets.video import scheduling_kept
+
     if rec not in _CACHE:
-        _CACHE[rec] = write_recording(Path(tempfile.mkdtemp(prefix="recording-")) / "ds", rec)
+        with scheduling_kept():
+            _CACHE[rec] = write_recording(Path(tempfile.mkdtemp(prefix="recording-")) / "ds", rec)
     return _CACHE[rec]
 
 

@@ -49,7 +49,7 @@ def _plan(stages, tmp_path, video=None, own=()):
         ([("resize", {"width": 32, "height": 8, "features": [WRIST]})], None, {FRONT, DEPTH}),
         ([("depth_image", {"unit": "m"})], None, {FRONT, WRIST}),  # depth stored in another unit
         ([("filter", {"min_length": 6})], None, {FRONT, WRIST, DEPTH}),  # whole episodes dropped
-        ([("trim", {"head": 1})], None, set()),  # frames re-indexed
+        ([("trim", {"head": 1})], None, {FRONT, WRIST, DEPTH}),  # one contiguous run of each episode
         ([("subsample", {"every": 2})], None, set()),
         ([], False, set()),  # stored as images instead of video
     ],

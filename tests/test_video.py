@@ -282,3 +282,32 @@ def test_a_camera_too_narrow_for_svt_av1_is_refused_before_anything_runs(lerobot
     assert len(err) == 1 and "24 px wide" in err[0], proc.stderr[-2000:]
     with pytest.raises(DatasetError, match="24 px wide"):  # and the encoder itself never gets such frames
         encode_frames(np.zeros((2, 16, 24, 3), np.uint8), tmp_path / "x.mp4", 10, default_encoders()["rgb"])
+
+
+def test_encoding_leaves_the_thread_s_scheduling_as_it_was(tmp_path):
+    """SVT-AV1, run as root, makes the thread that opens it real-time (SCHED_FIFO 99), and every
+    process that thread starts inherits it: pipeline workers, trainers and cluster nodes that starve
+    a small machine. Every encoder shiftkit opens (a worker's or writer's encode, the plan's check of
+    the destination's settings, a smart cut) leaves the policy as it found it. Where this runs as root
+    the change itself is shown first, on a bare PyAV encoder."""
+    import os
+    from fractions import Fraction
+
+    import av
+
+    from shiftkit.datasets.video import default_encoders, encode_frames
+    from shiftkit.datasets.video_encoder import check_rgb_encoder
+
+    before = os.sched_getscheduler(0)
+    if os.geteuid() == 0:
+        ctx = av.CodecContext.create("libsvtav1", "w")
+        ctx.width, ctx.height, ctx.pix_fmt, ctx.time_base = 48, 32, "yuv420p", Fraction(1, 10)
+        frame = av.VideoFrame.from_ndarray(np.zeros((32, 48, 3), np.uint8), format="rgb24").reformat(format="yuv420p")
+        ctx.encode(frame)
+        assert os.sched_getscheduler(0) == os.SCHED_FIFO  # what the guard undoes
+        os.sched_setscheduler(0, before, os.sched_param(0))
+    encode_frames(np.zeros((3, 32, 48, 3), np.uint8), tmp_path / "a.mp4", 10, default_encoders()["rgb"])
+    assert os.sched_getscheduler(0) == before
+    camera = {"dtype": "video", "shape": [32, 48, 3], "names": ["height", "width", "channels"], "info": {}}
+    check_rgb_encoder("observation.images.front", camera, {"crf": 28})  # the plan opens the encoder
+    assert os.sched_getscheduler(0) == before

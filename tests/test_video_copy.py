@@ -211,6 +211,55 @@ def test_a_copy_starts_only_on_a_keyframe(tmp_path, monkeypatch):
     assert max(float(np.abs(a - b).mean()) for a, b in zip(got, src, strict=True)) < 0.05  # encoded again: lossy
 
 
+TRIMMED = Recording(
+    video=True, cameras=("front", "wrist"), depth=("front",), depth_unit="mm", size=(32, 48), lengths=(8, 9, 8),
+    language=False,
+)  # fmt: skip
+
+
+@pytest.mark.parametrize(("head", "tail", "cut"), [(1, 2, 1), (2, 1, 0), (3, 0, 1)])
+def test_trim_copies_from_a_keyframe_and_encodes_only_up_to_it(head, tail, cut, tmp_path, monkeypatch):
+    """`trim` keeps one run of each episode's frames: an AV1 camera (lerobot's, `g=2`) is copied from
+    the run's first keyframe on, and only the frames before it (`cut` per episode: none when the run
+    starts on a keyframe) are encoded, from the decoder's pixels with the source's settings, into a
+    stream that starts on a keyframe. Checked against the source: the copied packets are its bytes,
+    lerobot's loader gives its frames exactly there and near ones at the cut; the HEVC depth (its
+    packets out of presentation order) is encoded whole; statistics and `validate --deep` hold."""
+    import os
+
+    source = recording(TRIMMED)
+    policy = os.sched_getscheduler(0)
+    out = _run([source], tmp_path / "out", [StageSpec("trim", {"head": head, "tail": tail})])
+    assert os.sched_getscheduler(0) == policy  # the cut's encoder left this thread as it was
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    depth = "observation.depth.front"
+    assert provenance["video"] == {**dict.fromkeys(CAMERAS, "copied"), depth: "encoded"}
+    runs = [(head, n - tail) for n in TRIMMED.lengths]
+    if cut:
+        assert provenance["video_encoded_at_cuts"] == dict.fromkeys(CAMERAS, cut * len(runs))
+    else:
+        assert "video_encoded_at_cuts" not in provenance
+    for key in CAMERAS:
+        src_info, out_info = (json.loads((r / "meta/info.json").read_text())["features"][key] for r in (source, out))
+        assert out_info == src_info  # the source's stream settings
+        src_packets, out_packets = _episode_packets(source, key), _episode_packets(out, key)
+        for (a, b), got, src in zip(runs, out_packets, src_packets, strict=True):
+            assert len(got) == b - a and got[cut:] == src[a + cut : b]
+        src_frames, got = _lerobot_frames(source, key), _lerobot_frames(out, key)
+        starts = np.cumsum((0, *TRIMMED.lengths))
+        # per output frame: its source frame, and whether it was encoded (the first `cut` of its run)
+        kept = [(int(starts[e]) + t, t - a < cut) for e, (a, b) in enumerate(runs) for t in range(a, b)]
+        assert len(got) == len(kept)
+        for frame, (t, encoded) in zip(got, kept, strict=True):
+            if not encoded:
+                np.testing.assert_array_equal(frame, src_frames[t])
+        encoded = [(frame, t) for frame, (t, enc) in zip(got, kept, strict=True) if enc]
+        if encoded:
+            assert _psnr_of_encoded([f for f, _ in encoded], src_frames, [t for _, t in encoded]) > 20
+    assert len(_lerobot_frames(out, depth)) == sum(b - a for a, b in runs)
+    _validate_deep(out, monkeypatch)
+
+
 @pytest.fixture(scope="module")
 def h264_source(tmp_path_factory):
     """A two-camera dataset that lerobot's writer encoded as H.264 yuv444p, crf 23, g 30 (B-frames: the

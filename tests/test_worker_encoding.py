@@ -23,12 +23,13 @@ REC = Recording(
     video=True, cameras=("front", "wrist"), depth=("front",), size=(64, 80), lengths=(9, 8, 7), language=False
 )
 VIDEOS = ("observation.images.front", "observation.images.wrist", "observation.depth.front")
-TRIM = [StageSpec("trim", {"head": 1, "tail": 1})]  # re-indexes: every camera is encoded
+TRIM = [StageSpec("trim", {"head": 1, "tail": 1})]
 
 
 def _config(source: Path, out: Path) -> PipelineConfig:
+    # trimmed, and RGB asked at another crf than the source's (depth: HEVC, never cut): all encoded
     return PipelineConfig(
-        sources=[SourceConfig(path=str(source))], destination=DestinationConfig(root=str(out)), stages=TRIM
+        sources=[SourceConfig(path=str(source))], destination=DestinationConfig(root=str(out), crf=25), stages=TRIM
     )
 
 

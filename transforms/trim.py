@@ -46,6 +46,10 @@ class Trim(ReindexStage):
         return features
 
     @override
+    def kept_frames(self, features: Features) -> dict[str, str]:
+        return self.carried_cameras(features)  # one contiguous run per episode: copied, cut at its start
+
+    @override
     def reindex(self, episode: Episode, rng: np.random.Generator) -> Iterable[Reindex]:
         n = len(episode)
         start, stop = self.config.head, n - self.config.tail
