@@ -3,7 +3,9 @@ through lerobot's own encoder settings and file layout, for RGB and for depth.
 
 Decoding: lerobot's loader decodes frame by frame (a seek per frame); a pipeline needs whole
 episodes, so the reader seeks once to the episode's start in the (concatenated) video file and
-decodes forward, matching frames to the episode's timestamps with lerobot's tolerance. PyAV is the
+decodes forward, matching frames to the episode's timestamps with lerobot's tolerance; the file
+stays open for the next episode (lerobot puts many episodes in one file), so a process opens each
+file once, not once per episode and camera. PyAV is the
 backend that works here (torchcodec cannot load its FFmpeg libraries on these machines). Depth
 videos (12-bit `gray12le` codes) are dequantised with the parameters lerobot recorded in the
 feature's `info` (`video.depth_min/max/shift/use_log`), in numpy with lerobot's formula, so that
@@ -21,6 +23,7 @@ run's work folder holds encoded video rather than pixels; the writer appends tho
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import logging
@@ -63,6 +66,31 @@ def decoder_backend() -> str:
     return "torchcodec"
 
 
+# The video files this process read last, open: episodes of one file (lerobot puts many in each)
+# are decoded with one container and decoder, not one per episode and camera. Keyed by the
+# file's size and time (a rewritten file is opened anew) and the process (a forked worker does not
+# share its parent's file offsets).
+_OPEN: collections.OrderedDict[tuple, Any] = collections.OrderedDict()
+_KEEP_OPEN = 8
+
+
+def _opened(path: Path) -> tuple[tuple, Any]:
+    """(cache key, an open PyAV container of `path`), from `_OPEN` where it is there."""
+    import av
+
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns, os.getpid())
+    container = _OPEN.pop(key, None)
+    if container is None:
+        container = av.open(str(path))
+        container.streams.video[0].thread_type = "AUTO"
+    _OPEN[key] = container
+    while len(_OPEN) > _KEEP_OPEN:
+        _, old = _OPEN.popitem(last=False)
+        old.close()
+    return key, container
+
+
 def decode_episode(
     path: Path, start: float, timestamps: np.ndarray, where: str, depth_info: dict[str, Any] | None = None
 ) -> np.ndarray:
@@ -72,21 +100,23 @@ def decode_episode(
 
     queries = start + np.asarray(timestamps, dtype=np.float64)
     frames: list[np.ndarray | None] = [None] * len(queries)
+    key = None
     try:
-        with av.open(str(path)) as container:
-            stream = container.streams.video[0]
-            stream.thread_type = "AUTO"
-            base = float(stream.time_base)
-            container.seek(max(int(queries[0] / base) - 1, 0), stream=stream, backward=True)
-            for frame in container.decode(stream):
-                t = frame.pts * base
-                if t > queries[-1] + TOLERANCE_S:
-                    break
-                j = int(np.clip(np.searchsorted(queries, t), 1, len(queries) - 1)) if len(queries) > 1 else 0
-                j = j - 1 if j > 0 and abs(queries[j - 1] - t) < abs(queries[j] - t) else j
-                if abs(queries[j] - t) <= TOLERANCE_S:
-                    frames[j] = frame.to_ndarray(format="rgb24" if depth_info is None else "gray12le")
+        key, container = _opened(Path(path))
+        stream = container.streams.video[0]
+        base = float(stream.time_base)
+        container.seek(max(int(queries[0] / base) - 1, 0), stream=stream, backward=True)
+        stream.codec_context.flush_buffers()  # nothing left of the episode decoded before
+        for frame in container.decode(stream):
+            t = frame.pts * base
+            if t > queries[-1] + TOLERANCE_S:
+                break
+            j = int(np.clip(np.searchsorted(queries, t), 1, len(queries) - 1)) if len(queries) > 1 else 0
+            j = j - 1 if j > 0 and abs(queries[j - 1] - t) < abs(queries[j] - t) else j
+            if abs(queries[j] - t) <= TOLERANCE_S:
+                frames[j] = frame.to_ndarray(format="rgb24" if depth_info is None else "gray12le")
     except (av.error.FFmpegError, OSError) as exc:
+        _OPEN.pop(key, None)
         raise DatasetError(f"{where}: cannot decode {path} ({type(exc).__name__}: {exc})") from None
     missing = [i for i, f in enumerate(frames) if f is None]
     if missing:

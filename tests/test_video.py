@@ -311,3 +311,37 @@ def test_encoding_leaves_the_thread_s_scheduling_as_it_was(tmp_path):
     camera = {"dtype": "video", "shape": [32, 48, 3], "names": ["height", "width", "channels"], "info": {}}
     check_rgb_encoder("observation.images.front", camera, {"crf": 28})  # the plan opens the encoder
     assert os.sched_getscheduler(0) == before
+
+
+def test_the_episodes_of_one_video_file_share_one_open_container(monkeypatch):
+    """lerobot stores many episodes in one video file: the reader opens it once per process, not once
+    per episode and camera (the Ray Data `read_lerobot` lesson), and frames decoded in any episode
+    order through the one container are those lerobot's own loader gives."""
+    import av
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.datasets import video
+    from tests.lerobot_recordings import Recording, recording
+
+    rec = Recording(video=True, cameras=("front", "wrist"), depth=("front",), size=(32, 48), lengths=(5, 6, 7),
+                    language=False)  # fmt: skip
+    source = recording(rec)
+    keys = ("observation.images.front", "observation.images.wrist", "observation.depth.front")
+    opened: list[str] = []
+    real_open = av.open
+    monkeypatch.setattr(av, "open", lambda path, *a, **k: opened.append(str(path)) or real_open(path, *a, **k))
+    video._OPEN.clear()
+    reader = open_lerobot_dataset(source)
+    order = [2, 0, 1, 2]  # backwards and forwards within each file
+    episodes = [next(reader.iter_episodes([e])) for e in order]
+    assert sorted(opened) == sorted({str(p) for p in source.glob("videos/*/chunk-*/file-*.mp4")})  # once each
+    loader = LeRobotDataset("test/loaded", root=source, video_backend="pyav", depth_output_unit="m")
+    starts = np.cumsum((0, *rec.lengths))
+    for e, episode in zip(order, episodes, strict=True):
+        for key in keys:
+            expected = np.stack([loader[int(starts[e]) + t][key].numpy() for t in range(rec.lengths[e])])
+            got = np.asarray(episode.frames[key], np.float32)
+            if key.startswith("observation.images"):
+                np.testing.assert_array_equal(got.transpose(0, 3, 1, 2) / 255.0, expected)
+            else:
+                np.testing.assert_allclose(got.transpose(0, 3, 1, 2), expected, rtol=0, atol=2e-6)  # float32 rounding
