@@ -8,8 +8,6 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.datasets.video_copy import VideoRef
-
 # Columns the LeRobot writer derives itself; an Episode never carries them.
 DERIVED_KEYS = ("frame_index", "episode_index", "index", "task_index")
 META_COLUMN = "shiftkit/meta"  # where a dataset stores `Episode.meta` (JSON): a column of meta/episodes/*.parquet
@@ -50,10 +48,10 @@ class Episode:
         """A new episode made of the frames picked by `index` (arrays are copied, meta too); its frame
         map follows the picked frames."""
         # subok: camera frames read from PNG keep their source bytes (datasets/encoded_frames.py);
-        # `take`: a video still encoded stays so where it can (datasets/video_copy.py)
+        # frames still encoded pick their own (`video_copy.VideoRef.select_frames`: stay encoded where they can)
         return Episode(
             {
-                k: v.take(index) if isinstance(v, VideoRef) else np.array(v[index], subok=True)
+                k: v.select_frames(index) if hasattr(v, "select_frames") else np.array(v[index], subok=True)
                 for k, v in self.frames.items()
             },
             dict(self.meta),

@@ -13,12 +13,12 @@ at the `from_timestamp` lerobot's writer would give it, a new file when the curr
 `concatenate_video_files`: a concat-demuxer remux), done per episode, so that an episode a stage
 drops is never read.
 
-A stage that keeps one contiguous run of an episode's frames (`trim`) hands on a reference to that
-run (`VideoRef.take`). Where the run starts between keyframes, the copier cuts smartly: it decodes
-from the keyframe before, encodes the frames up to the next keyframe with the source's recorded
-settings (`video.encoder_for`), from the decoder's own pixel format, and copies the packets from
-that keyframe on: one or a few frames encoded per episode instead of all. This needs a stream whose
-keyframes carry their own sequence header and whose packets come in presentation order (AV1, as
+A stage that keeps one contiguous run of an episode's frames (`trim`) hands on a reference to
+that run (`VideoRef.select_frames`). Where the run starts between keyframes, the copier cuts
+smartly: it decodes from the keyframe before, encodes the frames up to the next keyframe with the
+source's recorded settings (`video.encoder_for`), from the decoder's own pixel format, and copies
+the packets from that keyframe on: one or a few frames encoded per episode instead of all. This
+needs a stream whose keyframes carry their own sequence header and whose packets come in presentation order (AV1, as
 lerobot writes it: `cuttable`), so that the encoded frames need no parameters of the source's
 stream and no copied frame refers to one left out; other streams are encoded whole.
 
@@ -95,7 +95,7 @@ class VideoRef:
     def __getitem__(self, index: Any) -> np.ndarray:
         return np.asarray(self)[index]
 
-    def take(self, index: np.ndarray | slice | list[int]) -> VideoRef | np.ndarray:
+    def select_frames(self, index: np.ndarray | slice | list[int]) -> VideoRef | np.ndarray:
         """The frames at `index`: still a reference when they are one contiguous run of this
         episode's frames (what `trim` keeps; `Episode.select`), else decoded."""
         picked = np.arange(len(self))[index]
