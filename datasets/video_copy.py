@@ -18,8 +18,8 @@ that run (`VideoRef.select_frames`). Where the run starts between keyframes, the
 smartly: it decodes from the keyframe before, encodes the frames up to the next keyframe with the
 source's recorded settings (`video.encoder_for`), from the decoder's own pixel format, and copies
 the packets from that keyframe on: one or a few frames encoded per episode instead of all. This
-needs a stream whose keyframes carry their own sequence header and whose packets come in presentation order (AV1, as
-lerobot writes it: `cuttable`), so that the encoded frames need no parameters of the source's
+needs a stream whose keyframes carry their own sequence header and whose packets come in
+presentation order (AV1, as lerobot writes it: `cuttable`), so that the encoded frames need no parameters of the source's
 stream and no copied frame refers to one left out; other streams are encoded whole.
 
 Copying needs every episode of a camera to come from streams that concatenate: same codec, size,
