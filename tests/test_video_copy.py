@@ -16,7 +16,7 @@ from shiftkit.app.cli import main
 from shiftkit.datasets.sources import SourceConfig
 from shiftkit.pipelines.config import DestinationConfig, PipelineConfig, StageSpec
 from shiftkit.pipelines.runner import run_pipeline
-from tests.helpers import lerobot_train_two_steps
+from tests.helpers import lerobot_train_two_steps, tree_hashes
 from tests.lerobot_recordings import Recording, recording
 
 CAMERAS = ("observation.images.front", "observation.images.wrist")
@@ -257,7 +257,15 @@ def test_trim_copies_from_a_keyframe_and_encodes_only_up_to_it(head, tail, cut, 
         if encoded:
             assert _psnr_of_encoded([f for f, _ in encoded], src_frames, [t for _, t in encoded]) > 20
     assert len(_lerobot_frames(out, depth)) == sum(b - a for a, b in runs)
+    if (head, tail) == (1, 2):  # references and cuts through two workers' parts: the same bytes
+        two = _run([source], tmp_path / "two", [StageSpec("trim", {"head": head, "tail": tail})], workers=2)
+        assert _files(two) == _files(out)
     _validate_deep(out, monkeypatch)
+
+
+def _files(root: Path) -> dict[str, str]:
+    """Every file's hash but the provenance's and card's (they name the executor)."""
+    return {k: v for k, v in tree_hashes(root).items() if not k.endswith(("shiftkit_provenance.json", "README.md"))}
 
 
 @pytest.fixture(scope="module")
