@@ -15,6 +15,8 @@ many of the output's video packets are the source's own bytes (copied or encoded
 * trim a frame at each end: each episode is one run of its frames, copied from its first keyframe
   on, the frames before it encoded (a smart cut: with lerobot's `g=2`, one frame per episode and
   camera); lerobot has no trim tool;
+* subsample 30 -> 15 fps: every other frame, each a keyframe in lerobot's `g=2` stream, copied and
+  shown at the new rate (nothing encoded); lerobot has no subsample tool;
 * the same trim at another crf than the source's (so every frame is encoded) with 2 workers: camera
   images encoded per second against lerobot's rate in its `delete_episodes` (goal 1.5x), the largest
   size the run's work folder reaches against the output's size, and a worker's peak memory;
@@ -325,6 +327,8 @@ def main() -> None:
         trim_stages = [StageSpec("trim", {"head": 1, "tail": 1})]
         edit("trim 1+1 frames (smart cut)", trim_stages, [a], None, [(a, e) for e in range(episodes)], same, {},
              n_frames - 2 * episodes, run=slice(1, -1))  # fmt: skip
+        edit("subsample 30 -> 15 fps", [StageSpec("subsample", {"every": 2})], [a], None,
+             [(a, e) for e in range(episodes)], same, {}, episodes * ((length + 1) // 2), run=slice(None, None, 2))  # fmt: skip
         # re-encoding: the same trim at another crf than the source's, so every frame is encoded, by
         # 2 workers; against lerobot's encoder rate in its `delete_episodes` (which re-encodes)
         from shiftkit.pipelines.work import work_dir_for
@@ -380,6 +384,12 @@ def main() -> None:
             "bit_exact_frames": cut["shiftkit_bit_exact_frames"],
             "psnr_db": cut["shiftkit_psnr_db"],
             "encoded_at_cuts": cut["shiftkit_encoded_at_cuts"],
+        },
+        "subsample_copy": {
+            "wall_s": round(ops["subsample 30 -> 15 fps"]["shiftkit_wall_s"], 3),
+            "vs_cp": round(ops["subsample 30 -> 15 fps"]["shiftkit_vs_cp"], 2),
+            "copied_packets": ops["subsample 30 -> 15 fps"]["shiftkit_copied_packets"],
+            "bit_exact": ops["subsample 30 -> 15 fps"]["shiftkit_bit_exact"],
         },
         "encode_rate_vs_lerobot": round(trim["encode_rate_vs_lerobot"], 2),
         "encode_rate_goal": 1.5,

@@ -19,8 +19,12 @@ smartly: it decodes from the keyframe before, encodes the frames up to the next 
 source's recorded settings (`video.encoder_for`), from the decoder's own pixel format, and copies
 the packets from that keyframe on: one or a few frames encoded per episode instead of all. This
 needs a stream whose keyframes carry their own sequence header and whose packets come in
-presentation order (AV1, as lerobot writes it: `cuttable`), so that the encoded frames need no parameters of the source's
-stream and no copied frame refers to one left out; other streams are encoded whole.
+presentation order (AV1, as lerobot writes it: `cuttable`), so that the encoded frames need no
+parameters of the source's stream and no copied frame refers to one left out; other streams are
+encoded whole. A stage that keeps every k-th frame (`subsample`) hands on a reference to those
+frames alike: a kept keyframe is copied, shown one output frame after the one before (retimed to
+the output's fps); a kept frame that refers to one left out is encoded, each run of them from the
+keyframe before it.
 
 Copying needs every episode of a camera to come from streams that concatenate: same codec, size,
 pixel format, time base and codec parameters (`stream_signature`), each episode starting on a
@@ -96,18 +100,18 @@ class VideoRef:
         return np.asarray(self)[index]
 
     def select_frames(self, index: np.ndarray | slice | list[int]) -> VideoRef | np.ndarray:
-        """The frames at `index`: still a reference when they are one contiguous run of this
-        episode's frames (what `trim` keeps; `Episode.select`), else decoded."""
+        """The frames at `index`: still a reference when each is shown once, in order (a run that
+        `trim` keeps, every k-th frame that `subsample` keeps; `Episode.select`), else decoded."""
         picked = np.arange(len(self))[index]
-        if picked.ndim != 1 or not len(picked) or np.any(np.diff(picked) != 1):
+        if picked.ndim != 1 or not len(picked) or np.any(np.diff(picked) < 1):
             return np.asarray(self)[index]
         a, b = int(picked[0]), int(picked[-1]) + 1
-        if (a, b) == (0, len(self)):
+        if len(picked) == len(self):
             return self
         ts = self.timestamps
         stop = self.start + ts[b] if b < len(self) else self.stop
-        # the run's statistics are not the episode's: computed from its frames (`stats.episode_stats`)
-        return VideoRef(self.path, self.start + ts[a], stop, ts[a:b] - ts[a], self.feature, None)
+        # the frames' statistics are not the episode's: computed from them (`stats.episode_stats`)
+        return VideoRef(self.path, self.start + ts[a], stop, ts[picked] - ts[a], self.feature, None)
 
     def __iter__(self):
         return iter(np.asarray(self))
@@ -166,10 +170,18 @@ class FileFacts:
         """How many packets (frames) the file holds."""
         return len(self.pts)
 
-    def bytes_between(self, start: float, stop: float) -> int:
-        """Bytes of the packets shown in [start, stop) seconds."""
-        lo, hi = np.searchsorted(self.pts, [round(start / self.time_base), round(stop / self.time_base)])
-        return int((self.sizes[hi - 1] if hi else 0) - (self.sizes[lo - 1] if lo else 0))
+    def shown(self, start: float, timestamps: np.ndarray) -> np.ndarray:
+        """Index (in `pts` order) of the packet shown at each of `start + timestamps` seconds."""
+        at = np.round((start + np.asarray(timestamps, dtype=np.float64)) / float(self.time_base)).astype(np.int64)
+        i = np.clip(np.searchsorted(self.pts, at), 1, max(len(self.pts) - 1, 1))
+        return np.where(
+            np.abs(self.pts[i - 1] - at) <= np.abs(self.pts[np.minimum(i, len(self.pts) - 1)] - at), i - 1, i
+        )
+
+    def bytes_shown(self, start: float, timestamps: np.ndarray) -> int:
+        """Bytes of the packets shown at `start + timestamps` seconds."""
+        per_packet = np.diff(self.sizes, prepend=0)
+        return int(per_packet[self.shown(start, timestamps)].sum())
 
 
 def _file_facts(path: Path) -> tuple[tuple, FileFacts]:
@@ -230,11 +242,13 @@ class VideoFileCopier:
     as lerobot's writer appends its encoded episodes (module docstring). A file's episodes are
     written when it is complete (the next would pass the size limit, or `close`): a file that holds
     exactly one source file's episodes, all of them in order (a pass-through, rename, drop or merge),
-    is that file copied; any other is remuxed packet by packet."""
+    is that file copied; any other is remuxed packet by packet. Where the output's `fps` is not the
+    source's (`subsample`), the kept frames are shown one output frame apart."""
 
-    def __init__(self, root: Path, key: str, video_path: str, chunks_size: int, max_mb: float) -> None:
+    def __init__(self, root: Path, key: str, video_path: str, chunks_size: int, max_mb: float, fps: int) -> None:
         self.root, self.key, self.video_path = root, key, video_path
         self.chunks_size, self.max_bytes = chunks_size, max_mb * 1024 * 1024
+        self.fps = fps
         self.chunk_file: tuple[int, int] | None = None
         self._pending: list[VideoRef] = []  # the current file's episodes, written by `_flush`
         self._bytes = 0
@@ -242,7 +256,15 @@ class VideoFileCopier:
         self._source: tuple[str, Any] | None = None  # the open source container (path, container)
         self.signature: tuple | None = None
         self.encoded_frames = 0
-        """Frames encoded at smart cuts (the rest are the source's packets)."""
+        """Frames encoded at cuts (the rest are the source's packets)."""
+
+    def _retimed(self, ref: VideoRef) -> bool:
+        """Whether `ref`'s frames are shown at the output's fps, not at their source times."""
+        return int((ref.feature.get("info") or {}).get("video.fps", self.fps)) != self.fps
+
+    def _duration_of(self, ref: VideoRef) -> float:
+        """How long the episode lasts in the output (lerobot: its frames at the fps)."""
+        return len(ref) / self.fps if self._retimed(ref) else ref.stop - ref.start
 
     def add(self, ref: VideoRef) -> dict[str, Any]:
         """Take one episode; returns its `videos/KEY/...` episode metadata."""
@@ -252,7 +274,7 @@ class VideoFileCopier:
         if self.signature is not None and signature != self.signature:
             raise DatasetError(f"{ref.path}: its {self.key} stream is encoded otherwise than the episodes before it")
         self.signature = signature
-        size = facts.bytes_between(ref.start, ref.stop)
+        size = facts.bytes_shown(ref.start, ref.timestamps)
         if self.chunk_file is None or self._bytes + size >= self.max_bytes:  # lerobot's rollover rule
             self._flush()
             self.chunk_file = (
@@ -261,7 +283,7 @@ class VideoFileCopier:
             self._bytes, self._duration = 0, 0.0
         self._pending.append(ref)
         start = self._duration
-        self._duration = start + (ref.stop - ref.start)
+        self._duration = start + self._duration_of(ref)
         self._bytes += size
         return {
             f"videos/{self.key}/chunk_index": self.chunk_file[0],
@@ -302,17 +324,18 @@ class VideoFileCopier:
                 if stream is None:
                     stream = out.add_stream_from_template(template=template, opaque=True)
                     stream.time_base = template.time_base
-                tb = template.time_base
-                shift = round(duration / tb) - round(ref.start / tb)
+                shift = round(duration / template.time_base)
                 for packet in packets:
                     packet.pts = None if packet.pts is None else packet.pts + shift
                     packet.dts = None if packet.dts is None else packet.dts + shift
                     packet.stream = stream
                     out.mux(packet)
-                duration += ref.stop - ref.start
+                duration += self._duration_of(ref)
 
     def _packets(self, ref: VideoRef) -> tuple[list[Any], Any]:
-        """The episode's packets (pts in [start, stop) of the source file), demuxed without decoding."""
+        """The episode's packets, timed from 0, and the source stream. A packet shown in full (all of
+        a source episode's, from a keyframe on) is copied, demuxed without decoding; one that refers
+        to a frame left out (a cut between keyframes, every k-th frame) is encoded anew."""
         import av
 
         if self._source is None or self._source[0] != str(ref.path):
@@ -323,7 +346,7 @@ class VideoFileCopier:
         tb = stream.time_base
         lo, hi = round(ref.start / tb), round(ref.stop / tb)
         container.seek(lo, stream=stream, backward=True)
-        lead, packets = [], []  # from the keyframe at or before `lo`; the episode's
+        lead, packets = [], []  # from the keyframe at or before `lo`; those shown in [lo, hi)
         for packet in container.demux(stream):
             if packet.dts is None:  # the demuxer's flush packet
                 continue
@@ -333,47 +356,47 @@ class VideoFileCopier:
                 lead.append(packet)
             elif packet.pts is not None and lo <= packet.pts < hi:
                 packets.append(packet)
-        if len(packets) != len(ref):
-            raise DatasetError(
-                f"{ref.path}: the episode at {ref.start:.4f}-{ref.stop:.4f} s has {len(packets)} packets "
-                f"for {len(ref)} frames"
-            )
-        if not packets[0].is_keyframe:
-            if not cuttable([ref.path]):
-                raise DatasetError(f"{ref.path}: the episode at {ref.start:.4f} s does not start on a keyframe")
-            k = next((i for i, p in enumerate(packets) if p.is_keyframe), len(packets))
-            packets = self._encoded(ref, stream, lead + packets[:k], lo) + packets[k:]
-        return packets, stream
-
-    def _encoded(self, ref: VideoRef, stream: Any, packets: list[Any], lo: int) -> list[Any]:
-        """The frames from pts `lo` on that `packets` (from a keyframe on) decode to, encoded as a
-        stream of their own that starts on a keyframe: the smart cut's head (module docstring)."""
-        import av
-
-        from shiftkit.datasets.video import encoder_for, scheduling_kept
-
-        source = stream.codec_context
-        frames = [f for p in packets for f in p.decode() if f.pts is not None and f.pts >= lo]
-        frames += [f for f in source.decode(None) if f.pts is not None and f.pts >= lo]  # the decoder's delay
-        source.flush_buffers()
-        encoder = encoder_for(ref.feature)
-        ctx = av.CodecContext.create(encoder.vcodec, "w")
-        # the decoder's own pixel format, size and clock: no RGB round trip, the copied packets' times
-        ctx.width, ctx.height, ctx.pix_fmt = source.width, source.height, source.pix_fmt
-        ctx.time_base, ctx.framerate = stream.time_base, stream.average_rate
-        ctx.options = encoder.get_codec_options(None, as_strings=True)
+        shown = list(range(len(packets)))
+        if len(packets) != len(ref):  # some frames left out: in presentation order (`cuttable`)
+            shown = _shown_in(packets, ref, tb)
+        copied = [packets[shown[0]].is_keyframe]  # a keyframe, or the frame after a copied one
+        for before, i in zip(shown, shown[1:], strict=False):
+            copied.append(packets[i].is_keyframe or (copied[-1] and i == before + 1))
+        if not all(copied) and not cuttable([ref.path]):
+            raise DatasetError(f"{ref.path}: the episode at {ref.start:.4f} s does not start on a keyframe")
+        left_out = [packets[i] for i, copy in zip(shown, copied, strict=True) if not copy]
+        encoded = iter(self._encoded(ref, stream, lead + packets, left_out, copied))
+        period = Fraction(1, self.fps) / tb
+        if self._retimed(ref) and period.denominator != 1:
+            raise DatasetError(f"{ref.path}: its time base {tb} cannot show frames at {self.fps} fps")
         out = []
-        with scheduling_kept():
-            for frame in frames:
-                frame.pict_type = av.video.frame.PictureType.NONE  # the encoder decides (a keyframe first)
-                out += ctx.encode(frame)
-            out += ctx.encode(None)
-        if len(out) != len(frames) or not out[0].is_keyframe:
-            raise DatasetError(
-                f"{ref.path}: cutting at {ref.start:.4f} s encoded {len(frames)} frames into {len(out)} packets"
-            )
-        for packet in out:
-            packet.dts = packet.pts  # in presentation order (`cuttable`)
+        for j, (i, copy) in enumerate(zip(shown, copied, strict=True)):
+            packet = packets[i] if copy else next(encoded)
+            at = j * int(period) if self._retimed(ref) else packets[i].pts - lo
+            delay = packets[i].pts - packets[i].dts if copy and not self._retimed(ref) else 0
+            packet.pts, packet.dts = at, at - delay
+            if self._retimed(ref):
+                packet.duration = int(period)
+            out.append(packet)
+        return out, stream
+
+    def _encoded(
+        self, ref: VideoRef, stream: Any, packets: list[Any], frames: list[Any], copied: list[bool]
+    ) -> list[Any]:
+        """The packets `frames` (of `packets`, which start on a keyframe) show, encoded anew: each run
+        of consecutive ones (`copied` false) a stream of its own that starts on a keyframe, decoded
+        from the keyframe before it (module docstring)."""
+        if not frames:
+            return []
+        pictures = _decoded(stream.codec_context, packets, {p.pts for p in frames})
+        todo, runs, run = iter(frames), [], []
+        for copy in [*copied, True]:
+            if not copy:
+                run.append(pictures[next(todo).pts])
+            elif run:
+                runs.append(run)
+                run = []
+        out = [packet for run in runs for packet in _encode(run, stream, ref)]
         self.encoded_frames += len(out)
         return out
 
@@ -387,3 +410,58 @@ class VideoFileCopier:
         """Write the last file and close the source."""
         self._flush()
         self.close_source()
+
+
+def _shown_in(packets: list[Any], ref: VideoRef, tb: Fraction) -> list[int]:
+    """Index in `packets` (in presentation order) of the packet shown at each of `ref`'s frame times."""
+    pts = np.array([p.pts for p in packets], dtype=np.int64)
+    at = np.round((ref.start + ref.timestamps) / float(tb)).astype(np.int64)
+    i = np.searchsorted(pts, at)
+    if np.any(i >= len(pts)) or np.any(pts[np.minimum(i, len(pts) - 1)] != at):
+        raise DatasetError(f"{ref.path}: no packet at some of the frame times of the episode at {ref.start:.4f} s")
+    return [int(k) for k in i]
+
+
+def _decoded(decoder: Any, packets: list[Any], wanted: set[int]) -> dict[int, Any]:
+    """The pictures with pts in `wanted`, each decoded from the keyframe at or before it, in the
+    decoder's own pixel format (no RGB round trip); `packets` in presentation order from a keyframe."""
+    need = [k for k, p in enumerate(packets) if p.pts in wanted]
+    keys = [k for k, p in enumerate(packets) if p.is_keyframe]
+    spans: list[list[int]] = []  # [first, last] packets to decode, each from a keyframe
+    for k in need:
+        first = max(key for key in keys if key <= k)
+        if spans and first <= spans[-1][1] + 1:
+            spans[-1][1] = k
+        else:
+            spans.append([first, k])
+    pictures = {}
+    for first, last in spans:
+        for packet in packets[first : last + 1]:
+            pictures.update((f.pts, f) for f in packet.decode() if f.pts in wanted)
+        pictures.update((f.pts, f) for f in decoder.decode(None) if f.pts in wanted)  # the decoder's delay
+        decoder.flush_buffers()
+    return pictures
+
+
+def _encode(frames: list[Any], stream: Any, ref: VideoRef) -> list[Any]:
+    """`frames` (decoded pictures) encoded with the source's recorded settings into a stream of their
+    own that starts on a keyframe, in the decoder's pixel format and the source's clock."""
+    import av
+
+    from shiftkit.datasets.video import encoder_for, scheduling_kept
+
+    source = stream.codec_context
+    encoder = encoder_for(ref.feature)
+    ctx = av.CodecContext.create(encoder.vcodec, "w")
+    ctx.width, ctx.height, ctx.pix_fmt = source.width, source.height, source.pix_fmt
+    ctx.time_base, ctx.framerate = stream.time_base, stream.average_rate
+    ctx.options = encoder.get_codec_options(None, as_strings=True)
+    out = []
+    with scheduling_kept():
+        for frame in frames:
+            frame.pict_type = av.video.frame.PictureType.NONE  # the encoder decides (a keyframe first)
+            out += ctx.encode(frame)
+        out += ctx.encode(None)
+    if len(out) != len(frames) or not out[0].is_keyframe:
+        raise DatasetError(f"{ref.path}: encoding {len(frames)} frames at {ref.start:.4f} s gave {len(out)} packets")
+    return out

@@ -267,12 +267,20 @@ class DatasetWriter:
         mode = self.video_modes.get(key)
         if mode is None:
             source = frames.feature if isinstance(frames, VideoRef) else None
-            copyable = source is not None and _copyable(source, self.features[key], self.fps)
+            copyable = source is not None and _copyable(source, self.features[key])
             mode = self.video_modes[key] = "copied" if copyable else "encoded"
             if copyable:
-                self._meta.info.features[key]["info"] = dict(source.get("info") or {})
+                info = dict(source.get("info") or {})
+                if "video.fps" in info:
+                    info["video.fps"] = self.fps  # `subsample`'s kept frames are shown at the output's
+                self._meta.info.features[key]["info"] = info
                 self._copiers[key] = VideoFileCopier(
-                    self.tmp, key, self._meta.video_path, self._meta.chunks_size, self._meta.video_files_size_in_mb
+                    self.tmp,
+                    key,
+                    self._meta.video_path,
+                    self._meta.chunks_size,
+                    self._meta.video_files_size_in_mb,
+                    self.fps,
                 )
         if mode == "copied" and not isinstance(frames, VideoRef):
             raise DatasetError(f"{key}: decoded frames after copied ones; a video file cannot hold both")
@@ -406,16 +414,14 @@ def carry_source_metadata(dest: Path, sources: list[Path]) -> None:
         write_info(info, dest)
 
 
-def _copyable(source: dict[str, Any], out: dict[str, Any], fps: int) -> bool:
+def _copyable(source: dict[str, Any], out: dict[str, Any]) -> bool:
     """Whether frames of the source video feature `source` can be copied into the output feature
     `out`: both RGB or both depth in one unit (whose quantiser, in the source's `info`, comes along),
-    the same shape, the output's fps."""
-    info = source.get("info") or {}
+    the same shape (at another fps the copier shows them at the output's)."""
     return (
         depth.is_depth(source) == depth.is_depth(out)
         and (not depth.is_depth(out) or depth.depth_unit(source) == depth.depth_unit(out))
         and tuple(source["shape"]) == tuple(out["shape"])
-        and int(info.get("video.fps", fps)) == fps
     )
 
 

@@ -103,16 +103,16 @@ class Plan:
     def frames_pass_unchanged(self, feature: str) -> bool:
         """Whether every frame of the output camera `feature`, from every source, is its source
         frame's pixels, stored alike: each stage of each chain keeps that camera's frames, one for one
-        or as a contiguous run (`Stage.kept_frames`, following renames back to the source's feature),
-        and the source stores it
-        as the output does (image or video, shape, depth unit, fps). What the writer needs to know to
+        or a selection shown in order (`Stage.kept_frames`, following renames back to the source's
+        feature), and the source stores it as the output does (image or video, shape, depth unit; at
+        another fps, `subsample`'s, its frames are shown at the output's). What the writer needs to know to
         copy a source's encoded frames (a video's) instead of decoding and encoding them again."""
         out = self.features.get(feature)
         if out is None or out["dtype"] not in CAMERA_DTYPES:
             return False
         for s, source in enumerate(self.sources):
             name = self.kept_source(feature, s)
-            if name is None or source.fps != self.fps or not _stored_alike(source.features.get(name), out):
+            if name is None or not _stored_alike(source.features.get(name), out):
                 return False
         return True
 
@@ -123,8 +123,8 @@ class Plan:
         the same unit), as video whose
         streams concatenate (same codec, size, pixel format, time base, codec parameters) with every
         episode starting on a keyframe (`video_copy.copy_signature`), and for RGB already encoded as
-        the destination's encoder settings ask (`video_encoder.stream_matches`); where a stage keeps a
-        run of an episode's frames (`trim`), streams that can be cut between keyframes
+        the destination's encoder settings ask (`video_encoder.stream_matches`); where a stage keeps
+        some of an episode's frames (`trim`, `subsample`), streams that can be cut between keyframes
         (`video_copy.cuttable`). The others are encoded."""
         copies = {}
         settings = self.config.destination.encoder_settings()

@@ -50,7 +50,8 @@ def _plan(stages, tmp_path, video=None, own=()):
         ([("depth_image", {"unit": "m"})], None, {FRONT, WRIST}),  # depth stored in another unit
         ([("filter", {"min_length": 6})], None, {FRONT, WRIST, DEPTH}),  # whole episodes dropped
         ([("trim", {"head": 1})], None, {FRONT, WRIST, DEPTH}),  # one contiguous run of each episode
-        ([("subsample", {"every": 2})], None, set()),
+        ([("subsample", {"every": 2})], None, {FRONT, WRIST, DEPTH}),  # every other frame, each once
+        ([("resample", {"fps": 5})], None, set()),  # nearest frames: one may be shown twice
         ([], False, set()),  # stored as images instead of video
     ],
 )  # fmt: skip

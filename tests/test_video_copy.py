@@ -149,8 +149,8 @@ def test_copied_episodes_roll_over_to_new_files(tmp_path, monkeypatch, no_decodi
     from shiftkit.datasets import writer
 
     class Tiny(writer.VideoFileCopier):
-        def __init__(self, root, key, video_path, chunks_size, max_mb):
-            super().__init__(root, key, video_path, chunks_size, 1e-6)
+        def __init__(self, root, key, video_path, chunks_size, max_mb, fps):
+            super().__init__(root, key, video_path, chunks_size, 1e-6, fps)
 
     monkeypatch.setattr(writer, "VideoFileCopier", Tiny)
     source = recording(SMALL)
@@ -259,6 +259,82 @@ def test_trim_copies_from_a_keyframe_and_encodes_only_up_to_it(head, tail, cut, 
     assert len(_lerobot_frames(out, depth)) == sum(b - a for a, b in runs)
     if (head, tail) == (1, 2):  # references and cuts through two workers' parts: the same bytes
         two = _run([source], tmp_path / "two", [StageSpec("trim", {"head": head, "tail": tail})], workers=2)
+        assert _files(two) == _files(out)
+    _validate_deep(out, monkeypatch)
+
+
+def _keyframes(root: Path, key: str) -> list[list[bool]]:
+    """Per episode, whether each of its packets of `key` is a keyframe (PyAV's flag)."""
+    import av
+    import pandas as pd
+
+    episodes = pd.concat(pd.read_parquet(p) for p in sorted((root / "meta/episodes").glob("*/*.parquet")))
+    out = []
+    for _, row in episodes.sort_values("episode_index").iterrows():
+        chunk, file = int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])
+        with av.open(str(root / f"videos/{key}/chunk-{chunk:03d}/file-{file:03d}.mp4")) as container:
+            stream = container.streams.video[0]
+            lo, hi = (round(row[f"videos/{key}/{b}_timestamp"] / stream.time_base) for b in ("from", "to"))
+            out.append([p.is_keyframe for p in container.demux(stream) if p.pts is not None and lo <= p.pts < hi])
+    return out
+
+
+@pytest.mark.parametrize(("every", "offset"), [(2, 0), (5, 1), (2, 1)])
+def test_subsample_copies_the_kept_keyframes_and_encodes_the_others(every, offset, tmp_path, monkeypatch):
+    """`subsample` keeps every k-th frame: on lerobot's AV1 (`g=2`), a kept keyframe is the source's
+    packet, shown one output frame after the last; a kept frame that refers to one left out is
+    encoded from the decoder's pixels, a stream of its own starting on a keyframe. Checked against
+    the source: which packets are copied follows the source's keyframe flags, the copied ones are its
+    bytes and lerobot's loader gives its frames exactly there, the encoded ones nearest their own
+    kept source frame; the output's fps and episode durations are the new rate's; the HEVC
+    depth is encoded whole; statistics and `validate --deep` hold."""
+    import pandas as pd
+
+    source = recording(TRIMMED)
+    out = _run([source], tmp_path / "out", [StageSpec("subsample", {"every": every, "offset": offset})])
+    fps = TRIMMED.fps // every
+    provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
+    depth = "observation.depth.front"
+    assert provenance["video"] == {**dict.fromkeys(CAMERAS, "copied"), depth: "encoded"}
+    kept = [list(range(offset, n, every)) for n in TRIMMED.lengths]
+    info = json.loads((out / "meta/info.json").read_text())
+    assert info["fps"] == fps
+    starts = np.cumsum((0, *TRIMMED.lengths))
+    encoded_frames = {}
+    for key in CAMERAS:
+        src_info = json.loads((source / "meta/info.json").read_text())["features"][key]
+        assert info["features"][key] == {**src_info, "info": {**src_info["info"], "video.fps": fps}}
+        src_packets, src_keys = _episode_packets(source, key), _keyframes(source, key)
+        copied = []  # per output frame: its source frame (in the dataset), whether it is the source's packet
+        for e, (frames, got) in enumerate(zip(kept, _episode_packets(out, key), strict=True)):
+            assert len(got) == len(frames)
+            for j, t in enumerate(frames):
+                # a keyframe, or the frame right after a copied one: copied, byte for byte
+                is_copy = src_keys[e][t] or (j > 0 and copied[-1][1] and t == frames[j - 1] + 1)
+                copied.append((int(starts[e]) + t, is_copy))
+                assert (got[j] == src_packets[e][t]) == is_copy
+        encoded_frames[key] = sum(not c for _, c in copied)
+        src_frames, got = _lerobot_frames(source, key), _lerobot_frames(out, key)
+        assert len(got) == len(copied)
+        for frame, (t, is_copy) in zip(got, copied, strict=True):
+            if is_copy:
+                np.testing.assert_array_equal(frame, src_frames[t])
+        # an encoded frame is nearest its own source frame among the kept ones (none lost, none out of
+        # order; the pictures are ramps, so a left-out neighbour may be as near) and close to it
+        shown = [t for t, _ in copied]
+        for frame, (t, is_copy) in zip(got, copied, strict=True):
+            if not is_copy:
+                errors = [np.mean((frame - src_frames[u]) ** 2) for u in shown]
+                assert shown[int(np.argmin(errors))] == t and 10 * np.log10(1 / min(errors)) > 30
+    assert any(encoded_frames.values()) == (offset % 2 == 1 or every % 2 == 1)  # g=2: even frames are keys
+    assert provenance.get("video_encoded_at_cuts", {}) == {k: n for k, n in encoded_frames.items() if n}
+    episodes = pd.concat(pd.read_parquet(p) for p in sorted((out / "meta/episodes").glob("*/*.parquet")))
+    for key in (*CAMERAS, depth):
+        duration = episodes[f"videos/{key}/to_timestamp"] - episodes[f"videos/{key}/from_timestamp"]
+        np.testing.assert_allclose(duration, [len(k) / fps for k in kept], atol=1e-6)
+    assert len(_lerobot_frames(out, depth)) == sum(len(k) for k in kept)
+    if (every, offset) == (5, 1):  # copies and encodes through two workers' parts: the same bytes
+        two = _run([source], tmp_path / "two", [StageSpec("subsample", {"every": every, "offset": offset})], workers=2)
         assert _files(two) == _files(out)
     _validate_deep(out, monkeypatch)
 

@@ -55,6 +55,10 @@ class Subsample(ReindexStage):
         return features
 
     @override
+    def kept_frames(self, features: Features) -> dict[str, str]:
+        return self.carried_cameras(features)  # every k-th frame: keyframes copied, the others encoded
+
+    @override
     def reindex(self, episode: Episode, rng: np.random.Generator) -> Iterable[Reindex]:
         index = np.arange(self.config.offset, len(episode), self.config.every)
         if len(index):
