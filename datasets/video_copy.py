@@ -307,6 +307,7 @@ class VideoFileCopier:
             and refs[0].start == 0.0
             and all(a.stop == b.start for a, b in zip(refs, refs[1:], strict=False))
             and sum(len(r) for r in refs) == _file_facts(source)[1].packets
+            and not any(self._retimed(r) for r in refs)  # one-frame episodes through `subsample`
         )
         if whole:
             shutil.copyfile(source, path)

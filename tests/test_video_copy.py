@@ -7,7 +7,9 @@ decoded on the way. A stage that changes pixels still encodes."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -53,8 +55,9 @@ def _packets(root: Path, key: str) -> list[bytes]:
     return out
 
 
-def _episode_packets(root: Path, key: str) -> list[list[bytes]]:
-    """Per episode, its packets of `key` (by the episodes' `from_timestamp` / `to_timestamp`)."""
+def _episode_packets(root: Path, key: str, of: Callable[[Any], Any] = bytes) -> list[list[Any]]:
+    """Per episode, `of` each of its packets of `key` (by the episodes' `from_timestamp` /
+    `to_timestamp`): their bytes, or e.g. whether they are keyframes."""
     import av
     import pandas as pd
 
@@ -65,7 +68,7 @@ def _episode_packets(root: Path, key: str) -> list[list[bytes]]:
         with av.open(str(root / f"videos/{key}/chunk-{chunk:03d}/file-{file:03d}.mp4")) as container:
             stream = container.streams.video[0]
             lo, hi = (round(row[f"videos/{key}/{b}_timestamp"] / stream.time_base) for b in ("from", "to"))
-            out.append([bytes(p) for p in container.demux(stream) if p.pts is not None and lo <= p.pts < hi])
+            out.append([of(p) for p in container.demux(stream) if p.pts is not None and lo <= p.pts < hi])
     return out
 
 
@@ -263,22 +266,6 @@ def test_trim_copies_from_a_keyframe_and_encodes_only_up_to_it(head, tail, cut, 
     _validate_deep(out, monkeypatch)
 
 
-def _keyframes(root: Path, key: str) -> list[list[bool]]:
-    """Per episode, whether each of its packets of `key` is a keyframe (PyAV's flag)."""
-    import av
-    import pandas as pd
-
-    episodes = pd.concat(pd.read_parquet(p) for p in sorted((root / "meta/episodes").glob("*/*.parquet")))
-    out = []
-    for _, row in episodes.sort_values("episode_index").iterrows():
-        chunk, file = int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])
-        with av.open(str(root / f"videos/{key}/chunk-{chunk:03d}/file-{file:03d}.mp4")) as container:
-            stream = container.streams.video[0]
-            lo, hi = (round(row[f"videos/{key}/{b}_timestamp"] / stream.time_base) for b in ("from", "to"))
-            out.append([p.is_keyframe for p in container.demux(stream) if p.pts is not None and lo <= p.pts < hi])
-    return out
-
-
 @pytest.mark.parametrize(("every", "offset"), [(2, 0), (5, 1), (2, 1)])
 def test_subsample_copies_the_kept_keyframes_and_encodes_the_others(every, offset, tmp_path, monkeypatch):
     """`subsample` keeps every k-th frame: on lerobot's AV1 (`g=2`), a kept keyframe is the source's
@@ -304,7 +291,7 @@ def test_subsample_copies_the_kept_keyframes_and_encodes_the_others(every, offse
     for key in CAMERAS:
         src_info = json.loads((source / "meta/info.json").read_text())["features"][key]
         assert info["features"][key] == {**src_info, "info": {**src_info["info"], "video.fps": fps}}
-        src_packets, src_keys = _episode_packets(source, key), _keyframes(source, key)
+        src_packets, src_keys = _episode_packets(source, key), _episode_packets(source, key, lambda p: p.is_keyframe)
         copied = []  # per output frame: its source frame (in the dataset), whether it is the source's packet
         for e, (frames, got) in enumerate(zip(kept, _episode_packets(out, key), strict=True)):
             assert len(got) == len(frames)
@@ -337,6 +324,19 @@ def test_subsample_copies_the_kept_keyframes_and_encodes_the_others(every, offse
         two = _run([source], tmp_path / "two", [StageSpec("subsample", {"every": every, "offset": offset})], workers=2)
         assert _files(two) == _files(out)
     _validate_deep(out, monkeypatch)
+
+
+def test_subsample_of_one_frame_episodes_shows_them_at_the_new_rate(tmp_path):
+    """Episodes of one frame are kept whole by `subsample`: the output file still shows them one
+    output frame apart (the source file copied as it is would show them at the source's rate, where
+    lerobot's loader would find another episode's frame)."""
+    rec = Recording(video=True, cameras=("front", "wrist"), depth=(), size=(32, 48), lengths=(1, 1, 1), language=False)
+    source = recording(rec)
+    out = _run([source], tmp_path / "out", [StageSpec("subsample", {"every": 2})])
+    for key in CAMERAS:
+        assert _episode_packets(out, key) == _episode_packets(source, key)
+        for a, b in zip(_lerobot_frames(out, key), _lerobot_frames(source, key), strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 def _files(root: Path) -> dict[str, str]:
