@@ -45,6 +45,7 @@ import numpy as np
 
 from shiftkit.datasets.depth import is_depth
 from shiftkit.datasets.errors import DatasetError
+from shiftkit.datasets.video import TOLERANCE_S
 
 
 class VideoRef:
@@ -159,7 +160,7 @@ class FileFacts:
     pts: np.ndarray
     """Every packet's pts, ascending."""
     sizes: np.ndarray
-    """Bytes of the packets up to each pts (cumulative, in `pts` order)."""
+    """Each packet's bytes (in `pts` order)."""
     codec: str
     """The codec's canonical name (`av1`, `h264`, `hevc`)."""
     in_order: bool
@@ -170,18 +171,21 @@ class FileFacts:
         """How many packets (frames) the file holds."""
         return len(self.pts)
 
-    def shown(self, start: float, timestamps: np.ndarray) -> np.ndarray:
-        """Index (in `pts` order) of the packet shown at each of `start + timestamps` seconds."""
-        at = np.round((start + np.asarray(timestamps, dtype=np.float64)) / float(self.time_base)).astype(np.int64)
-        i = np.clip(np.searchsorted(self.pts, at), 1, max(len(self.pts) - 1, 1))
-        return np.where(
-            np.abs(self.pts[i - 1] - at) <= np.abs(self.pts[np.minimum(i, len(self.pts) - 1)] - at), i - 1, i
-        )
+    def shown(self, start: float, timestamps: np.ndarray, where: Path) -> np.ndarray:
+        """Index (in `pts` order) of the packet shown at each of `start + timestamps` seconds: the
+        nearest, within lerobot's tolerance, as the decoder matches frames (`video.decode_episode`)."""
+        at = (start + np.asarray(timestamps, dtype=np.float64)) / float(self.time_base)
+        after = np.searchsorted(self.pts, at)
+        below, above = (np.clip(k, 0, len(self.pts) - 1) for k in (after - 1, after))
+        nearest = np.where(np.abs(self.pts[below] - at) <= np.abs(self.pts[above] - at), below, above)
+        off = np.abs(self.pts[nearest] - at) * float(self.time_base)
+        if len(off) and off.max() > TOLERANCE_S:
+            raise DatasetError(f"{where}: no frame at {start + timestamps[int(off.argmax())]:.4f} s")
+        return nearest
 
-    def bytes_shown(self, start: float, timestamps: np.ndarray) -> int:
+    def bytes_shown(self, start: float, timestamps: np.ndarray, where: Path) -> int:
         """Bytes of the packets shown at `start + timestamps` seconds."""
-        per_packet = np.diff(self.sizes, prepend=0)
-        return int(per_packet[self.shown(start, timestamps)].sum())
+        return int(self.sizes[self.shown(start, timestamps, where)].sum())
 
 
 def _file_facts(path: Path) -> tuple[tuple, FileFacts]:
@@ -208,7 +212,7 @@ def _facts(path: str, size: int, mtime_ns: int) -> tuple[tuple, FileFacts]:
         time_base,
         frozenset(pts for pts, _, key in rows if key),
         np.array([pts for pts, _, _ in rows], dtype=np.int64),
-        np.cumsum([size for _, size, _ in rows], dtype=np.int64),
+        np.array([size for _, size, _ in rows], dtype=np.int64),
         codec,
         in_order,
     )
@@ -274,7 +278,7 @@ class VideoFileCopier:
         if self.signature is not None and signature != self.signature:
             raise DatasetError(f"{ref.path}: its {self.key} stream is encoded otherwise than the episodes before it")
         self.signature = signature
-        size = facts.bytes_shown(ref.start, ref.timestamps)
+        size = facts.bytes_shown(ref.start, ref.timestamps, ref.path)
         if self.chunk_file is None or self._bytes + size >= self.max_bytes:  # lerobot's rollover rule
             self._flush()
             self.chunk_file = (
@@ -359,7 +363,9 @@ class VideoFileCopier:
                 packets.append(packet)
         shown = list(range(len(packets)))
         if len(packets) != len(ref):  # some frames left out: in presentation order (`cuttable`)
-            shown = _shown_in(packets, ref, tb)
+            facts = _file_facts(ref.path)[1]
+            first = int(np.searchsorted(facts.pts, lo))  # `packets` are the file's from pts `lo` on
+            shown = [int(k) - first for k in facts.shown(ref.start, ref.timestamps, ref.path)]
         copied = [packets[shown[0]].is_keyframe]  # a keyframe, or the frame after a copied one
         for before, i in zip(shown, shown[1:], strict=False):
             copied.append(packets[i].is_keyframe or (copied[-1] and i == before + 1))
@@ -367,16 +373,16 @@ class VideoFileCopier:
             raise DatasetError(f"{ref.path}: the episode at {ref.start:.4f} s does not start on a keyframe")
         left_out = [packets[i] for i, copy in zip(shown, copied, strict=True) if not copy]
         encoded = iter(self._encoded(ref, stream, lead + packets, left_out, copied))
-        period = Fraction(1, self.fps) / tb
-        if self._retimed(ref) and period.denominator != 1:
+        retimed, period = self._retimed(ref), Fraction(1, self.fps) / tb
+        if retimed and period.denominator != 1:
             raise DatasetError(f"{ref.path}: its time base {tb} cannot show frames at {self.fps} fps")
         out = []
         for j, (i, copy) in enumerate(zip(shown, copied, strict=True)):
             packet = packets[i] if copy else next(encoded)
-            at = j * int(period) if self._retimed(ref) else packets[i].pts - lo
-            delay = packets[i].pts - packets[i].dts if copy and not self._retimed(ref) else 0
+            at = j * int(period) if retimed else packets[i].pts - lo
+            delay = packets[i].pts - packets[i].dts if copy and not retimed else 0
             packet.pts, packet.dts = at, at - delay
-            if self._retimed(ref):
+            if retimed:
                 packet.duration = int(period)
             out.append(packet)
         return out, stream
@@ -411,16 +417,6 @@ class VideoFileCopier:
         """Write the last file and close the source."""
         self._flush()
         self.close_source()
-
-
-def _shown_in(packets: list[Any], ref: VideoRef, tb: Fraction) -> list[int]:
-    """Index in `packets` (in presentation order) of the packet shown at each of `ref`'s frame times."""
-    pts = np.array([p.pts for p in packets], dtype=np.int64)
-    at = np.round((ref.start + ref.timestamps) / float(tb)).astype(np.int64)
-    i = np.searchsorted(pts, at)
-    if np.any(i >= len(pts)) or np.any(pts[np.minimum(i, len(pts) - 1)] != at):
-        raise DatasetError(f"{ref.path}: no packet at some of the frame times of the episode at {ref.start:.4f} s")
-    return [int(k) for k in i]
 
 
 def _decoded(decoder: Any, packets: list[Any], wanted: set[int]) -> dict[int, Any]:
