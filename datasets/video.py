@@ -23,6 +23,7 @@ run's work folder holds encoded video rather than pixels; the writer appends tho
 
 from __future__ import annotations
 
+import bisect
 import collections
 import contextlib
 import functools
@@ -95,7 +96,10 @@ def decode_episode(
     path: Path, start: float, timestamps: np.ndarray, where: str, depth_info: dict[str, Any] | None = None
 ) -> np.ndarray:
     """The frames at `start + timestamps` (seconds) of the video at `path`: (T, H, W, 3) uint8 RGB,
-    or, with `depth_info` (a depth feature's `info`), (T, H, W, 1) float32 metres."""
+    or, with `depth_info` (a depth feature's `info`), (T, H, W, 1) float32 metres. Where the stream
+    is in presentation order (lerobot's AV1), only the packets the asked frames need are decoded,
+    each from the keyframe before it (`decode_pictures`): every other frame of lerobot's `g=2`
+    stream (a `subsample`) decodes half the episode."""
     import av
 
     queries = start + np.asarray(timestamps, dtype=np.float64)
@@ -107,13 +111,22 @@ def decode_episode(
         base = float(stream.time_base)
         container.seek(max(int(queries[0] / base) - 1, 0), stream=stream, backward=True)
         stream.codec_context.flush_buffers()  # nothing left of the episode decoded before
-        for frame in container.decode(stream):
-            t = frame.pts * base
-            if t > queries[-1] + TOLERANCE_S:
+        packets = []  # the episode's, to the last asked frame (a packet's dts is at or before its pts)
+        for packet in container.demux(stream):
+            if packet.dts is None:  # the demuxer's flush packet
+                continue
+            if packet.dts * base > queries[-1] + TOLERANCE_S:
                 break
-            j = int(np.clip(np.searchsorted(queries, t), 1, len(queries) - 1)) if len(queries) > 1 else 0
-            j = j - 1 if j > 0 and abs(queries[j - 1] - t) < abs(queries[j] - t) else j
-            if abs(queries[j] - t) <= TOLERANCE_S:
+            packets.append(packet)
+        pts = [p.pts for p in packets]
+        if packets and packets[0].is_keyframe and None not in pts and bool(np.all(np.diff(pts) > 0)):
+            wanted = {int(k) for k in _nearest(np.asarray(pts) * base, queries) if k >= 0}
+            pictures = decode_pictures(stream.codec_context, packets, {pts[k] for k in wanted}).values()
+        else:  # frames reordered (B-frames): decoded in full
+            pictures = [f for p in packets for f in p.decode()] + list(stream.codec_context.decode(None))
+        for frame in pictures:
+            j = _nearest(queries, np.array([frame.pts * base]))[0]
+            if j >= 0:
                 frames[j] = frame.to_ndarray(format="rgb24" if depth_info is None else "gray12le")
     except (av.error.FFmpegError, OSError) as exc:
         _OPEN.pop(key, None)
@@ -126,6 +139,43 @@ def decode_episode(
         )
     out = np.stack(frames)
     return out if depth_info is None else dequantize_metres(out, depth_info)[..., None]
+
+
+def _nearest(times: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Per query, the index of the nearest of the increasing `times` within lerobot's tolerance, else -1."""
+    j = (
+        np.clip(np.searchsorted(times, queries), 1, max(len(times) - 1, 1))
+        if len(times) > 1
+        else np.zeros(len(queries), int)
+    )
+    j = np.where((j > 0) & (np.abs(times[j - 1] - queries) < np.abs(times[j] - queries)), j - 1, j)
+    return np.where(np.abs(times[j] - queries) <= TOLERANCE_S, j, -1)
+
+
+def decode_pictures(decoder: Any, packets: list[Any], wanted: set[int]) -> dict[int, Any]:
+    """The pictures with pts in `wanted`, each decoded from the keyframe at or before it, in the
+    decoder's own pixel format; `packets` in presentation order from a keyframe. Packets that no
+    wanted picture needs are not decoded. An AV1 decoder is fed the needed runs one after the other
+    (a sync sample of AV1 in MP4 is a key frame that refreshes every reference, so nothing left out
+    is referred to); another codec's is drained and reset before each run."""
+    need = [k for k, p in enumerate(packets) if p.pts in wanted]
+    keys = [k for k, p in enumerate(packets) if p.is_keyframe]
+    spans: list[list[int]] = []  # [first, last] packets to decode, each from a keyframe
+    for k in need:
+        first = keys[bisect.bisect_right(keys, k) - 1]
+        if spans and first <= spans[-1][1] + 1:
+            spans[-1][1] = k
+        else:
+            spans.append([first, k])
+    av1 = decoder.codec.canonical_name == "av1"
+    pictures = {}
+    for i, (first, last) in enumerate(spans):
+        for packet in packets[first : last + 1]:
+            pictures.update((f.pts, f) for f in packet.decode() if f.pts in wanted)
+        if not av1 or i == len(spans) - 1:
+            pictures.update((f.pts, f) for f in decoder.decode(None) if f.pts in wanted)  # the decoder's delay
+            decoder.flush_buffers()
+    return pictures
 
 
 def depth_quantiser(info: dict[str, Any] | None) -> tuple[float, float, float, bool]:

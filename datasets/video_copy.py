@@ -21,8 +21,8 @@ the packets from that keyframe on: one or a few frames encoded per episode inste
 needs a stream whose keyframes carry their own sequence header and whose packets come in
 presentation order (AV1, as lerobot writes it: `cuttable`), so that the encoded frames need no
 parameters of the source's stream and no copied frame refers to one left out; other streams are
-encoded whole. A stage that keeps every k-th frame (`subsample`) hands on a reference to those
-frames alike: a kept keyframe is copied, shown one output frame after the one before (retimed to
+encoded whole. A stage that keeps every k-th frame (`subsample`, or a downsampling `resample`)
+hands on a reference to those frames alike: a kept keyframe is copied, shown one output frame after the one before (retimed to
 the output's fps); a kept frame that refers to one left out is encoded, each run of them from the
 keyframe before it.
 
@@ -45,7 +45,7 @@ import numpy as np
 
 from shiftkit.datasets.depth import is_depth
 from shiftkit.datasets.errors import DatasetError
-from shiftkit.datasets.video import TOLERANCE_S
+from shiftkit.datasets.video import TOLERANCE_S, decode_pictures
 
 
 class VideoRef:
@@ -241,6 +241,13 @@ def stream_signature(path: Path) -> tuple:
         raise DatasetError(f"cannot read the video stream of {path} ({type(exc).__name__}: {exc})") from None
 
 
+def shows_frames_at(signature: tuple, fps: int) -> bool:
+    """Whether a stream of this `stream_signature` can show its frames `1 / fps` apart: the frame
+    period a whole number of its time base's ticks (lerobot's 30 fps AV1, 1/15360: any fps that
+    divides 15360), what packets copied at another rate (`subsample`, `resample`) are retimed to."""
+    return (Fraction(1, fps) / signature[4]).denominator == 1
+
+
 class VideoFileCopier:
     """Appends episodes' encoded packets (`VideoRef`s) to one camera's video files in lerobot's layout,
     as lerobot's writer appends its encoded episodes (module docstring). A file's episodes are
@@ -395,7 +402,7 @@ class VideoFileCopier:
         from the keyframe before it (module docstring)."""
         if not frames:
             return []
-        pictures = _decoded(stream.codec_context, packets, {p.pts for p in frames})
+        pictures = decode_pictures(stream.codec_context, packets, {p.pts for p in frames})
         todo, runs, run = iter(frames), [], []
         for copy in [*copied, True]:
             if not copy:
@@ -417,27 +424,6 @@ class VideoFileCopier:
         """Write the last file and close the source."""
         self._flush()
         self.close_source()
-
-
-def _decoded(decoder: Any, packets: list[Any], wanted: set[int]) -> dict[int, Any]:
-    """The pictures with pts in `wanted`, each decoded from the keyframe at or before it, in the
-    decoder's own pixel format (no RGB round trip); `packets` in presentation order from a keyframe."""
-    need = [k for k, p in enumerate(packets) if p.pts in wanted]
-    keys = [k for k, p in enumerate(packets) if p.is_keyframe]
-    spans: list[list[int]] = []  # [first, last] packets to decode, each from a keyframe
-    for k in need:
-        first = max(key for key in keys if key <= k)
-        if spans and first <= spans[-1][1] + 1:
-            spans[-1][1] = k
-        else:
-            spans.append([first, k])
-    pictures = {}
-    for first, last in spans:
-        for packet in packets[first : last + 1]:
-            pictures.update((f.pts, f) for f in packet.decode() if f.pts in wanted)
-        pictures.update((f.pts, f) for f in decoder.decode(None) if f.pts in wanted)  # the decoder's delay
-        decoder.flush_buffers()
-    return pictures
 
 
 def _encode(frames: list[Any], stream: Any, ref: VideoRef) -> list[Any]:

@@ -24,6 +24,7 @@ from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES, Features, check_features, plain_camera_features
 from shiftkit.datasets.sources import Source, input_paths, open_source
 from shiftkit.datasets.video import check_frame_size, encoder_for
+from shiftkit.datasets.video_copy import shows_frames_at
 from shiftkit.datasets.video_encoder import check_rgb_encoder, encoded_info, stream_matches
 from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
 from shiftkit.pipelines.stage import ReindexStage, Stage, StageContext, build_stage, selecting_stages
@@ -105,8 +106,9 @@ class Plan:
         frame's pixels, stored alike: each stage of each chain keeps that camera's frames, one for one
         or a selection shown in order (`Stage.kept_frames`, following renames back to the source's
         feature), and the source stores it as the output does (image or video, shape, depth unit; at
-        another fps, `subsample`'s, its frames are shown at the output's). What the writer needs to know to
-        copy a source's encoded frames (a video's) instead of decoding and encoding them again."""
+        another fps, `subsample`'s or `resample`'s, its frames are shown at the output's). What the
+        writer needs to know to copy a source's encoded frames (a video's) instead of decoding and
+        encoding them again."""
         out = self.features.get(feature)
         if out is None or out["dtype"] not in CAMERA_DTYPES:
             return False
@@ -124,8 +126,9 @@ class Plan:
         streams concatenate (same codec, size, pixel format, time base, codec parameters) with every
         episode starting on a keyframe (`video_copy.copy_signature`), and for RGB already encoded as
         the destination's encoder settings ask (`video_encoder.stream_matches`); where a stage keeps
-        some of an episode's frames (`trim`, `subsample`), streams that can be cut between keyframes
-        (`video_copy.cuttable`). The others are encoded."""
+        some of an episode's frames (`trim`, `subsample`, `resample`), streams that can be cut between
+        keyframes (`video_copy.cuttable`), and at another fps a clock that shows frames at it
+        (`video_copy.shows_frames_at`). The others are encoded."""
         copies = {}
         settings = self.config.destination.encoder_settings()
         for key, ft in self.features.items():
@@ -140,6 +143,10 @@ class Plan:
             signatures = {_copy_signature(source, name) for source, name in zip(self.sources, names, strict=True)}
             if None in signatures or len(signatures) != 1:
                 continue
+            if any(source.fps != self.fps for source in self.sources) and not shows_frames_at(
+                next(iter(signatures)), self.fps
+            ):
+                continue  # copied frames shown at the new rate need a clock that ticks at it
             if all(
                 source.video_cuttable(name)
                 for s, (source, name) in enumerate(zip(self.sources, names, strict=True))

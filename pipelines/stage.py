@@ -141,7 +141,8 @@ class Stage(ABC):
     def kept_frames(self, features: Features) -> dict[str, str]:
         """Output camera feature -> the input camera whose frames it holds unchanged (same pixels,
         stored alike): one for one, or each output episode a selection of its input's frames, each
-        shown once and in order (`trim`, `subsample`), for an input schema `features`. A stage that is not known to keep frames (`Stage`,
+        shown once and in order (`trim`, `subsample`, a downsampling `resample`), for an input
+        schema `features`. A stage that is not known to keep frames (`Stage`,
         `ReindexStage`) keeps none; `FrameStage` keeps what it carries (`carried_cameras`)."""
         return {}
 

@@ -51,7 +51,8 @@ def _plan(stages, tmp_path, video=None, own=()):
         ([("filter", {"min_length": 6})], None, {FRONT, WRIST, DEPTH}),  # whole episodes dropped
         ([("trim", {"head": 1})], None, {FRONT, WRIST, DEPTH}),  # one contiguous run of each episode
         ([("subsample", {"every": 2})], None, {FRONT, WRIST, DEPTH}),  # every other frame, each once
-        ([("resample", {"fps": 5})], None, set()),  # nearest frames: one may be shown twice
+        ([("resample", {"fps": 5})], None, {FRONT, WRIST, DEPTH}),  # downsampled: every other frame, each once
+        ([("resample", {"fps": 20})], None, set()),  # upsampled: each frame shown twice
         ([], False, set()),  # stored as images instead of video
     ],
 )  # fmt: skip

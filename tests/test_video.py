@@ -345,3 +345,66 @@ def test_the_episodes_of_one_video_file_share_one_open_container(monkeypatch):
                 np.testing.assert_array_equal(got.transpose(0, 3, 1, 2) / 255.0, expected)
             else:
                 np.testing.assert_allclose(got.transpose(0, 3, 1, 2), expected, rtol=0, atol=2e-6)  # float32 rounding
+
+
+@pytest.mark.parametrize("pick", ["every other", "every other from 1", "one", "scattered"])
+def test_a_selection_of_frames_decodes_only_the_packets_it_needs(pick, monkeypatch):
+    """Frames asked of an AV1 stream in presentation order (lerobot's) are decoded from the keyframe
+    before each, skipping packets no asked frame needs (every other frame of lerobot's `g=2` stream:
+    its keyframes alone), and are the frames lerobot's loader gives; depth (12-bit HEVC) alike."""
+    import av
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from shiftkit.datasets import video
+    from shiftkit.datasets.images import decode_video
+    from tests.lerobot_recordings import Recording, recording
+
+    rec = Recording(video=True, cameras=("front",), depth=("front",), size=(32, 48), lengths=(9, 8), language=False)
+    source = recording(rec)
+    picked = {"every other": [0, 2, 4, 6], "every other from 1": [1, 3, 5, 7], "one": [5], "scattered": [0, 5, 6]}[pick]
+    loader = LeRobotDataset("test/loaded", root=source, video_backend="pyav", depth_output_unit="m")
+    meta = json.loads((source / "meta/info.json").read_text())
+    decoded: list[int] = []
+
+    class Counted:  # a packet whose decoding is counted
+        def __init__(self, packet):
+            self.packet = packet
+
+        def decode(self):
+            decoded.append(self.packet.pts)
+            return self.packet.decode()
+
+        def __getattr__(self, name):
+            return getattr(self.packet, name)
+
+    class Container:
+        def __init__(self, container):
+            self.container, self.streams, self.seek = container, container.streams, container.seek
+
+        def demux(self, stream):
+            return (Counted(p) for p in self.container.demux(stream))
+
+        def decode(self, stream):  # every packet in turn
+            return (frame for packet in self.demux(stream) for frame in packet.decode())
+
+    real = video._opened
+    monkeypatch.setattr(video, "_opened", lambda path: (lambda key, c: (key, Container(c)))(*real(path)))
+    video._OPEN.clear()
+    for key in ("observation.images.front", "observation.depth.front"):
+        path = source / "videos" / key / "chunk-000/file-000.mp4"
+        with av.open(str(path)) as container:  # episode 1 starts after episode 0's 9 frames
+            stream = container.streams.video[0]
+            packets = [
+                p for p in container.demux(stream) if p.dts is not None and p.pts * stream.time_base >= 0.9 - 1e-6
+            ]
+            keyframes = [t for t, p in enumerate(packets) if p.is_keyframe]
+        decoded.clear()
+        frames = decode_video(path, 0.9, np.array(picked) / rec.fps, "test", meta["features"][key])
+        expected = np.stack([loader[9 + t][key].numpy().transpose(1, 2, 0) for t in picked])
+        if key.startswith("observation.images"):
+            np.testing.assert_array_equal(frames / np.float32(255.0), expected)
+            needed = {u for t in picked for u in range(max(k for k in keyframes if k <= t), t + 1)}
+            assert keyframes[:2] == [0, 2] and len(decoded) == len(needed)
+            assert len(needed) == {"every other": 4, "every other from 1": 8, "one": 2, "scattered": 4}[pick]
+        else:
+            np.testing.assert_allclose(frames, expected, rtol=0, atol=2e-6)

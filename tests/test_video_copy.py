@@ -271,19 +271,64 @@ def test_subsample_copies_the_kept_keyframes_and_encodes_the_others(every, offse
     """`subsample` keeps every k-th frame: on lerobot's AV1 (`g=2`), a kept keyframe is the source's
     packet, shown one output frame after the last; a kept frame that refers to one left out is
     encoded from the decoder's pixels, a stream of its own starting on a keyframe. Checked against
-    the source: which packets are copied follows the source's keyframe flags, the copied ones are its
-    bytes and lerobot's loader gives its frames exactly there, the encoded ones nearest their own
-    kept source frame; the output's fps and episode durations are the new rate's; the HEVC
-    depth is encoded whole; statistics and `validate --deep` hold."""
-    import pandas as pd
-
+    the source (`_assert_selection_copied`)."""
     source = recording(TRIMMED)
     out = _run([source], tmp_path / "out", [StageSpec("subsample", {"every": every, "offset": offset})])
-    fps = TRIMMED.fps // every
+    kept = [list(range(offset, n, every)) for n in TRIMMED.lengths]
+    encoded_frames = _assert_selection_copied(source, out, kept, TRIMMED.fps // every)
+    assert any(encoded_frames.values()) == (offset % 2 == 1 or every % 2 == 1)  # g=2: even frames are keys
+    if (every, offset) == (5, 1):  # copies and cuts through two workers' parts: the same bytes
+        two = _run([source], tmp_path / "two", [StageSpec("subsample", {"every": every, "offset": offset})], workers=2)
+        depth = "observation.depth.front"
+        files, files_two = _files(out), _files(two)
+        assert files.keys() == files_two.keys()
+        assert {k: v for k, v in files.items() if depth not in k} == {
+            k: v for k, v in files_two.items() if depth not in k
+        }
+        # the depth is not copied but encoded anew by lerobot's lossless HEVC encoder: the same codes
+        for a, b in zip(_lerobot_frames(out, depth), _lerobot_frames(two, depth), strict=True):
+            np.testing.assert_array_equal(a, b)
+    _validate_deep(out, monkeypatch)
+
+
+@pytest.mark.parametrize("fps", [5, 8])
+def test_a_downsampling_resample_copies_like_subsample(fps, tmp_path, monkeypatch):
+    """`resample` to a lower rate holds, per output frame, the source frame at or before its grid time:
+    a selection shown once each, copied and encoded as `subsample`'s (10 -> 5 fps is every other
+    frame, the same bytes as `subsample`'s; 10 -> 8 fps keeps frames 0, 1, 2, 3, 5, 6, ...: keyframes,
+    frames after a copied one and frames after a left-out one). Encoded instead: an upsampling (a
+    frame shown twice), and a rate the source's clock cannot show (10 -> 6 fps: the frame period is
+    not a whole number of lerobot's 1/10240 s ticks)."""
+    from shiftkit.transforms.resample import resampling_grid
+
+    source = recording(TRIMMED)
+    out = _run([source], tmp_path / "out", [StageSpec("resample", {"fps": fps})])
+    kept = [resampling_grid(np.arange(n) / TRIMMED.fps, TRIMMED.fps, fps)[1].tolist() for n in TRIMMED.lengths]
+    encoded_frames = _assert_selection_copied(source, out, kept, fps)
+    assert any(encoded_frames.values()) == (fps == 8)
+    if fps == 5:
+        subsampled = _run([source], tmp_path / "sub", [StageSpec("subsample", {"every": 2})])
+        assert {k: v for k, v in _files(out).items() if "videos/observation.images" in k} == {
+            k: v for k, v in _files(subsampled).items() if "videos/observation.images" in k
+        }
+        for other in (20, 6):
+            encoded = _run([source], tmp_path / f"at{other}", [StageSpec("resample", {"fps": other})])
+            provenance = json.loads((encoded / "meta/shiftkit_provenance.json").read_text())
+            assert set(provenance["video"].values()) == {"encoded"}
+    _validate_deep(out, monkeypatch)
+
+
+def _assert_selection_copied(source: Path, out: Path, kept: list[list[int]], fps: int) -> dict[str, int]:
+    """`out` holds, per episode, source frames `kept` (each once, in order) shown at `fps`: which
+    packets are copied follows the source's keyframe flags (a keyframe, or the frame right after a
+    copied one), the copied ones are its bytes and lerobot's loader gives its frames exactly there,
+    the encoded ones nearest their own kept source frame; the output's fps and episode durations are
+    the new rate's; the HEVC depth is encoded whole. Returns the frames encoded per camera."""
+    import pandas as pd
+
     provenance = json.loads((out / "meta/shiftkit_provenance.json").read_text())
     depth = "observation.depth.front"
     assert provenance["video"] == {**dict.fromkeys(CAMERAS, "copied"), depth: "encoded"}
-    kept = [list(range(offset, n, every)) for n in TRIMMED.lengths]
     info = json.loads((out / "meta/info.json").read_text())
     assert info["fps"] == fps
     starts = np.cumsum((0, *TRIMMED.lengths))
@@ -296,7 +341,6 @@ def test_subsample_copies_the_kept_keyframes_and_encodes_the_others(every, offse
         for e, (frames, got) in enumerate(zip(kept, _episode_packets(out, key), strict=True)):
             assert len(got) == len(frames)
             for j, t in enumerate(frames):
-                # a keyframe, or the frame right after a copied one: copied, byte for byte
                 is_copy = src_keys[e][t] or (j > 0 and copied[-1][1] and t == frames[j - 1] + 1)
                 copied.append((int(starts[e]) + t, is_copy))
                 assert (got[j] == src_packets[e][t]) == is_copy
@@ -313,24 +357,13 @@ def test_subsample_copies_the_kept_keyframes_and_encodes_the_others(every, offse
             if not is_copy:
                 errors = [np.mean((frame - src_frames[u]) ** 2) for u in shown]
                 assert shown[int(np.argmin(errors))] == t and 10 * np.log10(1 / min(errors)) > 30
-    assert any(encoded_frames.values()) == (offset % 2 == 1 or every % 2 == 1)  # g=2: even frames are keys
     assert provenance.get("video_encoded_at_cuts", {}) == {k: n for k, n in encoded_frames.items() if n}
     episodes = pd.concat(pd.read_parquet(p) for p in sorted((out / "meta/episodes").glob("*/*.parquet")))
     for key in (*CAMERAS, depth):
         duration = episodes[f"videos/{key}/to_timestamp"] - episodes[f"videos/{key}/from_timestamp"]
         np.testing.assert_allclose(duration, [len(k) / fps for k in kept], atol=1e-6)
     assert len(_lerobot_frames(out, depth)) == sum(len(k) for k in kept)
-    if (every, offset) == (5, 1):  # copies and cuts through two workers' parts: the same bytes
-        two = _run([source], tmp_path / "two", [StageSpec("subsample", {"every": every, "offset": offset})], workers=2)
-        files, files_two = _files(out), _files(two)
-        assert files.keys() == files_two.keys()
-        assert {k: v for k, v in files.items() if depth not in k} == {
-            k: v for k, v in files_two.items() if depth not in k
-        }
-        # the depth is not copied but encoded anew by lerobot's lossless HEVC encoder: the same codes
-        for a, b in zip(_lerobot_frames(out, depth), _lerobot_frames(two, depth), strict=True):
-            np.testing.assert_array_equal(a, b)
-    _validate_deep(out, monkeypatch)
+    return encoded_frames
 
 
 def test_subsample_of_one_frame_episodes_shows_them_at_the_new_rate(tmp_path):

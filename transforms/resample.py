@@ -10,6 +10,7 @@ depth) take the nearest earlier frame, since interpolating a gripper command or 
 invent values that never happened. Each grid frame stands for the recorded frames from its own up
 to the next grid frame's (`pipelines/frame_map.py`): their events (`next.success` / `next.done`,
 language events) land on it, so downsampling keeps the last frame's success on the last frame.
+Downsampled video cameras are copied where their kept frames are keyframes (`datasets/video_copy.py`).
 """
 
 from __future__ import annotations
@@ -75,6 +76,12 @@ class Resample(ReindexStage):
     @override
     def transform_features(self, features: Features) -> Features:
         return features
+
+    @override
+    def kept_frames(self, features: Features) -> dict[str, str]:
+        # Downsampling holds source frames, each once and in order (regular timestamps, as lerobot
+        # writes them): copied as `subsample`'s are. Upsampling shows a frame twice: encoded.
+        return self.carried_cameras(features) if self.config.fps <= self.context.fps else {}
 
     def _interpolates(self, dtype: np.dtype, frame_shape: tuple[int, ...]) -> bool:
         """Float scalars and vectors are interpolated; images, depth maps and the rest are held."""
