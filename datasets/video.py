@@ -30,7 +30,8 @@ import functools
 import logging
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -96,14 +97,22 @@ def decode_episode(
     path: Path, start: float, timestamps: np.ndarray, where: str, depth_info: dict[str, Any] | None = None
 ) -> np.ndarray:
     """The frames at `start + timestamps` (seconds) of the video at `path`: (T, H, W, 3) uint8 RGB,
-    or, with `depth_info` (a depth feature's `info`), (T, H, W, 1) float32 metres. Where the stream
+    or, with `depth_info` (a depth feature's `info`), (T, H, W, 1) float32 metres."""
+    pictures = decoded_pictures(path, start, timestamps, where)
+    out = np.stack([p.to_ndarray(format="rgb24" if depth_info is None else "gray12le") for p in pictures])
+    return out if depth_info is None else dequantize_metres(out, depth_info)[..., None]
+
+
+def decoded_pictures(path: Path, start: float, timestamps: np.ndarray, where: str) -> list[Any]:
+    """The pictures at `start + timestamps` (seconds) of the video at `path`, in the decoder's own
+    pixel format (PyAV frames), one per timestamp, matched with lerobot's tolerance. Where the stream
     is in presentation order (lerobot's AV1), only the packets the asked frames need are decoded,
     each from the keyframe before it (`decode_pictures`): every other frame of lerobot's `g=2`
     stream (a `subsample`) decodes half the episode."""
     import av
 
     queries = start + np.asarray(timestamps, dtype=np.float64)
-    frames: list[np.ndarray | None] = [None] * len(queries)
+    found: list[Any] = [None] * len(queries)
     key = None
     try:
         key, container = _opened(Path(path))
@@ -124,21 +133,20 @@ def decode_episode(
             pictures = decode_pictures(stream.codec_context, packets, {pts[k] for k in wanted}).values()
         else:  # frames reordered (B-frames): decoded in full
             pictures = [f for p in packets for f in p.decode()] + list(stream.codec_context.decode(None))
-        for frame in pictures:
-            j = _nearest(queries, np.array([frame.pts * base]))[0]
+        for picture in pictures:
+            j = _nearest(queries, np.array([picture.pts * base]))[0]
             if j >= 0:
-                frames[j] = frame.to_ndarray(format="rgb24" if depth_info is None else "gray12le")
+                found[j] = picture
     except (av.error.FFmpegError, OSError) as exc:
         _OPEN.pop(key, None)
         raise DatasetError(f"{where}: cannot decode {path} ({type(exc).__name__}: {exc})") from None
-    missing = [i for i, f in enumerate(frames) if f is None]
+    missing = [i for i, f in enumerate(found) if f is None]
     if missing:
         raise DatasetError(
             f"{where}: {path.name} has no frame at {queries[missing[0]]:.4f} s "
             f"({len(missing)} of {len(queries)} frames missing; tolerance {TOLERANCE_S} s)"
         )
-    out = np.stack(frames)
-    return out if depth_info is None else dequantize_metres(out, depth_info)[..., None]
+    return found
 
 
 def _nearest(times: np.ndarray, queries: np.ndarray) -> np.ndarray:
@@ -228,39 +236,59 @@ def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encode
     its `quantize_depth`) fed from memory: it reads the PNG / TIFF files a recorder wrote, which a
     pipeline would have to write first. `encoder`: lerobot's `RGBEncoderConfig` for uint8
     (T, H, W, 3) frames or `DepthEncoderConfig` for (T, H, W, 1) depth in its stored unit."""
-    import logging
-
     import av
     from lerobot.configs import DepthEncoderConfig
 
-    check_frame_size(encoder.vcodec, *frames.shape[1:3])
-    is_depth = isinstance(encoder, DepthEncoderConfig)
-    if is_depth:
+    if isinstance(encoder, DepthEncoderConfig):
         from lerobot.datasets.depth_utils import quantize_depth
+
+        def picture(frame: np.ndarray) -> Any:
+            return quantize_depth(
+                np.asarray(frame)[..., 0],
+                depth_min=encoder.depth_min,
+                depth_max=encoder.depth_max,
+                shift=encoder.shift,
+                use_log=encoder.use_log,
+                pix_fmt=encoder.pix_fmt,
+                video_backend="pyav",
+            )
+    else:
+
+        def picture(frame: np.ndarray) -> Any:
+            return av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
+
+    encode_pictures((picture(f) for f in frames), len(frames), frames.shape[1:3], path, fps, encoder, encoder_threads)
+
+
+def encode_pictures(
+    pictures: Iterable[Any],
+    count: int,
+    size: tuple[int, int],
+    path: Path,
+    fps: int,
+    encoder: Any,
+    encoder_threads: int | None = None,
+) -> None:
+    """`count` pictures (PyAV frames) of `size` (height, width) encoded into `path` at `fps` as
+    lerobot's `encode_video_frames` encodes, each handed to the encoder in its own pixel format
+    (PyAV converts it to the encoder's where it differs)."""
+    import logging
+
+    import av
+
+    check_frame_size(encoder.vcodec, *size)
     options = encoder.get_codec_options(encoder_threads, as_strings=True)
     logging.getLogger("libav").setLevel(av.logging.WARNING)
     try:
         with scheduling_kept(), av.open(str(path), "w") as output:
             stream = output.add_stream(encoder.vcodec, fps, options=options)
             stream.pix_fmt = encoder.pix_fmt
-            stream.height, stream.width = frames.shape[1:3]
-            for frame in frames:
-                if is_depth:
-                    video_frame = quantize_depth(
-                        np.asarray(frame)[..., 0],
-                        depth_min=encoder.depth_min,
-                        depth_max=encoder.depth_max,
-                        shift=encoder.shift,
-                        use_log=encoder.use_log,
-                        pix_fmt=encoder.pix_fmt,
-                        video_backend="pyav",
-                    )
-                else:
-                    video_frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
-                for packet in stream.encode(video_frame):
-                    output.mux(_with_sane_dts(packet, len(frames)))
+            stream.height, stream.width = size
+            for picture in pictures:
+                for packet in stream.encode(picture):
+                    output.mux(_with_sane_dts(packet, count))
             for packet in stream.encode():
-                output.mux(_with_sane_dts(packet, len(frames)))
+                output.mux(_with_sane_dts(packet, count))
     finally:
         av.logging.restore_default_callback()
 
@@ -364,3 +392,28 @@ def encode_episode_video(frames: np.ndarray, ft: dict[str, Any], fps: int, path:
     finally:
         tmp.unlink(missing_ok=True)
     return EncodedVideo(path, frames.shape, frames.dtype.name)
+
+
+def transcode_episode(
+    source: Path, start: float, timestamps: np.ndarray, ft: dict[str, Any], fps: int, path: Path
+) -> EncodedVideo:
+    """The RGB frames at `start + timestamps` of the video `source`, which pass a pipeline unchanged
+    but are not copied (the destination asks for other encoder settings, or the streams of a merge
+    differ), encoded into `path` as `encode_episode_video` encodes: decoded in the decoder's own
+    pixel format and handed to the encoder in it, without a round trip through RGB (which alone
+    costs ~45 dB of PSNR), each frame decoded once."""
+    import av
+
+    pictures = decoded_pictures(source, start, timestamps, str(source))
+    for i, picture in enumerate(pictures):  # the output's clock; the encoder chooses the keyframes
+        picture.pts, picture.time_base = i, Fraction(1, fps)
+        picture.pict_type = av.video.frame.PictureType.NONE
+    size = (pictures[0].height, pictures[0].width)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}-{os.getpid()}{path.suffix}")
+    try:
+        encode_pictures(pictures, len(pictures), size, tmp, fps, encoder_for(ft))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return EncodedVideo(path, (len(pictures), *size, 3), "uint8")

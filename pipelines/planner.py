@@ -155,11 +155,28 @@ class Plan:
                 copies[key] = names
         return copies
 
+    @functools.cached_property
+    def video_transcodes(self) -> frozenset[str]:
+        """Output RGB video features whose frames pass unchanged from LeRobot video sources but are
+        encoded, not copied (the destination asks for other encoder settings, a merge's streams
+        differ, a cut in a stream that cannot be cut): the reader leaves them encoded too, and the
+        workers encode them from the decoder's pixels (`video.transcode_episode`), not through RGB."""
+        return frozenset(
+            key
+            for key, ft in self.features.items()
+            if ft["dtype"] == "video"
+            and not is_depth(ft)
+            and key not in self.video_copies
+            and self.frames_pass_unchanged(key)
+            and all(callable(getattr(source, "video_copy_signature", None)) for source in self.sources)
+        )
+
     def video_refs(self, source: int) -> frozenset[str]:
         """The video features of source `source` its reader leaves encoded (`VideoRef`): those the
-        output copies, and cameras that stages pass on unchanged until one drops them unread
-        (`Stage.dropped_unread`)."""
+        output copies or transcodes, and cameras that stages pass on unchanged until one drops them
+        unread (`Stage.dropped_unread`)."""
         copied = {names[source] for names in self.video_copies.values()}
+        copied |= {self.kept_source(key, source) for key in self.video_transcodes}
         chain, inputs = self.chain(source), self._stage_inputs(source)
         for key, ft in self.sources[source].features.items():
             if ft["dtype"] != "video" or key in copied:

@@ -81,16 +81,18 @@ class PartStore:
         features: dict,
         fps: int,
         report: list[dict[str, int]],
+        copied: frozenset[str] = frozenset(),
     ) -> None:
         """Store one source episode's outputs (images and videos encoded, with their statistics) and
-        the stages' event counts, the metas first; the part file appears last, marking it done."""
+        the stages' event counts, the metas first; the part file appears last, marking it done.
+        `copied`: the video features the writer copies from their sources (`Plan.video_copies`)."""
         from shiftkit.datasets.images import encode_images
         from shiftkit.datasets.stats import episode_stats
 
         records = []
         for i, ep in enumerate(outputs):
             stats = episode_stats(ep, features)  # from the frames, before they are encoded
-            videos = self._encode_videos(ep, features, fps, self.videos_dir(source, episode) / str(i))
+            videos = self._encode_videos(ep, features, fps, self.videos_dir(source, episode) / str(i), copied)
             records.append((encode_images(ep, features).with_frames(**videos).frames, ep.meta, stats))
         for folder in (self.dir, self.meta_path(source, episode).parent):
             folder.mkdir(parents=True, exist_ok=True)
@@ -104,18 +106,26 @@ class PartStore:
         return self.dir.parent / "videos" / self.path(source, episode).stem
 
     @staticmethod
-    def _encode_videos(ep: Episode, features: dict, fps: int, folder: Path) -> dict[str, Any]:
-        """The episode's video cameras that are frames (not references to a source's packets, which
-        the writer copies), each encoded into a file in `folder`: encoding runs in the workers, and
-        the part holds the file's name instead of the pixels."""
-        from shiftkit.datasets.video import encode_episode_video
+    def _encode_videos(ep: Episode, features: dict, fps: int, folder: Path, copied: frozenset[str]) -> dict[str, Any]:
+        """The episode's video cameras that the writer does not copy, each encoded into a file in
+        `folder`: encoding runs in the workers, and the part holds the file's name instead of the
+        pixels. A camera still encoded at its source (`VideoRef`) is transcoded from the decoder's
+        pixels (`Plan.video_transcodes`)."""
+        from shiftkit.datasets.video import encode_episode_video, transcode_episode
         from shiftkit.datasets.video_copy import VideoRef
 
-        return {
-            key: encode_episode_video(ep.frames[key], ft, fps, folder / f"{key}.mp4")
-            for key, ft in features.items()
-            if ft["dtype"] == "video" and not isinstance(ep.frames[key], VideoRef)
-        }
+        videos = {}
+        for key, ft in features.items():
+            frames = ep.frames.get(key)
+            if ft["dtype"] != "video" or key in copied:
+                continue
+            if isinstance(frames, VideoRef):
+                videos[key] = transcode_episode(
+                    frames.path, frames.start, frames.timestamps, ft, fps, folder / f"{key}.mp4"
+                )
+            else:
+                videos[key] = encode_episode_video(frames, ft, fps, folder / f"{key}.mp4")
+        return videos
 
     def meta_path(self, source: int, episode: int) -> Path:
         """The small file with that source episode's metas and event counts."""
@@ -264,7 +274,7 @@ def process_unit(unit: WorkUnit) -> int:
     for episode in episodes:
         index = int(episode.meta["source_episode_index"])
         outputs, report = transform_episode(plan, unit.source, episode)
-        parts.write(unit.source, index, outputs, plan.features, plan.fps, report)
+        parts.write(unit.source, index, outputs, plan.features, plan.fps, report, frozenset(plan.video_copies))
     return len(todo)
 
 

@@ -542,9 +542,14 @@ def test_a_resized_camera_keeps_the_source_codec_settings(h264_source, tmp_path,
 
 def _psnr_of_encoded(got: list[np.ndarray], source: list[np.ndarray], frames: list[int]) -> float:
     """Encoded frames `got` (lerobot's loader's, in [0, 1]) against the source frames `frames`: each is
-    nearer its own source frame than any other (none lost, none out of order); their PSNR in dB."""
+    nearer its own source frame than any other (none lost, none out of order) but one that the coding
+    error cannot tell from it (the recordings' ramps repeat: a camera's frames 0 and 7 are 41.6 dB
+    apart); their PSNR in dB."""
     assert len(got) == len(frames)
-    assert [int(np.argmin([np.mean((a - s) ** 2) for s in source])) for a in got] == frames
+    for a, t in zip(got, frames, strict=True):
+        errors = [np.mean((a - s) ** 2) for s in source]
+        best = int(np.argmin(errors))
+        assert best == t or np.mean((source[best] - source[t]) ** 2) < errors[t], (t, best)
     mse = np.mean([np.mean((a - source[t]) ** 2) for a, t in zip(got, frames, strict=True)])
     return float(10 * np.log10(1 / mse))
 
@@ -613,3 +618,36 @@ def test_bad_destination_encoder_settings_are_one_line_errors(setting, message, 
     assert code == 2, err
     assert err.startswith("shiftkit run: error: ") and message in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))
+
+
+@pytest.mark.parametrize("rec", [SMALL, LARGE], ids=["32x48", "480x640"])
+def test_frames_encoded_unchanged_are_transcoded_from_the_decoder_s_pixels(rec, tmp_path, monkeypatch, no_decoding):
+    """Frames that pass unchanged but are encoded (here the destination asks for crf 40) go from the
+    source's decoder to the encoder in its pixel format: nothing decoded to RGB (`no_decoding`; the
+    kept episodes keep their recorded statistics), the destination's setting recorded, and the
+    output nearer the source than the same frames encoded through RGB (the YUV -> RGB -> YUV
+    round trip the workers did before)."""
+    from shiftkit.datasets.images import decode_video
+    from shiftkit.datasets.video import decode_episode, encode_episode_video
+
+    source = recording(rec)
+    out = _run([source], tmp_path / "out", FILTER_RENAME, crf=40)
+    assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "encoded")
+    monkeypatch.undo()  # decoding allowed from here on: the check
+    n = rec.lengths[0]
+    for key in CAMERAS:
+        ft = json.loads((out / "meta/info.json").read_text())["features"][key]
+        assert ft["info"]["video.crf"] == 40
+        src_ft = json.loads((source / "meta/info.json").read_text())["features"][key]
+        src_file = source / f"videos/{key}/chunk-000/file-000.mp4"
+        src = decode_video(src_file, 0.0, np.arange(n) / rec.fps, "test", src_ft)  # episode 0
+        got = decode_video(out / f"videos/{key}/chunk-000/file-000.mp4", 0.0, np.arange(n) / rec.fps, "test", ft)
+        through_rgb = encode_episode_video(src, ft, rec.fps, tmp_path / f"{key}-rgb.mp4").path
+        rgb = decode_episode(through_rgb, 0.0, np.arange(n) / rec.fps, "test")
+        psnr_direct, psnr_rgb = _psnr(got, src), _psnr(rgb, src)
+        assert psnr_direct > psnr_rgb + 0.2, (psnr_direct, psnr_rgb)
+
+
+def _psnr(frames: np.ndarray, reference: np.ndarray) -> float:
+    """PSNR in dB of uint8 `frames` against `reference`."""
+    return float(10 * np.log10(255.0**2 / np.mean((frames.astype(float) - reference) ** 2)))
