@@ -7,6 +7,7 @@ is recorded, so the same pipeline and seed give the same bytes.
 from __future__ import annotations
 
 import functools
+import hashlib
 import subprocess
 from importlib import metadata
 from pathlib import Path
@@ -39,7 +40,10 @@ CODE_PATHS = ("*.py", "pyproject.toml", "cards/templates/*", "envs/*/assets/*")
 @functools.cache
 def source_revision() -> dict[str, Any]:
     """`{"shiftkit_commit": SHA, "shiftkit_dirty": bool}` of the checkout this code is imported from,
-    or {} for an installed (non-editable) copy or without git."""
+    or {} for an installed (non-editable) copy or without git; a dirty checkout adds
+    `shiftkit_changes`, a hash of its changes to the code (the diff from the commit and the new
+    files): two dirty checkouts of one commit run different code, so a run's work folder made by one
+    is not resumed by the other (`pipelines.work.run_key`)."""
     root = Path(__file__).resolve().parents[1]
     if not ((root / ".git").exists() and (root / "pyproject.toml").exists()):
         return {}
@@ -47,10 +51,16 @@ def source_revision() -> dict[str, Any]:
         git = lambda *args: subprocess.run(  # noqa: E731
             ["git", "-C", str(root), *args], capture_output=True, text=True, check=True, timeout=30
         ).stdout.strip()
-        return {
+        out: dict[str, Any] = {
             "shiftkit_commit": git("rev-parse", "HEAD"),
             "shiftkit_dirty": bool(git("status", "--porcelain", "--", *CODE_PATHS)),
         }
+        if out["shiftkit_dirty"]:
+            changes = hashlib.sha256(git("diff", "HEAD", "--", *CODE_PATHS).encode())
+            for name in sorted(git("ls-files", "--others", "--exclude-standard", "--", *CODE_PATHS).splitlines()):
+                changes.update(name.encode() + b"\0" + (root / name).read_bytes())
+            out["shiftkit_changes"] = changes.hexdigest()[:16]
+        return out
     except (OSError, subprocess.SubprocessError):
         return {}
 

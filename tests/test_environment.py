@@ -79,9 +79,20 @@ def test_two_clones_at_different_commits_each_run_their_own_code(tmp_path):
     # the provenance names each clone's commit
     assert seen_a["shiftkit_commit"] == git(a, "rev-parse", "HEAD") and not seen_a["shiftkit_dirty"]
     assert seen_b["shiftkit_commit"] == git(b, "rev-parse", "HEAD") != seen_a["shiftkit_commit"]
-    # a change to a tracked file shows as a dirty checkout
-    (a / "pipelines" / "__init__.py").write_text((a / "pipelines" / "__init__.py").read_text() + "\n")
-    assert probe(venv_a)["shiftkit_dirty"] is True
+    # a change to a tracked file shows as a dirty checkout, and which change it is: another change of
+    # the same commit is other code (a run's work folder is not resumed across them), a new module too
+    assert "shiftkit_changes" not in seen_a
+    original = (a / "pipelines" / "__init__.py").read_text()
+    (a / "pipelines" / "__init__.py").write_text(original + "\n")
+    first = probe(venv_a)
+    assert first["shiftkit_dirty"] is True and first["shiftkit_commit"] == seen_a["shiftkit_commit"]
+    (a / "pipelines" / "__init__.py").write_text(original + "\nMARK = 1\n")
+    second = probe(venv_a)
+    (a / "pipelines" / "extra.py").write_text("X = 1\n")
+    third = probe(venv_a)
+    assert len({first["shiftkit_changes"], second["shiftkit_changes"], third["shiftkit_changes"]}) == 3
+    (a / "pipelines" / "extra.py").unlink()
+    assert probe(venv_a)["shiftkit_changes"] == second["shiftkit_changes"]  # the same change, the same hash
     # data and configs a user keeps in the clone do not
     (b / "data").mkdir()
     (b / "data" / "lift.toml").write_text("seed = 0\n")
