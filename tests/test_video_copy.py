@@ -626,7 +626,7 @@ def test_frames_encoded_unchanged_are_transcoded_from_the_decoder_s_pixels(rec, 
     source's decoder to the encoder in its pixel format: nothing decoded to RGB (`no_decoding`; the
     kept episodes keep their recorded statistics), the destination's setting recorded, and the
     output nearer the source than the same frames encoded through RGB (the YUV -> RGB -> YUV
-    round trip the workers did before)."""
+    round trip the workers did before); the output passes `validate --deep`."""
     from shiftkit.datasets.images import decode_video
     from shiftkit.datasets.video import decode_episode, encode_episode_video
 
@@ -646,6 +646,7 @@ def test_frames_encoded_unchanged_are_transcoded_from_the_decoder_s_pixels(rec, 
         rgb = decode_episode(through_rgb, 0.0, np.arange(n) / rec.fps, "test")
         psnr_direct, psnr_rgb = _psnr(got, src), _psnr(rgb, src)
         assert psnr_direct > psnr_rgb + 0.2, (psnr_direct, psnr_rgb)
+    _validate_deep(out, monkeypatch)
 
 
 def _psnr(frames: np.ndarray, reference: np.ndarray) -> float:
