@@ -205,23 +205,33 @@ def numeric_stats(columns: dict[str, np.ndarray]) -> dict[str, Stats]:
     return {key: stats[key] for key in columns}
 
 
-def _image_samples(frames: np.ndarray) -> np.ndarray:
-    """The frames lerobot's `sample_images` reads for image statistics, (samples, H', W', C): up to
-    `length ** 0.75` frames (at least 100 or all, at most 10 000) evenly spaced, and frames of 300
-    pixels or more on their longer side downscaled by striding, towards 150 on that side
-    (`estimate_num_samples`, `sample_indices`, `auto_downsample_height_width`). Written here in numpy
-    because importing lerobot's module loads torch: seconds, and hundreds of MB, in every worker."""
-    length, height, width = frames.shape[:3]
+def image_sample_indices(length: int) -> np.ndarray:
+    """The frames of an episode of `length` frames that lerobot's `sample_images` reads for image
+    statistics: up to `length ** 0.75` (at least 100 or all, at most 10 000), evenly spaced, in
+    increasing order (`estimate_num_samples`, `sample_indices`)."""
     count = max(min(100, length), min(int(length**0.75), 10_000))
-    indices = np.round(np.linspace(0, length - 1, count)).astype(int)
+    return np.round(np.linspace(0, length - 1, count)).astype(int)
+
+
+def _downscaled(frames: np.ndarray) -> np.ndarray:
+    """Frames of 300 pixels or more on their longer side downscaled by striding, towards 150 on that
+    side (lerobot's `auto_downsample_height_width`)."""
+    height, width = frames.shape[1:3]
     step = 1 if max(height, width) < 300 else int(max(height, width) / 150)
-    return frames[indices, ::step, ::step]
+    return frames[:, ::step, ::step]
+
+
+def _image_samples(frames: np.ndarray) -> np.ndarray:
+    """The frames lerobot's `sample_images` reads for image statistics, (samples, H', W', C): the
+    frames `image_sample_indices` picks, downscaled (`_downscaled`). Written here in numpy because
+    importing lerobot's module loads torch: seconds, and hundreds of MB, in every worker."""
+    return _downscaled(frames[image_sample_indices(len(frames))])
 
 
 DEPTH_DTYPES = (np.dtype(np.float32), np.dtype(np.uint16))  # lerobot's depth images: 'm' and 'mm'
 
 
-def image_stats(frames: np.ndarray, depth: bool = False) -> Stats:
+def image_stats(frames: np.ndarray, depth: bool = False, sampled: bool = False) -> Stats:
     """lerobot 0.6.1's `compute_episode_stats` statistics of one camera feature (`image` or
     `video`) from its frames held in memory, (T, H, W, C): sampled and downscaled as `sample_images`
     does, then `get_feature_stats` over (0, 2, 3), values of shape (C, 1, 1) and `count` (1,).
@@ -237,6 +247,9 @@ def image_stats(frames: np.ndarray, depth: bool = False) -> Stats:
       sampled pixel (lerobot's unpromoted special case) everything is float32 for metres, float64
       for millimetres. Values must be finite (lerobot's histogram of a NaN is no statistic).
 
+    `sampled=True`: `frames` are already the episode's frames at `image_sample_indices` (a video
+    decoded only there), downscaled here.
+
     `depth_stats(frames)` is `image_stats(frames, depth=True)`.
     """
     frames = np.asarray(frames)
@@ -250,12 +263,12 @@ def image_stats(frames: np.ndarray, depth: bool = False) -> Stats:
             )
     elif frames.ndim != 4:
         raise ValueError(f"image frames must be (T, H, W, C); got shape {frames.shape}")
-    sampled = _image_samples(frames)
-    pixels = sampled.reshape(-1, sampled.shape[-1])  # lerobot's (samples * H' * W', C) rows
+    samples = _downscaled(frames) if sampled else _image_samples(frames)
+    pixels = samples.reshape(-1, samples.shape[-1])  # lerobot's (samples * H' * W', C) rows
     if pixels.shape[0] < 2:
-        stats = _basic_stats(pixels, sampled.shape[0])
+        stats = _basic_stats(pixels, samples.shape[0])
     else:
-        stats = _batch_stats([pixels], [sampled.shape[0]])[0]
+        stats = _batch_stats([pixels], [samples.shape[0]])[0]
     factor = 1.0 if depth else 255.0
     return {k: v if k == "count" else np.squeeze(v.reshape(1, -1, 1, 1) / factor, axis=0) for k, v in stats.items()}
 
@@ -384,10 +397,11 @@ def episode_stats(episode: Episode, features: Features) -> dict[str, dict[str, n
         if getattr(frames, "stats", None) is not None:
             stats[key] = frames.stats
             continue
-        frames = np.asarray(frames)
+        # only the frames lerobot's statistics read: a camera still encoded (`VideoRef`) decodes those alone
+        picked = np.asarray(frames[image_sample_indices(len(frames))])
         ft = features[key]
         if depth.is_depth(ft):
-            stats[key] = image_stats(depth.to_stored(frames, depth.depth_unit(ft)), depth=True)
+            stats[key] = image_stats(depth.to_stored(picked, depth.depth_unit(ft)), depth=True, sampled=True)
         else:
-            stats[key] = image_stats(frames)
+            stats[key] = image_stats(picked, sampled=True)
     return stats

@@ -98,6 +98,12 @@ class VideoRef:
         return frames if dtype is None else frames.astype(dtype)
 
     def __getitem__(self, index: Any) -> np.ndarray:
+        picked = np.asarray(index) if isinstance(index, (list, np.ndarray)) else None
+        if picked is not None and picked.ndim == 1 and picked.dtype.kind == "i" and np.all(np.diff(picked) > 0):
+            from shiftkit.datasets.images import decode_video
+
+            # frames in increasing order (the statistics' samples): those alone are decoded
+            return decode_video(self.path, self.start, self.timestamps[picked], str(self.path), self.feature)
         return np.asarray(self)[index]
 
     def select_frames(self, index: np.ndarray | slice | list[int]) -> VideoRef | np.ndarray:

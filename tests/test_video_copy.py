@@ -652,3 +652,37 @@ def test_frames_encoded_unchanged_are_transcoded_from_the_decoder_s_pixels(rec, 
 def _psnr(frames: np.ndarray, reference: np.ndarray) -> float:
     """PSNR in dB of uint8 `frames` against `reference`."""
     return float(10 * np.log10(255.0**2 / np.mean((frames.astype(float) - reference) ** 2)))
+
+
+def test_statistics_of_encoded_frames_decode_only_the_frames_lerobot_samples(monkeypatch):
+    """A camera still encoded (`VideoRef`) whose statistics must be computed (a cut episode is not the
+    one its source recorded them for) decodes only the frames lerobot's `sample_images` reads: 100
+    of a 300-frame episode, RGB and depth, and the statistics are those of the fully decoded frames."""
+    from shiftkit.datasets import images
+    from shiftkit.datasets.reader import open_lerobot_dataset
+    from shiftkit.datasets.stats import episode_stats
+    from shiftkit.datasets.video_copy import VideoRef
+
+    rec = Recording(video=True, cameras=("front",), depth=("front",), size=(32, 48), lengths=(300,), language=False)
+    source = recording(rec)
+    keys = ("observation.images.front", "observation.depth.front")
+    reader = open_lerobot_dataset(source)
+    features = reader.features
+    decoded = next(reader.iter_episodes([0]))
+    refs = next(reader.iter_episodes([0], video_refs=frozenset(keys)))
+    uncomputed = {  # as a cut hands them on: no recorded statistics
+        k: VideoRef(r.path, r.start, r.stop, r.timestamps, r.feature, None)
+        for k, r in ((k, refs.frames[k]) for k in keys)
+    }
+    asked: list[int] = []
+    real = images.decode_episode
+    monkeypatch.setattr(
+        images, "decode_episode", lambda path, start, ts, *a: asked.append(len(ts)) or real(path, start, ts, *a)
+    )
+    got = episode_stats(refs.with_frames(**uncomputed), features)
+    assert asked == [100, 100]
+    expected = episode_stats(decoded, features)
+    for key in keys:
+        assert got[key].keys() == expected[key].keys()
+        for name, value in expected[key].items():
+            np.testing.assert_array_equal(got[key][name], value, err_msg=f"{key} {name}")
