@@ -1,9 +1,10 @@
-"""Camera features stored as lerobot videos: one sequential PyAV decode per episode, and encoding
+"""Camera features stored as lerobot videos: one forward PyAV decode per episode, and encoding
 through lerobot's own encoder settings and file layout, for RGB and for depth.
 
 Decoding: lerobot's loader decodes frame by frame (a seek per frame); a pipeline needs whole
 episodes, so the reader seeks once to the episode's start in the (concatenated) video file and
-decodes forward, matching frames to the episode's timestamps with lerobot's tolerance; the file
+decodes forward, matching frames to the episode's timestamps with lerobot's tolerance (in an AV1
+stream, only the packets the asked frames need: `decoded_pictures`); the file
 stays open for the next episode (lerobot puts many episodes in one file), so a process opens each
 file once, not once per episode and camera. PyAV is the
 backend that works here (torchcodec cannot load its FFmpeg libraries on these machines). Depth
