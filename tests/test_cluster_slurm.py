@@ -268,7 +268,7 @@ def _install_gate_plugin(root: Path) -> Path:
 
 
 def test_a_cancelled_slurm_job_resumes_to_the_same_bytes(slurm, raw, tmp_path):
-    from shiftkit.pipelines.work import work_dir_for
+    from shiftkit.pipelines.work import PART_SUFFIX, work_dir_for
 
     gate = tmp_path / "gate-open"
     env = {**slurm.env, "PYTHONPATH": str(_install_gate_plugin(tmp_path / "plugin"))}
@@ -285,10 +285,10 @@ params = {{ path = "{gate}" }}
     _run_slurm(env, config, dest)
     job = _job_id(dest)
     parts = work_dir_for(dest) / "parts"
-    _wait("a first part", lambda: parts.is_dir() and any(parts.glob("*.npz")), 240, slurm.logs)
+    _wait("a first part", lambda: parts.is_dir() and any(parts.glob(f"*.{PART_SUFFIX}")), 240, slurm.logs)
     assert slurm.cmd("scancel", job).returncode == 0
     _until_job_ends(slurm, job)
-    done = len(list(parts.glob("*.npz")))
+    done = len(list(parts.glob(f"*.{PART_SUFFIX}")))
     assert 1 <= done <= 2 < EPISODES  # one episode per array task, then held at the gate
     gate.touch()
     resumed = _run_slurm(env, config, dest)

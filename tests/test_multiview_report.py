@@ -16,7 +16,7 @@ from shiftkit.envs.base_pose import BasePose
 from shiftkit.pipelines.config import load_pipeline_config
 from shiftkit.pipelines.runner import run_pipeline
 from shiftkit.pipelines.stage import StageContext
-from shiftkit.pipelines.work import episode_rng, work_dir_for
+from shiftkit.pipelines.work import PART_SUFFIX, episode_rng, work_dir_for
 from shiftkit.transforms.multiview import Multiview, MultiviewConfig
 
 SEED = 6  # source episode 2 loses both views; 1 and 3 lose one each
@@ -121,7 +121,7 @@ def test_resumed_run_counts_finished_episodes_once(tmp_path, raw, expected, monk
     monkeypatch.setattr(Multiview, "process", stop_at_episode_3)
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(config, progress=False)
-    parts = sorted(p.name for p in (work_dir_for(tmp_path / "resumed") / "parts").glob("*.npz"))
+    parts = sorted(p.name for p in (work_dir_for(tmp_path / "resumed") / "parts").glob(f"*.{PART_SUFFIX}"))
     assert len(parts) == 3  # episodes 0-2 finished (2 without any view), their counts kept with them
     monkeypatch.setattr(Multiview, "process", process)
     dest = run_pipeline(config, progress=False)

@@ -124,19 +124,24 @@ def test_an_older_plain_pt_checkpoint_still_loads(bc_run, tmp_path):
 
 
 def test_a_work_part_holding_a_pickle_is_refused(tmp_path):
-    """A pipeline's parts are `.npz` read with allow_pickle=False: an object array (a pickle inside the
-    archive) is a one-line error and does not run."""
+    """A pipeline's parts hold plain arrays only: a tree file whose array is an object array (a pickle
+    after its header) is a one-line error and does not run."""
+    import json
+
     import numpy as np
 
+    from shiftkit.datasets import data_tree
     from shiftkit.datasets.errors import DatasetError
     from shiftkit.pipelines.work import PartStore
 
     store = PartStore(tmp_path)
     store.dir.mkdir(parents=True)
     marker = tmp_path / "payload-ran"
-    np.savez(store.path(0, 0), __doc__=np.frombuffer(b'{"$shiftkit":"array","k":"a0"}', np.uint8),
-             a0=np.array([Payload(marker)], dtype=object))  # fmt: skip
-    with pytest.raises(DatasetError, match="not a readable data file"):
+    payload = pickle.dumps(np.array([Payload(marker)], dtype=object))
+    header = json.dumps({"doc": {"$shiftkit": "array", "k": "a0"}, "arrays": {"a0": ["|O", [1], 0, len(payload)]}})
+    head = data_tree.MAGIC + len(header).to_bytes(8, "little") + header.encode()
+    store.path(0, 0).write_bytes(head + bytes(-len(head) % 64) + payload)
+    with pytest.raises(DatasetError, match="not a plain array"):
         list(store.read(0, 0))
     assert not marker.exists()
 

@@ -71,7 +71,7 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
     with the driver; its agents notice the dead raylet within about a minute (measured ~70 s)."""
     import psutil
 
-    from shiftkit.pipelines.work import work_dir_for
+    from shiftkit.pipelines.work import PART_SUFFIX, work_dir_for
 
     raw = write_synthetic_raw(tmp_path / "raw", episodes=40, length=20, seed=5, camera=(16, 24))
     config = _config(tmp_path, raw, "ray_out")
@@ -91,7 +91,7 @@ def test_sigkill_of_a_ray_run_leaves_no_ray_process(tmp_path):
             started |= {c.pid for c in psutil.Process(proc.pid).children(recursive=True)}
         except psutil.NoSuchProcess:
             break
-        if parts_dir.is_dir() and len(list(parts_dir.glob("*.npz"))) >= 2:
+        if parts_dir.is_dir() and len(list(parts_dir.glob(f"*.{PART_SUFFIX}"))) >= 2:
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the run ended before its workers wrote two parts: nothing to kill"
@@ -153,7 +153,7 @@ def test_disk_full_is_one_line_and_restart_discards_work(tmp_path, rel_raw, monk
     def write(self, *args, **kwargs):
         calls["n"] += 1
         if calls["n"] > 2:
-            raise OSError(errno.ENOSPC, "No space left on device", str(self.dir / "x.npz"))
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.dir / "x.tree"))
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(work.PartStore, "write", write)

@@ -448,11 +448,15 @@ def test_data_tree_round_trips_and_refuses_garbage(tmp_path_factory, value, as_t
     from shiftkit.datasets import data_tree
 
     tree = {"v": (value, np.arange(3, dtype=np.int16)) if as_tuple else value, "k": {key: np.float32(1.5)}}
-    path = tmp_path_factory.mktemp("tree") / "t.npz"
+    path = tmp_path_factory.mktemp("tree") / "t.tree"
     with open(path, "wb") as f:
-        data_tree.save_npz(f, tree)
-    back = data_tree.load_npz(path)
+        data_tree.save_tree(f, tree)
+    back = data_tree.load_tree(path)
     assert repr(back) == repr(tree)
-    with open(path, "wb") as f:
-        np.savez(f, __doc__=np.frombuffer(json.dumps(value).encode(), np.uint8))
-    clean_or_error(lambda: data_tree.load_npz(path))
+    good = path.read_bytes()
+    header = json.dumps(value).encode()
+    with open(path, "wb") as f:  # a random document as the header
+        f.write(data_tree.MAGIC + len(header).to_bytes(8, "little") + header)
+    clean_or_error(lambda: data_tree.load_tree(path))
+    path.write_bytes(good[: len(good) // 2])  # cut short
+    clean_or_error(lambda: data_tree.load_tree(path))

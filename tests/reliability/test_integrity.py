@@ -143,7 +143,7 @@ def _interrupted_run(config, monkeypatch, after: int) -> None:
 
 def test_stale_parts_are_not_reused_after_the_source_changed(tmp_path, monkeypatch):
     from shiftkit.pipelines.runner import run_pipeline
-    from shiftkit.pipelines.work import work_dir_for
+    from shiftkit.pipelines.work import PART_SUFFIX, work_dir_for
 
     raw = tmp_path / "raw"
     write_synthetic_raw(raw, episodes=5, length=10, seed=1)
@@ -151,7 +151,7 @@ def test_stale_parts_are_not_reused_after_the_source_changed(tmp_path, monkeypat
         sources=[SourceConfig(path=str(raw))], destination=DestinationConfig(root=str(tmp_path / dest))
     )
     _interrupted_run(config("out"), monkeypatch, after=3)
-    assert len(list((work_dir_for(tmp_path / "out") / "parts").glob("*.npz"))) == 3
+    assert len(list((work_dir_for(tmp_path / "out") / "parts").glob(f"*.{PART_SUFFIX}"))) == 3
     shutil.rmtree(raw)
     write_synthetic_raw(raw, episodes=5, length=10, seed=2)  # re-recorded: same path, same count
     run_pipeline(config("out"), progress=False)
