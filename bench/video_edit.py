@@ -11,7 +11,8 @@ many of the output's video packets are the source's own bytes (copied or encoded
 * drop a camera: shiftkit `drop` vs lerobot's `remove_feature`;
 * rename a camera: shiftkit `rename` (lerobot has no rename tool);
 * merge two datasets (the second written the same way, another seed): shiftkit's two-source
-  pipeline vs lerobot's `merge_datasets`;
+  pipeline vs lerobot's `merge_datasets` with `concatenate_videos=False`, the layout both write (each
+  source's video file copied whole); lerobot's default, which concatenates them, is timed beside;
 * trim a frame at each end: each episode is one run of its frames, copied from its first keyframe
   on, the frames before it encoded (a smart cut: with lerobot's `g=2`, one frame per episode and
   camera); lerobot has no trim tool;
@@ -318,11 +319,16 @@ def main() -> None:
             "merge two datasets",
             [],
             [a, b],
-            lambda out: dataset_tools.merge_datasets([lerobot(a), lerobot(b)], "bench/lr-merge", output_dir=out),
+            lambda out: dataset_tools.merge_datasets(
+                [lerobot(a), lerobot(b)], "bench/lr-merge", output_dir=out, concatenate_videos=False
+            ),
             [(a, e) for e in range(episodes)] + [(b, e) for e in range(other)],
             same,
             {},
             n_frames + other * length,
+        )
+        ops["merge two datasets"]["lerobot_concatenating_wall_s"], _ = timed(
+            lambda: dataset_tools.merge_datasets([lerobot(a), lerobot(b)], "bench/lr-cat", output_dir=work / "lr-cat")
         )
         trim_stages = [StageSpec("trim", {"head": 1, "tail": 1})]
         edit("trim 1+1 frames (smart cut)", trim_stages, [a], None, [(a, e) for e in range(episodes)], same, {},
@@ -391,6 +397,7 @@ def main() -> None:
             "copied_packets": ops["subsample 30 -> 15 fps"]["shiftkit_copied_packets"],
             "bit_exact": ops["subsample 30 -> 15 fps"]["shiftkit_bit_exact"],
         },
+        "merge_lerobot_concatenating_s": round(ops["merge two datasets"]["lerobot_concatenating_wall_s"], 3),
         "encode_rate_vs_lerobot": round(trim["encode_rate_vs_lerobot"], 2),
         "encode_rate_goal": 1.5,
         "scratch_vs_output": round(trim["scratch_vs_output"], 2),

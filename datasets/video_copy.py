@@ -259,8 +259,11 @@ class VideoFileCopier:
     as lerobot's writer appends its encoded episodes (module docstring). A file's episodes are
     written when it is complete (the next would pass the size limit, or `close`): a file that holds
     exactly one source file's episodes, all of them in order (a pass-through, rename, drop or merge),
-    is that file copied; any other is remuxed packet by packet. Where the output's `fps` is not the
-    source's (`subsample`), the kept frames are shown one output frame apart."""
+    is that file copied; any other is remuxed packet by packet. A whole source file is never
+    concatenated with what follows (lerobot's `merge_datasets(concatenate_videos=False)` layout):
+    the next source's episodes start a new file, so a merge copies files instead of remuxing them,
+    and the output has at most as many video files as its sources. Where the output's `fps` is not
+    the source's (`subsample`), the kept frames are shown one output frame apart."""
 
     def __init__(self, root: Path, key: str, video_path: str, chunks_size: int, max_mb: float, fps: int) -> None:
         self.root, self.key, self.video_path = root, key, video_path
@@ -292,7 +295,9 @@ class VideoFileCopier:
             raise DatasetError(f"{ref.path}: its {self.key} stream is encoded otherwise than the episodes before it")
         self.signature = signature
         size = facts.bytes_shown(ref.start, ref.timestamps, ref.path)
-        if self.chunk_file is None or self._bytes + size >= self.max_bytes:  # lerobot's rollover rule
+        # lerobot's rollover rule (the size limit), and a new file after a whole source file
+        after_whole = bool(self._pending) and ref.path != self._pending[-1].path and self._whole(self._pending)
+        if self.chunk_file is None or after_whole or self._bytes + size >= self.max_bytes:
             self._flush()
             self.chunk_file = (
                 (0, 0) if self.chunk_file is None else update_chunk_file_indices(*self.chunk_file, self.chunks_size)
@@ -318,18 +323,21 @@ class VideoFileCopier:
             video_key=self.key, chunk_index=self.chunk_file[0], file_index=self.chunk_file[1]
         )
         path.parent.mkdir(parents=True, exist_ok=True)
+        if self._whole(refs):
+            shutil.copyfile(refs[0].path, path)
+            return
+        self._remux(refs, path)
+
+    def _whole(self, refs: list[VideoRef]) -> bool:
+        """Whether `refs` are every episode of one source file, in order, shown at their own times."""
         source = refs[0].path
-        whole = (
+        return (
             all(r.path == source for r in refs)
             and refs[0].start == 0.0
             and all(a.stop == b.start for a, b in zip(refs, refs[1:], strict=False))
             and sum(len(r) for r in refs) == _file_facts(source)[1].packets
             and not any(self._retimed(r) for r in refs)  # one-frame episodes through `subsample`
         )
-        if whole:
-            shutil.copyfile(source, path)
-            return
-        self._remux(refs, path)
 
     def _remux(self, refs: list[VideoRef], path: Path) -> None:
         import av

@@ -131,11 +131,21 @@ def test_filter_and_rename_copy_the_source_packets(rec, tmp_path, monkeypatch, n
 
 
 def test_merge_copies_both_sources(tmp_path, monkeypatch, no_decoding):
-    """A merge of two lerobot-written datasets encoded alike copies every packet of both, in order."""
+    """A merge of two lerobot-written datasets encoded alike copies every packet of both, in order,
+    each source's video file whole (lerobot's `concatenate_videos=False` layout): the output's files
+    are the sources' files, byte for byte, and the second's episodes start at 0 s in theirs."""
+    import pandas as pd
+
     a, b = recording(SMALL), recording(OTHER)
     out = _run([a, b], tmp_path / "merged", [])
     assert json.loads((out / "meta/shiftkit_provenance.json").read_text())["video"] == dict.fromkeys(CAMERAS, "copied")
+    episodes = pd.read_parquet(out / "meta/episodes/chunk-000/file-000.parquet")
     for key in CAMERAS:
+        files = sorted((out / "videos" / key).rglob("*.mp4"))
+        sources = [*(a / "videos" / key).rglob("*.mp4"), *(b / "videos" / key).rglob("*.mp4")]
+        assert [f.read_bytes() for f in files] == [f.read_bytes() for f in sources]
+        assert episodes[f"videos/{key}/file_index"].tolist() == [0, 0, 0, 1, 1]
+        assert episodes[f"videos/{key}/from_timestamp"].tolist()[3] == 0.0
         assert _packets(out, key) == _packets(a, key) + _packets(b, key)
         got = _lerobot_frames(out, key)
         expected = _lerobot_frames(a, key) + _lerobot_frames(b, key)
