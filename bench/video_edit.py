@@ -24,7 +24,8 @@ many of the output's video packets are the source's own bytes (copied or encoded
 * the floors: `cp -r`, and decoding every frame of the source once (PyAV).
 
 lerobot's tools are called as functions with output folders (their CLI renames the source). Both
-tools run in this process after a warm-up, so neither pays its imports. The frame-preserving
+tools run in this process after a warm-up, so neither pays its imports; an edit that takes under
+5 s is timed as the median of 3 runs. The frame-preserving
 operations' goal: >= 10x faster than lerobot's tool for the same edit (the JSON `value` is the
 smallest speed-up), bit-exact. `--quick`: 4 episodes x 8 frames, merged with one of 2 x 8 (still
 480x640); full: 12 x 150, twice. The last line printed is the JSON result.
@@ -156,6 +157,17 @@ def timed(fn) -> tuple[float, float]:
     return time.perf_counter() - t0, _cpu() - c0
 
 
+def median_of(fn, out: Path, runs: int = 3, within_s: float = 5.0) -> tuple[float, float]:
+    """`timed(fn)` (which writes `out`) as the median of `runs` runs where one takes under `within_s`
+    (the sub-second edits, which one busy moment of a shared machine can double), else one run;
+    `out` is left from the last run."""
+    times = [timed(fn)]
+    while len(times) < runs and times[0][0] < within_s:
+        shutil.rmtree(out)
+        times.append(timed(fn))
+    return sorted(times)[len(times) // 2]
+
+
 def _cpu() -> float:
     t = os.times()
     return t.user + t.system + t.children_user + t.children_system
@@ -256,7 +268,7 @@ def main() -> None:
 
         ops: dict[str, dict] = {}
         n_frames = episodes * length
-        wall, cpu = timed(lambda: subprocess.run(["cp", "-r", str(a), str(work / "cp")], check=True))
+        wall, cpu = median_of(lambda: subprocess.run(["cp", "-r", str(a), str(work / "cp")], check=True), work / "cp")
         ops["cp -r"] = {"wall_s": wall, "cpu_s": cpu, "frames": n_frames, "bytes": folder_bytes(work / "cp")}
         decoded = [0]
         wall, cpu = timed(lambda: decoded.__setitem__(0, decode_all(a)))
@@ -265,7 +277,9 @@ def main() -> None:
         def edit(name, sk_stages, sk_sources, lr_fn, expected, expected_keys, renamed, n, run=slice(None)):
             row: dict = {"frames": n}
             out = work / f"sk-{name}"
-            row["shiftkit_wall_s"], row["shiftkit_cpu_s"] = timed(lambda: shiftkit_run(sk_sources, out, sk_stages))
+            row["shiftkit_wall_s"], row["shiftkit_cpu_s"] = median_of(
+                lambda: shiftkit_run(sk_sources, out, sk_stages), out
+            )
             row["shiftkit_bytes"] = folder_bytes(out)
             prov = json.loads((out / "meta/shiftkit_provenance.json").read_text())
             row["shiftkit_video"] = prov.get("video", {})
@@ -275,7 +289,7 @@ def main() -> None:
             row.update({f"shiftkit_{k}": v for k, v in fidelity(out, expected, keys, run).items()})
             if lr_fn is not None:
                 lr_out = work / f"lr-{name}"
-                row["lerobot_wall_s"], row["lerobot_cpu_s"] = timed(lambda: lr_fn(lr_out))
+                row["lerobot_wall_s"], row["lerobot_cpu_s"] = median_of(lambda: lr_fn(lr_out), lr_out)
                 row["lerobot_bytes"] = folder_bytes(lr_out)
                 row["lerobot_copied_packets"] = copied_share(lr_out, sk_sources, {})
                 lr_keys = {k: k for k in expected_keys}
@@ -327,8 +341,9 @@ def main() -> None:
             {},
             n_frames + other * length,
         )
-        ops["merge two datasets"]["lerobot_concatenating_wall_s"], _ = timed(
-            lambda: dataset_tools.merge_datasets([lerobot(a), lerobot(b)], "bench/lr-cat", output_dir=work / "lr-cat")
+        ops["merge two datasets"]["lerobot_concatenating_wall_s"], _ = median_of(
+            lambda: dataset_tools.merge_datasets([lerobot(a), lerobot(b)], "bench/lr-cat", output_dir=work / "lr-cat"),
+            work / "lr-cat",
         )
         trim_stages = [StageSpec("trim", {"head": 1, "tail": 1})]
         edit("trim 1+1 frames (smart cut)", trim_stages, [a], None, [(a, e) for e in range(episodes)], same, {},
