@@ -20,7 +20,8 @@ many of the output's video packets are the source's own bytes (copied or encoded
   shown at the new rate (nothing encoded); lerobot has no subsample tool;
 * the same trim at another crf than the source's (so every frame is encoded) with 2 workers: camera
   images encoded per second against lerobot's rate in its `delete_episodes` (goal 1.5x), the largest
-  size the run's work folder reaches against the output's size, and a worker's peak memory;
+  size the run's work folder reaches against the output's size, a worker's peak memory and how much
+  the writer's process grows;
 * the floors: `cp -r`, and decoding every frame of the source once (PyAV).
 
 lerobot's tools are called as functions with output folders (their CLI renames the source). Both
@@ -34,9 +35,9 @@ smallest speed-up), bit-exact. `--quick`: 4 episodes x 8 frames, merged with one
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
-import resource
 import shutil
 import subprocess
 import tempfile
@@ -187,27 +188,41 @@ def shiftkit_run(sources: list[Path], out: Path, stages: list, workers: int = 1,
     run_pipeline(config, workers=workers, progress=False)
 
 
-class ScratchWatch:
-    """The largest size a run's work folder reaches, polled every 20 ms in a thread."""
+class RunWatch:
+    """Polled every 20 ms in a thread while a run goes: the largest size its work folder reaches, and
+    the largest resident set of a process this one started (the run's workers) and the growth of
+    this one's (the writer) over where it started."""
 
     def __init__(self, folder: Path) -> None:
         import threading
 
-        self.folder, self.peak, self._stop = folder, 0, threading.Event()
+        import psutil
+
+        self.folder, self.scratch_peak, self._stop = folder, 0, threading.Event()
+        self._self = psutil.Process()
+        self._base = self._self.memory_info().rss
+        self.worker_peak, self.writer_growth = 0, 0
         self._thread = threading.Thread(target=self._poll, daemon=True)
         self._thread.start()
 
     def _poll(self) -> None:
-        while not self._stop.wait(0.02):
-            try:
-                self.peak = max(self.peak, folder_bytes(self.folder)) if self.folder.exists() else self.peak
-            except FileNotFoundError:  # a file renamed or removed while walked
-                continue
+        import psutil
 
-    def stop(self) -> int:
+        while not self._stop.wait(0.02):
+            with contextlib.suppress(FileNotFoundError):  # a file renamed or removed while walked
+                if self.folder.exists():
+                    self.scratch_peak = max(self.scratch_peak, folder_bytes(self.folder))
+            self.writer_growth = max(self.writer_growth, self._self.memory_info().rss - self._base)
+            for child in self._self.children(recursive=True):
+                try:
+                    self.worker_peak = max(self.worker_peak, child.memory_info().rss)
+                except psutil.Error:  # ended meanwhile
+                    continue
+
+    def stop(self) -> RunWatch:
         self._stop.set()
         self._thread.join()
-        return self.peak
+        return self
 
 
 def decode_all(root: Path) -> int:
@@ -355,7 +370,7 @@ def main() -> None:
         from shiftkit.pipelines.work import work_dir_for
 
         out = work / "sk-trim-crf"
-        watch = ScratchWatch(work_dir_for(out))
+        watch = RunWatch(work_dir_for(out))
         wall, cpu = timed(lambda: shiftkit_run([a], out, trim_stages, workers=2, crf=29))
         images = (n_frames - 2 * episodes) * len(CAMERAS)
         deleted = ops["keep half the episodes"]
@@ -370,9 +385,9 @@ def main() -> None:
             "encoded_images_per_s": images / wall,
             "lerobot_encoded_images_per_s": lerobot_rate,
             "encode_rate_vs_lerobot": images / wall / lerobot_rate,
-            "scratch_peak_bytes": watch.stop(),
-            # the largest resident set of a finished child process: the two workers (`cp` is tiny)
-            "worker_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+            "scratch_peak_bytes": watch.stop().scratch_peak,
+            "worker_peak_rss_mb": watch.worker_peak / 2**20,
+            "writer_rss_growth_mb": watch.writer_growth / 2**20,
         }
         ops[encodes]["scratch_vs_output"] = ops[encodes]["scratch_peak_bytes"] / folder_bytes(out)
     finally:
@@ -417,6 +432,7 @@ def main() -> None:
         "encode_rate_goal": 1.5,
         "scratch_vs_output": round(trim["scratch_vs_output"], 2),
         "worker_peak_rss_mb": round(trim["worker_peak_rss_mb"]),
+        "writer_rss_growth_mb": round(trim["writer_rss_growth_mb"]),
         "output_mb": round(trim["shiftkit_bytes"] / 1e6, 1),
         "cp_s": round(ops["cp -r"]["wall_s"], 3),
         "decode_all_s": round(ops["decode-all floor (PyAV)"]["wall_s"], 3),
