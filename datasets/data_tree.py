@@ -257,7 +257,7 @@ def _array_in(buf: bytearray, base: int, entry: Any, where: str) -> np.ndarray:
             and nbytes == count * dtype.itemsize
             and base + offset + nbytes <= len(buf)
         )
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, KeyError, OverflowError):  # what numpy and int() raise for foreign entries
         fits = False
     if not fits:
         raise DatasetError(f"{where} is not a plain array inside the file")

@@ -157,3 +157,34 @@ def test_a_pulled_checkpoint_with_a_payload_is_refused(bc_run, tmp_path):
     with pytest.raises(DatasetError, match="refused"):
         check_checkpoint_files(run)
     assert not marker.exists()
+
+
+@pytest.mark.parametrize(
+    "entry",
+    [
+        ["|O", [1], 0, 8],  # an object array
+        [{"names": ["a"]}, [1], 0, 8],  # a dtype numpy cannot build
+        ["<f8", [1e400], 0, 8],  # JSON's Infinity as a dimension
+        ["<f8", [[1]], 0, 8],
+        ["<f8", [-1], 0, -8],
+        ["<f8", [2], 0, 8],  # the size does not match the shape
+        ["<f8", [1], 8, 8],  # past the end of the file
+        ["<f8", [1], 0],
+        "a0",
+    ],
+)
+def test_a_tree_file_with_a_foreign_array_entry_is_one_line(entry, tmp_path):
+    """A work part's header entry that does not describe a plain array inside the file is a one-line
+    error naming the array, whatever numpy or int() would raise for it."""
+    import json
+
+    from shiftkit.datasets import data_tree
+    from shiftkit.datasets.errors import DatasetError
+
+    header = json.dumps({"doc": {"$shiftkit": "array", "k": "a0"}, "arrays": {"a0": entry}}).encode()
+    head = data_tree.MAGIC + len(header).to_bytes(8, "little") + header
+    path = tmp_path / "part.tree"
+    path.write_bytes(head + bytes(-len(head) % 64) + bytes(8))
+    with pytest.raises(DatasetError, match="array 'a0' is not a plain array inside the file") as error:
+        data_tree.load_tree(path)
+    assert "\n" not in str(error.value)
