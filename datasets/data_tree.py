@@ -191,9 +191,9 @@ _ALIGN = 64
 def save_tree(f: BinaryIO, tree: Any) -> None:
     """`tree` into the open binary file `f` as one tree file: `MAGIC`, the length of a JSON header
     (8 bytes, little-endian), the header (the document and, per array, its dtype, shape, offset and
-    size), then the arrays' bytes, each 64-byte aligned. One header to parse and one read: a part of
-    89 arrays (an episode's columns and statistics) loads in 0.36 ms, as `.npz` (a zip member and a
-    header to parse per array) in 6.1 ms."""
+    size), then the arrays' bytes, each 64-byte aligned. One header to parse and one read: a tree
+    shaped like an episode's part (89 arrays: 8 columns of 150 frames and their statistics) loads in
+    0.36 ms, as `.npz` (a zip member and a header to parse per array) in 6.1 ms."""
     doc, arrays = split(tree)
     entries, blocks, offset = {}, [], 0
     for name, value in arrays.items():

@@ -261,9 +261,8 @@ class VideoFileCopier:
     exactly one source file's episodes, all of them in order (a pass-through, rename, drop or merge),
     is that file copied; any other is remuxed packet by packet. A whole source file is never
     concatenated with what follows (lerobot's `merge_datasets(concatenate_videos=False)` layout):
-    the next source's episodes start a new file, so a merge copies files instead of remuxing them,
-    and the output has at most as many video files as its sources. Where the output's `fps` is not
-    the source's (`subsample`), the kept frames are shown one output frame apart."""
+    the next source's episodes start a new file, so a merge copies its sources' files instead of
+    remuxing them into one. Where the output's `fps` is not the source's (`subsample`), the kept frames are shown one output frame apart."""
 
     def __init__(self, root: Path, key: str, video_path: str, chunks_size: int, max_mb: float, fps: int) -> None:
         self.root, self.key, self.video_path = root, key, video_path
