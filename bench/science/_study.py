@@ -67,6 +67,16 @@ def shiftkit(*args: str, env: dict[str, str]) -> None:
     subprocess.run([*SHIFTKIT, *args], env=env, cwd=REPO, check=True, stdout=subprocess.DEVNULL)
 
 
+def resumable(run: Path) -> list[str]:
+    """`--resume` for a run that stopped after a checkpoint; a run that stopped before its first
+    checkpoint is removed (it starts again: its metric lines would otherwise stay)."""
+    if (run / "checkpoints" / "last.txt").exists():
+        return ["--resume"]
+    if run.exists():
+        shutil.rmtree(run)
+    return []
+
+
 def bench(script: str, *args: str, env: dict[str, str]) -> dict:
     """`python bench/SCRIPT ARGS`, printed first; its last output line, the bench's JSON result."""
     print(f"+ python bench/{script} " + " ".join(args), flush=True)

@@ -14,7 +14,8 @@ visual modes (docs/pipelines/force_matched_tactile.toml, force_matched_visual.to
 `--env-kwarg sensor_mode=tactile|visual`), over the seeds, CNN encoder. The thesis trains 20k steps
 from an ImageNet-pretrained ResNet-18; the default 4000 is what the CPU allows. Each step is a
 printed `shiftkit` command; a rerun with the same --workdir reuses the demonstrations, datasets,
-finished trainings (their `card.json`) and evaluations.
+finished trainings (their `card.json`) and evaluations, and resumes an interrupted training from
+its last checkpoint.
 
     python bench/science/force_matched_bc.py --workdir /tmp/fmbc  # --steps 20000 for the thesis' length
 
@@ -30,7 +31,18 @@ to 1 s (its numbers mean nothing).
 
 from __future__ import annotations
 
-from _study import arguments, choices_of, docs_pipeline, evaluate, pool, report, seeds_of, shiftkit, workspace
+from _study import (
+    arguments,
+    choices_of,
+    docs_pipeline,
+    evaluate,
+    pool,
+    report,
+    resumable,
+    seeds_of,
+    shiftkit,
+    workspace,
+)
 
 TASKS = ("flat-handle-open", "flat-handle-close", "knob-open", "knob-close")
 ENCODERS = ("cnn", "resnet18")
@@ -85,7 +97,7 @@ def main() -> None:
                                 "train", "bc", "--dataset", str(dataset), "--output", str(run), "--regime", "fixed",
                                 "--steps", str(steps), "--ensemble", "1", "--batch-size", "32", "--inputs", INPUTS,
                                 "--encoder", encoder, "--hidden", "256,256", "--threads", "1", "--device", "cpu",
-                                "--seed", str(seed), "--no-progress", env=env,
+                                "--seed", str(seed), "--no-progress", *resumable(run), env=env,
                             )  # fmt: skip
                         sensor = [] if mode is None else ["--env-kwarg", f"sensor_mode={mode}"]
                         result = evaluate(

@@ -48,7 +48,6 @@ its numbers mean nothing.
 from __future__ import annotations
 
 import os
-import shutil
 from pathlib import Path
 
 from _study import (
@@ -59,6 +58,7 @@ from _study import (
     iqm_ci,
     pool,
     report,
+    resumable,
     seeds_of,
     shiftkit,
     workspace,
@@ -101,16 +101,6 @@ def curve(runs: list[Path]) -> dict:
         "ci95": [[round(lo, 4), round(hi, 4)] for _, lo, hi in stats],
         "runs": len(runs),
     }
-
-
-def resumable(run: Path) -> list[str]:
-    """`--resume` for a run that stopped after a checkpoint; a run that stopped before its first
-    checkpoint is removed (it starts again: its metric lines would otherwise stay)."""
-    if (run / "checkpoints" / "last.txt").exists():
-        return ["--resume"]
-    if run.exists():
-        shutil.rmtree(run)
-    return []
 
 
 def main() -> None:
