@@ -19,7 +19,10 @@ file and fills the feature's `info` from the first episode (`writer.DatasetWrite
 picks the encoder of a feature (the source's recorded settings, else lerobot's defaults) for the
 writer and for pipeline workers alike: a worker encodes each episode's cameras into a file of its
 own (`encode_episode_video` -> `EncodedVideo`), so encoding runs in parallel across workers and a
-run's work folder holds encoded video rather than pixels; the writer appends those files.
+run's work folder holds encoded video rather than pixels; the writer appends those files. An RGB
+camera's encoder reaches workers as plain data (`Codec`, `codec_for`), resolved with lerobot's code
+in the main process (`resolve`, `answers`): importing lerobot imports torch (3-6 s and ~0.7 GB per
+process here), which a worker that copies, cuts or encodes RGB video does not need.
 """
 
 from __future__ import annotations
@@ -27,11 +30,12 @@ from __future__ import annotations
 import bisect
 import collections
 import contextlib
+import dataclasses
 import functools
 import logging
 import math
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
@@ -232,15 +236,15 @@ def scheduling_kept() -> Iterator[None]:
             os.sched_setscheduler(0, policy, param)
 
 
-def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encoder_threads: int | None = None) -> None:
+def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any) -> None:
     """lerobot's `encode_video_frames` (same codec, options, pixel format and muxing; depth through
     its `quantize_depth`) fed from memory: it reads the PNG / TIFF files a recorder wrote, which a
-    pipeline would have to write first. `encoder`: lerobot's `RGBEncoderConfig` for uint8
-    (T, H, W, 3) frames or `DepthEncoderConfig` for (T, H, W, 1) depth in its stored unit."""
+    pipeline would have to write first. `encoder`: a `Codec` or lerobot's `RGBEncoderConfig` for
+    uint8 (T, H, W, 3) frames, lerobot's `DepthEncoderConfig` for (T, H, W, 1) depth in its stored
+    unit."""
     import av
-    from lerobot.configs import DepthEncoderConfig
 
-    if isinstance(encoder, DepthEncoderConfig):
+    if not isinstance(encoder, Codec) and _is_depth_encoder(encoder):
         from lerobot.datasets.depth_utils import quantize_depth
 
         def picture(frame: np.ndarray) -> Any:
@@ -258,32 +262,33 @@ def encode_frames(frames: np.ndarray, path: Path, fps: int, encoder: Any, encode
         def picture(frame: np.ndarray) -> Any:
             return av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
 
-    encode_pictures((picture(f) for f in frames), len(frames), frames.shape[1:3], path, fps, encoder, encoder_threads)
+    encode_pictures((picture(f) for f in frames), len(frames), frames.shape[1:3], path, fps, encoder)
+
+
+def _is_depth_encoder(encoder: Any) -> bool:
+    from lerobot.configs import DepthEncoderConfig
+
+    return isinstance(encoder, DepthEncoderConfig)
 
 
 def encode_pictures(
-    pictures: Iterable[Any],
-    count: int,
-    size: tuple[int, int],
-    path: Path,
-    fps: int,
-    encoder: Any,
-    encoder_threads: int | None = None,
+    pictures: Iterable[Any], count: int, size: tuple[int, int], path: Path, fps: int, encoder: Any
 ) -> None:
     """`count` pictures (PyAV frames) of `size` (height, width) encoded into `path` at `fps` as
     lerobot's `encode_video_frames` encodes, each handed to the encoder in its own pixel format
-    (PyAV converts it to the encoder's where it differs)."""
+    (PyAV converts it to the encoder's where it differs). `encoder`: a `Codec` or one of lerobot's
+    encoder configs."""
     import logging
 
     import av
 
-    check_frame_size(encoder.vcodec, *size)
-    options = encoder.get_codec_options(encoder_threads, as_strings=True)
+    codec = Codec.of(encoder)
+    check_frame_size(codec.vcodec, *size)
     logging.getLogger("libav").setLevel(av.logging.WARNING)
     try:
         with scheduling_kept(), av.open(str(path), "w") as output:
-            stream = output.add_stream(encoder.vcodec, fps, options=options)
-            stream.pix_fmt = encoder.pix_fmt
+            stream = output.add_stream(codec.vcodec, fps, options=dict(codec.options))
+            stream.pix_fmt = codec.pix_fmt
             stream.height, stream.width = size
             for picture in pictures:
                 for packet in stream.encode(picture):
@@ -353,6 +358,58 @@ def _recorded_encoder(settings: str) -> Any:
         return default_encoders()["rgb"]
 
 
+@dataclasses.dataclass(frozen=True)
+class Codec:
+    """What PyAV needs to encode as one of lerobot's encoder configs says, as plain data (a worker
+    gets it from the main process and need not import lerobot)."""
+
+    vcodec: str
+    """The encoder (FFmpeg's name, e.g. `libsvtav1`)."""
+    pix_fmt: str
+    """The pixel format it encodes in."""
+    options: tuple[tuple[str, str], ...]
+    """Its options as lerobot's `get_codec_options(as_strings=True)` gives them, in that order."""
+
+    @classmethod
+    def of(cls, encoder: Any) -> Codec:
+        """`encoder` (a Codec, or lerobot's encoder config) as a Codec."""
+        if isinstance(encoder, Codec):
+            return encoder
+        options = encoder.get_codec_options(None, as_strings=True)
+        return cls(encoder.vcodec, encoder.pix_fmt, tuple(options.items()))
+
+
+def codec_for(ft: dict[str, Any]) -> Codec:
+    """`encoder_for(ft)` as a `Codec`: resolved once per recorded settings, in a worker from the
+    answers its main process gave it (`answers`). Depth is encoded with lerobot's config itself
+    (its `quantize_depth`); its Codec names the codec."""
+    info = {k: v for k, v in (ft.get("info") or {}).items() if k.startswith("video.")}
+    return resolve("codec", lambda: Codec.of(encoder_for(ft)), info, depth.is_depth(ft))
+
+
+# lerobot's answers to questions about encoders, by question (`resolve`); see the module docstring.
+_ANSWERS: dict[str, Any] = {}
+
+
+def resolve(question: str, compute: Callable[[], Any], *about: Any) -> Any:
+    """The answer to `question` about `about` (JSON data): `compute()` the first time it is asked in
+    this process unless the main process's answers (`take_answers`) hold it."""
+    key = dumps([question, *about])
+    if key not in _ANSWERS:
+        _ANSWERS[key] = compute()
+    return _ANSWERS[key]
+
+
+def answers() -> dict[str, Any]:
+    """The answers this process resolved (`resolve`), to hand to its workers."""
+    return dict(_ANSWERS)
+
+
+def take_answers(given: dict[str, Any]) -> None:
+    """Answers resolved by the main process (`answers`), used before computing any here."""
+    _ANSWERS.update(given)
+
+
 class EncodedVideo:
     """One camera's frames of one output episode, encoded into a file of their own by a pipeline
     worker with the encoder the writer would use (`encoder_for`); the writer appends the file to the
@@ -388,7 +445,7 @@ def encode_episode_video(frames: np.ndarray, ft: dict[str, Any], fps: int, path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}-{os.getpid()}{path.suffix}")  # PyAV picks the muxer by suffix
     try:
-        encode_frames(stored, tmp, fps, encoder_for(ft))
+        encode_frames(stored, tmp, fps, encoder_for(ft) if depth.is_depth(ft) else codec_for(ft))
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -413,7 +470,7 @@ def transcode_episode(
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}-{os.getpid()}{path.suffix}")
     try:
-        encode_pictures(pictures, len(pictures), size, tmp, fps, encoder_for(ft))
+        encode_pictures(pictures, len(pictures), size, tmp, fps, codec_for(ft))
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

@@ -45,7 +45,7 @@ import numpy as np
 
 from shiftkit.datasets.depth import is_depth
 from shiftkit.datasets.errors import DatasetError
-from shiftkit.datasets.video import TOLERANCE_S, decode_pictures
+from shiftkit.datasets.video import TOLERANCE_S, codec_for, decode_pictures, scheduling_kept
 
 
 class VideoRef:
@@ -444,14 +444,12 @@ def _encode(frames: list[Any], stream: Any, ref: VideoRef) -> list[Any]:
     own that starts on a keyframe, in the decoder's pixel format and the source's clock."""
     import av
 
-    from shiftkit.datasets.video import encoder_for, scheduling_kept
-
     source = stream.codec_context
-    encoder = encoder_for(ref.feature)
-    ctx = av.CodecContext.create(encoder.vcodec, "w")
+    codec = codec_for(ref.feature)
+    ctx = av.CodecContext.create(codec.vcodec, "w")
     ctx.width, ctx.height, ctx.pix_fmt = source.width, source.height, source.pix_fmt
     ctx.time_base, ctx.framerate = stream.time_base, stream.average_rate
-    ctx.options = encoder.get_codec_options(None, as_strings=True)
+    ctx.options = dict(codec.options)
     out = []
     with scheduling_kept():
         for frame in frames:

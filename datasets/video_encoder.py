@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from shiftkit.datasets.errors import ConfigError, DatasetError
-from shiftkit.datasets.video import check_frame_size, scheduling_kept
+from shiftkit.datasets.video import check_frame_size, resolve, scheduling_kept
 
 ENCODER_SETTINGS = ("vcodec", "pix_fmt", "g", "crf", "preset")
 """The encoder settings a destination may give, by lerobot's `VideoEncoderConfig` field names."""
@@ -56,13 +56,17 @@ def rgb_encoder(info: dict[str, Any] | None, settings: dict[str, Any]) -> Any:
 def encoded_info(info: dict[str, Any] | None, settings: dict[str, Any]) -> dict[str, Any]:
     """A camera's feature `info` with the encoder settings it is encoded with (`rgb_encoder`) as its
     `video.*` keys, which the writer reads back (lerobot's `encoder_config_from_video_info`), then
-    overwrites with what it probes from the written stream."""
-    from lerobot.configs.video import VIDEO_ENCODER_INFO_FIELD_NAMES
+    overwrites with what it probes from the written stream. Resolved once (`video.resolve`): a worker
+    takes its main process's answer."""
 
-    config = rgb_encoder(info, settings)
-    recorded = {"video.codec": config.vcodec, "video.pix_fmt": config.pix_fmt}
-    recorded |= {f"video.{name}": getattr(config, name) for name in sorted(VIDEO_ENCODER_INFO_FIELD_NAMES)}
-    return {**(info or {}), **recorded}
+    def compute() -> dict[str, Any]:
+        from lerobot.configs.video import VIDEO_ENCODER_INFO_FIELD_NAMES
+
+        config = rgb_encoder(info, settings)
+        recorded = {"video.codec": config.vcodec, "video.pix_fmt": config.pix_fmt}
+        return recorded | {f"video.{name}": getattr(config, name) for name in sorted(VIDEO_ENCODER_INFO_FIELD_NAMES)}
+
+    return {**(info or {}), **resolve("encoded_info", compute, info, settings)}
 
 
 def check_rgb_encoder(key: str, feature: dict[str, Any], settings: dict[str, Any]) -> None:

@@ -25,7 +25,7 @@ from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.pipelines.executor_settings import RaySettings, SlurmSettings
 from shiftkit.pipelines.planner import Plan
 from shiftkit.pipelines.shards import RAY_NODE_VAR, FailureStore, Shard, ShardStep, nodes_used, plan_shards
-from shiftkit.pipelines.work import PART_SUFFIX, PartStore, WorkUnit
+from shiftkit.pipelines.work import PART_SUFFIX, PartStore, WorkUnit, worker_answers
 
 SHARD_EPISODES = 16
 ATTEMPTS = 3
@@ -63,7 +63,7 @@ class DatatroveExecutor:
         todo = [s for s in plan_shards(units, self.shard_episodes) if not s.done(parts)]
         if not todo:
             return True
-        step = ShardStep(plan.config, todo, self.attempts, [type(s) for s in plan.stages])
+        step = ShardStep(plan.config, todo, self.attempts, [type(s) for s in plan.stages], worker_answers(plan))
         tasks = min(self.workers, len(todo))
         logdir = parts.dir.parent / "datatrove" / self.name
         failures = FailureStore(parts.dir.parent)

@@ -60,8 +60,9 @@ class LocalExecutor:
             return True
         # spawn, not fork: stages may hold threads (torch, EGL) that do not survive a fork.
         ctx = multiprocessing.get_context("spawn")
+        answers = work.worker_answers(plan)
         with ProcessPoolExecutor(
-            self.workers, mp_context=ctx, initializer=work.init_worker, initargs=(plan.config, os.getpid())
+            self.workers, mp_context=ctx, initializer=work.init_worker, initargs=(plan.config, os.getpid(), answers)
         ) as pool:
             futures = [pool.submit(work.process_unit, unit) for unit in units]
             try:

@@ -23,7 +23,7 @@ from shiftkit.datasets.depth import depth_unit, is_depth
 from shiftkit.datasets.errors import ConfigError, DatasetError
 from shiftkit.datasets.features import CAMERA_DTYPES, NUMERIC_DTYPES, Features, check_features, plain_camera_features
 from shiftkit.datasets.sources import Source, input_paths, open_source
-from shiftkit.datasets.video import check_frame_size, encoder_for
+from shiftkit.datasets.video import check_frame_size, codec_for
 from shiftkit.datasets.video_copy import shows_frames_at
 from shiftkit.datasets.video_encoder import check_rgb_encoder, encoded_info, stream_matches
 from shiftkit.pipelines.config import PipelineConfig, StageSpec, toml_string, toml_value
@@ -205,9 +205,10 @@ def build_chain(specs: list[StageSpec], features: Features, fps: int, where: str
     return stages, features, fps
 
 
-def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Plan:
+def plan_pipeline(config: PipelineConfig, worker: bool = False) -> Plan:
     """Open the sources and build the stage chains, checking that the sources match after their own
-    stages and that the destination is free and outside them."""
+    stages and that the destination is free and outside them. A worker's plan (`worker`) leaves out
+    what its main process checked: the destination and its encoder settings."""
     sources = [open_source(s) for s in config.sources]
     chains = []
     for i, (spec, src) in enumerate(zip(config.sources, sources, strict=True)):
@@ -230,7 +231,7 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     features = {k: _video_at(ft, fps) for k, ft in features.items()}
     settings = config.destination.encoder_settings()
     for key, ft in features.items():  # the destination's encoder settings, checked before anything runs
-        if ft["dtype"] == "video" and not is_depth(ft):
+        if not worker and ft["dtype"] == "video" and not is_depth(ft):
             check_rgb_encoder(key, ft, settings)
     plan = Plan(
         config,
@@ -251,10 +252,10 @@ def plan_pipeline(config: PipelineConfig, check_destination: bool = True) -> Pla
     for key, ft in plan.features.items():  # a size the encoder would crash on, said before anything runs
         if ft["dtype"] == "video" and key not in plan.video_copies:
             try:
-                check_frame_size(encoder_for(ft).vcodec, *tuple(ft["shape"])[:2])
+                check_frame_size(codec_for(ft).vcodec, *tuple(ft["shape"])[:2])
             except DatasetError as exc:
                 raise ConfigError(f"{key}: {exc}") from None
-    if check_destination and plan.destination.exists():
+    if not worker and plan.destination.exists():
         raise DatasetError(f"destination already exists: {plan.destination}")
     check_sources_and_destination(config, sources, plan.destination)
     return plan

@@ -115,9 +115,12 @@ class ShardStep(PipelineStep):
     name = "shiftkit shards"
     type = "🤖 - SHIFTKIT"
 
-    def __init__(self, config: Any, shards: list[Shard], attempts: int, stage_classes: list[type[Stage]]) -> None:
+    def __init__(
+        self, config: Any, shards: list[Shard], attempts: int, stage_classes: list[type[Stage]], answers: dict[str, Any]
+    ) -> None:
         super().__init__()
         self.config = config
+        self.answers = answers  # work.worker_answers: what the tasks need not import lerobot for
         self.shards = shards
         self.attempts = attempts
         # The stage classes travel with the step, so stages registered outside shiftkit's own
@@ -141,7 +144,7 @@ class ShardStep(PipelineStep):
             for attempt in range(1, self.attempts + 1):
                 try:
                     if plan is None:  # set up once per rank, and again after a failure
-                        plan = work.init_worker(self.config)
+                        plan = work.init_worker(self.config, answers=self.answers)
                     for unit in shard.units:
                         self.stat_update("episodes", value=work.process_unit(unit))
                     failures.clear(shard.index)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from shiftkit.datasets import data_tree
+from shiftkit.datasets import data_tree, video
 from shiftkit.datasets.episode import Episode
 from shiftkit.datasets.features import check_episode
 from shiftkit.datasets.staging import sibling
@@ -251,10 +251,26 @@ def exit_with_parent(main_pid: int | None, period: float = 1.0) -> None:
 _WORKER: dict[str, Any] = {}
 
 
-def init_worker(config: PipelineConfig, main_pid: int | None = None) -> Plan:
-    """Set up a worker process (a pool's, a datatrove task's): its own plan, its stages set up."""
+def init_worker(config: PipelineConfig, main_pid: int | None = None, answers: dict[str, Any] | None = None) -> Plan:
+    """Set up a worker process (a pool's, a datatrove task's): its own plan, its stages set up.
+    `answers`: its main process's `worker_answers`."""
     exit_with_parent(main_pid)
-    return set_up_worker(plan_pipeline(config, check_destination=False))
+    video.take_answers(answers or {})
+    return set_up_worker(plan_pipeline(config, worker=True))
+
+
+def worker_answers(plan: Plan) -> dict[str, Any]:
+    """What the workers of `plan` would otherwise ask lerobot, resolved in this process (which has
+    it loaded): the codec of each camera they may encode (the output's encoded cameras, the sources'
+    cameras read encoded: cut or transcoded). A worker given them imports neither lerobot nor torch
+    unless a stage or depth video needs them (`video.codec_for`)."""
+    for key, ft in plan.features.items():
+        if ft["dtype"] == "video" and key not in plan.video_copies:
+            video.codec_for(ft)
+    for i, source in enumerate(plan.sources):
+        for key in plan.video_refs(i):
+            video.codec_for(source.features[key])
+    return video.answers()
 
 
 def set_up_worker(plan: Plan) -> Plan:

@@ -696,3 +696,62 @@ def test_statistics_of_encoded_frames_decode_only_the_frames_lerobot_samples(mon
         assert got[key].keys() == expected[key].keys()
         for name, value in expected[key].items():
             np.testing.assert_array_equal(got[key][name], value, err_msg=f"{key} {name}")
+
+
+_WORKER = """
+import json, pickle, sys
+from shiftkit.pipelines import work
+config, answers, units = pickle.load(open(sys.argv[1], "rb"))
+work.init_worker(config, None, answers)
+for unit in units:
+    work.process_unit(unit)
+print(json.dumps(sorted(m for m in sys.modules if m.split(".")[0] in ("lerobot", "torch"))))
+"""
+
+
+@pytest.mark.parametrize(
+    ("stage", "destination"),
+    [
+        (StageSpec("trim", {"head": 1, "tail": 2}), {"crf": 29}),  # transcoded from the decoder's pixels
+        (StageSpec("resize", {"width": 32, "height": 16, "features": [CAMERAS[0]]}), {}),  # from RGB frames
+    ],
+    ids=["transcode", "resize"],
+)
+def test_a_worker_encodes_rgb_video_without_importing_lerobot(stage, destination, tmp_path, monkeypatch):
+    """A pool worker (a fresh process, as `spawn` starts it) that encodes RGB video gets each
+    camera's codec from its main process (`work.worker_answers`) and does not import lerobot, nor
+    torch unless its stage does (`resize` interpolates with torch): 3-6 s and ~0.7 GB per worker here.
+    Given no answers it asks lerobot itself. Either way the dataset the writer makes of its parts is
+    the one a single process writes, byte for byte."""
+    import pickle
+    import subprocess
+    import sys
+
+    from shiftkit.pipelines import work
+    from shiftkit.pipelines.planner import plan_pipeline
+
+    source = recording(SMALL)
+    reference = _run([source], tmp_path / "reference", [stage], **destination)
+    imported = {}
+    for given in ("answers", "none"):
+        out = tmp_path / given
+        config = PipelineConfig(
+            sources=[SourceConfig(path=str(source))],
+            destination=DestinationConfig(root=str(out), **destination),
+            stages=[stage],
+        )
+        plan = plan_pipeline(config)
+        work.work_dir_for(out).mkdir()  # as the runner prepares it before its executor starts
+        (work.work_dir_for(out) / "run_key").write_text(work.run_key(plan))
+        answers = work.worker_answers(plan) if given == "answers" else None
+        args = tmp_path / f"{given}.pickle"
+        args.write_bytes(pickle.dumps((config, answers, work.plan_units(plan))))
+        done = subprocess.run([sys.executable, "-c", _WORKER, str(args)], capture_output=True, text=True, check=True)
+        imported[given] = json.loads(done.stdout.splitlines()[-1])
+        with monkeypatch.context() as m:  # the writer takes the worker's parts: nothing is transformed again
+            m.setattr(work, "process_unit", lambda unit: pytest.fail("a finished part was transformed again"))
+            run_pipeline(config, progress=False)
+        assert _files(out) == _files(reference)
+    assert not [m for m in imported["answers"] if m.startswith("lerobot")]
+    assert stage.name == "resize" or imported["answers"] == []  # not even torch
+    assert "torch" in imported["none"] and "lerobot.configs" in imported["none"]
